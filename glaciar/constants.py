@@ -1,0 +1,96 @@
+"""Facts defined once: status codes, column names, physical constants, defaults.
+
+Every module that needs one of these imports it from here.
+"""
+from __future__ import annotations
+
+# --------------------------------------------------------------------------
+# Recovery status codes (GLACiAR's meaning, Carrasco et al. 2018, Sect. 2.4)
+# --------------------------------------------------------------------------
+STATUS_ISOLATED = 0            #: detected, no original source under its footprint
+STATUS_BLENDED_FAINTER = 1     #: blended with a fainter original source (recovered)
+STATUS_BLENDED_PASSED = 2      #: blended with a brighter source, passes overlap+flux tests (recovered)
+STATUS_BLENDED_FAILED = -1     #: blended with a brighter source, fails them (not recovered)
+STATUS_LOW_SN = -2             #: detected, S/N below the threshold
+STATUS_NOT_DETECTED = -3       #: nothing in the search box
+
+STATUS_CODES = (STATUS_ISOLATED, STATUS_BLENDED_FAINTER, STATUS_BLENDED_PASSED,
+                STATUS_BLENDED_FAILED, STATUS_LOW_SN, STATUS_NOT_DETECTED)
+RECOVERED_STATUSES = (STATUS_ISOLATED, STATUS_BLENDED_FAINTER, STATUS_BLENDED_PASSED)
+STATUS_LABELS = {
+    STATUS_ISOLATED: "isolated",
+    STATUS_BLENDED_FAINTER: "blended_fainter",
+    STATUS_BLENDED_PASSED: "blended_brighter_passed",
+    STATUS_BLENDED_FAILED: "blended_brighter_failed",
+    STATUS_LOW_SN: "low_sn",
+    STATUS_NOT_DETECTED: "not_detected",
+}
+
+# Per-task flags (bit field, column FLAGS)
+FLAG_SEP_ERROR = 1             #: sep raised (e.g. deblending overflow) for this source's window
+FLAG_WINDOW_AT_LIMIT = 2       #: detection window hit its maximum size before isolating the source
+FLAG_STAMP_CLIPPED = 4         #: stamp partly outside the image
+
+# --------------------------------------------------------------------------
+# Physical constants
+# --------------------------------------------------------------------------
+C_ANGSTROM_PER_S = 2.99792458e18   #: speed of light [Angstrom / s]
+AB_ZEROPOINT_FNU = -48.60          #: m_AB = -2.5 log10(f_nu [erg/s/cm^2/Hz]) - 48.60
+LYA_REST_ANGSTROM = 1215.67        #: Lyman-alpha rest wavelength [Angstrom]
+LYLIMIT_REST_ANGSTROM = 911.75     #: Lyman limit rest wavelength [Angstrom]
+UV_REST_ANGSTROM = 1600.0          #: rest wavelength of M_UV [Angstrom]
+FAINT_MAG_LIMIT = 50.0             #: bands fainter than this get no stamp (GLACiAR's rule)
+
+# --------------------------------------------------------------------------
+# Per-source columns of the results store
+# --------------------------------------------------------------------------
+COL_FIELD = "field"
+COL_Z = "z"                     #: input redshift
+COL_MAG = "mag"                 #: nominal magnitude of the task (bin centre)
+COL_MAG_INPUT = "mag_input"     #: total input AB magnitude in the detection band (the covariate)
+COL_ITERATION = "iteration"
+COL_TASK_SEED = "task_seed"
+COL_SOURCE = "source_index"     #: index of the source within its task
+COL_X = "x"                     #: input position, 0-based pixel (numpy axis 1)
+COL_Y = "y"                     #: input position, 0-based pixel (numpy axis 0)
+COL_SERSIC_N = "sersic_n"
+COL_AXIS_RATIO = "axis_ratio"
+COL_PA = "position_angle_deg"
+COL_R_EFF_KPC = "r_eff_kpc"
+COL_R_EFF_ARCSEC = "r_eff_arcsec"
+COL_R_EFF_PIX = "r_eff_pix"
+COL_BETA = "beta"
+COL_M_UV = "M_uv"
+COL_STATUS = "status"
+COL_RECOVERED = "recovered"
+COL_SELECTED = "selected"
+COL_DETECTION_ID = "detection_id"
+COL_FLAGS = "flags"
+COL_OVERLAP_FRACTION = "overlap_fraction"
+COL_BLEND_ID = "blend_original_id"
+COL_BLEND_MAG = "blend_original_mag"
+
+
+def band_column(quantity: str, band: str) -> str:
+    """Column name of a per-band quantity, e.g. ``band_column("sn", "f160w") == "sn_f160w"``.
+
+    Per-band quantities: ``mag_in`` (total input magnitude), ``mag_in_stamp``
+    (magnitude of the flux inside the stamp), ``flux_in`` (input flux, image
+    units), ``flux_iso``, ``fluxerr_iso``, ``flux_auto``, ``fluxerr_auto``,
+    ``flux_aper{k}``, ``fluxerr_aper{k}``, ``mag`` (measured, from the S/N
+    flux definition; NaN when the flux is not positive), ``magerr``, ``sn``.
+    """
+    return f"{quantity}_{band.lower()}"
+
+
+BAND_QUANTITIES = ("mag_in", "mag_in_stamp", "flux_in", "flux_iso", "fluxerr_iso",
+                   "flux_auto", "fluxerr_auto", "mag", "magerr", "sn")
+
+# --------------------------------------------------------------------------
+# Results store layout (relative to the run directory)
+# --------------------------------------------------------------------------
+RESULTS_DIRNAME = "results"          #: one Parquet file per finished task
+MANIFEST_NAME = "manifest.json"
+RUN_CONFIG_NAME = "config.yaml"      #: the resolved config the run was made with
+SUMMARY_DIRNAME = "summary"
+SELECTION_FUNCTION_NAME = "selection_function.fits"

@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# Set up a fresh virtualenv in .venv-test, install glaciar[test] into it, run pytest.
+# pytest exit code 5 ("no tests collected") is a failure here.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+"$PY" -m venv .venv-test
+.venv-test/bin/python -m pip install --quiet --upgrade pip
+.venv-test/bin/python -m pip install --quiet -e ".[test]"
+set +e
+.venv-test/bin/python -m pytest -q "$@"
+rc=$?
+set -e
+if [ "$rc" -eq 5 ]; then echo "no tests collected: failing" >&2; exit 1; fi
+exit "$rc"
