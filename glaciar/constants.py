@@ -78,13 +78,15 @@ def band_column(quantity: str, band: str) -> str:
     (magnitude of the flux inside the stamp), ``flux_in`` (input flux, image
     units), ``flux_iso``, ``fluxerr_iso``, ``flux_auto``, ``fluxerr_auto``,
     ``flux_aper{k}``, ``fluxerr_aper{k}``, ``mag`` (measured, from the S/N
-    flux definition; NaN when the flux is not positive), ``magerr``, ``sn``.
+    flux definition; NaN when the flux is not positive), ``magerr``, ``sn``,
+    ``maglim`` (magnitude of max(flux, 1 sigma error): the usual 1-sigma limit
+    for non-detections, so a colour cut never passes on a NaN or 99 magnitude).
     """
     return f"{quantity}_{band.lower()}"
 
 
 BAND_QUANTITIES = ("mag_in", "mag_in_stamp", "flux_in", "flux_iso", "fluxerr_iso",
-                   "flux_auto", "fluxerr_auto", "mag", "magerr", "sn")
+                   "flux_auto", "fluxerr_auto", "mag", "magerr", "sn", "maglim")
 
 # --------------------------------------------------------------------------
 # Results store layout (relative to the run directory)
