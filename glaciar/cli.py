@@ -1,0 +1,189 @@
+"""The ``glaciar`` command: demo, init, simulate, report, fit, next.
+
+Every sub-command turns expected failures (bad config, missing file, mismatched
+store) into a one-line message on stderr and exit status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from . import __version__
+from . import constants as C
+
+__all__ = ["main"]
+
+
+def _cmd_init(args) -> int:
+    from .config import template_yaml
+    from .store import atomic_write_text
+
+    path = Path(args.path)
+    if path.exists() and not args.force:
+        raise FileExistsError(f"{path}: exists; use --force to overwrite")
+    atomic_write_text(path, template_yaml())
+    print(f"wrote {path}")
+    return 0
+
+
+def _load(config_path):
+    from .config import check_files, load_config
+
+    cfg = load_config(config_path)
+    check_files(cfg)
+    for w in getattr(cfg, "warnings", ()) or ():
+        print(f"warning: {w}", file=sys.stderr)
+    return cfg
+
+
+def _cmd_simulate(args) -> int:
+    from .run import default_workers, simulate
+
+    cfg = _load(args.config)
+    out = Path(args.out) if args.out else Path(args.config).resolve().parent / "glaciar-run"
+    executor = None
+    if args.scheduler:
+        from dask.distributed import Client  # optional extra: pip install glaciar[dask]
+        executor = Client(args.scheduler).get_executor()
+    workers = args.workers if args.workers is not None else default_workers()
+    stats = simulate(cfg, out, workers=workers, seed=args.seed, executor=executor,
+                     progress=not args.quiet, mode=args.mode)
+    print(f"{stats['n_run']} tasks run ({stats['n_done_before']} already done of {stats['n_tasks']}), "
+          f"{stats['n_sources']} sources, {stats['wall_seconds']:.1f} s wall, "
+          f"{1e3 * stats['cpu_seconds'] / max(stats['n_sources'], 1):.3f} ms CPU per source")
+    _report(out, regions=bool(cfg.output.get("regions", False)))
+    print(f"results in {out}")
+    return 0
+
+
+def _report(run_dir: Path, regions: bool = False) -> list[Path]:
+    from .plots import plot_summary_maps
+    from .store import read_manifest, read_results
+    from .tables import summary_table, write_regions, write_summaries
+
+    rows = read_results(run_dir)
+    manifest = read_manifest(run_dir) or {}
+    out_dir = run_dir / C.SUMMARY_DIRNAME
+    meta = {k: manifest[k] for k in ("config_hash", "seed", "detection_band", "selection") if k in manifest}
+    paths = write_summaries(rows, out_dir, meta)
+    mag_label = "M_UV" if manifest.get("magnitude_type") == "absolute" else \
+        f"m ({manifest.get('detection_band', 'detection band')}, AB)"
+    for field, sub in rows.groupby(C.COL_FIELD):
+        paths += plot_summary_maps(summary_table(sub), out_dir, str(field), mag_label)
+    if regions:
+        paths += write_regions(rows, out_dir / "regions")
+    return paths
+
+
+def _cmd_report(args) -> int:
+    paths = _report(Path(args.run_dir), regions=args.regions)
+    for p in paths:
+        print(p)
+    return 0
+
+
+def _cmd_fit(args) -> int:
+    from .inference import run_fit
+
+    path = run_fit(args.run_dir, model=args.model, per_field=args.per_field, seed=args.seed,
+                   progress=not args.quiet)
+    print(f"wrote {path}")
+    return 0
+
+
+def _cmd_next(args) -> int:
+    from .inference.adaptive import propose_from_file
+
+    for z, m in propose_from_file(Path(args.run_dir) / C.SELECTION_FUNCTION_NAME, args.n):
+        print(f"{z:.3f} {m:.3f}")
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from .demo import build_demo_survey
+    from .run import default_workers, simulate
+
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    cfg_path = build_demo_survey(out / "survey", seed=args.seed)
+    print(f"demo survey written: {cfg_path} ({time.perf_counter() - t0:.1f} s)")
+    cfg = _load(cfg_path)
+    run_dir = out / "run"
+    workers = args.workers if args.workers is not None else default_workers()
+    stats = simulate(cfg, run_dir, workers=workers, progress=not args.quiet)
+    print(f"simulated {stats['n_sources']} sources in {stats['wall_seconds']:.1f} s")
+    for p in _report(run_dir, regions=False):
+        print(p)
+    if not args.no_fit:
+        from .inference import run_fit
+
+        path = run_fit(run_dir, progress=not args.quiet)
+        print(f"selection function: {path}")
+    print(f"demo finished in {time.perf_counter() - t0:.1f} s; results in {run_dir}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="glaciar", description=__doc__.splitlines()[0])
+    p.add_argument("--version", action="version", version=f"glaciar {__version__}")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("demo", help="build the embedded demo survey and run simulate → report → fit")
+    s.add_argument("--out", default="glaciar-demo")
+    s.add_argument("--workers", type=int, default=None)
+    s.add_argument("--seed", type=int, default=2018)
+    s.add_argument("--no-fit", action="store_true")
+    s.add_argument("--quiet", action="store_true")
+    s.set_defaults(func=_cmd_demo)
+
+    s = sub.add_parser("init", help="write a commented configuration template")
+    s.add_argument("path", nargs="?", default="glaciar.yaml")
+    s.add_argument("--force", action="store_true")
+    s.set_defaults(func=_cmd_init)
+
+    s = sub.add_parser("simulate", help="run (or resume) the injection-recovery simulation")
+    s.add_argument("config")
+    s.add_argument("--out", default=None, help="run directory (default: glaciar-run beside the config)")
+    s.add_argument("--workers", type=int, default=None, help="worker processes (default: all CPUs)")
+    s.add_argument("--seed", type=int, default=None, help="override simulation.seed")
+    s.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
+    s.add_argument("--mode", choices=["windowed", "full"], default="windowed")
+    s.add_argument("--quiet", action="store_true")
+    s.set_defaults(func=_cmd_simulate)
+
+    s = sub.add_parser("report", help="summary tables (ECSV) and plots of a run")
+    s.add_argument("run_dir")
+    s.add_argument("--regions", action="store_true", help="also write DS9 region files")
+    s.set_defaults(func=_cmd_report)
+
+    s = sub.add_parser("fit", help="fit C(m, z) and S(z, m) with emcee; write selection_function.fits")
+    s.add_argument("run_dir")
+    s.add_argument("--model", default="logistic")
+    s.add_argument("--per-field", action="store_true")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--quiet", action="store_true")
+    s.set_defaults(func=_cmd_fit)
+
+    s = sub.add_parser("next", help="(z, m) cells where the fitted selection is least certain")
+    s.add_argument("run_dir")
+    s.add_argument("-n", type=int, default=5)
+    s.set_defaults(func=_cmd_next)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted; finished tasks are kept, run the same command to resume", file=sys.stderr)
+        return 130
+    except (ValueError, FileNotFoundError, FileExistsError, RuntimeError, OSError, KeyError) as exc:
+        print(f"glaciar {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,181 @@
+"""One task, from random draws to per-source rows: the pure function workers call.
+
+A task is (field, z, nominal magnitude, iteration).  Everything random in it
+comes from one stream, ``numpy.random.SeedSequence(seed, spawn_key=(field_index,
+z_index, mag_index, iteration))``, so a task's rows do not depend on which
+worker ran it, in which order, or whether the run was resumed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from .. import constants as C
+from ..galaxy import population, sed
+from .measure import measure_injected
+from .positions import draw_positions
+from .scene import Scene
+
+__all__ = ["TaskSpec", "task_rng", "run_task", "SourceDraws", "draw_task_sources"]
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """Identity of one task on the simulation grid."""
+
+    field: str
+    field_index: int
+    z_index: int
+    mag_index: int
+    iteration: int
+    z: float
+    mag: float
+
+    def spawn_key(self) -> tuple[int, int, int, int]:
+        return (self.field_index, self.z_index, self.mag_index, self.iteration)
+
+
+def task_rng(seed: int, spec: TaskSpec) -> tuple[np.random.Generator, int]:
+    """The task's random generator and a 63-bit integer that identifies its stream."""
+    ss = np.random.SeedSequence(int(seed), spawn_key=spec.spawn_key())
+    ident = int(ss.generate_state(2, dtype=np.uint32).view(np.uint64)[0] >> np.uint64(1))
+    return np.random.default_rng(ss), ident
+
+
+@dataclass(frozen=True)
+class SourceDraws:
+    """Intrinsic properties of the sources of one task (arrays of length n)."""
+
+    beta: np.ndarray
+    mag_in: np.ndarray          #: (n, n_bands) total input AB magnitudes (+inf: no flux)
+    M_uv: np.ndarray
+    sersic_n: np.ndarray
+    axis_ratio: np.ndarray
+    position_angle_deg: np.ndarray
+    r_eff_kpc: np.ndarray
+    r_eff_arcsec: np.ndarray
+    r_eff_pix: np.ndarray
+
+
+def draw_task_sources(rng: np.random.Generator, n: int, z: float, mag: float, ctx) -> SourceDraws:
+    """Draw the spectra, brightness, shapes and sizes of ``n`` sources at redshift ``z``.
+
+    ``mag`` is the apparent AB magnitude in the detection band, or M_UV at rest
+    1600 A when the grid's magnitude type is ``absolute``.
+    """
+    model = ctx.source_model
+    beta = population.draw_beta(rng, n, model)
+    if ctx.magnitude_type == "absolute":
+        M_uv = np.full(n, float(mag))
+        mag_in = sed.band_magnitudes(z, beta, ctx.filters, M_uv=M_uv, cosmology=ctx.cosmology,
+                                     igm=model.igm)
+    else:
+        mag_in = sed.band_magnitudes(z, beta, ctx.filters, mag=np.full(n, float(mag)),
+                                     detection_index=ctx.detection_index, igm=model.igm)
+        M_uv = sed.absolute_magnitude(z, beta, ctx.filters[ctx.detection_index],
+                                      mag_in[:, ctx.detection_index], cosmology=ctx.cosmology,
+                                      igm=model.igm)
+    shapes = population.draw_shapes(rng, n, model)
+    r_kpc = population.r_eff_kpc(z, model, M_uv=M_uv, rng=rng)
+    r_arcsec = population.kpc_to_arcsec(r_kpc, z, ctx.cosmology)
+    r_pix = ctx.quantise_r_eff(r_arcsec / ctx.pixel_scale_arcsec)
+    r_arcsec = r_pix * ctx.pixel_scale_arcsec
+    return SourceDraws(beta=np.asarray(beta, float), mag_in=mag_in, M_uv=np.asarray(M_uv, float),
+                       sersic_n=shapes["sersic_n"], axis_ratio=shapes["axis_ratio"],
+                       position_angle_deg=shapes["position_angle_deg"],
+                       r_eff_kpc=np.asarray(r_kpc, float) * np.ones(n),
+                       r_eff_arcsec=np.asarray(r_arcsec, float) * np.ones(n),
+                       r_eff_pix=np.asarray(r_pix, float) * np.ones(n))
+
+
+def _mag_of_flux(flux: np.ndarray, zeropoint: float) -> np.ndarray:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(flux > 0, zeropoint - 2.5 * np.log10(np.where(flux > 0, flux, 1.0)), np.inf)
+
+
+def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed") -> pd.DataFrame:
+    """Run one task on a prepared field context and return its per-source rows.
+
+    Parameters
+    ----------
+    ctx : glaciar.run.FieldContext
+        Images, noise, reference extraction, template cache and settings of the field.
+    spec : TaskSpec
+        The (field, z, mag, iteration) cell.
+    seed : int
+        The run's seed.
+    mode : {"windowed", "full"}
+        Detection mode (``"full"`` re-extracts the whole frame; for validation).
+    """
+    rng, ident = task_rng(seed, spec)
+    n = ctx.n_galaxies
+    src = draw_task_sources(rng, n, spec.z, spec.mag, ctx)
+
+    # Stamp boxes (Sersic stamp + widest PSF) decide how close two sources may sit.
+    hh, hw = ctx.stamp_half_sizes(src.sersic_n, src.r_eff_pix, src.axis_ratio, src.position_angle_deg)
+    x, y = draw_positions(rng, ctx.footprint, hh, hw)
+    m = x.size
+    if m < n:
+        src = SourceDraws(**{k: v[:m] for k, v in src.__dict__.items()})
+
+    bands = ctx.bands
+    flux_in = np.empty((m, len(bands)))
+    mag_stamp = np.empty((m, len(bands)))
+    flags = np.zeros(m, dtype=np.int64)
+    stamps = {b: [] for b in bands}
+    for j, band in enumerate(bands):
+        flux = sed.mag_to_flux(src.mag_in[:, j], ctx.zeropoints[band])
+        skip = sed.bands_to_skip(src.mag_in[:, j:j + 1])[:, 0]
+        flux_in[:, j] = np.where(skip, 0.0, flux)
+        frac = np.zeros(m)
+        for i in np.flatnonzero(~skip):
+            ps = ctx.cache.stamp(band, src.sersic_n[i], src.axis_ratio[i], src.position_angle_deg[i],
+                                 src.r_eff_pix[i], x[i], y[i])
+            frac[i] = ps.in_stamp_fraction
+            stamps[band].append((ps.y0, ps.x0, ps.data * flux_in[i, j]))
+            if (ps.y0 < 0 or ps.x0 < 0 or ps.y0 + ps.data.shape[0] > ctx.shape[0]
+                    or ps.x0 + ps.data.shape[1] > ctx.shape[1]):
+                flags[i] |= C.FLAG_STAMP_CLIPPED
+        mag_stamp[:, j] = _mag_of_flux(flux_in[:, j] * frac, ctx.zeropoints[band])
+
+    scenes = {b: Scene(ctx.bases[b], stamps[b]) for b in bands}
+    det = ctx.detection_band
+    jd = ctx.detection_index
+    meas = measure_injected(scenes[det], ctx.rms[det], scenes, ctx.rms, x, y,
+                            flux_in[:, jd], src.mag_in[:, jd], ctx.reference, ctx.detection_params,
+                            ctx.classification_params, ctx.zeropoints, ctx.gains, det,
+                            mask=ctx.mask, mode=mode)
+
+    cols: dict[str, np.ndarray] = {
+        C.COL_FIELD: np.full(m, spec.field, dtype=object),
+        C.COL_Z: np.full(m, spec.z),
+        C.COL_MAG: np.full(m, spec.mag),
+        C.COL_ITERATION: np.full(m, spec.iteration, dtype=np.int64),
+        C.COL_TASK_SEED: np.full(m, ident, dtype=np.int64),
+        C.COL_SOURCE: np.arange(m, dtype=np.int64),
+        C.COL_X: x, C.COL_Y: y,
+        C.COL_SERSIC_N: src.sersic_n, C.COL_AXIS_RATIO: src.axis_ratio,
+        C.COL_PA: src.position_angle_deg, C.COL_R_EFF_KPC: src.r_eff_kpc,
+        C.COL_R_EFF_ARCSEC: src.r_eff_arcsec, C.COL_R_EFF_PIX: src.r_eff_pix,
+        C.COL_BETA: src.beta, C.COL_M_UV: src.M_uv,
+        C.COL_MAG_INPUT: src.mag_in[:, jd],
+    }
+    for j, band in enumerate(bands):
+        cols[C.band_column("mag_in", band)] = src.mag_in[:, j]
+        cols[C.band_column("mag_in_stamp", band)] = mag_stamp[:, j]
+        cols[C.band_column("flux_in", band)] = flux_in[:, j]
+    for key, val in meas.items():
+        if key == C.COL_FLAGS:
+            flags |= np.asarray(val, dtype=np.int64)
+        else:
+            cols[key] = np.asarray(val)
+    cols[C.COL_FLAGS] = flags
+    status = np.asarray(cols[C.COL_STATUS])
+    recovered = np.isin(status, C.RECOVERED_STATUSES)
+    cols[C.COL_RECOVERED] = recovered
+    table = pd.DataFrame(cols)
+    cols_sel = ctx.selection(table) if ctx.selection is not None else np.ones(m, bool)
+    table[C.COL_SELECTED] = recovered & np.asarray(cols_sel, dtype=bool)
+    return table

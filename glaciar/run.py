@@ -1,0 +1,335 @@
+"""Plan tasks, execute them on any executor, write results, resume.
+
+This is the edge of the package: it owns I/O, parallelism and progress bars.
+The science happens in :func:`glaciar.engine.task.run_task`, a pure function
+of a prepared :class:`FieldContext` and a :class:`~glaciar.engine.task.TaskSpec`.
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import math
+import os
+import time
+from dataclasses import dataclass, field as dc_field
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from . import __version__
+from . import constants as C
+from .config import Config, config_from_dict, config_hash, config_to_dict
+from .engine.detect import DetectionParams, measure_background
+from .engine.measure import reference_extraction
+from .engine.classify import ClassificationParams
+from .engine.selection import compile_selection
+from .engine.task import TaskSpec, run_task
+from .galaxy import population
+from .galaxy.filters import get_filter
+from .galaxy.psf import prepare_psf
+from .galaxy.sersic import stamp_shape
+from .galaxy.templates import TemplateCache
+from .store import (StoreMismatchError, atomic_write_text, finished_task_names, read_manifest,
+                    task_filename, write_manifest, write_task_table)
+from .survey import Survey
+
+__all__ = ["FieldContext", "build_field_context", "plan_tasks", "simulate", "R_EFF_LOG_STEP"]
+
+#: r_e is rounded to a logarithmic grid of this step (0.2 %) so that sources whose sizes
+#: scatter still share cached templates; the rounded value is the one injected and stored.
+R_EFF_LOG_STEP = math.log(1.002)
+
+
+@dataclass
+class FieldContext:
+    """Everything a task needs about one field, built once per worker process."""
+
+    field: str
+    bands: tuple[str, ...]
+    detection_band: str
+    detection_index: int
+    shape: tuple[int, int]
+    pixel_scale_arcsec: float
+    zeropoints: dict
+    gains: dict
+    filters: list
+    bases: dict            #: background-subtracted original images (float32)
+    rms: dict              #: per-pixel RMS maps (inf where no data)
+    mask: np.ndarray       #: True where the detection band has no valid data
+    footprint: np.ndarray
+    reference: object
+    cache: TemplateCache
+    psf_half: tuple[int, int]
+    source_model: population.SourceModel
+    cosmology: object
+    magnitude_type: str
+    n_galaxies: int
+    detection_params: DetectionParams
+    classification_params: ClassificationParams
+    selection: object
+    enclosed_fraction: float
+    _shape_cache: dict = dc_field(default_factory=dict)
+
+    @staticmethod
+    def quantise_r_eff(r_eff_pix):
+        """Round r_e [pixels] to the logarithmic grid of step :data:`R_EFF_LOG_STEP`."""
+        r = np.asarray(r_eff_pix, dtype=float)
+        return np.exp(np.round(np.log(r) / R_EFF_LOG_STEP) * R_EFF_LOG_STEP)
+
+    def stamp_half_sizes(self, n, r_eff_pix, axis_ratio, pa_deg):
+        """Half sizes (rows, cols) of each source's PSF-convolved stamp box [pixels]."""
+        hh = np.empty(len(n), dtype=np.int64)
+        hw = np.empty(len(n), dtype=np.int64)
+        for i, key in enumerate(zip(np.asarray(n, float), np.asarray(r_eff_pix, float),
+                                    np.asarray(axis_ratio, float), np.asarray(pa_deg, float))):
+            got = self._shape_cache.get(key)
+            if got is None:
+                ny, nx = stamp_shape(key[0], key[1], key[2], key[3],
+                                     enclosed_fraction=self.enclosed_fraction)
+                got = ((ny - 1) // 2 + self.psf_half[0] + 1, (nx - 1) // 2 + self.psf_half[1] + 1)
+                self._shape_cache[key] = got
+            hh[i], hw[i] = got
+        return hh, hw
+
+
+def _resolve_filter(spec: str, base_dir: Path):
+    p = Path(spec)
+    if not p.is_absolute():
+        p = base_dir / p
+    return get_filter(str(p)) if p.is_file() else get_filter(spec)
+
+
+def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext:
+    """Read a field's images once, measure backgrounds, extract the original image, set up caches."""
+    bands = tuple(b.name for b in cfg.survey.bands)
+    det = cfg.survey.detection_band
+    jd = bands.index(det)
+    pixscale = survey.pixel_scale_arcsec(field)
+    params = DetectionParams.from_sextractor(cfg.detection, base_dir=cfg.base_dir)
+    footprint = survey.footprint(field)
+    mask = ~footprint
+    bases, rms = {}, {}
+    psfs = {}
+    for b in cfg.survey.bands:
+        if b.psf is None:
+            raise ValueError(f"survey.bands.{b.name}.psf: a PSF (FITS path or analytic profile) is required")
+        psfs[b.name] = prepare_psf(b.psf, pixscale, base_dir=cfg.base_dir,
+                                   psf_pixel_scale_arcsec=b.psf_pixel_scale_arcsec)
+        img = survey.science(field, b.name)
+        noise = survey.rms(field, b.name)
+        valid = footprint & np.isfinite(img)
+        if noise is not None:
+            valid &= np.isfinite(noise) & (noise > 0)
+        bkg, bkg_rms = measure_background(img, ~valid, params)
+        base = np.where(valid, img - bkg, 0.0).astype(np.float32)
+        r = np.asarray(noise if noise is not None else bkg_rms, dtype=np.float32)
+        r = np.where(valid, r, np.float32(np.inf)).astype(np.float32)
+        bases[b.name], rms[b.name] = base, r
+    zps = {b.name: float(b.zeropoint) for b in cfg.survey.bands}
+    gains = {b.name: (None if b.gain is None else float(b.gain)) for b in cfg.survey.bands}
+    reference = reference_extraction(bases[det], rms[det], params, zps[det], mask=mask)
+    model = population.SourceModel(**cfg.source)
+    cache = TemplateCache(psfs, enclosed_fraction=model.stamp_flux_fraction)
+    psf_half = (max((p.shape[0] - 1) // 2 for p in psfs.values()),
+                max((p.shape[1] - 1) // 2 for p in psfs.values()))
+    selection = compile_selection(cfg.selection) if cfg.selection else None
+    return FieldContext(
+        field=field, bands=bands, detection_band=det, detection_index=jd,
+        shape=survey.shape(field), pixel_scale_arcsec=pixscale, zeropoints=zps, gains=gains,
+        filters=[_resolve_filter(b.filter, cfg.base_dir) for b in cfg.survey.bands],
+        bases=bases, rms=rms, mask=mask, footprint=footprint, reference=reference, cache=cache,
+        psf_half=psf_half, source_model=model, cosmology=population.get_cosmology(model.cosmology),
+        magnitude_type=cfg.grid.magnitude_type, n_galaxies=cfg.simulation.n_galaxies,
+        detection_params=params,
+        classification_params=ClassificationParams(**cfg.classification),
+        selection=selection, enclosed_fraction=model.stamp_flux_fraction)
+
+
+def plan_tasks(cfg: Config) -> list[TaskSpec]:
+    """All tasks of a run, ordered field → z → mag → iteration (so per-process caches stay warm)."""
+    out = []
+    for fi, f in enumerate(cfg.survey.fields):
+        for zi, z in enumerate(cfg.grid.z_values):
+            for mi, m in enumerate(cfg.grid.mag_values):
+                for it in range(cfg.simulation.n_iterations):
+                    out.append(TaskSpec(field=f, field_index=fi, z_index=zi, mag_index=mi,
+                                        iteration=it, z=float(z), mag=float(m)))
+    return out
+
+
+def spec_filename(spec: TaskSpec) -> str:
+    return task_filename(spec.field, spec.z_index, spec.mag_index, spec.iteration)
+
+
+# --------------------------------------------------------------------------
+# Worker side: a per-process cache of configs, surveys and field contexts.
+# --------------------------------------------------------------------------
+_CONTEXTS: dict = {}
+
+
+def _context(cfg_dict: dict, base_dir: str, field: str) -> FieldContext:
+    key = (config_hash(config_from_dict(cfg_dict, base_dir)), field)
+    ctx = _CONTEXTS.get(key)
+    if ctx is None:
+        cfg = config_from_dict(cfg_dict, base_dir)
+        _CONTEXTS.clear()          # one field at a time per process bounds memory
+        ctx = build_field_context(cfg, Survey.from_config(cfg), field)
+        _CONTEXTS[key] = ctx
+    return ctx
+
+
+def _run_chunk(cfg_dict: dict, base_dir: str, run_dir: str, seed: int, specs: list[TaskSpec],
+               mode: str = "windowed") -> list[tuple[str, int, float]]:
+    """Run a chunk of tasks of one field and write each task's file; return (name, rows, seconds)."""
+    done = []
+    for spec in specs:
+        t0 = time.process_time()
+        ctx = _context(cfg_dict, base_dir, spec.field)
+        table = run_task(ctx, spec, seed, mode=mode)
+        name = spec_filename(spec)
+        write_task_table(run_dir, name, table)
+        done.append((name, len(table), time.process_time() - t0))
+    return done
+
+
+def _chunks(specs: list[TaskSpec], n_workers: int) -> list[list[TaskSpec]]:
+    """Group consecutive tasks of the same (field, z) so a worker renders each template once."""
+    groups: dict = {}
+    for s in specs:
+        groups.setdefault((s.field_index, s.z_index), []).append(s)
+    size = max(1, math.ceil(len(specs) / max(1, 4 * n_workers)))
+    out = []
+    for g in groups.values():
+        for i in range(0, len(g), size):
+            out.append(g[i:i + size])
+    return out
+
+
+def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
+    area = {}
+    pixscale = {}
+    for f in cfg.survey.fields:
+        ps = survey.pixel_scale_arcsec(f)
+        pixscale[f] = ps
+        area[f] = float(survey.footprint(f).sum()) * ps ** 2 / 3600.0
+    return {
+        "glaciar_version": __version__,
+        "config_hash": config_hash(cfg),
+        "seed": int(seed),
+        "fields": list(cfg.survey.fields),
+        "bands": [b.name for b in cfg.survey.bands],
+        "detection_band": cfg.survey.detection_band,
+        "selection": list(cfg.selection),
+        "z_values": list(map(float, cfg.grid.z_values)),
+        "mag_values": list(map(float, cfg.grid.mag_values)),
+        "magnitude_type": cfg.grid.magnitude_type,
+        "n_galaxies": cfg.simulation.n_galaxies,
+        "n_iterations": cfg.simulation.n_iterations,
+        "pixel_scale_arcsec": pixscale,
+        "area_arcmin2": area,
+        "area_arcmin2_total": float(sum(area.values())),
+    }
+
+
+def prepare_run_dir(cfg: Config, run_dir: Path, seed: int) -> dict:
+    """Create or validate the run directory; refuse a store made with another config or seed."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    survey = Survey.from_config(cfg)
+    manifest = _manifest(cfg, survey, seed)
+    old = read_manifest(run_dir)
+    if old is not None:
+        if old.get("config_hash") != manifest["config_hash"] or old.get("seed") != manifest["seed"]:
+            raise StoreMismatchError(
+                f"{run_dir}: results were made with a different configuration or seed "
+                f"(stored hash {old.get('config_hash', '?')[:12]}, seed {old.get('seed')}; "
+                f"now {manifest['config_hash'][:12]}, seed {seed}); use another --out directory")
+    else:
+        write_manifest(run_dir, manifest)
+        atomic_write_text(run_dir / C.RUN_CONFIG_NAME,
+                          yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+    return manifest
+
+
+def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
+             executor: cf.Executor | None = None, progress: bool = True, mode: str = "windowed",
+             max_tasks: int | None = None) -> dict:
+    """Run (or resume) the injection-recovery simulation of a configuration.
+
+    Parameters
+    ----------
+    cfg : Config
+        Loaded configuration.
+    run_dir : path
+        Output directory (results store); finished tasks found there are skipped.
+    workers : int
+        Number of worker processes (1: run in this process).
+    seed : int, optional
+        Overrides ``simulation.seed``.
+    executor : concurrent.futures.Executor, optional
+        Any executor (e.g. a Dask ``Client.get_executor()``); overrides ``workers``.
+    progress : bool
+        Show a progress bar with ETA.
+    mode : {"windowed", "full"}
+        Detection mode.
+    max_tasks : int, optional
+        Run at most this many of the pending tasks (the rest stay pending for a resume).
+
+    Returns
+    -------
+    dict
+        ``n_tasks``, ``n_done_before``, ``n_run``, ``n_sources``, ``cpu_seconds``, ``wall_seconds``.
+    """
+    from tqdm.auto import tqdm
+
+    run_dir = Path(run_dir)
+    seed = int(cfg.simulation.seed if seed is None else seed)
+    prepare_run_dir(cfg, run_dir, seed)
+    specs = plan_tasks(cfg)
+    finished = finished_task_names(run_dir)
+    pending = [s for s in specs if spec_filename(s) not in finished]
+    n_done_before = len(specs) - len(pending)
+    if max_tasks is not None:
+        pending = pending[:max_tasks]
+    cfg_dict = config_to_dict(cfg)
+    base_dir = str(cfg.base_dir)
+    n_workers = 1 if executor is None and workers <= 1 else max(1, workers)
+    chunks = _chunks(pending, n_workers)
+    stats = {"n_tasks": len(specs), "n_done_before": n_done_before, "n_run": 0, "n_sources": 0, "cpu_seconds": 0.0}
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(pending), unit="task", disable=not progress, desc="simulate")
+
+    def account(result):
+        for _name, rows, cpu in result:
+            stats["n_run"] += 1
+            stats["n_sources"] += rows
+            stats["cpu_seconds"] += cpu
+        bar.update(len(result))
+
+    try:
+        if executor is None and n_workers == 1:
+            for ch in chunks:
+                account(_run_chunk(cfg_dict, base_dir, str(run_dir), seed, ch, mode))
+        else:
+            own = executor is None
+            ex = executor or cf.ProcessPoolExecutor(max_workers=n_workers)
+            try:
+                futs = [ex.submit(_run_chunk, cfg_dict, base_dir, str(run_dir), seed, ch, mode)
+                        for ch in chunks]
+                for fut in cf.as_completed(futs):
+                    account(fut.result())
+            finally:
+                if own:
+                    ex.shutdown(wait=True, cancel_futures=True)
+    finally:
+        bar.close()
+    stats["wall_seconds"] = time.perf_counter() - t0
+    return stats
+
+
+def default_workers() -> int:
+    """Worker processes to use by default: the CPUs this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - non-Linux
+        return max(1, os.cpu_count() or 1)
