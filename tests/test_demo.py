@@ -1,0 +1,341 @@
+"""Tests of the embedded demo survey (glaciar.demo)."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from astropy.io import fits
+from astropy.wcs import WCS
+
+from glaciar import demo
+from glaciar.demo import (DEMO_BANDS, DEMO_BANDS_SPEC, DEMO_FIELD, build_demo_survey,
+                          drizzle_noise_kernel, make_demo_images)
+from glaciar.galaxy.psf import moffat_psf, read_psf
+
+SHAPE = (300, 300)
+SCHEMA = Path(__file__).resolve().parents[1] / "docs" / "config-schema.yaml"
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_demo_images(SHAPE, seed=7)
+
+
+@pytest.fixture(scope="module")
+def noise_only():
+    """Source-free realisation: science is pure background noise."""
+    return make_demo_images(SHAPE, seed=11, source_density_arcmin2=0.0, n_stars=0)
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    path = build_demo_survey(out, shape=SHAPE, seed=5, n_galaxies=20, n_iterations=3)
+    return path
+
+
+def _normalised_noise(images, band):
+    """science * sqrt(weight): unit per-pixel variance if the weight map is right."""
+    w = images["weight"][band].astype(np.float64)
+    s = images["science"][band].astype(np.float64)
+    z = np.where(w > 0, s * np.sqrt(np.where(w > 0, w, 1.0)), 0.0)
+    return z, w > 0
+
+
+# --------------------------------------------------------------------------
+# determinism
+# --------------------------------------------------------------------------
+def test_same_seed_identical_different_seed_different(scene):
+    again = make_demo_images(SHAPE, seed=7)
+    other = make_demo_images(SHAPE, seed=8)
+    for b in DEMO_BANDS:
+        assert np.array_equal(scene["science"][b], again["science"][b])
+        assert np.array_equal(scene["weight"][b], again["weight"][b])
+        assert not np.array_equal(scene["science"][b], other["science"][b])
+    for col in scene["truth"].colnames:
+        a, b = np.asarray(scene["truth"][col]), np.asarray(again["truth"][col])
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+    assert not np.array_equal(np.asarray(scene["truth"]["x"]), np.asarray(other["truth"]["x"]))
+
+
+def test_output_types(scene):
+    for b in DEMO_BANDS:
+        assert scene["science"][b].dtype == np.float32 and scene["science"][b].shape == SHAPE
+        assert scene["weight"][b].dtype == np.float32 and scene["weight"][b].shape == SHAPE
+        assert scene["psf"][b].dtype == np.float64
+        assert scene["psf"][b].sum() == pytest.approx(1.0, abs=1e-12)
+        assert scene["psf_pixel_scale_arcsec"][b] == DEMO_BANDS_SPEC[b].psf_pixel_scale_arcsec
+
+
+# --------------------------------------------------------------------------
+# noise and weights
+# --------------------------------------------------------------------------
+@pytest.mark.parametrize("band", DEMO_BANDS)
+def test_weight_map_gives_per_pixel_variance(noise_only, band):
+    z, valid = _normalised_noise(noise_only, band)
+    assert np.std(z[valid]) == pytest.approx(1.0, rel=0.03)
+    # Also in the low-weight parts alone (dithered edges, stripe, blobs): the weight
+    # map must follow the exposure, not just be right on average.
+    w = noise_only["weight"][band]
+    low = valid & (w < 0.75 * np.median(w[valid]))
+    assert low.sum() > 2000
+    assert np.std(z[low]) == pytest.approx(1.0, rel=0.05)
+
+
+@pytest.mark.parametrize("band", ["f160w", "f098m", "f125w"])
+def test_ir_noise_is_correlated_like_drizzle(noise_only, band):
+    z, valid = _normalised_noise(noise_only, band)
+    spec = DEMO_BANDS_SPEC[band]
+    # Independent expectation: drop side d (output pixels) overlaps each neighbour by
+    # t = (d - 1) / 2, so the 1-D kernel is (t, 1, t) and rho(1) = 2t / (1 + 2t^2).
+    d = spec.pixfrac * spec.native_pixel_arcsec / 0.08
+    t = (d - 1.0) / 2.0
+    rho = 2 * t / (1 + 2 * t * t)
+    both_x = valid[:, 1:] & valid[:, :-1]
+    both_y = valid[1:, :] & valid[:-1, :]
+    rho_x = np.mean((z[:, 1:] * z[:, :-1])[both_x])
+    rho_y = np.mean((z[1:, :] * z[:-1, :])[both_y])
+    assert rho > 0.2
+    assert rho_x == pytest.approx(rho, abs=0.02)
+    assert rho_y == pytest.approx(rho, abs=0.02)
+
+
+def test_uvis_noise_nearly_white(noise_only):
+    z, valid = _normalised_noise(noise_only, "f606w")
+    both = valid[:, 1:] & valid[:, :-1]
+    assert abs(np.mean((z[:, 1:] * z[:, :-1])[both])) < 0.02
+
+
+def test_drizzle_kernel_unit_power():
+    k = drizzle_noise_kernel(0.1283, 0.8, 0.08)
+    assert np.sum(k ** 2) == pytest.approx(1.0, rel=1e-12)
+    assert k.shape == (3, 3) and np.allclose(k, k.T) and np.allclose(k, k[::-1, ::-1])
+    assert drizzle_noise_kernel(0.0396, 0.8, 0.08).shape == (1, 1)
+    with pytest.raises(ValueError, match="pixfrac"):
+        drizzle_noise_kernel(0.13, 1.5)
+
+
+@pytest.mark.parametrize("band", DEMO_BANDS)
+def test_stated_depth_holds_in_apertures(noise_only, band):
+    """A point source at depth_5sigma has S/N = 5 in an r = 0.2" aperture at exposure 1."""
+    import sep
+
+    z, valid = _normalised_noise(noise_only, band)
+    r = 0.2 / 0.08
+    yc, xc = np.mgrid[8:SHAPE[0] - 8:6, 8:SHAPE[1] - 8:6]
+    yc, xc = yc.ravel(), xc.ravel()
+    # Keep apertures whose whole box has data.
+    ok = np.array([valid[y - 3:y + 4, x - 3:x + 4].all() for y, x in zip(yc, xc)])
+    assert ok.sum() > 1500
+    sums, _, _ = sep.sum_circle(z, xc[ok].astype(float), yc[ok].astype(float), r)
+    noise_factor = np.std(sums)       # aperture noise in units of the per-pixel RMS
+    if band != "f606w":
+        # Correlated noise: apertures are noisier than sqrt(N_pix) independent pixels.
+        assert noise_factor > 1.25 * math.sqrt(math.pi * r * r)
+    spec = DEMO_BANDS_SPEC[band]
+    psf = moffat_psf(spec.psf_fwhm_arcsec, 0.08, beta=2.5, size=61)
+    ee, _, _ = sep.sum_circle(psf, np.array([30.0]), np.array([30.0]), r)
+    sigma_ap = noise_factor * noise_only["rms_nominal"][band]
+    m_lim = spec.zeropoint - 2.5 * math.log10(5 * sigma_ap / ee[0])
+    assert m_lim == pytest.approx(spec.depth_5sigma, abs=0.05)
+    # The nominal exposure is the typical one: the weight at full coverage is within
+    # the +-~15 % exposure gradient of 1 / rms_nominal^2.
+    w = noise_only["weight"][band]
+    central = w[SHAPE[0] // 3:2 * SHAPE[0] // 3, SHAPE[1] // 3:2 * SHAPE[1] // 3]
+    ratio = np.median(central) * noise_only["rms_nominal"][band] ** 2
+    assert 0.85 < ratio < 1.15
+
+
+def test_zero_weight_border_and_varying_weights(scene):
+    masks = [scene["weight"][b] > 0 for b in DEMO_BANDS]
+    for b, valid in zip(DEMO_BANDS, masks):
+        w, s = scene["weight"][b], scene["science"][b]
+        assert np.all(s[~valid] == 0.0)
+        assert np.all(w >= 0)
+        # No data along the image edges and in the corners (tilted footprint).
+        assert not valid[0].any() and not valid[-1].any()
+        assert not valid[:, 0].any() and not valid[:, -1].any()
+        assert not valid[:10, :10].any() and not valid[-10:, -10:].any()
+        assert 0.7 < valid.mean() < 0.95
+        # Weights vary inside the footprint: gradient, dithered edges (1/3, 2/3 depth).
+        wv = w[valid]
+        assert np.percentile(wv, 99) / np.percentile(wv, 1) > 2.0
+        assert np.std(wv) / np.mean(wv) > 0.08
+        # Science is noisy where there are data.
+        assert np.all(np.isfinite(s)) and np.count_nonzero(s[valid]) == valid.sum()
+    # One footprint for all bands (the detection band's).
+    for m in masks[1:]:
+        assert np.array_equal(m, masks[0])
+
+
+def test_f606w_chip_gap_stripe_is_half_depth(scene):
+    ratio = scene["weight"]["f606w"] / np.where(scene["weight"]["f160w"] > 0,
+                                                  scene["weight"]["f160w"], np.inf)
+    valid = scene["weight"]["f160w"] > 0
+    # The stripe is a 4 %-high band: its pixels have half the F606W/F160W weight ratio.
+    r = ratio[valid]
+    hi = np.median(r)
+    lo = r < 0.7 * hi
+    assert 0.02 < lo.mean() < 0.08
+    assert np.median(r[lo]) / hi == pytest.approx(0.5, rel=0.15)
+
+
+# --------------------------------------------------------------------------
+# sources
+# --------------------------------------------------------------------------
+def test_requested_numbers_of_galaxies_and_stars():
+    images = make_demo_images(SHAPE, seed=3, n_galaxies=37, n_stars=5)
+    truth = images["truth"]
+    assert len(truth) == 42
+    assert int(np.sum(truth["is_star"])) == 5
+    # Everything sits inside the footprint.
+    valid = images["weight"]["f160w"] > 0
+    iy = np.rint(np.asarray(truth["y"])).astype(int)
+    ix = np.rint(np.asarray(truth["x"])).astype(int)
+    assert valid[iy, ix].all()
+    gal = ~np.asarray(truth["is_star"])
+    assert np.all((truth["sersic_n"][gal] >= 0.5) & (truth["sersic_n"][gal] <= 4.0))
+    assert np.all((truth["axis_ratio"][gal] > 0) & (truth["axis_ratio"][gal] <= 1))
+    assert np.all(truth["r_eff_pix"][gal] == pytest.approx(truth["r_eff_arcsec"][gal] / 0.08))
+
+
+def test_default_density(scene):
+    valid = scene["weight"]["f160w"] > 0
+    area_arcmin2 = valid.sum() * (0.08 / 60) ** 2
+    n_gal = int(np.sum(~np.asarray(scene["truth"]["is_star"])))
+    assert n_gal == round(250.0 * area_arcmin2)
+    with pytest.raises(ValueError, match="confusion"):
+        make_demo_images(SHAPE, source_density_arcmin2=5000.0)
+
+
+def test_number_counts_follow_broken_power_law():
+    mag = demo._sample_counts_magnitudes(np.random.default_rng(0), 200_000)
+    assert mag.min() >= 19.0 and mag.max() <= 29.0
+    # Independent CDF: trapezoidal integral of 10^(0.3(m-25)) / 10^(0.15(m-25)).
+    grid = np.linspace(19.0, 29.0, 100_001)
+    dndm = np.where(grid < 25.0, 10 ** (0.3 * (grid - 25)), 10 ** (0.15 * (grid - 25)))
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (dndm[1:] + dndm[:-1]) * np.diff(grid))])
+    cdf /= cdf[-1]
+    for m in (21.0, 24.0, 25.0, 26.5, 28.0):
+        assert np.mean(mag < m) == pytest.approx(np.interp(m, grid, cdf), abs=0.004)
+
+
+def test_colours_make_some_galaxies_bright_in_f606w(scene):
+    t = scene["truth"]
+    gal = ~np.asarray(t["is_star"])
+    v_minus_h = np.asarray(t["mag_f606w"] - t["mag_f160w"])[gal]
+    assert np.any(v_minus_h < 0.6) and np.any(v_minus_h > 2.0)
+
+
+def test_stars_are_the_psf_with_the_catalogue_flux():
+    """Each band's star = flux x that band's PSF sampled at the pixel centre (zeropoints, PSFs)."""
+    images = make_demo_images(SHAPE, seed=4, n_galaxies=0, n_stars=3)
+    t = images["truth"]
+    for b in DEMO_BANDS:
+        spec = DEMO_BANDS_SPEC[b]
+        psf = moffat_psf(spec.psf_fwhm_arcsec, 0.08, beta=2.5, size=61)
+        for row in t:
+            flux = 10 ** (-0.4 * (row[f"mag_{b}"] - spec.zeropoint))
+            peak = images["model"][b][int(row["y"]), int(row["x"])]
+            assert peak == pytest.approx(flux * psf[30, 30], rel=2e-3)
+
+
+def test_background_sersic_renderer():
+    # Round n = 1 profile: half the flux inside r_e (truncation at 5 r_e drops 0.04 %).
+    y0, x0, img = demo._sersic_stamp_fast(50.0, 50.0, 8.0, 1.0, 1.0, 0.0, (101, 101))
+    assert img.sum() == pytest.approx(1.0, rel=1e-12)
+    yy, xx = np.mgrid[y0:y0 + img.shape[0], x0:x0 + img.shape[1]]
+    rr = np.hypot(xx - 50.0, yy - 50.0)
+    assert img[rr < 8.0].sum() == pytest.approx(0.5, abs=0.02)
+    # q = 0.4 at PA 0: elongated along x; at PA 90: along y.
+    for pa, axis in ((0.0, "x"), (90.0, "y")):
+        y0, x0, img = demo._sersic_stamp_fast(50.0, 50.0, 6.0, 1.0, 0.4, pa, (101, 101))
+        yy, xx = np.mgrid[y0:y0 + img.shape[0], x0:x0 + img.shape[1]]
+        vx = np.sum(img * (xx - 50.0) ** 2)
+        vy = np.sum(img * (yy - 50.0) ** 2)
+        assert (vx > 4 * vy) if axis == "x" else (vy > 4 * vx)
+    # A stamp at the image edge is clipped, a stamp off the image is dropped.
+    assert demo._sersic_stamp_fast(-500.0, 50.0, 2.0, 1.0, 1.0, 0.0, (101, 101)) is None
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="64"):
+        make_demo_images((20, 300))
+    with pytest.raises(ValueError, match=">= 0"):
+        make_demo_images(SHAPE, n_stars=-1)
+
+
+# --------------------------------------------------------------------------
+# files and config
+# --------------------------------------------------------------------------
+def _keys_follow_schema(cfg, schema, where=""):
+    for key, value in cfg.items():
+        assert key in schema, f"{where}{key} is not in docs/config-schema.yaml"
+        if isinstance(value, dict) and isinstance(schema[key], dict) and key not in ("bands", "z", "mag"):
+            _keys_follow_schema(value, schema[key], f"{where}{key}.")
+
+
+def test_config_follows_schema_and_references_existing_files(survey):
+    cfg = yaml.safe_load(survey.read_text())
+    schema = yaml.safe_load(SCHEMA.read_text())
+    _keys_follow_schema(cfg, schema)
+    band_keys = set(schema["survey"]["bands"]["f160w"])
+    base = survey.parent
+    sv = cfg["survey"]
+    assert sv["fields"] == [DEMO_FIELD]
+    assert sv["detection_band"] == "f160w" and sv["noise_type"] == "weight"
+    assert list(sv["bands"]) == list(DEMO_BANDS)
+    for b, bcfg in sv["bands"].items():
+        assert set(bcfg) == band_keys
+        assert bcfg["filter"] == DEMO_BANDS_SPEC[b].filter
+        assert bcfg["zeropoint"] == DEMO_BANDS_SPEC[b].zeropoint
+        assert 2000 <= bcfg["gain"] <= 5000
+        for template in (sv["science"], sv["noise"]):
+            assert (base / sv["image_dir"] / template.format(field=DEMO_FIELD, band=b)).is_file()
+        assert (base / bcfg["psf"]).is_file()
+    assert cfg["grid"]["z"]["values"] == pytest.approx([9.0, 9.4, 9.8, 10.2, 10.6, 11.0, 11.4, 11.8])
+    assert cfg["grid"]["mag"]["values"] == pytest.approx(list(np.arange(24.5, 28.51, 0.5)))
+    assert cfg["simulation"] == {"n_galaxies": 20, "n_iterations": 3, "seed": 5}
+    assert cfg["classification"]["min_sn"] == 8.0
+    assert cfg["selection"] == schema["selection"]
+    assert cfg["detection"] == schema["detection"]
+    assert cfg["source"] == schema["source"]
+    assert survey.read_text().startswith("#")
+    # Atomic writes leave no temporary files behind.
+    assert not list(base.rglob("*.tmp"))
+
+
+def test_fits_files_round_trip_with_wcs(survey):
+    base = survey.parent
+    images = make_demo_images(SHAPE, seed=5)
+    for b in DEMO_BANDS:
+        with fits.open(base / "images" / f"{DEMO_FIELD}_{b}_drz.fits") as hdul:
+            data, hdr = hdul[0].data, hdul[0].header
+            assert data.dtype.kind == "f" and data.dtype.itemsize == 4
+            assert np.array_equal(data, images["science"][b])
+            assert hdr["BUNIT"] == "ELECTRONS/S"
+            assert hdr["MAGZPT"] == DEMO_BANDS_SPEC[b].zeropoint
+            wcs = WCS(hdr)
+            assert wcs.wcs.ctype[0] == "RA---TAN" and wcs.wcs.ctype[1] == "DEC--TAN"
+            scales = wcs.proj_plane_pixel_scales()
+            assert [s.to_value("arcsec") for s in scales] == pytest.approx([0.08, 0.08], rel=1e-9)
+        with fits.open(base / "images" / f"{DEMO_FIELD}_{b}_wht.fits") as hdul:
+            assert np.array_equal(hdul[0].data, images["weight"][b])
+
+
+def test_psf_files_carry_their_pixel_scale(survey):
+    base = survey.parent
+    cfg = yaml.safe_load(survey.read_text())
+    for b in DEMO_BANDS:
+        path = base / cfg["survey"]["bands"][b]["psf"]
+        psf, scale = read_psf(path)                 # scale from the header
+        expected = 0.04 if b == "f606w" else 0.13
+        assert scale == expected != 0.08
+        assert fits.getheader(path)["PIXSCALE"] == expected
+        assert cfg["survey"]["bands"][b]["psf_pixel_scale_arcsec"] == expected
+        spec = DEMO_BANDS_SPEC[b]
+        assert np.allclose(psf, moffat_psf(spec.psf_fwhm_arcsec, expected, beta=2.5,
+                                           size=spec.psf_size), rtol=0, atol=1e-12)
