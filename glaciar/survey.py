@@ -1,0 +1,341 @@
+"""Survey access: fields x bands of FITS images, read lazily and cached per process.
+
+A :class:`Survey` knows where each field's science and noise (weight or RMS)
+image is, converts weight maps to RMS, gives the footprint (where the
+detection band has valid data) and the pixel scale (from the config or the
+detection image's WCS).
+
+Arrays are read on first use (through astropy's memmap) and kept in a
+module-level, byte-bounded LRU cache, so each worker process reads each image
+once and a pickled ``Survey`` stays small. FITS data are big-endian on disk;
+every array returned here is native-endian (float32 for 32-bit or smaller
+data, float64 otherwise), as ``sep`` and numpy kernels require.
+
+The cached arrays are shared by every caller in the process, so they are
+returned **read-only**: an in-place injection would otherwise corrupt every
+later task. ``sep`` refuses read-only buffers, so pass it a copy (an injected
+window ``science[win] + stamps`` already is one; ``rms[win].copy()``).
+"""
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+
+from .config import BandConfig, Config
+
+__all__ = ["Survey", "clear_cache", "set_cache_limit"]
+
+# ---------------------------------------------------------------------------
+# Per-process array cache
+# ---------------------------------------------------------------------------
+_CACHE: "OrderedDict[tuple, np.ndarray]" = OrderedDict()
+_CACHE_LOCK = threading.Lock()
+_CACHE_LIMIT = [2 * 1024 ** 3]     # bytes; an entry larger than this is still kept alone
+
+
+def set_cache_limit(nbytes: int) -> None:
+    """Set the per-process image cache budget [bytes] (default 2 GiB)."""
+    if nbytes < 0:
+        raise ValueError(f"cache limit must be >= 0 bytes, got {nbytes}")
+    _CACHE_LIMIT[0] = int(nbytes)
+    _evict()
+
+
+def clear_cache() -> None:
+    """Drop every cached image array of this process."""
+    with _CACHE_LOCK:
+        _CACHE.clear()
+
+
+def _evict() -> None:
+    with _CACHE_LOCK:
+        total = sum(a.nbytes for a in _CACHE.values())
+        while len(_CACHE) > 1 and total > _CACHE_LIMIT[0]:
+            _, old = _CACHE.popitem(last=False)
+            total -= old.nbytes
+
+
+def _file_key(path: Path) -> tuple:
+    # Size and mtime in the key: a rewritten file is never served from a stale cache.
+    st = path.stat()
+    return (str(path), st.st_mtime_ns, st.st_size)
+
+
+def _cached(key: tuple, build):
+    with _CACHE_LOCK:
+        if key in _CACHE:
+            _CACHE.move_to_end(key)
+            return _CACHE[key]
+    arr = build()
+    arr.flags.writeable = False   # shared by every caller: inject into copies
+    with _CACHE_LOCK:
+        _CACHE[key] = arr
+    _evict()
+    return arr
+
+
+# ---------------------------------------------------------------------------
+# FITS helpers
+# ---------------------------------------------------------------------------
+def _image_hdu_index(hdul, path: Path) -> tuple[int, tuple[int, int]]:
+    """Index and (ny, nx) of the first HDU holding a 2-D image (extra axes of length 1 ok)."""
+    for i, hdu in enumerate(hdul):
+        if not getattr(hdu, "is_image", False):
+            continue
+        h = hdu.header
+        naxis = int(h.get("NAXIS", 0))
+        dims = [int(h.get(f"NAXIS{k}", 0)) for k in range(1, naxis + 1)]
+        if naxis < 2 or any(d == 0 for d in dims):
+            continue
+        if any(d != 1 for d in dims[2:]):
+            raise ValueError(f"{path}: HDU {i} is a {naxis}-D image of shape "
+                             f"{tuple(reversed(dims))}; expected a 2-D image")
+        return i, (dims[1], dims[0])
+    raise ValueError(f"{path}: no 2-D image found in any HDU")
+
+
+def _native_float_dtype(dtype: np.dtype) -> np.dtype:
+    if (dtype.kind == "f" and dtype.itemsize <= 4) or (dtype.kind in "iub" and dtype.itemsize <= 2):
+        return np.dtype(np.float32)
+    return np.dtype(np.float64)
+
+
+def _read_array(path: Path) -> np.ndarray:
+    from astropy.io import fits
+
+    with fits.open(path, memmap=True) as hdul:
+        idx, shape = _image_hdu_index(hdul, path)
+        data = hdul[idx].data
+        # Big-endian memmap -> native-endian copy in one pass.
+        arr = np.array(data, dtype=_native_float_dtype(data.dtype), order="C")
+    return arr.reshape(shape)
+
+
+def _read_header(path: Path):
+    from astropy.io import fits
+
+    with fits.open(path, memmap=True) as hdul:
+        idx, shape = _image_hdu_index(hdul, path)
+        return hdul[idx].header.copy(), shape
+
+
+class Survey:
+    """Fields and bands of a survey, with lazy, cached image access.
+
+    Build with :meth:`from_config`. All methods take a field name and (where
+    relevant) a band name from the config.
+
+    Attributes
+    ----------
+    config : Config
+    fields : tuple of str
+    bands : tuple of str
+        Band names in config order (the detection band included).
+    detection_band : str
+    """
+
+    def __init__(self, config: Config):
+        self.config = config
+        s = config.survey
+        self.fields = tuple(s.fields)
+        self.bands = tuple(b.name for b in s.bands)
+        self.detection_band = s.detection_band
+        self._headers: dict[tuple[str, str, str], tuple] = {}
+        self._shapes: dict[str, tuple[int, int]] = {}
+        self._scales: dict[str, float] = {}
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> "Survey":
+        """The survey described by ``cfg.survey``."""
+        return cls(cfg)
+
+    def __getstate__(self):
+        # Headers are re-read lazily in the receiving process.
+        state = self.__dict__.copy()
+        state["_headers"] = {}
+        return state
+
+    def __repr__(self) -> str:
+        return (f"Survey(fields={list(self.fields)}, bands={list(self.bands)}, "
+                f"detection_band={self.detection_band!r})")
+
+    # --- paths and band settings ------------------------------------------
+    def _check(self, field: str, band: str | None = None) -> None:
+        if field not in self.fields:
+            raise KeyError(f"unknown field {field!r}; fields are {list(self.fields)}")
+        if band is not None and band not in self.bands:
+            raise KeyError(f"unknown band {band!r}; bands are {list(self.bands)}")
+
+    def band(self, band: str) -> BandConfig:
+        """The :class:`~glaciar.config.BandConfig` of ``band`` (zeropoint, gain, PSF, filter)."""
+        self._check(self.fields[0], band)
+        return self.config.survey.band(band)
+
+    def science_path(self, field: str, band: str) -> Path:
+        """Absolute path of the science image of ``field`` in ``band``."""
+        self._check(field, band)
+        s = self.config.survey
+        return s.image_dir / s.science.format(field=field, band=band)
+
+    def noise_path(self, field: str, band: str) -> Path | None:
+        """Absolute path of the weight or RMS map, or None if the config has none."""
+        self._check(field, band)
+        s = self.config.survey
+        if s.noise is None:
+            return None
+        return s.image_dir / s.noise.format(field=field, band=band)
+
+    def _existing(self, path: Path, key: str, field: str, band: str) -> Path:
+        if not path.is_file():
+            raise FileNotFoundError(f"{key} (field {field!r}, band {band!r}): file not found: "
+                                    f"{path}")
+        return path
+
+    # --- headers and shapes ------------------------------------------------
+    def _header_and_shape(self, field: str, band: str, kind: str):
+        k = (field, band, kind)
+        if k not in self._headers:
+            if kind == "science":
+                path = self._existing(self.science_path(field, band), "survey.science",
+                                      field, band)
+            else:
+                path = self._existing(self.noise_path(field, band), "survey.noise", field, band)
+            self._headers[k] = _read_header(path)
+        return self._headers[k]
+
+    def header(self, field: str, band: str):
+        """FITS header (astropy ``Header``, a copy) of the science image."""
+        self._check(field, band)
+        return self._header_and_shape(field, band, "science")[0].copy()
+
+    def shape(self, field: str) -> tuple[int, int]:
+        """(ny, nx) shared by every science and noise image of ``field``.
+
+        Raises
+        ------
+        ValueError
+            If the images of the field differ in shape (the files are named).
+        """
+        self._check(field)
+        if field not in self._shapes:
+            shapes = {}
+            for b in self.bands:
+                shapes[self.science_path(field, b)] = self._header_and_shape(field, b,
+                                                                             "science")[1]
+                if self.config.survey.noise is not None:
+                    shapes[self.noise_path(field, b)] = self._header_and_shape(field, b,
+                                                                               "noise")[1]
+            distinct = set(shapes.values())
+            if len(distinct) > 1:
+                listing = "; ".join(f"{p.name}: {s[0]}x{s[1]}" for p, s in shapes.items())
+                raise ValueError(f"field {field!r}: images differ in shape (ny x nx): {listing}")
+            self._shapes[field] = distinct.pop()
+        return self._shapes[field]
+
+    # --- pixel data -------------------------------------------------------
+    def science(self, field: str, band: str) -> np.ndarray:
+        """Science image [image units], native-endian float, read-only (cached).
+
+        Returns
+        -------
+        numpy.ndarray, shape (ny, nx)
+            float32 for 32-bit or smaller FITS data, float64 otherwise.
+        """
+        self.shape(field)
+        path = self.science_path(field, band)
+        return _cached(("science",) + _file_key(path), lambda: _read_array(path))
+
+    def rms(self, field: str, band: str) -> np.ndarray | None:
+        """Per-pixel noise RMS [image units], read-only (cached); None without a noise map.
+
+        For ``noise_type: weight`` (inverse variance) the RMS is 1/sqrt(weight).
+        Pixels with no valid noise (weight <= 0 or non-finite; RMS <= 0 or
+        non-finite) get RMS = inf, i.e. zero weight.
+        """
+        self.shape(field)
+        path = self.noise_path(field, band)
+        if path is None:
+            return None
+        ntype = self.config.survey.noise_type
+
+        def build():
+            a = _read_array(path)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                if ntype == "weight":
+                    good = np.isfinite(a) & (a > 0)
+                    out = np.full(a.shape, np.inf, dtype=a.dtype)
+                    out[good] = 1.0 / np.sqrt(a[good])
+                    # A huge weight can underflow to RMS 0 in float32: keep it positive.
+                    out[good & (out <= 0)] = np.finfo(a.dtype).tiny
+                    return out
+                good = np.isfinite(a) & (a > 0)
+                a[~good] = np.inf
+                return a
+
+        return _cached(("rms", ntype) + _file_key(path), build)
+
+    def footprint(self, field: str) -> np.ndarray:
+        """Where the detection band has valid data (bool, read-only, cached).
+
+        Valid: finite, non-zero science pixel and, with a noise map, a finite
+        positive RMS (weight > 0). Drizzled mosaics mark uncovered pixels with
+        0 science and 0 weight.
+        """
+        det = self.detection_band
+        sci_path = self.science_path(field, det)
+        noise_path = self.noise_path(field, det)
+        key = ("footprint", self.config.survey.noise_type) + _file_key(self._existing(
+            sci_path, "survey.science", field, det))
+        if noise_path is not None:
+            key += _file_key(self._existing(noise_path, "survey.noise", field, det))
+
+        def build():
+            sci = self.science(field, det)
+            ok = np.isfinite(sci) & (sci != 0)
+            rms = self.rms(field, det)
+            if rms is not None:
+                ok &= np.isfinite(rms)
+            return ok
+
+        return _cached(key, build)
+
+    def pixel_scale_arcsec(self, field: str) -> float:
+        """Pixel scale [arcsec/pixel]: the config value, else the detection image's WCS.
+
+        Raises
+        ------
+        ValueError
+            No config value and no celestial WCS scale in the header, or
+            pixels that are not square to 1 %.
+        """
+        if self.config.survey.pixel_scale_arcsec is not None:
+            return float(self.config.survey.pixel_scale_arcsec)
+        self._check(field)
+        if field not in self._scales:
+            import warnings
+
+            from astropy.wcs import WCS, FITSFixedWarning
+            from astropy.wcs.utils import proj_plane_pixel_scales
+
+            det = self.detection_band
+            h = self.header(field, det)
+            path = self.science_path(field, det)
+            has_scale = any(k in h for k in ("CD1_1", "CD2_2", "CDELT1", "CDELT2"))
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", FITSFixedWarning)
+                w = WCS(h, naxis=2)
+            if not (has_scale and w.has_celestial):
+                raise ValueError(f"{path}: no celestial WCS pixel scale (CD or CDELT) in the "
+                                 f"header; set survey.pixel_scale_arcsec")
+            sx, sy = np.abs(proj_plane_pixel_scales(w.celestial)) * 3600.0
+            if not (np.isfinite(sx) and np.isfinite(sy) and sx > 0 and sy > 0):
+                raise ValueError(f"{path}: invalid WCS pixel scale ({sx}, {sy}) arcsec; set "
+                                 f"survey.pixel_scale_arcsec")
+            if abs(sx - sy) > 0.01 * max(sx, sy):
+                raise ValueError(f"{path}: pixels are not square ({sx:.5g} x {sy:.5g} arcsec); "
+                                 f"set survey.pixel_scale_arcsec explicitly")
+            self._scales[field] = float(np.sqrt(sx * sy))
+        return self._scales[field]
