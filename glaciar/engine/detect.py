@@ -1,0 +1,560 @@
+"""Source detection with ``sep``, configured in SExtractor's vocabulary.
+
+Thresholds are relative to a per-pixel RMS map, as SExtractor with
+``WEIGHT_TYPE MAP_RMS``: a (filtered) pixel is detected when it exceeds
+``DETECT_THRESH x rms`` of that pixel.  Pixels without data (masked, NaN, or
+with a non-finite or non-positive RMS) are never detected; sep treats them as
+zero data with infinite noise.
+
+Known difference from SExtractor (and from a naive windowed sep): sep's
+deblender assigns the faint pixels of a split region to its children at
+random, from one random stream per ``sep.extract`` call, so a deblended
+footprint depends on every region processed before it.  :mod:`glaciar.engine.measure`
+therefore re-extracts deblended regions on their own (see its docstring).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from dataclasses import dataclass, field
+from importlib import resources
+from typing import Any, Mapping
+
+import numpy as np
+import sep
+
+__all__ = [
+    "DetectionError", "DetectionParams", "builtin_filter", "builtin_filter_names",
+    "read_conv_file", "read_sex_file", "measure_background", "extract", "sanitize",
+]
+
+#: sep's object flag for "deblended from a larger region" (SExtractor flag 2 is
+#: BLENDED; sep's SEP_OBJ_MERGED is bit 1).
+SEP_OBJ_MERGED = 1
+#: noise value sep gives masked pixels (its BIG); any pixel with this RMS is never detected
+_BIG = 1e30
+
+
+class DetectionError(RuntimeError):
+    """sep failed (e.g. deblending sub-object overflow, pixel-stack overflow)."""
+
+
+# --------------------------------------------------------------------------
+# Built-in filters
+# --------------------------------------------------------------------------
+def _filter_table() -> dict[str, tuple[str, int, float]]:
+    text = resources.files("glaciar").joinpath("data/sextractor/filters.txt").read_text()
+    table = {}
+    for line in text.splitlines():
+        line = line.split("#", 1)[0].split()
+        if len(line) == 4:
+            table[line[0]] = (line[1], int(line[2]), float(line[3]))
+    return table
+
+
+def builtin_filter_names() -> tuple[str, ...]:
+    """Names accepted by :func:`builtin_filter` (SExtractor's filter names)."""
+    return tuple(_filter_table())
+
+
+def builtin_filter(name: str) -> np.ndarray:
+    """Detection kernel from its analytic definition.
+
+    Parameters
+    ----------
+    name : str
+        SExtractor-style name, e.g. ``"gauss_2.0_5x5"``, ``"tophat_3.0_3x3"``,
+        ``"default"``; a trailing ``.conv`` is ignored.
+
+    Returns
+    -------
+    ndarray
+        Kernel normalised to unit sum.  ``gauss_F_NxN``: circular Gaussian of
+        FWHM F pixels integrated over each pixel (exact, via erf).
+        ``tophat_D_NxN``: area fraction of each pixel inside a disk of diameter
+        D pixels (101x101 sub-sampling: error < 1e-3 per pixel).  ``default``:
+        the 3x3 pyramid (1 2 1) outer (1 2 1).  The normalisation is irrelevant
+        to detection (sep normalises by the sum of absolute values).
+    """
+    key = os.path.basename(str(name))
+    if key.endswith(".conv"):
+        key = key[:-5]
+    table = _filter_table()
+    if key not in table:
+        raise ValueError(f"unknown built-in filter {name!r}; expected one of "
+                         f"{', '.join(table)} or a path to a .conv file")
+    kind, size, par = table[key]
+    c = np.arange(size) - (size - 1) / 2.0
+    if kind == "pyramid":
+        v = np.array([1.0, 2.0, 1.0])
+        k = np.outer(v, v)
+    elif kind == "gauss":
+        from scipy.special import erf
+        sigma = par / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+        edges = np.append(c - 0.5, c[-1] + 0.5) / (sigma * math.sqrt(2.0))
+        p = np.diff(0.5 * erf(edges))
+        k = np.outer(p, p)
+    elif kind == "tophat":
+        nsub = 101
+        s = (np.arange(nsub) + 0.5) / nsub - 0.5
+        fine = (c[:, None] + s[None, :]).ravel()
+        inside = (fine[:, None] ** 2 + fine[None, :] ** 2) <= (par / 2.0) ** 2
+        k = inside.reshape(size, nsub, size, nsub).mean(axis=(1, 3))
+    else:  # pragma: no cover - table is ours
+        raise ValueError(f"bad filter kind {kind!r} in filters.txt")
+    return k / k.sum()
+
+
+def read_conv_file(path) -> np.ndarray:
+    """Read a SExtractor ``.conv`` filter file.
+
+    Format: a header line ``CONV NORM`` or ``CONV NONORM``, ``#`` comments,
+    then rows of numbers (all rows the same length).
+
+    Returns
+    -------
+    ndarray
+        The kernel as written (float64); normalisation is left to sep.
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"filter file {path!r} not found")
+    rows = []
+    header = None
+    with open(path) as fh:
+        for lineno, raw in enumerate(fh, 1):
+            line = raw.split("#", 1)[0].strip()
+            if not line:
+                continue
+            if header is None:
+                words = line.upper().split()
+                if words[0] != "CONV" or len(words) < 2 or words[1] not in ("NORM", "NONORM"):
+                    raise ValueError(f"{path}:{lineno}: expected header 'CONV NORM' or 'CONV NONORM', got {line!r}")
+                header = words[1]
+                continue
+            try:
+                rows.append([float(v) for v in line.split()])
+            except ValueError:
+                raise ValueError(f"{path}:{lineno}: expected a row of numbers, got {line!r}") from None
+    if header is None or not rows:
+        raise ValueError(f"{path}: no 'CONV NORM/NONORM' header or no kernel rows")
+    if len({len(r) for r in rows}) != 1:
+        raise ValueError(f"{path}: kernel rows have different lengths {[len(r) for r in rows]}")
+    k = np.array(rows, dtype=np.float64)
+    if not np.all(np.isfinite(k)) or not np.any(k != 0):
+        raise ValueError(f"{path}: kernel must be finite and not all zero")
+    return k
+
+
+def read_sex_file(path) -> dict[str, Any]:
+    """Read a SExtractor configuration (``.sex``) file.
+
+    Each line is ``KEY value[,value...]  # comment``.  Returns a dict
+    ``{KEY: str}`` for single values and ``{KEY: [str, ...]}`` for
+    comma-separated lists; conversion to numbers is done by
+    :meth:`DetectionParams.from_sextractor`.
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"SExtractor file {path!r} not found")
+    out: dict[str, Any] = {}
+    with open(path) as fh:
+        for raw in fh:
+            line = raw.split("#", 1)[0].strip()
+            if not line:
+                continue
+            parts = line.split(None, 1)
+            key = parts[0].upper()
+            value = parts[1].strip() if len(parts) > 1 else ""
+            if "," in value:
+                out[key] = [v.strip() for v in value.split(",") if v.strip()]
+            else:
+                out[key] = value
+    return out
+
+
+# --------------------------------------------------------------------------
+# Parameters
+# --------------------------------------------------------------------------
+def _default_kernel():
+    return builtin_filter("gauss_2.0_5x5")
+
+
+#: SExtractor keys we read; every other key is accepted and recorded as ignored.
+_KNOWN_KEYS = ("DETECT_THRESH", "DETECT_MINAREA", "FILTER", "FILTER_NAME", "FILTER_TYPE",
+               "DEBLEND_NTHRESH", "DEBLEND_MINCONT", "CLEAN", "CLEAN_PARAM", "BACK_SIZE",
+               "BACK_FILTERSIZE", "PHOT_APERTURES", "PHOT_AUTOPARAMS", "THRESH_TYPE", "SEX_FILE")
+
+
+@dataclass(frozen=True)
+class DetectionParams:
+    """Detection and photometry settings (SExtractor names in brackets).
+
+    Attributes
+    ----------
+    detect_thresh : float
+        Threshold in units of the per-pixel RMS [DETECT_THRESH].
+    detect_minarea : int
+        Minimum number of pixels above threshold [DETECT_MINAREA].
+    filter_kernel : ndarray or None
+        Detection filter [FILTER_NAME]; None = no filtering [FILTER N].
+        Stored as a read-only float64 array; compared by value.
+    filter_type : {"conv", "matched"}
+        ``conv`` is SExtractor's convolution; ``matched`` is sep's noise-aware
+        matched filter.
+    deblend_nthresh : int
+        [DEBLEND_NTHRESH]
+    deblend_mincont : float
+        [DEBLEND_MINCONT]
+    clean, clean_param : bool, float
+        [CLEAN], [CLEAN_PARAM]
+    back_size, back_filtersize : int
+        Background mesh size and median-filter size [pixels / meshes]
+        [BACK_SIZE], [BACK_FILTERSIZE].
+    phot_apertures : tuple of float
+        Aperture *diameters* [pixels] [PHOT_APERTURES].
+    phot_autoparams : (float, float)
+        Kron factor k and minimum radius R_min in units of (a, b) [PHOT_AUTOPARAMS].
+    initial_window : int
+        Side of the first detection window around an injected source [pixels].
+    max_window : int
+        Largest window side before giving up (FLAG_WINDOW_AT_LIMIT) [pixels].
+    sub_object_limit : int
+        sep's deblending sub-object limit (``sep.set_sub_object_limit``).
+    filter_name : str
+        Provenance of the kernel (built-in name or path).
+    ignored_keys : tuple of str
+        SExtractor keys that were given but have no meaning here.
+    """
+
+    detect_thresh: float = 0.7
+    detect_minarea: int = 9
+    filter_kernel: np.ndarray | None = field(default_factory=_default_kernel)
+    filter_type: str = "conv"
+    deblend_nthresh: int = 32
+    deblend_mincont: float = 0.005
+    clean: bool = True
+    clean_param: float = 1.0
+    back_size: int = 64
+    back_filtersize: int = 3
+    phot_apertures: tuple = (4.0, 8.0)
+    phot_autoparams: tuple = (2.5, 3.5)
+    initial_window: int = 33
+    max_window: int = 1025
+    sub_object_limit: int = 1024
+    filter_name: str = "gauss_2.0_5x5"
+    ignored_keys: tuple = ()
+
+    def __post_init__(self):
+        def bad(name, expected, value):
+            raise ValueError(f"detection parameter {name}: expected {expected}, got {value!r}")
+
+        num = (int, float, np.integer, np.floating)
+        if not isinstance(self.detect_thresh, num) or isinstance(self.detect_thresh, bool) \
+                or not (math.isfinite(self.detect_thresh) and self.detect_thresh > 0):
+            bad("detect_thresh", "a positive number", self.detect_thresh)
+        for name, lo in (("detect_minarea", 1), ("deblend_nthresh", 1), ("back_size", 1),
+                         ("back_filtersize", 1), ("initial_window", 3), ("max_window", 3),
+                         ("sub_object_limit", 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+                bad(name, f"an integer >= {lo}", v)
+        if self.max_window < self.initial_window:
+            bad("max_window", f">= initial_window ({self.initial_window})", self.max_window)
+        if not isinstance(self.deblend_mincont, num) or not (0.0 <= self.deblend_mincont <= 1.0):
+            bad("deblend_mincont", "a number in [0, 1]", self.deblend_mincont)
+        if not isinstance(self.clean, (bool, np.bool_)):
+            bad("clean", "true or false", self.clean)
+        if not isinstance(self.clean_param, num) or not self.clean_param > 0:
+            bad("clean_param", "a positive number", self.clean_param)
+        if self.filter_type not in ("conv", "matched"):
+            bad("filter_type", "'conv' or 'matched'", self.filter_type)
+        if self.filter_kernel is not None:
+            k = np.array(self.filter_kernel, dtype=np.float64)
+            if k.ndim != 2 or k.size == 0 or not np.all(np.isfinite(k)) or not np.any(k != 0):
+                bad("filter_kernel", "a finite, non-zero 2-d array", self.filter_kernel)
+            k.setflags(write=False)
+            object.__setattr__(self, "filter_kernel", k)
+        try:
+            ap = tuple(float(a) for a in np.atleast_1d(self.phot_apertures))
+        except (TypeError, ValueError):
+            bad("phot_apertures", "a list of positive diameters [pixels]", self.phot_apertures)
+        if not ap or not all(math.isfinite(a) and a > 0 for a in ap):
+            bad("phot_apertures", "a non-empty list of positive diameters [pixels]", self.phot_apertures)
+        object.__setattr__(self, "phot_apertures", ap)
+        try:
+            au = tuple(float(a) for a in self.phot_autoparams)
+        except (TypeError, ValueError):
+            bad("phot_autoparams", "two positive numbers (k, R_min)", self.phot_autoparams)
+        if len(au) != 2 or not all(math.isfinite(a) and a > 0 for a in au):
+            bad("phot_autoparams", "two positive numbers (k, R_min)", self.phot_autoparams)
+        object.__setattr__(self, "phot_autoparams", au)
+        object.__setattr__(self, "ignored_keys", tuple(self.ignored_keys))
+
+    def __eq__(self, other):
+        if not isinstance(other, DetectionParams):
+            return NotImplemented
+        for f in dataclasses.fields(self):
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if f.name == "filter_kernel":
+                if (a is None) != (b is None) or (a is not None and not np.array_equal(a, b)):
+                    return False
+            elif a != b:
+                return False
+        return True
+
+    def __hash__(self):
+        k = None if self.filter_kernel is None else (self.filter_kernel.shape, self.filter_kernel.tobytes())
+        return hash((k,) + tuple(getattr(self, f.name) for f in dataclasses.fields(self)
+                                 if f.name != "filter_kernel"))
+
+    @property
+    def filter_halfwidth(self) -> int:
+        """Largest half-size of the filter kernel [pixels] (0 without filtering)."""
+        if self.filter_kernel is None:
+            return 0
+        return int(max(self.filter_kernel.shape) // 2)
+
+    @classmethod
+    def from_sextractor(cls, mapping: Mapping[str, Any], base_dir=None, **overrides) -> "DetectionParams":
+        """Build parameters from SExtractor keys (a config ``detection:`` section).
+
+        Parameters
+        ----------
+        mapping : mapping
+            SExtractor keys (case-insensitive): DETECT_THRESH, DETECT_MINAREA,
+            FILTER, FILTER_NAME (built-in name or ``.conv`` path), FILTER_TYPE,
+            DEBLEND_NTHRESH, DEBLEND_MINCONT, CLEAN, CLEAN_PARAM, BACK_SIZE,
+            BACK_FILTERSIZE, PHOT_APERTURES, PHOT_AUTOPARAMS, THRESH_TYPE
+            (RELATIVE only), and ``sex_file`` (a ``.sex`` file read first;
+            keys given explicitly win).  Values may be typed (YAML) or strings
+            (``.sex``).  Other SExtractor keys are ignored and listed in
+            ``ignored_keys``.
+        base_dir : path, optional
+            Directory that relative ``sex_file`` and FILTER_NAME paths are
+            relative to.
+        **overrides
+            Non-SExtractor fields (e.g. ``initial_window``).
+        """
+        if mapping is None:
+            mapping = {}
+        if not isinstance(mapping, Mapping):
+            raise ValueError(f"detection section must be a mapping of SExtractor keys, got {type(mapping).__name__}")
+        explicit = {str(k).upper(): v for k, v in mapping.items()}
+
+        def resolve(p):
+            p = os.path.expanduser(str(p))
+            if base_dir is not None and not os.path.isabs(p):
+                p = os.path.join(os.fspath(base_dir), p)
+            return p
+
+        keys: dict[str, Any] = {}
+        sex_file = explicit.pop("SEX_FILE", None)
+        if sex_file not in (None, ""):
+            keys.update(read_sex_file(resolve(sex_file)))
+        keys.update({k: v for k, v in explicit.items() if v is not None})
+
+        def scalar(key, conv, expected):
+            v = keys[key]
+            if isinstance(v, (list, tuple)):
+                if len(v) == 0:
+                    raise ValueError(f"detection key {key}: expected {expected}, got an empty list")
+                v = v[0]  # SExtractor allows e.g. DETECT_THRESH <sigma>,<zeropoint>
+            if isinstance(v, bool):
+                raise ValueError(f"detection key {key}: expected {expected}, got {v!r}")
+            try:
+                out = conv(v)
+            except (TypeError, ValueError):
+                raise ValueError(f"detection key {key}: expected {expected}, got {v!r}") from None
+            if conv is int and isinstance(v, (float, np.floating)) and v != out:
+                raise ValueError(f"detection key {key}: expected {expected}, got {v!r}")
+            return out
+
+        def boolean(key):
+            v = keys[key]
+            if isinstance(v, (bool, np.bool_)):
+                return bool(v)
+            if isinstance(v, str) and v.strip().upper() in ("Y", "YES", "TRUE", "T", "1"):
+                return True
+            if isinstance(v, str) and v.strip().upper() in ("N", "NO", "FALSE", "F", "0"):
+                return False
+            raise ValueError(f"detection key {key}: expected Y/N or true/false, got {v!r}")
+
+        def numlist(key, expected):
+            v = keys[key]
+            if isinstance(v, str):
+                v = [s for s in v.replace(",", " ").split()]
+            if not isinstance(v, (list, tuple)):
+                v = [v]
+            try:
+                if any(isinstance(x, bool) for x in v):
+                    raise TypeError
+                return tuple(float(x) for x in v)
+            except (TypeError, ValueError):
+                raise ValueError(f"detection key {key}: expected {expected}, got {keys[key]!r}") from None
+
+        kw: dict[str, Any] = {}
+        if "DETECT_THRESH" in keys:
+            kw["detect_thresh"] = scalar("DETECT_THRESH", float, "a positive number (sigma)")
+        if "DETECT_MINAREA" in keys:
+            kw["detect_minarea"] = scalar("DETECT_MINAREA", int, "a positive integer (pixels)")
+        if "DEBLEND_NTHRESH" in keys:
+            kw["deblend_nthresh"] = scalar("DEBLEND_NTHRESH", int, "a positive integer")
+        if "DEBLEND_MINCONT" in keys:
+            kw["deblend_mincont"] = scalar("DEBLEND_MINCONT", float, "a number in [0, 1]")
+        if "CLEAN" in keys:
+            kw["clean"] = boolean("CLEAN")
+        if "CLEAN_PARAM" in keys:
+            kw["clean_param"] = scalar("CLEAN_PARAM", float, "a positive number")
+        if "BACK_SIZE" in keys:
+            kw["back_size"] = scalar("BACK_SIZE", int, "a positive integer (pixels)")
+        if "BACK_FILTERSIZE" in keys:
+            kw["back_filtersize"] = scalar("BACK_FILTERSIZE", int, "a positive integer")
+        if "PHOT_APERTURES" in keys:
+            kw["phot_apertures"] = numlist("PHOT_APERTURES", "aperture diameters in pixels")
+        if "PHOT_AUTOPARAMS" in keys:
+            kw["phot_autoparams"] = numlist("PHOT_AUTOPARAMS", "two numbers k, R_min")
+        if "FILTER_TYPE" in keys:
+            ft = str(keys["FILTER_TYPE"]).strip().lower()
+            kw["filter_type"] = ft
+        if "THRESH_TYPE" in keys:
+            tt = keys["THRESH_TYPE"]
+            tt = tt[0] if isinstance(tt, (list, tuple)) else tt
+            if str(tt).strip().upper() != "RELATIVE":
+                raise ValueError(f"detection key THRESH_TYPE: only RELATIVE is supported, got {tt!r}")
+        use_filter = boolean("FILTER") if "FILTER" in keys else True
+        if not use_filter:
+            kw["filter_kernel"] = None
+            kw["filter_name"] = "none"
+        elif "FILTER_NAME" in keys:
+            name = keys["FILTER_NAME"]
+            if not isinstance(name, str) or not name.strip():
+                raise ValueError(f"detection key FILTER_NAME: expected a built-in filter name or a .conv path, got {name!r}")
+            name = name.strip()
+            path = resolve(name)
+            if os.path.isfile(path):
+                kw["filter_kernel"] = read_conv_file(path)
+                kw["filter_name"] = path
+            else:
+                base = os.path.basename(name)
+                stem = base[:-5] if base.endswith(".conv") else base
+                if stem in _filter_table():
+                    kw["filter_kernel"] = builtin_filter(stem)
+                    kw["filter_name"] = stem
+                elif name.endswith(".conv") or os.sep in name:
+                    raise FileNotFoundError(f"detection key FILTER_NAME: filter file {path!r} not found "
+                                            f"and {stem!r} is not a built-in filter")
+                else:
+                    raise ValueError(f"detection key FILTER_NAME: unknown built-in filter {name!r}; "
+                                     f"expected one of {', '.join(_filter_table())} or a .conv path")
+        ignored = tuple(sorted(k for k in keys if k not in _KNOWN_KEYS))
+        kw["ignored_keys"] = ignored
+        kw.update(overrides)
+        return cls(**kw)
+
+
+# --------------------------------------------------------------------------
+# Background and extraction
+# --------------------------------------------------------------------------
+def sanitize(image, err=None, mask=None):
+    """Native float32 copies for sep and the combined no-data mask.
+
+    Returns ``(data, err, nodata)``: NaN/inf data -> 0; pixels without data
+    (``mask`` True, data non-finite, err non-finite or <= 0) are flagged in
+    ``nodata``; their err is set to 1 (they are passed to sep as masked).
+    """
+    data = np.array(image, dtype=np.float32, order="C")
+    nodata = ~np.isfinite(data)
+    if mask is not None:
+        m = np.asarray(mask)
+        if m.shape != data.shape:
+            raise ValueError(f"mask shape {m.shape} differs from image shape {data.shape}")
+        nodata |= m.astype(bool)
+    e = None
+    if err is not None:
+        e = np.array(err, dtype=np.float32, order="C")
+        if e.shape != data.shape:
+            raise ValueError(f"RMS map shape {e.shape} differs from image shape {data.shape}")
+        with np.errstate(invalid="ignore"):
+            nodata |= ~(np.isfinite(e) & (e > 0))
+        e[nodata] = 1.0
+    data[nodata] = 0.0
+    return data, e, nodata
+
+
+def measure_background(image, mask, params: DetectionParams):
+    """Background and RMS maps of an original band image (once per field and band).
+
+    Parameters
+    ----------
+    image : ndarray
+        Science image [image units]; any dtype or byte order.
+    mask : ndarray of bool or None
+        True where there are no data; non-finite pixels are masked too.
+    params : DetectionParams
+        Uses ``back_size`` and ``back_filtersize``.
+
+    Returns
+    -------
+    background, rms : ndarray (float32)
+        Per-pixel background level and RMS [image units] (sep.Background, i.e.
+        SExtractor's mesh-mode / sigma-clipped background).
+    """
+    data, _, nodata = sanitize(image, None, mask)
+    try:
+        bkg = sep.Background(data, mask=nodata, bw=params.back_size, bh=params.back_size,
+                             fw=params.back_filtersize, fh=params.back_filtersize)
+        return bkg.back(dtype=np.float32), bkg.rms(dtype=np.float32)
+    except Exception as exc:  # sep raises plain Exception subclasses
+        raise DetectionError(f"sep background estimation failed: {exc}") from exc
+
+
+def _sep_extract(data, err, nodata, params: DetectionParams, clean: bool):
+    """sep.extract on sanitized float32 arrays, with limits raised and errors wrapped."""
+    # The pixel stack must hold every pixel of the open objects; it cannot exceed
+    # the image area.  sep initialises the whole stack on every call, so a stack
+    # much larger than the image costs time.
+    sep.set_extract_pixstack(int(max(data.size + 1024, 4096)))
+    sep.set_sub_object_limit(int(params.sub_object_limit))
+    try:
+        cat, seg = sep.extract(
+            data, float(params.detect_thresh), err=err, mask=nodata,
+            minarea=int(params.detect_minarea),
+            filter_kernel=params.filter_kernel, filter_type=params.filter_type,
+            deblend_nthresh=int(params.deblend_nthresh), deblend_cont=float(params.deblend_mincont),
+            clean=bool(clean), clean_param=float(params.clean_param), segmentation_map=True)
+    except Exception as exc:
+        raise DetectionError(f"sep extraction failed: {exc}") from exc
+    return cat, seg.astype(np.int32, copy=False)
+
+
+def extract(image_sub, err, params: DetectionParams, mask=None):
+    """Full-frame detection (single-image mode).
+
+    Parameters
+    ----------
+    image_sub : ndarray
+        Background-subtracted detection image [image units].
+    err : ndarray
+        Per-pixel RMS [image units]; threshold = ``detect_thresh * err``.
+    params : DetectionParams
+    mask : ndarray of bool, optional
+        True where there are no data.  Such pixels, and pixels with
+        non-finite data or non-finite/non-positive err, are never detected.
+
+    Returns
+    -------
+    catalog : structured ndarray
+        sep's object catalogue (x, y 0-based; a, b, theta; cflux, flux;
+        npix; xmin..ymax; flag; ...).  Row i has segment id i + 1.
+    segmap : ndarray of int32
+        Segmentation map (0 = no object).
+
+    Raises
+    ------
+    DetectionError
+        When sep fails (e.g. deblending overflow).
+    """
+    data, e, nodata = sanitize(image_sub, err, mask)
+    return _sep_extract(data, e, nodata, params, params.clean)

@@ -1,0 +1,683 @@
+"""Detect, classify and measure injected sources: the one entry point a task calls.
+
+Windowed detection
+------------------
+Each injected source is detected in a cut-out *window* of the injected
+detection image.  Windows of many sources are tiled into one *canvas*,
+separated by masked blank gaps wider than the filter kernel, and extracted with
+one ``sep.extract`` call.  A window is grown (and the source re-done in the
+next round) until every connected above-threshold region that matters lies at
+least ``filter half-width + 1`` pixels inside the window edge (sides on the
+image edge excepted, where the full frame has the same edge):
+
+* regions with a pixel in the search box;
+* regions touching the bounding boxes of the Kron-radius ellipse (6 a, 6 b),
+  the AUTO ellipse and the largest circular aperture (they decide which pixels
+  are masked as neighbours).
+
+Then every pixel of those regions has the same filtered value and threshold as
+in the full frame, so the regions are identical.
+
+Two sep behaviours would still make a cut-out differ from the full frame, and
+both are made window-independent here, identically in ``mode="full"``:
+
+1. *Deblending is random.*  sep (like SExtractor) hands the faint pixels of a
+   split region to its children by drawing random numbers from one stream per
+   ``sep.extract`` call, so a deblended footprint depends on every region
+   processed before it anywhere in the image.  A region with more than one
+   segment that contains (part of) a source's search box is therefore
+   re-extracted *alone* (same pixels; the RMS set to infinity outside the
+   region so nothing else is detected), which makes its deblending
+   deterministic.
+2. *CLEAN compares objects across the whole image* (within 10 (a1 + a2)), so a
+   cut-out changes which spurious objects are removed.  The tiled extraction
+   runs with CLEAN off, and CLEAN is applied inside each re-extracted region:
+   i.e. CLEAN acts between the deblended children of one region, not between
+   separate regions.  Regions with a single segment are unaffected by CLEAN
+   in sep (it only removes objects).
+
+With ``filter_type="matched"`` the noise enters the filter and point 1 is only
+approximately window-independent.
+
+The reference (original-image) extraction is a plain full-frame sep run with
+CLEAN as configured; it is done once per field and shared by both modes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+from scipy import ndimage
+
+from glaciar.constants import (FLAG_SEP_ERROR, FLAG_WINDOW_AT_LIMIT, STATUS_NOT_DETECTED,
+                               band_column)
+from glaciar.engine import photometry as phot
+from glaciar.engine.classify import ClassificationParams, classify, footprint_overlap, input_pixel, \
+    select_detection
+from glaciar.engine.detect import DetectionError, DetectionParams, _sep_extract, sanitize
+from glaciar.engine.scene import Scene
+
+__all__ = ["FieldReference", "reference_extraction", "measure_injected", "output_columns"]
+
+_BIG_RMS = np.float32(1e30)
+_EIGHT = np.ones((3, 3), dtype=bool)   # sep/SExtractor regions are 8-connected
+_MAX_CANVAS_PIXELS = 600_000           # keep one sep call's buffers small
+_REMOVED = np.int32(2 ** 31 - 1)       # label of pixels whose object CLEAN removed
+
+
+@dataclass(frozen=True, eq=False)
+class FieldReference:
+    """Extraction of the original detection image, once per field.
+
+    Attributes
+    ----------
+    segmap : ndarray of int32
+        Full-frame segmentation of the original detection image.
+    flux : ndarray
+        Detection-band AUTO flux per original id (index id - 1) [image units].
+    mag : ndarray
+        AUTO magnitude per original id (detection zeropoint); NaN for flux <= 0.
+    catalog : structured ndarray or None
+        sep's catalogue (row id - 1).
+    """
+
+    segmap: np.ndarray
+    flux: np.ndarray
+    mag: np.ndarray
+    catalog: np.ndarray | None = None
+
+
+def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropoint: float,
+                         mask=None) -> FieldReference:
+    """Extract the original (un-injected) detection image once per field.
+
+    Parameters
+    ----------
+    det_image_sub : ndarray
+        Background-subtracted original detection image [image units].
+    det_rms : ndarray
+        Per-pixel RMS [image units].
+    params : DetectionParams
+    zeropoint : float
+        AB zeropoint of the detection image.
+    mask : ndarray of bool, optional
+        True where there are no data.
+
+    Returns
+    -------
+    FieldReference
+        Segmentation map and AUTO flux/magnitude per original source
+        (MAG_AUTO as SExtractor: Kron factor and minimum radius from
+        ``params.phot_autoparams``; neighbours masked).
+    """
+    data, err, nodata = sanitize(det_image_sub, det_rms, mask)
+    cat, seg = _sep_extract(data, err, nodata, params, params.clean)
+    n = len(cat)
+    if n == 0:
+        return FieldReference(seg, np.zeros(0), np.zeros(0), cat)
+    ids = np.arange(1, n + 1, dtype=np.int32)
+    a, b, th = _shape(cat["a"], cat["b"], cat["theta"])
+    kr = phot.kron_radius(data, cat["x"], cat["y"], a, b, th, segmap=seg, seg_id=ids, mask=nodata)
+    scale = phot.auto_scale(kr, params.phot_autoparams)
+    flux, _ = phot.auto_photometry(data, err, cat["x"], cat["y"], a, b, th, scale,
+                                   segmap=seg, seg_id=ids, mask=nodata)
+    mag, _, _ = phot.magnitudes(flux, np.ones_like(flux), zeropoint)
+    return FieldReference(seg, flux, mag, cat)
+
+
+def _shape(a, b, theta):
+    # sep requires a >= b >= 0 and |theta| <= pi/2; guard degenerate 1-pixel-wide objects
+    a = np.maximum(np.asarray(a, dtype=np.float64), 1e-3)
+    b = np.clip(np.asarray(b, dtype=np.float64), 1e-3, a)
+    th = np.clip(np.asarray(theta, dtype=np.float64), -np.pi / 2, np.pi / 2)
+    return a, b, th
+
+
+def output_columns(bands, n_apertures: int) -> list[str]:
+    """Names of the per-source columns :func:`measure_injected` returns."""
+    cols = ["status", "detection_id", "flags", "overlap_fraction", "blend_original_id",
+            "blend_original_mag", "x_det", "y_det"]
+    for b in bands:
+        q = ["flux_iso", "fluxerr_iso", "flux_auto", "fluxerr_auto"]
+        for k in range(n_apertures):
+            q += [f"flux_aper{k}", f"fluxerr_aper{k}"]
+        q += ["mag", "magerr", "sn", "maglim"]
+        cols += [band_column(x, b) for x in q]
+    return cols
+
+
+# --------------------------------------------------------------------------
+# Canvas: tiled windows
+# --------------------------------------------------------------------------
+def _pack(heights, widths, gap):
+    """Shelf-pack rectangles; returns (y offsets, x offsets, canvas shape)."""
+    k = len(heights)
+    order = np.argsort(-np.asarray(heights), kind="stable")
+    area = float(np.sum((np.asarray(heights) + gap) * (np.asarray(widths) + gap)))
+    width = int(max(np.max(widths) + 2 * gap, np.sqrt(area) * 1.1))
+    oy = np.zeros(k, dtype=np.int64)
+    ox = np.zeros(k, dtype=np.int64)
+    y = x = gap
+    shelf = 0
+    for i in order:
+        h, w = int(heights[i]), int(widths[i])
+        if x + w + gap > width and x > gap:
+            y += shelf + gap
+            x = gap
+            shelf = 0
+        oy[i], ox[i] = y, x
+        x += w + gap
+        shelf = max(shelf, h)
+    return oy, ox, (int(y + shelf + gap), int(width))
+
+
+class _Canvas:
+    """Windows of the detection image (and later the bands) tiled into one array."""
+
+    def __init__(self, ctx, rects, full=False):
+        self.ctx = ctx
+        self.rects = rects                      # (K, 4) y0, y1, x0, x1 image coords
+        hh = rects[:, 1] - rects[:, 0]
+        ww = rects[:, 3] - rects[:, 2]
+        if full:
+            self.oy = np.zeros(1, dtype=np.int64)
+            self.ox = np.zeros(1, dtype=np.int64)
+            self.shape = ctx.shape
+        else:
+            self.oy, self.ox, self.shape = _pack(hh, ww, ctx.gap)
+        self.full = full
+        H, W = self.shape
+        det = np.zeros(self.shape)
+        err = np.ones(self.shape, dtype=np.float32)
+        nodata = np.ones(self.shape, dtype=bool)
+        ref = np.zeros(self.shape, dtype=np.int32)
+        for k in range(len(rects)):
+            y0, y1, x0, x1 = rects[k]
+            sl = self.slice(k)
+            if full:
+                det = ctx.det_scene.full()
+            else:
+                det[sl] = ctx.det_scene.window(y0, y1, x0, x1)
+            err[sl] = ctx.det_rms[y0:y1, x0:x1]
+            nodata[sl] = False if ctx.mask is None else ctx.mask[y0:y1, x0:x1]
+            ref[sl] = ctx.ref_segmap[y0:y1, x0:x1]
+        with np.errstate(invalid="ignore"):
+            nodata |= ~np.isfinite(det) | ~(np.isfinite(err) & (err > 0))
+        det[nodata] = 0.0
+        err[nodata] = 1.0
+        self.det = det
+        self.det32 = det.astype(np.float32)
+        self.err = err
+        self.nodata = nodata
+        self.ref = ref
+
+    def slice(self, k):
+        y0, y1, x0, x1 = self.rects[k]
+        return (slice(self.oy[k], self.oy[k] + y1 - y0), slice(self.ox[k], self.ox[k] + x1 - x0))
+
+    def band(self, name, windows):
+        """Band data and RMS on the canvas (only the listed windows filled)."""
+        ctx = self.ctx
+        data = np.zeros(self.shape)
+        rms = np.zeros(self.shape)
+        bad = self.nodata.copy()
+        scene, brms = ctx.band_scenes[name], ctx.band_rms[name]
+        for k in windows:
+            y0, y1, x0, x1 = self.rects[k]
+            sl = self.slice(k)
+            d = scene.full() if self.full else scene.window(y0, y1, x0, x1)
+            r = np.array(brms[y0:y1, x0:x1], dtype=np.float64)
+            with np.errstate(invalid="ignore"):
+                b = bad[sl] | ~np.isfinite(d) | ~(np.isfinite(r) & (r > 0))
+            d[b] = 0.0
+            r[b] = 0.0
+            data[sl] = d
+            rms[sl] = r
+            bad[sl] = b
+        return data, rms, bad
+
+
+class _Context:
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+
+def _ellipse_half_extent(a, b, theta, r):
+    c, s = np.cos(theta), np.sin(theta)
+    dx = r * np.sqrt((a * c) ** 2 + (b * s) ** 2)
+    dy = r * np.sqrt((a * s) ** 2 + (b * c) ** 2)
+    return dy, dx
+
+
+# --------------------------------------------------------------------------
+# Main entry point
+# --------------------------------------------------------------------------
+def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping[str, Scene],
+                     band_rms: Mapping[str, np.ndarray], x: np.ndarray, y: np.ndarray,
+                     input_flux_det: np.ndarray, input_mag_det: np.ndarray,
+                     reference: FieldReference, params: DetectionParams,
+                     classification: ClassificationParams, zeropoints: Mapping[str, float],
+                     gains: Mapping[str, float | None], detection_band: str,
+                     mask: np.ndarray | None = None, mode: str = "windowed") -> dict[str, np.ndarray]:
+    """Detect, classify and measure N injected sources.
+
+    Parameters
+    ----------
+    det_scene : Scene
+        Background-subtracted original detection image + injected stamps.
+    det_rms : ndarray
+        RMS of the original detection image [image units] (detection threshold
+        and ISO errors).
+    band_scenes, band_rms : mapping band -> Scene / ndarray
+        Every measured band, the detection band included.
+    x, y : array of float, shape (N,)
+        Input positions, 0-based pixels (x along numpy axis 1).
+    input_flux_det, input_mag_det : array, shape (N,)
+        Total input flux [image units] and AB magnitude in the detection band.
+    reference : FieldReference
+        Original-image extraction of this field.
+    params : DetectionParams
+    classification : ClassificationParams
+    zeropoints, gains : mapping band -> float / float or None
+    detection_band : str
+    mask : ndarray of bool, optional
+        True where there are no data (all bands).
+    mode : {"windowed", "full"}
+        ``full`` extracts the whole injected image once (validation).
+
+    Returns
+    -------
+    dict of str -> ndarray, each of length N
+        See :func:`output_columns`.  Measured quantities are NaN for
+        undetected sources; ``detection_id`` is the label of the detection in
+        this call's extraction (0 = none; not comparable between modes).
+    """
+    if mode not in ("windowed", "full"):
+        raise ValueError(f"mode must be 'windowed' or 'full', got {mode!r}")
+    bands = list(band_scenes)
+    if detection_band not in band_scenes:
+        raise ValueError(f"detection band {detection_band!r} missing from band_scenes ({', '.join(bands)})")
+    for b in bands:
+        if b not in band_rms:
+            raise ValueError(f"band_rms has no entry for band {b!r}")
+        if b not in zeropoints:
+            raise ValueError(f"zeropoints has no entry for band {b!r}")
+        if band_scenes[b].shape != det_scene.shape:
+            raise ValueError(f"band {b!r} image shape {band_scenes[b].shape} differs from the detection image {det_scene.shape}")
+    if det_rms.shape != det_scene.shape or reference.segmap.shape != det_scene.shape:
+        raise ValueError("det_rms and reference.segmap must have the detection image's shape")
+    if classification.sn_definition == "aper" and classification.sn_aperture_index >= len(params.phot_apertures):
+        raise ValueError(f"sn_aperture_index {classification.sn_aperture_index} but only "
+                         f"{len(params.phot_apertures)} PHOT_APERTURES")
+    x = np.atleast_1d(np.asarray(x, dtype=np.float64))
+    y = np.atleast_1d(np.asarray(y, dtype=np.float64))
+    n = x.size
+    if y.size != n or np.size(input_flux_det) != n or np.size(input_mag_det) != n:
+        raise ValueError("x, y, input_flux_det and input_mag_det must have the same length")
+
+    hw = params.filter_halfwidth
+    ctx = _Context(det_scene=det_scene, det_rms=det_rms, band_scenes=band_scenes, band_rms=band_rms,
+                   mask=mask, ref_segmap=reference.segmap, ref_mag=reference.mag, params=params,
+                   cls=classification, zeropoints=zeropoints, gains=gains, det_band=detection_band,
+                   bands=bands, shape=det_scene.shape, margin=hw + 1,
+                   gap=max(hw + 1, 2),
+                   input_flux=np.asarray(input_flux_det, dtype=np.float64).ravel(),
+                   input_mag=np.asarray(input_mag_det, dtype=np.float64).ravel(), x=x, y=y)
+
+    out = {c: np.full(n, np.nan) for c in output_columns(bands, len(params.phot_apertures))}
+    out["status"] = np.full(n, STATUS_NOT_DETECTED, dtype=np.int8)
+    out["detection_id"] = np.zeros(n, dtype=np.int64)
+    out["flags"] = np.zeros(n, dtype=np.int32)
+    out["blend_original_id"] = np.zeros(n, dtype=np.int64)
+    if n == 0:
+        return out
+    ctx.out = out
+    ctx.at_max = np.zeros(n, dtype=bool)
+
+    ny, nx = ctx.shape
+    if mode == "full":
+        rects = np.array([[0, ny, 0, nx]], dtype=np.int64)
+        _run_canvas(ctx, np.arange(n), rects, np.zeros(n, dtype=np.int64), full=True)
+        return out
+
+    ix, iy = input_pixel(x, y)
+    r = params.initial_window // 2
+    rects = np.stack([np.clip(iy - r, 0, ny), np.clip(iy + r + 1, 0, ny),
+                      np.clip(ix - r, 0, nx), np.clip(ix + r + 1, 0, nx)], axis=1)
+    pending = np.arange(n)
+    while pending.size:
+        # chunk so one sep call stays small
+        areas = (rects[pending, 1] - rects[pending, 0] + ctx.gap) * (rects[pending, 3] - rects[pending, 2] + ctx.gap)
+        chunks = np.split(pending, np.flatnonzero(np.diff(np.cumsum(areas) // _MAX_CANVAS_PIXELS)) + 1)
+        grow_all = []
+        for chunk in chunks:
+            grow_all.append(_run_canvas(ctx, chunk, rects[chunk], np.arange(chunk.size), full=False,
+                                        all_rects=rects))
+        pending = np.concatenate(grow_all) if grow_all else np.zeros(0, dtype=np.int64)
+    return out
+
+
+def _run_canvas(ctx, src, rects, src_win, full, all_rects=None):
+    """Extract one canvas; finish what is exact, return sources whose window must grow."""
+    try:
+        canvas = _Canvas(ctx, rects, full=full)
+        cat, seg = _sep_extract(canvas.det32, canvas.err, canvas.nodata, ctx.params, clean=False)
+    except DetectionError:
+        if len(rects) > 1:   # isolate the failing window(s)
+            grow = [_run_canvas(ctx, src[i:i + 1], rects[src_win[i]][None], np.zeros(1, dtype=np.int64),
+                                full, all_rects) for i in range(src.size)]
+            return np.concatenate(grow)
+        ctx.out["flags"][src] |= FLAG_SEP_ERROR
+        return np.zeros(0, dtype=np.int64)
+    return _analyse(ctx, canvas, cat, seg, src, src_win, all_rects)
+
+
+def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
+    params, cls = ctx.params, ctx.cls
+    m = ctx.margin
+    ny, nx = ctx.shape
+    full = cv.full
+    # ---- regions (8-connected components of detected pixels) and their boxes
+    comp, ncomp = ndimage.label(seg > 0, structure=_EIGHT)
+    sl = ndimage.find_objects(comp)
+    cb = np.zeros((ncomp + 1, 4), dtype=np.int64)
+    if ncomp:
+        cb[1:] = [(s[0].start, s[0].stop, s[1].start, s[1].stop) for s in sl]
+    nseg = len(cat)
+    seg2comp = np.zeros(nseg + 1, dtype=np.int64)
+    nzpix = np.flatnonzero(seg)
+    seg2comp[seg.ravel()[nzpix]] = comp.ravel()[nzpix]
+    segs_per_comp = np.bincount(seg2comp[1:], minlength=ncomp + 1)
+
+    # ---- per-source window geometry on the canvas
+    k = src_win
+    rect = cv.rects[k]
+    wy0 = cv.oy[k]
+    wx0 = cv.ox[k]
+    wy1 = wy0 + rect[:, 1] - rect[:, 0]
+    wx1 = wx0 + rect[:, 3] - rect[:, 2]
+    # constrained sides: not on the image edge
+    lo_y = np.where(rect[:, 0] > 0, wy0 + m, -10 ** 9)
+    hi_y = np.where(rect[:, 1] < ny, wy1 - m, 10 ** 9)
+    lo_x = np.where(rect[:, 2] > 0, wx0 + m, -10 ** 9)
+    hi_x = np.where(rect[:, 3] < nx, wx1 - m, 10 ** 9)
+    cx = ctx.x[src] - rect[:, 2] + wx0
+    cy = ctx.y[src] - rect[:, 0] + wy0
+    bounds = np.stack([wy0, wy1, wx0, wx1], axis=1)
+
+    grow = np.zeros(src.size, dtype=bool)
+    edge = np.zeros(src.size, dtype=bool)
+    need = np.stack([cy, cy + 1, cx, cx + 1], axis=1).astype(np.int64)   # canvas bbox required exact
+
+    def check(i, by0, by1, bx0, bx1):
+        """Is bbox (canvas) and every region touching it exact for source i?  Updates need[i]."""
+        by0, by1 = max(by0, 0), min(by1, cv.shape[0])
+        bx0, bx1 = max(bx0, 0), min(bx1, cv.shape[1])
+        comps = np.unique(comp[by0:by1, bx0:bx1])
+        comps = comps[comps > 0]
+        ry0 = min([by0] + list(cb[comps, 0]))
+        ry1 = max([by1] + list(cb[comps, 1]))
+        rx0 = min([bx0] + list(cb[comps, 2]))
+        rx1 = max([bx1] + list(cb[comps, 3]))
+        need[i] = (min(need[i, 0], ry0), max(need[i, 1], ry1), min(need[i, 2], rx0), max(need[i, 3], rx1))
+        return ry0 >= lo_y[i] and ry1 <= hi_y[i] and rx0 >= lo_x[i] and rx1 <= hi_x[i]
+
+    def room(i, by0, by1, bx0, bx1):
+        """Apertures running off the image edge are measured on the window alone.
+
+        sep scales aperture sums up for masked pixels but not for pixels
+        outside the array, so the blank gap around a window must not enter an
+        aperture: such sources are measured on their window cut from the
+        canvas, where the image edge is the array edge, as in the full frame.
+        """
+        if not full and max(wy0[i] - by0, by1 - wy1[i], wx0[i] - bx0, bx1 - wx1[i]) > 0:
+            edge[i] = True
+
+    at_max = np.zeros(src.size, dtype=bool) if full else ctx.at_max[src]
+
+    def fail(i):
+        if at_max[i]:
+            ctx.out["flags"][src[i]] |= FLAG_WINDOW_AT_LIMIT
+        else:
+            grow[i] = True
+
+    # ---- stage A: regions in the search box must be exact
+    icx, icy = input_pixel(cx, cy)
+    h = cls.search_box // 2
+    box_comps = []
+    for i in range(src.size):
+        y0, y1 = max(icy[i] - h, wy0[i]), min(icy[i] + h + 1, wy1[i])
+        x0, x1 = max(icx[i] - h, wx0[i]), min(icx[i] + h + 1, wx1[i])
+        c = np.unique(comp[y0:y1, x0:x1]) if (y1 > y0 and x1 > x0) else np.zeros(0, dtype=np.int32)
+        box_comps.append(c[c > 0])
+        if not full and not check(i, y0, y1, x0, x1):
+            fail(i)
+
+    # ---- canonical (isolated) re-extraction of deblended regions in search boxes
+    pseg = seg.astype(np.int64)
+    tab = _segment_table(cat)
+    next_label = nseg + 1
+    done_comps = {}
+    sep_failed = np.zeros(src.size, dtype=bool)
+    for i in range(src.size):
+        if grow[i]:
+            continue
+        for c in box_comps[i]:
+            if segs_per_comp[c] < 2:
+                continue
+            if c in done_comps:
+                if done_comps[c] is None:
+                    sep_failed[i] = True
+                continue
+            try:
+                next_label = _isolate(cv, comp, c, cb[c], bounds[i], pseg, tab, next_label, ctx)
+                done_comps[c] = True
+            except DetectionError:
+                done_comps[c] = None
+                sep_failed[i] = True
+
+    # ---- choose the detection
+    pix = np.flatnonzero(pseg)
+    lab_pix = pseg.ravel()[pix]
+    nl = int(next_label)
+    seg_flux = np.bincount(lab_pix, weights=cv.det.ravel()[pix], minlength=nl)
+    label = select_detection(pseg, cx, cy, seg_flux, cls.search_box, bounds=bounds)
+    label[grow | sep_failed] = 0
+    det = label > 0
+
+    # ---- stage B: measurement apertures must see exact segmentation
+    xs = tab["x"][label]
+    ys = tab["y"][label]
+    a, b, th = _shape(tab["a"][label], tab["b"][label], tab["theta"][label])
+    if not full:
+        dy6, dx6 = _ellipse_half_extent(a, b, th, 6.0)
+        for i in np.flatnonzero(det):
+            bb = (int(np.floor(ys[i] - dy6[i])) - 1, int(np.ceil(ys[i] + dy6[i])) + 2,
+                  int(np.floor(xs[i] - dx6[i])) - 1, int(np.ceil(xs[i] + dx6[i])) + 2)
+            if not check(i, *bb):
+                fail(i)
+            room(i, *bb)
+        det &= ~grow
+    # Segmentation for neighbour masking in Kron/AUTO: pixels of objects that CLEAN removed
+    # (in re-extracted regions) stay masked for everyone, so the masks do not depend on
+    # which regions a given window re-extracted.
+    pseg32 = pseg.astype(np.int32)
+    pseg32[(pseg32 == 0) & (seg > 0)] = _REMOVED
+    kr = np.full(src.size, np.nan)
+    for ii, sl in _groups(cv, np.flatnonzero(det), edge, src_win):
+        oy, ox = sl[0].start, sl[1].start
+        kr[ii] = phot.kron_radius(cv.det[sl], xs[ii] - ox, ys[ii] - oy, a[ii], b[ii], th[ii],
+                                  segmap=pseg32[sl], seg_id=label[ii], mask=cv.nodata[sl])
+    scale = phot.auto_scale(kr, params.phot_autoparams)
+    if not full:
+        dya, dxa = _ellipse_half_extent(a, b, th, scale)
+        rap = 0.5 * max(params.phot_apertures)
+        dya, dxa = np.maximum(dya, rap), np.maximum(dxa, rap)
+        for i in np.flatnonzero(det):
+            bb = (int(np.floor(ys[i] - dya[i])) - 1, int(np.ceil(ys[i] + dya[i])) + 2,
+                  int(np.floor(xs[i] - dxa[i])) - 1, int(np.ceil(xs[i] + dxa[i])) + 2)
+            if not check(i, *bb):
+                fail(i)
+            room(i, *bb)
+
+    # ---- windows that must grow: new rects (or, at max_window, one last round unchecked)
+    regrow = []
+    if not full:
+        for i in np.flatnonzero(grow):
+            s = src[i]
+            oy, ox = wy0[i] - rect[i, 0], wx0[i] - rect[i, 2]   # canvas -> image offset
+            pad = m + 4
+            ny0 = min(rect[i, 0], need[i, 0] - oy - pad)
+            ny1 = max(rect[i, 1], need[i, 1] - oy + pad)
+            nx0 = min(rect[i, 2], need[i, 2] - ox - pad)
+            nx1 = max(rect[i, 3], need[i, 3] - ox + pad)
+            # grow a side by at least half the window size, so the rounds stay few
+            gy = max(16, (rect[i, 1] - rect[i, 0]) // 2)
+            gx = max(16, (rect[i, 3] - rect[i, 2]) // 2)
+            ny0 = min(ny0, rect[i, 0] - gy) if ny0 < rect[i, 0] else ny0
+            ny1 = max(ny1, rect[i, 1] + gy) if ny1 > rect[i, 1] else ny1
+            nx0 = min(nx0, rect[i, 2] - gx) if nx0 < rect[i, 2] else nx0
+            nx1 = max(nx1, rect[i, 3] + gx) if nx1 > rect[i, 3] else nx1
+            new = np.array([max(ny0, 0), min(ny1, ny), max(nx0, 0), min(nx1, nx)])
+            mw = ctx.params.max_window
+            iy_, ix_ = int(np.floor(ctx.y[s] + 0.5)), int(np.floor(ctx.x[s] + 0.5))
+            if new[1] - new[0] > mw:
+                new[0], new[1] = max(iy_ - mw // 2, new[0]), min(iy_ - mw // 2 + mw, new[1])
+            if new[3] - new[2] > mw:
+                new[2], new[3] = max(ix_ - mw // 2, new[2]), min(ix_ - mw // 2 + mw, new[3])
+            if np.array_equal(new, all_rects[s]):
+                ctx.at_max[s] = True          # redo once more without the checks, flagged
+            all_rects[s] = new
+            regrow.append(s)
+
+    fin = ~grow
+    ctx.out["flags"][src[sep_failed]] |= FLAG_SEP_ERROR
+    _finish(ctx, cv, pseg, pseg32, label * fin, xs, ys, a, b, th, scale, src, src_win, fin, rect, wy0, wx0,
+            edge)
+    return np.array(regrow, dtype=np.int64)
+
+
+def _segment_table(cat):
+    """Label-indexed geometry (index 0 = no detection), as growable lists."""
+    tab = {}
+    for f in ("x", "y", "a", "b", "theta"):
+        tab[f] = np.concatenate([[np.nan], np.asarray(cat[f], dtype=np.float64)])
+    return tab
+
+
+def _isolate(cv, comp, c, box, win, pseg, tab, next_label, ctx):
+    """Re-extract region ``c`` alone (fresh deblending RNG, CLEAN within the region).
+
+    The cut-out is the region's box plus the filter half-width + 1, clipped to
+    the window ``win`` (y0, y1, x0, x1), so it is the same array in a window
+    and in the full frame.
+    """
+    params = ctx.params
+    pad = params.filter_halfwidth + 1
+    y0, y1 = max(box[0] - pad, win[0]), min(box[1] + pad, win[1])
+    x0, x1 = max(box[2] - pad, win[2]), min(box[3] + pad, win[3])
+    inside = comp[y0:y1, x0:x1] == c
+    data = np.ascontiguousarray(cv.det32[y0:y1, x0:x1])
+    err = np.array(cv.err[y0:y1, x0:x1], dtype=np.float32, order="C")
+    err[~inside] = _BIG_RMS   # nothing outside the region can pass the threshold
+    nod = np.ascontiguousarray(cv.nodata[y0:y1, x0:x1])
+    cat, seg = _sep_extract(data, err, nod, params, params.clean)
+    region = pseg[y0:y1, x0:x1]
+    region[inside] = 0
+    new = seg > 0
+    region[new] = seg[new] + (next_label - 1)
+    k = len(cat)
+    tab["x"] = np.concatenate([tab["x"], np.asarray(cat["x"], dtype=np.float64) + x0])
+    tab["y"] = np.concatenate([tab["y"], np.asarray(cat["y"], dtype=np.float64) + y0])
+    for f in ("a", "b", "theta"):
+        tab[f] = np.concatenate([tab[f], np.asarray(cat[f], dtype=np.float64)])
+    return next_label + k
+
+
+def _groups(cv, ii, edge, src_win):
+    """Yield (source indices, canvas slice): all non-edge sources on the whole canvas,
+    then each edge source on its own window (see ``room`` in :func:`_analyse`)."""
+    ii = np.asarray(ii, dtype=np.int64)
+    whole = (slice(0, cv.shape[0]), slice(0, cv.shape[1]))
+    inner = ii[~edge[ii]]
+    if inner.size:
+        yield inner, whole
+    for i in ii[edge[ii]]:
+        yield np.array([i]), cv.slice(src_win[i])
+
+
+def _finish(ctx, cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win, fin, rect, wy0, wx0, edge):
+    """Classification and photometry of the finished sources of a canvas."""
+    out, params, cls = ctx.out, ctx.params, ctx.cls
+    idx = np.flatnonzero(fin)
+    if idx.size == 0:
+        return
+    lab = label[idx]
+    det = lab > 0
+    s = src[idx]
+    out["detection_id"][s] = lab
+    # classification geometry
+    n_fp, n_ov, blend = footprint_overlap(pseg, lab, cv.ref, ctx.ref_mag)
+    # photometry in every band
+    windows = np.unique(src_win[idx])
+    di = np.flatnonzero(det)
+    pix = np.flatnonzero(pseg)
+    flux_sn = err_sn = None
+    for band in ctx.bands:
+        data, rms, bad = cv.band(band, windows)
+        gain = ctx.gains.get(band)
+        fi, fei = phot.iso_photometry(data, rms, pseg, lab, gain=gain, pixels=pix)
+        fa = np.full((len(params.phot_apertures), lab.size), np.nan)
+        fea = fa.copy()
+        fau = np.full(lab.size, np.nan)
+        feau = fau.copy()
+        pos = np.full(label.size, -1, dtype=np.int64)
+        pos[idx] = np.arange(idx.size)          # canvas source index -> row of this finish
+        for j, sl in _groups(cv, idx[di], edge, src_win):
+            oy, ox = sl[0].start, sl[1].start
+            r = pos[j]
+            fa[:, r], fea[:, r] = phot.aperture_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy,
+                                                           params.phot_apertures, gain=gain, mask=bad[sl])
+            fau[r], feau[r] = phot.auto_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy, a[j], b[j], th[j],
+                                                   scale[j], gain=gain, segmap=pseg32[sl], seg_id=lab[r],
+                                                   mask=bad[sl])
+        if cls.sn_definition == "iso":
+            f, fe = fi, fei
+        elif cls.sn_definition == "auto":
+            f, fe = fau, feau
+        else:
+            f, fe = fa[cls.sn_aperture_index], fea[cls.sn_aperture_index]
+        f = np.where(det, f, np.nan)
+        fe = np.where(det, fe, np.nan)
+        zp = ctx.zeropoints[band]
+        mag, magerr, sn = phot.magnitudes(f, fe, zp)
+        col = lambda q: band_column(q, band)  # noqa: E731
+        out[col("flux_iso")][s] = fi
+        out[col("fluxerr_iso")][s] = fei
+        out[col("flux_auto")][s] = fau
+        out[col("fluxerr_auto")][s] = feau
+        for kk in range(len(params.phot_apertures)):
+            out[col(f"flux_aper{kk}")][s] = fa[kk]
+            out[col(f"fluxerr_aper{kk}")][s] = fea[kk]
+        out[col("mag")][s] = mag
+        out[col("magerr")][s] = magerr
+        out[col("sn")][s] = sn
+        out[col("maglim")][s] = phot.limiting_magnitude(f, fe, zp)
+        if band == ctx.det_band:
+            flux_sn, err_sn = f, fe
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sn_det = flux_sn / err_sn
+    bmag = np.full(lab.size, np.nan)
+    has = blend > 0
+    bmag[has] = ctx.ref_mag[blend[has] - 1]
+    status = classify(lab, sn_det, n_fp, n_ov, bmag, ctx.input_mag[s], flux_sn, ctx.input_flux[s], cls)
+    out["status"][s] = status
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out["overlap_fraction"][s] = np.where(det, n_ov / np.maximum(n_fp, 1), np.nan)
+    out["blend_original_id"][s] = blend
+    out["blend_original_mag"][s] = bmag
+    # detection centroid in image coordinates
+    j = idx
+    out["x_det"][s] = np.where(det, xs[j] - wx0[j] + rect[j, 2], np.nan)
+    out["y_det"][s] = np.where(det, ys[j] - wy0[j] + rect[j, 0], np.nan)

@@ -1,0 +1,142 @@
+"""sep backend in SExtractor vocabulary: filters, config files, background, extraction."""
+import numpy as np
+import pytest
+from scipy import integrate
+
+from glaciar.engine.detect import (DetectionError, DetectionParams, builtin_filter, builtin_filter_names,
+                                   extract, measure_background, read_conv_file, read_sex_file)
+
+
+def test_builtin_gaussian_matches_numerical_pixel_integrals():
+    k = builtin_filter("gauss_2.0_5x5")
+    sig = 2.0 / 2.354820045
+    g = lambda v: np.exp(-0.5 * (v / sig) ** 2)  # noqa: E731
+    p = np.array([integrate.quad(g, c - 0.5, c + 0.5)[0] for c in range(-2, 3)])
+    ref = np.outer(p, p)
+    np.testing.assert_allclose(k, ref / ref.sum(), rtol=1e-10)
+    for name in ("gauss_2.5_5x5", "gauss_3.0_7x7", "tophat_3.0_3x3", "default"):
+        kk = builtin_filter(name)
+        assert np.isclose(kk.sum(), 1.0) and np.allclose(kk, kk.T) and np.allclose(kk, kk[::-1])
+    assert builtin_filter("gauss_3.0_7x7").shape == (7, 7)
+    assert set(("gauss_2.0_5x5", "gauss_2.5_5x5", "gauss_3.0_7x7", "tophat_3.0_3x3", "default")) <= set(builtin_filter_names())
+
+
+def test_tophat_is_disk_area_fraction():
+    k = builtin_filter("tophat_3.0_3x3")
+    total = np.pi * 1.5 ** 2                 # the whole disk lies inside the 3x3 box
+    # corner pixel [0.5, 1.5]^2: area inside r = 1.5, by quadrature (101^2 sub-sampling: < 2e-3)
+    corner = integrate.quad(lambda x: max(np.sqrt(2.25 - x * x) - 0.5, 0.0), 0.5, 1.5)[0]
+    np.testing.assert_allclose(k[0, 0] * total, corner, rtol=2e-2)
+    np.testing.assert_allclose(k[1, 1] * total, 1.0, rtol=2e-3)   # centre pixel fully inside
+
+
+def test_builtin_default_is_pyramid():
+    np.testing.assert_allclose(builtin_filter("default.conv") * 16, [[1, 2, 1], [2, 4, 2], [1, 2, 1]])
+    with pytest.raises(ValueError, match="unknown built-in filter"):
+        builtin_filter("gauss_9.9_3x3")
+
+
+def test_read_conv_file(tmp_path):
+    p = tmp_path / "k.conv"
+    p.write_text("CONV NORM\n# 3x3 kernel\n1 2 1\n2 4 2\n1 2 1\n")
+    np.testing.assert_array_equal(read_conv_file(p), [[1, 2, 1], [2, 4, 2], [1, 2, 1]])
+    p.write_text("1 2 1\n")
+    with pytest.raises(ValueError, match="CONV NORM"):
+        read_conv_file(p)
+    p.write_text("CONV NONORM\n1 2\n1 2 3\n")
+    with pytest.raises(ValueError, match="different lengths"):
+        read_conv_file(p)
+    with pytest.raises(FileNotFoundError):
+        read_conv_file(tmp_path / "missing.conv")
+
+
+def test_sex_file_and_from_sextractor(tmp_path):
+    (tmp_path / "my.conv").write_text("CONV NORM\n0 1 0\n1 4 1\n0 1 0\n")
+    sex = tmp_path / "det.sex"
+    sex.write_text("# comment\nDETECT_THRESH   1.5   # sigma\nDETECT_MINAREA 5\n"
+                   "PHOT_APERTURES 2,4,6\nFILTER_NAME my.conv\nCATALOG_NAME out.cat\nCLEAN N\n")
+    d = read_sex_file(sex)
+    assert d["DETECT_THRESH"] == "1.5" and d["PHOT_APERTURES"] == ["2", "4", "6"]
+    p = DetectionParams.from_sextractor({"sex_file": "det.sex", "DETECT_MINAREA": 12}, base_dir=tmp_path)
+    assert p.detect_thresh == 1.5 and p.detect_minarea == 12          # explicit key wins
+    assert p.phot_apertures == (2.0, 4.0, 6.0) and p.clean is False
+    np.testing.assert_array_equal(p.filter_kernel, [[0, 1, 0], [1, 4, 1], [0, 1, 0]])
+    assert p.ignored_keys == ("CATALOG_NAME",)
+    q = DetectionParams.from_sextractor({"FILTER": False})
+    assert q.filter_kernel is None and q.filter_halfwidth == 0
+    assert DetectionParams.from_sextractor({"FILTER_NAME": "gauss_3.0_7x7"}).filter_halfwidth == 3
+    assert DetectionParams.from_sextractor({}) == DetectionParams()
+
+
+@pytest.mark.parametrize("key,value", [("DETECT_THRESH", "abc"), ("DETECT_MINAREA", 2.5),
+                                       ("CLEAN", "maybe"), ("PHOT_APERTURES", [1, "x"]),
+                                       ("DEBLEND_MINCONT", 2.0), ("FILTER_NAME", "nofilter")])
+def test_from_sextractor_errors_name_the_key(key, value):
+    with pytest.raises(ValueError, match=key.lower() if key == "DEBLEND_MINCONT" else key):
+        DetectionParams.from_sextractor({key: value})
+
+
+def test_missing_filter_file_is_reported(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.conv"):
+        DetectionParams.from_sextractor({"FILTER_NAME": "nope.conv"}, base_dir=tmp_path)
+
+
+def _blob(n=64, x0=32.0, y0=32.0, amp=5.0, s=2.0):
+    yy, xx = np.mgrid[:n, :n]
+    return amp * np.exp(-((xx - x0) ** 2 + (yy - y0) ** 2) / (2 * s * s))
+
+
+def test_threshold_is_relative_to_the_rms_map():
+    # no filter: a flat 4x4 plateau is detected iff it exceeds DETECT_THRESH * rms of its pixels
+    p = DetectionParams(detect_thresh=2.0, detect_minarea=4, filter_kernel=None)
+    img = np.zeros((40, 40))
+    img[10:14, 10:14] = 1.0
+    img[25:29, 25:29] = 1.0
+    rms = np.full((40, 40), 0.45)       # 1.0 > 0.9: both detected
+    rms[20:, 20:] = 0.55                # 1.0 < 1.1: the second is not
+    cat, seg = extract(img, rms, p)
+    assert len(cat) == 1 and np.isclose(cat["x"][0], 11.5) and seg[11, 11] == 1 and seg[26, 26] == 0
+
+
+def test_pixels_without_data_are_never_detected():
+    p = DetectionParams()
+    img = _blob() + _blob(x0=12, y0=12)
+    rms = np.full(img.shape, 0.1)
+    mask = np.zeros(img.shape, bool)
+    mask[20:45, 20:45] = True           # masks the first blob
+    rms[:25, :25] = np.inf              # infinite RMS hides the second
+    cat, seg = extract(img, rms, p, mask=mask)
+    assert len(cat) == 0 and not seg.any()
+    img2 = img.copy()
+    img2[20:45, 20:45] = np.nan         # NaN data are no data too
+    cat, _ = extract(img2, np.full(img.shape, 0.1), p)
+    assert len(cat) == 1 and np.hypot(cat["x"][0] - 12, cat["y"][0] - 12) < 0.1
+
+
+def test_background_rms_and_big_endian_input():
+    rng = np.random.default_rng(3)
+    img = (10.0 + rng.normal(0, 0.2, (256, 256))).astype(">f4")
+    p = DetectionParams()
+    back, rms = measure_background(img, None, p)
+    assert abs(np.median(back) - 10.0) < 0.01
+    assert abs(np.median(rms) - 0.2) / 0.2 < 0.03
+    cat, seg = extract((img - back) + _blob(256, 128, 128, 3.0, 2.5), rms, p)
+    assert seg[128, 128] > 0 and seg.dtype == np.int32
+
+
+def test_sep_failure_becomes_detection_error():
+    p = DetectionParams(detect_thresh=0.1, detect_minarea=1, deblend_nthresh=64, deblend_mincont=0.0,
+                        sub_object_limit=1, filter_kernel=None)
+    rng = np.random.default_rng(0)
+    img = _blob(64, 32, 32, 50.0, 8.0) + rng.normal(0, 1, (64, 64))
+    with pytest.raises(DetectionError):
+        extract(img, np.ones((64, 64)), p)
+
+
+def test_params_validation():
+    with pytest.raises(ValueError, match="detect_thresh"):
+        DetectionParams(detect_thresh=-1)
+    with pytest.raises(ValueError, match="phot_apertures"):
+        DetectionParams(phot_apertures=())
+    with pytest.raises(ValueError, match="filter_type"):
+        DetectionParams(filter_type="gauss")
