@@ -74,8 +74,8 @@ def draw_task_sources(rng: np.random.Generator, n: int, z: float, mag: float, ct
     else:
         mag_in = sed.band_magnitudes(z, beta, ctx.filters, mag=np.full(n, float(mag)),
                                      detection_index=ctx.detection_index, igm=model.igm)
-        M_uv = sed.absolute_magnitude(z, beta, ctx.filters[ctx.detection_index],
-                                      mag_in[:, ctx.detection_index], cosmology=ctx.cosmology,
+        M_uv = sed.absolute_magnitude(mag_in[:, ctx.detection_index], z, beta,
+                                      ctx.filters[ctx.detection_index], cosmology=ctx.cosmology,
                                       igm=model.igm)
     shapes = population.draw_shapes(rng, n, model)
     r_kpc = population.r_eff_kpc(z, model, M_uv=M_uv, rng=rng)
