@@ -95,7 +95,8 @@ def _mag_of_flux(flux: np.ndarray, zeropoint: float) -> np.ndarray:
         return np.where(flux > 0, zeropoint - 2.5 * np.log10(np.where(flux > 0, flux, 1.0)), np.inf)
 
 
-def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed") -> pd.DataFrame:
+def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
+             skip_faint_bands: bool = True) -> pd.DataFrame:
     """Run one task on a prepared field context and return its per-source rows.
 
     Parameters
@@ -108,6 +109,11 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed") -> pd.Da
         The run's seed.
     mode : {"windowed", "full"}
         Detection mode (``"full"`` re-extracts the whole frame; for validation).
+    skip_faint_bands : bool
+        Render no stamp in a band where the source has no flux or is fainter
+        than FAINT_MAG_LIMIT (blueward of the break).  The skip is exact: with
+        it off, those bands receive stamps of zero or < 1e-9 counts, and the
+        rows are the same (tests/test_task.py).
     """
     rng, ident = task_rng(seed, spec)
     n = ctx.n_galaxies
@@ -127,7 +133,10 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed") -> pd.Da
     stamps = {b: [] for b in bands}
     for j, band in enumerate(bands):
         flux = sed.mag_to_flux(src.mag_in[:, j], ctx.zeropoints[band])
-        skip = sed.bands_to_skip(src.mag_in[:, j:j + 1])[:, 0]
+        if skip_faint_bands:
+            skip = sed.bands_to_skip(src.mag_in[:, j:j + 1])[:, 0]
+        else:
+            skip = np.zeros(m, dtype=bool)
         flux_in[:, j] = np.where(skip, 0.0, flux)
         frac = np.zeros(m)
         for i in np.flatnonzero(~skip):
