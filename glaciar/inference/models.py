@@ -1,0 +1,402 @@
+"""Completeness and selection surfaces, their priors, and the binomial likelihood.
+
+The probability that an injected source of total input magnitude ``m`` (AB,
+detection band) at redshift ``z`` is *recovered* is
+
+    C(m, z) = C_max * F((m - m50(z)) / w(z))
+
+and the probability that it is *selected*, given that it is recovered, is
+
+    S(z, m) = S_max * sigma((z - z_lo(m)) / dz_lo(m)) * sigma((z_hi(m) - z) / dz_hi(m))
+
+so that P(selected | z, m) = C(m, z) * S(z, m).  ``sigma`` is the logistic
+function, and ``F`` is a decreasing step with F(0) = 1/2 and F(-u) = 1 - F(u):
+
+- ``"logistic"``: F(u) = 1 / (1 + exp(u))                      (w: e-folding width)
+- ``"erf"``:      F(u) = erfc(u / sqrt 2) / 2                   (w: Gaussian sigma)
+- ``"fleming"``:  F(u) = (1 - u / sqrt(1 + u^2)) / 2            (Fleming et al. 1995
+  form as used by Pritchet; w = 1/alpha; power-law tails ~ 1/(4 u^2))
+
+The smooth dependences are polynomials in normalised coordinates
+``zc = (z - z_ref) / z_scale`` and ``mc = (m - m_ref) / m_scale``::
+
+    m50(z)   = sum_k m50_k   zc^k          (degree ``m50_degree``)
+    ln w(z)  = sum_k log_w_k zc^k          (degree ``log_w_degree``; w > 0)
+    z_lo(m)  = sum_k z_lo_k  mc^k,  ln dz_lo(m) = sum_k log_dz_lo_k mc^k
+    z_hi(m)  = sum_k z_hi_k  mc^k,  ln dz_hi(m) = sum_k log_dz_hi_k mc^k   (degree ``edge_degree``)
+    C_max = sigma(logit_c_max),  S_max = sigma(logit_s_max)
+
+Priors: every parameter has an independent normal prior (see
+:meth:`SurfaceModel.prior_mean` / :meth:`SurfaceModel.prior_sd`), which is
+proper.  The likelihood is a product of probabilities, so it is bounded by 1,
+and the posterior is bounded by the (normalisable) prior: it stays proper and
+its maximum finite when the data are separable (everything recovered, nothing
+recovered, or a perfect step).
+
+Likelihood: the recovered and the selected flags factorise,
+``recovered ~ Bernoulli(C)`` and ``selected | recovered ~ Bernoulli(S)``,
+which is the same as ``selected ~ Bernoulli(C S)`` because selected implies
+recovered.  Per aggregated cell of ``n`` sources with ``k_rec`` recovered and
+``k_sel`` selected the log-likelihood is (binomial coefficients dropped):
+``k_rec ln C + (n - k_rec) ln(1 - C) + k_sel ln S + (k_rec - k_sel) ln(1 - S)``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import log_ndtr
+
+__all__ = ["COMPLETENESS_SHAPES", "SurfaceModel", "Cells", "step_function", "log_step"]
+
+COMPLETENESS_SHAPES = ("logistic", "erf", "fleming")
+
+# Prior constants (documented in docs/selection-function-file.md).  Logit
+# N(2, 2) puts the median of C_max and S_max at 0.88 with 95 % in [0.12, 0.998].
+_LOGIT_MAX_PRIOR = (2.0, 2.0)
+# ln w ~ N(ln 0.3 mag, 1): 95 % of widths in 0.04 .. 2.1 mag.
+_LOG_W_PRIOR = (np.log(0.3), 1.0)
+_LOG_W_SLOPE_SD = 0.5
+# ln dz ~ N(ln 0.2, 1): edge widths 0.03 .. 1.4 in z at 95 %.
+_LOG_DZ_PRIOR = (np.log(0.2), 1.0)
+_LOG_DZ_SLOPE_SD = 0.5
+# Floor on log-probabilities so that 0 * log(0) terms are 0, not NaN.
+_LOG_FLOOR = -1e200
+
+
+def _log_sigmoid(x):
+    """ln(1 / (1 + exp(-x))), exact and overflow-free for any x."""
+    return -np.logaddexp(0.0, -x)
+
+
+def log_step(u, shape):
+    """ln F(u) for the completeness step ``shape``, stable at both tails.
+
+    Parameters
+    ----------
+    u : array_like
+        Standardised magnitude (m - m50) / w (dimensionless).
+    shape : {"logistic", "erf", "fleming"}
+
+    Returns
+    -------
+    ndarray
+        ln F(u); ln(1 - F(u)) is ``log_step(-u, shape)``.
+    """
+    u = np.asarray(u, dtype=float)
+    if shape == "logistic":
+        return -np.logaddexp(0.0, u)
+    if shape == "erf":
+        return log_ndtr(-u)
+    if shape == "fleming":
+        a = np.abs(u)
+        s = np.sqrt(1.0 + a * a)
+        # F(|u|) = (1 - a/s)/2 = 1 / (2 s (s + a)): no cancellation at large |u|.
+        t = 0.5 / (s * (s + a))
+        return np.where(u >= 0, np.log(t), np.log1p(-t))
+    raise ValueError(f"unknown completeness shape {shape!r}; expected one of {COMPLETENESS_SHAPES}")
+
+
+def step_function(u, shape):
+    """F(u): the completeness step (1 at bright u -> -inf, 1/2 at 0, 0 at faint u -> +inf)."""
+    return np.exp(log_step(u, shape))
+
+
+@dataclass(frozen=True)
+class Cells:
+    """Aggregated binomial counts: sources sharing (z, magnitude) covariates.
+
+    Attributes
+    ----------
+    z : ndarray
+        Input redshift of the cell.
+    mag : ndarray
+        Input AB magnitude of the cell (mean ``mag_input`` of its sources) [mag].
+    n, k_rec, k_sel : ndarray of int
+        Sources in the cell, recovered ones, selected ones (k_sel <= k_rec <= n).
+    """
+
+    z: np.ndarray
+    mag: np.ndarray
+    n: np.ndarray
+    k_rec: np.ndarray
+    k_sel: np.ndarray
+
+    def __post_init__(self):
+        n, kr, ks = (np.asarray(a) for a in (self.n, self.k_rec, self.k_sel))
+        if not (len(self.z) == len(self.mag) == len(n) == len(kr) == len(ks)):
+            raise ValueError("Cells: z, mag, n, k_rec, k_sel must have the same length")
+        if np.any(ks > kr) or np.any(kr > n) or np.any(ks < 0):
+            raise ValueError("Cells: counts must satisfy 0 <= k_sel <= k_rec <= n "
+                             "(a selected source must be recovered)")
+
+    @property
+    def n_sources(self) -> int:
+        return int(np.sum(self.n))
+
+    def __len__(self):
+        return len(self.z)
+
+
+@dataclass(frozen=True)
+class SurfaceModel:
+    """The parametric C(m, z) and S(z, m) surfaces with their priors.
+
+    Parameters
+    ----------
+    shape : {"logistic", "erf", "fleming"}
+        Completeness step shape.
+    z_ref, z_scale : float
+        Redshift normalisation, zc = (z - z_ref) / z_scale.
+    m_ref, m_scale : float
+        Magnitude normalisation, mc = (m - m_ref) / m_scale [mag].
+    m50_degree, log_w_degree, edge_degree : int
+        Polynomial degrees of m50(z), ln w(z) and of the selection edges in m.
+    """
+
+    shape: str = "logistic"
+    z_ref: float = 0.0
+    z_scale: float = 1.0
+    m_ref: float = 0.0
+    m_scale: float = 1.0
+    m50_degree: int = 2
+    log_w_degree: int = 1
+    edge_degree: int = 1
+    _slices: dict = field(default=None, init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        if self.shape not in COMPLETENESS_SHAPES:
+            raise ValueError(f"unknown completeness model {self.shape!r}; "
+                             f"expected one of {COMPLETENESS_SHAPES}")
+        if not (self.z_scale > 0 and self.m_scale > 0):
+            raise ValueError("SurfaceModel: z_scale and m_scale must be positive")
+        for name in ("m50_degree", "log_w_degree", "edge_degree"):
+            if int(getattr(self, name)) < 0:
+                raise ValueError(f"SurfaceModel: {name} must be >= 0")
+        sizes = [("logit_c_max", 1), ("m50", self.m50_degree + 1),
+                 ("log_w", self.log_w_degree + 1), ("logit_s_max", 1),
+                 ("z_lo", self.edge_degree + 1), ("log_dz_lo", self.edge_degree + 1),
+                 ("z_hi", self.edge_degree + 1), ("log_dz_hi", self.edge_degree + 1)]
+        sl, i = {}, 0
+        for name, k in sizes:
+            sl[name] = slice(i, i + k)
+            i += k
+        object.__setattr__(self, "_slices", sl)
+
+    # ------------------------------------------------------------------ setup
+    @classmethod
+    def for_data(cls, z, mag, shape="logistic", **degrees) -> "SurfaceModel":
+        """Model normalised to the covariate ranges of the data.
+
+        Parameters
+        ----------
+        z, mag : array_like
+            Input redshifts and input magnitudes [mag] of the sources (or cells).
+        shape : str
+            Completeness step shape.
+        """
+        z = np.asarray(z, float)
+        mag = np.asarray(mag, float)
+        if z.size == 0:
+            raise ValueError("SurfaceModel.for_data: no sources")
+        zlo, zhi = float(np.min(z)), float(np.max(z))
+        mlo, mhi = float(np.min(mag)), float(np.max(mag))
+        # A single z (or magnitude) gives no lever arm: unit scale, the prior rules.
+        return cls(shape=shape, z_ref=0.5 * (zlo + zhi), z_scale=0.5 * (zhi - zlo) or 1.0,
+                   m_ref=0.5 * (mlo + mhi), m_scale=0.5 * (mhi - mlo) or 1.0, **degrees)
+
+    @property
+    def param_names(self) -> list[str]:
+        """Names of the parameters, in the order of the parameter vector."""
+        out = []
+        for name, s in self._slices.items():
+            k = s.stop - s.start
+            out += [name] if name.startswith("logit") else [f"{name}_{j}" for j in range(k)]
+        return out
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names)
+
+    @property
+    def prior_mean(self) -> np.ndarray:
+        """Means of the independent normal priors (see module docstring)."""
+        mu = np.zeros(self.n_params)
+        s = self._slices
+        mu[s["logit_c_max"]] = _LOGIT_MAX_PRIOR[0]
+        mu[s["logit_s_max"]] = _LOGIT_MAX_PRIOR[0]
+        mu[s["m50"].start] = self.m_ref                      # centre of the magnitude range
+        mu[s["log_w"].start] = _LOG_W_PRIOR[0]
+        mu[s["z_lo"].start] = self.z_ref - 0.5 * self.z_scale  # rising edge in the lower half
+        mu[s["z_hi"].start] = self.z_ref + 0.5 * self.z_scale  # falling edge in the upper half
+        mu[s["log_dz_lo"].start] = _LOG_DZ_PRIOR[0]
+        mu[s["log_dz_hi"].start] = _LOG_DZ_PRIOR[0]
+        return mu
+
+    @property
+    def prior_sd(self) -> np.ndarray:
+        """Standard deviations of the independent normal priors."""
+        sd = np.ones(self.n_params)
+        s = self._slices
+        sd[s["logit_c_max"]] = _LOGIT_MAX_PRIOR[1]
+        sd[s["logit_s_max"]] = _LOGIT_MAX_PRIOR[1]
+        sd[s["m50"]] = self.m_scale                     # m50 may move by the half range per zc
+        sd[s["m50"].start] = 2.0 * self.m_scale         # anywhere within +-1 full range
+        sd[s["log_w"]] = _LOG_W_SLOPE_SD
+        sd[s["log_w"].start] = _LOG_W_PRIOR[1]
+        for e in ("z_lo", "z_hi"):
+            sd[s[e]] = 0.5 * self.z_scale
+            sd[s[e].start] = self.z_scale
+        for e in ("log_dz_lo", "log_dz_hi"):
+            sd[s[e]] = _LOG_DZ_SLOPE_SD
+            sd[s[e].start] = _LOG_DZ_PRIOR[1]
+        return sd
+
+    def sample_prior(self, n, rng) -> np.ndarray:
+        """``n`` parameter vectors drawn from the prior, shape (n, n_params)."""
+        return self.prior_mean + self.prior_sd * rng.standard_normal((n, self.n_params))
+
+    def log_prior(self, theta) -> np.ndarray:
+        """Normalised log prior density, shape theta.shape[:-1]."""
+        t = (np.asarray(theta, float) - self.prior_mean) / self.prior_sd
+        return (-0.5 * np.sum(t * t, axis=-1) - np.sum(np.log(self.prior_sd))
+                - 0.5 * self.n_params * np.log(2 * np.pi))
+
+    # ---------------------------------------------------------- evaluation
+    def _powers(self, x, ref, scale, degree):
+        xc = (np.asarray(x, float) - ref) / scale
+        return xc[..., None] ** np.arange(degree + 1)
+
+    def _log_c(self, theta, m, z):
+        """ln C and ln(1 - C); theta (W, P), m and z 1-D (N,) -> two (W, N) arrays."""
+        s = self._slices
+        zp = self._powers(z, self.z_ref, self.z_scale, max(self.m50_degree, self.log_w_degree))
+        m50 = theta[:, s["m50"]] @ zp[:, :self.m50_degree + 1].T             # (W, N)
+        inv_w = np.exp(-(theta[:, s["log_w"]] @ zp[:, :self.log_w_degree + 1].T))
+        u = (np.asarray(m, float)[None, :] - m50) * inv_w
+        lcm = theta[:, s["logit_c_max"]]                                       # (W, 1)
+        log_cmax = _log_sigmoid(lcm)
+        if self.shape == "logistic":
+            # Two logs per element (logs dominate the cost): with e = exp(u),
+            # C = C_max / (1 + e) and 1 - C = ((1 - C_max) + e) / (1 + e), both
+            # sums of positives.  |u| <= 700 keeps exp finite; beyond it C is
+            # below 1e-304 or equal to C_max to double precision anyway.
+            e = np.exp(np.clip(u, -700.0, 700.0))
+            log1pe = np.log1p(e)
+            with np.errstate(divide="ignore"):
+                log_1mc = np.log(np.exp(_log_sigmoid(-lcm)) + e) - log1pe
+            return log_cmax - log1pe, log_1mc
+        lf = log_step(u, self.shape)
+        # 1 - C_max F(u) = (1 - C_max) + C_max F(-u): a sum of positives, no cancellation.
+        log_1mc = np.logaddexp(_log_sigmoid(-lcm), log_cmax + log_step(-u, self.shape))
+        return log_cmax + lf, log_1mc
+
+    def _log_s(self, theta, z, m):
+        """ln S and ln(1 - S); theta (W, P), z and m 1-D (N,) -> two (W, N) arrays."""
+        s = self._slices
+        mp = self._powers(m, self.m_ref, self.m_scale, self.edge_degree)
+        z = np.asarray(z, float)[None, :]
+        a = (z - theta[:, s["z_lo"]] @ mp.T) * np.exp(-(theta[:, s["log_dz_lo"]] @ mp.T))
+        b = (theta[:, s["z_hi"]] @ mp.T - z) * np.exp(-(theta[:, s["log_dz_hi"]] @ mp.T))
+        # S = S_max / D with D = (1 + e^-a)(1 + e^-b), and 1 - S = (D - S_max) / D where
+        # D - S_max = (1 - S_max) + ea + eb + ea eb is a sum of positives.  Clipping a, b
+        # at -300 only matters where S < 1e-130, i.e. nowhere a posterior can sit.
+        ea = np.exp(-np.clip(a, -300.0, 700.0))
+        eb = np.exp(-np.clip(b, -300.0, 700.0))
+        log_d = np.log1p(ea + eb + ea * eb)
+        lsm = theta[:, s["logit_s_max"]]
+        with np.errstate(divide="ignore"):
+            log_1ms = np.log(np.exp(_log_sigmoid(-lsm)) + ea + eb + ea * eb) - log_d
+        return _log_sigmoid(lsm) - log_d, log_1ms
+
+    @staticmethod
+    def _theta2d(theta):
+        theta = np.asarray(theta, float)
+        return theta[None, :] if theta.ndim == 1 else theta
+
+    def completeness(self, theta, m, z) -> np.ndarray:
+        """C(m, z) for parameter vector(s) ``theta``.
+
+        Parameters
+        ----------
+        theta : array_like, shape (P,) or (D, P)
+        m, z : array_like
+            Input AB magnitude [mag] and redshift, broadcast together.
+
+        Returns
+        -------
+        ndarray
+            Shape ``broadcast(m, z).shape`` for one theta, else ``(D,) + that``.
+        """
+        th = self._theta2d(theta)
+        m, z = np.broadcast_arrays(np.asarray(m, float), np.asarray(z, float))
+        log_c, _ = self._log_c(th, m.ravel(), z.ravel())
+        out = np.exp(log_c).reshape((len(th),) + m.shape)
+        return out[0] if np.ndim(theta) == 1 else out
+
+    def selection(self, theta, z, m) -> np.ndarray:
+        """S(z, m), the selection probability of a recovered source (see :meth:`completeness`)."""
+        th = self._theta2d(theta)
+        z, m = np.broadcast_arrays(np.asarray(z, float), np.asarray(m, float))
+        log_s, _ = self._log_s(th, z.ravel(), m.ravel())
+        out = np.exp(log_s).reshape((len(th),) + z.shape)
+        return out[0] if np.ndim(theta) == 1 else out
+
+    @np.errstate(over="ignore", invalid="ignore")
+    def log_likelihood(self, theta, cells: Cells, part: str = "both") -> np.ndarray:
+        """Binomial log-likelihood of the cells (coefficients dropped).
+
+        Parameters
+        ----------
+        theta : array_like, shape (P,) or (W, P)
+        cells : Cells
+        part : {"both", "c", "s"}
+            The recovered term (C), the selected-given-recovered term (S), or
+            both.  They depend on disjoint parameters, so the posterior factorises.
+
+        Returns
+        -------
+        ndarray, shape theta.shape[:-1]
+        """
+        th = self._theta2d(theta)
+        n = np.asarray(cells.n, float)
+        kr = np.asarray(cells.k_rec, float)
+        ks = np.asarray(cells.k_sel, float)
+        f = _LOG_FLOOR
+        ll = np.zeros(len(th))
+        if part in ("both", "c"):
+            log_c, log_1mc = self._log_c(th, cells.mag, cells.z)
+            ll = ll + np.maximum(log_c, f) @ kr + np.maximum(log_1mc, f) @ (n - kr)
+        if part in ("both", "s"):
+            log_s, log_1ms = self._log_s(th, cells.z, cells.mag)
+            ll = ll + np.maximum(log_s, f) @ ks + np.maximum(log_1ms, f) @ (kr - ks)
+        if part not in ("both", "c", "s"):
+            raise ValueError(f"part must be 'both', 'c' or 's', not {part!r}")
+        return ll[0] if np.ndim(theta) == 1 else ll
+
+    def log_posterior(self, theta, cells: Cells, part: str = "both") -> np.ndarray:
+        """Unnormalised log posterior (prior over all parameters); NaN -> -inf."""
+        lp = self.log_prior(theta) + self.log_likelihood(theta, cells, part)
+        return np.where(np.isfinite(lp), lp, -np.inf)
+
+    def block_indices(self, part: str) -> np.ndarray:
+        """Indices of the parameters of ``part`` ("c": completeness, "s": selection)."""
+        i = self._slices["logit_s_max"].start
+        return np.arange(i) if part == "c" else np.arange(i, self.n_params)
+
+    # -------------------------------------------------------------- header
+    def to_header_dict(self) -> dict:
+        """FITS-header keywords that fully specify the model (see the file docs)."""
+        return {"CSHAPE": self.shape, "ZREF": self.z_ref, "ZSCALE": self.z_scale,
+                "MREF": self.m_ref, "MSCALE": self.m_scale, "DEGM50": self.m50_degree,
+                "DEGLOGW": self.log_w_degree, "DEGEDGE": self.edge_degree}
+
+    @classmethod
+    def from_header_dict(cls, h) -> "SurfaceModel":
+        try:
+            return cls(shape=str(h["CSHAPE"]), z_ref=float(h["ZREF"]), z_scale=float(h["ZSCALE"]),
+                       m_ref=float(h["MREF"]), m_scale=float(h["MSCALE"]),
+                       m50_degree=int(h["DEGM50"]), log_w_degree=int(h["DEGLOGW"]),
+                       edge_degree=int(h["DEGEDGE"]))
+        except KeyError as exc:
+            raise ValueError(f"selection-function header lacks model keyword {exc}") from exc

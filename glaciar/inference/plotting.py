@@ -1,0 +1,111 @@
+"""Plots of the fitted surfaces with credible bands over the binned (k+1)/(n+2) points."""
+from __future__ import annotations
+
+import io
+
+import numpy as np
+
+__all__ = ["plot_completeness", "plot_selection"]
+
+
+def _save(fig, path):
+    from ..store import atomic_write_bytes
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _zs_to_show(sf, max_panels=6):
+    if sf.ppc is not None and len(sf.ppc):
+        zs = np.unique(sf.ppc["z"])
+    else:
+        zs = np.linspace(sf.z_grid[0], sf.z_grid[-1], max_panels)
+    if len(zs) > max_panels:
+        zs = zs[np.linspace(0, len(zs) - 1, max_panels).round().astype(int)]
+    return zs
+
+
+def plot_completeness(sf, path):
+    """C(m) at the simulated redshifts: median, 68 % and 95 % bands, binned points.
+
+    Parameters
+    ----------
+    sf : SelectionFunction
+    path : path-like
+        PNG file to write.
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    zs = _zs_to_show(sf)
+    m = np.linspace(sf.m_grid[0], sf.m_grid[-1], 200)
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    colors = plt.cm.viridis(np.linspace(0, 0.9, len(zs)))
+    for z, col in zip(zs, colors):
+        q = np.quantile(sf.completeness(m, z, draws=True), [0.5, 0.16, 0.84, 0.025, 0.975], axis=0)
+        ax.fill_between(m, q[3], q[4], color=col, alpha=0.15, lw=0)
+        ax.fill_between(m, q[1], q[2], color=col, alpha=0.35, lw=0)
+        ax.plot(m, q[0], color=col, label=f"z = {z:.2f}")
+        if sf.ppc is not None:
+            r = sf.ppc[np.isclose(sf.ppc["z"], z)]
+            ax.errorbar(r["mag_input_mean"], r["c_binned"],
+                        yerr=[r["c_binned"] - r["c_binned_q16"], r["c_binned_q84"] - r["c_binned"]],
+                        fmt="o", ms=3, color=col, lw=0.8)
+    ax.set_xlabel("input magnitude [AB]")
+    ax.set_ylabel("completeness C(m)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title(f"completeness ({sf.model.shape}, field {sf.field}); points: (k+1)/(n+2)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+
+
+def plot_selection(sf, path, n_mags=4):
+    """S(z) at a few magnitudes (bands, binned (k_sel+1)/(k_rec+2)) and the median P = C S map.
+
+    Parameters
+    ----------
+    sf : SelectionFunction
+    path : path-like
+    n_mags : int
+        Magnitudes shown in the left panel.
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    z = np.linspace(sf.z_grid[0], sf.z_grid[-1], 200)
+    if sf.ppc is not None and len(sf.ppc):
+        mags = np.unique(sf.ppc["mag"])
+        mags = mags[np.linspace(0, len(mags) - 1, min(n_mags, len(mags))).round().astype(int)]
+    else:
+        mags = np.linspace(sf.m_grid[0], sf.m_grid[-1], n_mags)
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.5))
+    colors = plt.cm.plasma(np.linspace(0, 0.85, len(mags)))
+    for mv, col in zip(mags, colors):
+        q = np.quantile(sf.selection(z, mv, draws=True, conditional=True),
+                        [0.5, 0.16, 0.84, 0.025, 0.975], axis=0)
+        ax.fill_between(z, q[3], q[4], color=col, alpha=0.15, lw=0)
+        ax.fill_between(z, q[1], q[2], color=col, alpha=0.35, lw=0)
+        ax.plot(z, q[0], color=col, label=f"m = {mv:.2f}")
+        if sf.ppc is not None:
+            r = sf.ppc[np.isclose(sf.ppc["mag"], mv) & (sf.ppc["k_rec"] > 0)]
+            ax.errorbar(r["z"], r["s_binned"],
+                        yerr=[r["s_binned"] - r["s_binned_q16"], r["s_binned_q84"] - r["s_binned"]],
+                        fmt="o", ms=3, color=col, lw=0.8)
+    ax.set_xlabel("redshift z")
+    ax.set_ylabel("S(z, m) = P(selected | recovered)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.legend(fontsize=7)
+    P = sf.grid_quantiles("P", quantiles=(0.5,))[0]
+    im = ax2.imshow(P, origin="lower", aspect="auto", vmin=0, vmax=1, cmap="magma",
+                    extent=[sf.m_grid[0], sf.m_grid[-1], sf.z_grid[0], sf.z_grid[-1]])
+    fig.colorbar(im, ax=ax2, label="median P(selected | z, m) = C S")
+    ax2.set_xlabel("input magnitude [AB]")
+    ax2.set_ylabel("redshift z")
+    fig.suptitle(f"selection (field {sf.field})")
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)

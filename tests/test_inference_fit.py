@@ -1,0 +1,267 @@
+"""Tests of glaciar.inference: models, priors, fit, file round-trip, V_eff, PPC."""
+import json
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import integrate, special, stats
+
+from glaciar.inference import (Cells, SelectionFunction, SurfaceModel, aggregate_cells,
+                               find_map, fit_surfaces, ppc_table, propose_cells, run_fit)
+from glaciar.inference.fit import ConvergenceWarning
+from glaciar.store import write_task_table
+
+Z_GRID = np.array([6.0, 6.5, 7.0, 7.5, 8.0, 8.5, 9.0])
+M_GRID = np.arange(25.0, 29.51, 0.5)
+TRUTH = dict(logit_c_max=2.5, m50_0=27.4, m50_1=-0.3, m50_2=0.05, log_w_0=np.log(0.3),
+             log_w_1=0.1, logit_s_max=3.0, z_lo_0=6.8, z_lo_1=0.1, log_dz_lo_0=np.log(0.15),
+             log_dz_lo_1=0.1, z_hi_0=8.4, z_hi_1=-0.1, log_dz_hi_0=np.log(0.2), log_dz_hi_1=0.0)
+
+
+def truth_model(shape="logistic"):
+    mdl = SurfaceModel.for_data(Z_GRID, M_GRID, shape=shape)
+    th = mdl.prior_mean.copy()
+    for k, v in TRUTH.items():
+        th[mdl.param_names.index(k)] = v
+    return mdl, th
+
+
+def simulate(mdl, th, n_per_cell, rng, scatter=0.05, fields=("f1",)):
+    z = np.repeat(Z_GRID, len(M_GRID) * n_per_cell)
+    mnom = np.tile(np.repeat(M_GRID, n_per_cell), len(Z_GRID))
+    mi = mnom + scatter * rng.standard_normal(z.size)
+    rec = rng.random(z.size) < mdl.completeness(th, mi, z)
+    sel = rec & (rng.random(z.size) < mdl.selection(th, z, mi))
+    return pd.DataFrame({"field": rng.choice(list(fields), z.size), "z": z, "mag": mnom,
+                         "mag_input": mi, "recovered": rec, "selected": sel})
+
+
+# ----------------------------------------------------------------- models
+@pytest.mark.parametrize("shape", ["logistic", "erf", "fleming"])
+def test_completeness_analytic_values_and_limits(shape):
+    mdl, th = truth_model(shape)
+    cmax = special.expit(2.5)
+    z = 7.0
+    zc = (z - mdl.z_ref) / mdl.z_scale
+    m50 = 27.4 - 0.3 * zc + 0.05 * zc ** 2
+    w = np.exp(np.log(0.3) + 0.1 * zc)
+    m = m50 + w * np.array([-1.0, 0.0, 1.0, 2.0])
+    u = (m - m50) / w
+    expect = {"logistic": 1 / (1 + np.exp(u)), "erf": 0.5 * special.erfc(u / np.sqrt(2)),
+              "fleming": 0.5 * (1 - u / np.sqrt(1 + u ** 2))}[shape]
+    np.testing.assert_allclose(mdl.completeness(th, m, z), cmax * expect, rtol=1e-12)
+    # limits: C -> C_max bright, -> 0 faint; monotone decreasing in m
+    mm = np.linspace(15, 45, 500)
+    c = mdl.completeness(th, mm, z)
+    assert abs(c[0] - cmax) < 2e-3 and c[-1] < 2e-3
+    assert np.all(np.diff(c) <= 0)
+    # ln(1 - C) stays finite and exact where 1 - C is tiny / C underflows
+    ll = mdl.log_likelihood(th, Cells(z=np.array([7.0, 7.0]), mag=np.array([5.0, 80.0]),
+                                      n=np.array([3, 3]), k_rec=np.array([2, 1]), k_sel=np.array([0, 0])))
+    assert np.isfinite(ll)
+
+
+def test_selection_analytic_and_likelihood_against_bernoulli():
+    mdl, th = truth_model()
+    z, m = np.array([6.3, 7.6, 8.9]), np.array([25.5, 27.0, 29.0])
+    mc = (m - mdl.m_ref) / mdl.m_scale
+    zlo, zhi = 6.8 + 0.1 * mc, 8.4 - 0.1 * mc
+    dlo, dhi = np.exp(np.log(0.15) + 0.1 * mc), np.full(3, 0.2)
+    s = special.expit(3.0) * special.expit((z - zlo) / dlo) * special.expit((zhi - z) / dhi)
+    np.testing.assert_allclose(mdl.selection(th, z, m), s, rtol=1e-12)
+    assert np.all(mdl.selection(th, z, m) < special.expit(3.0))
+    # aggregated binomial likelihood == sum of per-source Bernoulli terms (exact aggregation)
+    rng = np.random.default_rng(3)
+    df = simulate(mdl, th, 5, rng, scatter=0.0)
+    cells = aggregate_cells(df, mag_resolution=None)
+    assert len(cells) == len(Z_GRID) * len(M_GRID)
+    C = mdl.completeness(th, df.mag_input, df.z)
+    S = mdl.selection(th, df.z, df.mag_input)
+    r, sl = df.recovered.to_numpy(), df.selected.to_numpy()
+    direct = np.sum(np.where(r, np.log(C), np.log1p(-C))) + np.sum(
+        np.where(r, np.where(sl, np.log(S), np.log1p(-S)), 0.0))
+    np.testing.assert_allclose(mdl.log_likelihood(th, cells), direct, rtol=1e-10)
+
+
+def test_grouped_magnitudes_match_exact_likelihood():
+    """mag_resolution grouping: likelihood differences agree with the exact ones."""
+    mdl, th = truth_model()
+    rng = np.random.default_rng(4)
+    df = simulate(mdl, th, 200, rng, scatter=0.1)
+    exact, grouped = aggregate_cells(df, None), aggregate_cells(df, 0.01)
+    assert len(grouped) < len(exact) / 3
+    th2 = th.copy()
+    th2[mdl.param_names.index("log_w_0")] += 0.05   # a 5 % change of the width
+    d_exact = mdl.log_likelihood(th2, exact) - mdl.log_likelihood(th, exact)
+    d_group = mdl.log_likelihood(th2, grouped) - mdl.log_likelihood(th, grouped)
+    assert abs(d_group - d_exact) < 0.02 * abs(d_exact) + 0.05
+
+
+# ----------------------------------------------------------------- priors
+@pytest.mark.parametrize("outcome", ["all", "none"])
+def test_separable_data_finite_map_and_proper_posterior(outcome):
+    mdl, th = truth_model()
+    rng = np.random.default_rng(5)
+    df = simulate(mdl, th, 3, rng)
+    df["recovered"] = outcome == "all"
+    df["selected"] = outcome == "all"
+    cells = aggregate_cells(df)
+    # log-likelihood <= 0 everywhere => posterior <= prior, which is normalisable
+    pts = mdl.sample_prior(2000, rng) * 3.0 - 2.0 * mdl.prior_mean
+    assert np.all(mdl.log_likelihood(pts, cells) <= 1e-12)
+    tmap = find_map(mdl, cells)
+    assert np.all(np.isfinite(tmap))
+    assert np.all(np.abs((tmap - mdl.prior_mean) / mdl.prior_sd) < 6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        res = fit_surfaces(cells, mdl, seed=1, max_steps=400)
+    d = res.draws()
+    # posterior spread bounded by the prior's (proper, not drifting away)
+    assert np.all(np.std(d, axis=0) < 3 * mdl.prior_sd)
+
+
+# -------------------------------------------------------------- end to end
+@pytest.fixture(scope="module")
+def fitted_run(tmp_path_factory):
+    mdl, th = truth_model()
+    rng = np.random.default_rng(7)
+    df = simulate(mdl, th, 40, rng, fields=("f1", "f2"))
+    run = tmp_path_factory.mktemp("run")
+    for i, (z, d) in enumerate(df.groupby("z")):
+        write_task_table(run, f"task_f_z{i:03d}_m000_i0000.parquet", d)
+    (run / "manifest.json").write_text(json.dumps({"fields": ["f1", "f2"], "area_arcmin2": 4.5,
+                                                   "bands": ["f125w", "f160w"], "config_hash": "abc"}))
+    path = run_fit(run, seed=3, max_steps=3000)
+    return run, path, df, mdl, th
+
+
+def test_run_fit_recovers_truth_and_writes_outputs(fitted_run):
+    run, path, df, mdl, th = fitted_run
+    sf = SelectionFunction.read(path)
+    summ = json.loads((run / "fit" / "summary.json").read_text())["fits"]["all"]
+    assert summ["n_sources"] == len(df)
+    for name in ("completeness_all.png", "selection_all.png", "ppc_all.ecsv", "parameters_all.ecsv"):
+        assert (run / "fit" / name).stat().st_size > 1000
+    # truth inside the 99.7 % band of the surfaces at a few points
+    zz, mm = np.array([6.5, 7.5, 8.0]), np.array([27.0, 27.5, 26.0])
+    for f, tf in ((sf.completeness(mm, zz, draws=True), mdl.completeness(th, mm, zz)),
+                  (sf.selection(zz, mm, draws=True, conditional=True), mdl.selection(th, zz, mm))):
+        lo, hi = np.quantile(f, [0.0015, 0.9985], axis=0)
+        assert np.all((lo <= tf) & (tf <= hi))
+
+
+def test_file_round_trip_and_determinism(fitted_run, tmp_path):
+    run, path, df, mdl, th = fitted_run
+    from astropy.io import fits
+    sf = SelectionFunction.read(path)
+    with fits.open(path) as h:
+        assert h[0].header["MODEL"] == "logistic" and h[0].header["CONFHASH"] == "abc"
+        grid = h["C_GRID", 1].data
+        assert grid.shape == (5, len(sf.z_grid), len(sf.m_grid))
+        names = {x.name for x in h}
+        assert {"DRAWS", "PARAMS", "C_GRID", "S_GRID", "P_GRID", "PPC", "META"} <= names
+    assert sf.meta["area_arcmin2"] == 4.5 and sf.meta["bands"] == ["f125w", "f160w"]
+    # the stored grid equals quantiles of the stored draws (independent recomputation)
+    c = sf.model.completeness(sf.draws, sf.m_grid[None, :], sf.z_grid[:, None])
+    np.testing.assert_allclose(grid[0], np.median(c, axis=0), atol=1e-6)
+    # write -> read: identical draws and grids
+    p2 = tmp_path / "copy.fits"
+    sf.write(p2)
+    sf2 = SelectionFunction.read(p2)
+    np.testing.assert_array_equal(sf2.draws, sf.draws)
+    np.testing.assert_array_equal(sf2.z_grid, sf.z_grid)
+    with fits.open(p2) as h2:
+        np.testing.assert_array_equal(h2["C_GRID", 1].data, grid)
+    # same seed, same data: identical chains; a resumed chain equals an uninterrupted one
+    cells = aggregate_cells(df[df.z.isin([6.5, 7.5, 8.5])])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        a = fit_surfaces(cells, sf.model, seed=11, max_steps=200, min_steps=1000)
+        b = fit_surfaces(cells, sf.model, seed=11, max_steps=200, min_steps=1000)
+        half = fit_surfaces(cells, sf.model, seed=11, max_steps=100, min_steps=1000)
+        resumed = fit_surfaces(cells, sf.model, seed=11, max_steps=200, min_steps=1000, resume=half)
+    for x, y in ((a, b), (a, resumed)):
+        for bx, by in zip(x.blocks, y.blocks):
+            np.testing.assert_array_equal(bx.chain, by.chain)
+
+
+def test_ppc_table_is_beta_binomial_posterior_mean(fitted_run):
+    run, path, df, mdl, th = fitted_run
+    sf = SelectionFunction.read(path)
+    t = ppc_table(df, sf)
+    for row in t[::7]:
+        d = df[(df.z == row["z"]) & (df.mag == row["mag"])]
+        n, k, ks = len(d), int(d.recovered.sum()), int(d.selected.sum())
+        assert (row["n"], row["k_rec"], row["k_sel"]) == (n, k, ks)
+        assert row["c_binned"] == pytest.approx((k + 1) / (n + 2), rel=1e-12)
+        assert row["p_binned"] == pytest.approx((ks + 1) / (n + 2), rel=1e-12)
+        assert row["c_binned_q16"] == pytest.approx(stats.beta(k + 1, n - k + 1).ppf(0.16))
+    # a well-specified model: mid-p values are not piled up at 0 or 1
+    assert np.mean((t["ppc_p_rec"] < 0.01) | (t["ppc_p_rec"] > 0.99)) < 0.1
+
+
+def test_effective_volume_against_quad(fitted_run):
+    import astropy.units as u
+    from astropy.cosmology import Planck18, FlatLambdaCDM
+    run, path, df, mdl, th = fitted_run
+    sf = SelectionFunction.read(path)
+    cosmo = FlatLambdaCDM(H0=70, Om0=0.3)
+    m = 27.0
+    v = sf.effective_volume([m], area=4.5 * u.arcmin ** 2, cosmology=cosmo)
+    area_sr = (4.5 * u.arcmin ** 2).to_value(u.sr)
+    for i in (0, 17):
+        t = sf.draws[i]
+        f = lambda z: (sf.model.completeness(t, m, z) * sf.model.selection(t, z, m)
+                       * cosmo.differential_comoving_volume(z).to_value(u.Mpc ** 3 / u.sr))
+        ref = integrate.quad(f, sf.z_grid[0], sf.z_grid[-1], epsabs=0, epsrel=1e-8, limit=200)[0]
+        assert v.draws[i, 0].to_value(u.Mpc ** 3) == pytest.approx(ref * area_sr, rel=1e-3)
+    assert v.lower[0] < v.median[0] < v.upper[0]
+    # float area means arcmin^2; default area from the metadata; default cosmology Planck18
+    v2 = sf.effective_volume(m)
+    v3 = sf.effective_volume(m, area=4.5, cosmology=Planck18)
+    assert v2.median == v3.median
+
+
+def test_per_field_fits_and_sample(fitted_run, tmp_path):
+    run, path, df, mdl, th = fitted_run
+    sub = df[df.z.isin([6.5, 7.5, 8.5])]
+    r2 = tmp_path / "r2"
+    write_task_table(r2, "task_x_z000_m000_i0000.parquet", sub)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        p = run_fit(r2, per_field=True, model="erf", max_steps=300, plots=False)
+    fits_ = SelectionFunction.read_all(p)
+    assert sorted(fits_) == ["f1", "f2"] and fits_["f1"].model.shape == "erf"
+    with pytest.raises(ValueError, match="pass field="):
+        SelectionFunction.read(p)
+    one = SelectionFunction.read(p, field="f2").sample(3, seed=1)
+    assert len(one) == 3 and one[0].n_draws == 1
+    assert one[0].completeness(27.0, 7.0) == pytest.approx(
+        one[0].model.completeness(one[0].draws[0], 27.0, 7.0))
+
+
+def test_propose_cells_picks_widest_interval():
+    rng = np.random.default_rng(0)
+    z, m = np.array([6.0, 7.0]), np.array([26.0, 27.0, 28.0])
+    draws = 0.5 + 0.01 * rng.standard_normal((400, 2, 3))
+    draws[:, 1, 2] = 0.5 + 0.2 * rng.standard_normal(400)   # the uncertain cell
+    draws[:, 0, 0] = 0.5 + 0.1 * rng.standard_normal(400)
+    out = propose_cells(draws, z, m, 2)
+    assert (out["z"][0], out["mag"][0]) == (7.0, 28.0)
+    assert (out["z"][1], out["mag"][1]) == (6.0, 26.0)
+    assert out["width"][0] == pytest.approx(np.subtract(*np.quantile(draws[:, 1, 2], [0.84, 0.16])))
+
+
+def test_documented_reader_without_glaciar_matches(fitted_run):
+    """The stand-alone reader in docs/selection-function-file.md reproduces sf.selection."""
+    import pathlib
+    import re
+    run, path, df, mdl, th = fitted_run
+    doc = pathlib.Path(__file__).parents[1] / "docs" / "selection-function-file.md"
+    code = re.findall(r"```python\n(.*?)```", doc.read_text(), re.S)[1]
+    ns = {}
+    exec(code.replace('"selection_function.fits"', repr(str(path))), ns)
+    z, m = np.array([6.5, 7.2, 8.1]), np.array([26.0, 27.3, 28.0])
+    np.testing.assert_allclose(ns["P"](z, m), SelectionFunction.read(path).selection(z, m, draws=True),
+                               rtol=1e-10, atol=1e-14)
