@@ -94,10 +94,25 @@ def _cmd_fit(args) -> int:
 
 
 def _cmd_next(args) -> int:
-    from .inference.adaptive import propose_from_file
+    import numpy as np
 
-    for z, m in propose_from_file(Path(args.run_dir) / C.SELECTION_FUNCTION_NAME, args.n):
-        print(f"{z:.3f} {m:.3f}")
+    from .inference import SelectionFunction, propose_cells
+    from .store import read_manifest
+
+    run_dir = Path(args.run_dir)
+    sf = SelectionFunction.read(run_dir / C.SELECTION_FUNCTION_NAME, field=args.field)
+    manifest = read_manifest(run_dir) or {}
+    zv = np.asarray(manifest.get("z_values", []), float)
+    mv = np.asarray(manifest.get("mag_values", []), float)
+    if zv.size < 2 or mv.size < 2:
+        raise ValueError(f"{run_dir}: manifest has no z/mag grid to refine")
+    # Propose on a grid twice as fine as the one simulated, inside its range.
+    zg = np.linspace(zv.min(), zv.max(), 2 * zv.size - 1)
+    mg = np.linspace(mv.min(), mv.max(), 2 * mv.size - 1)
+    cells = propose_cells(sf, zg, mg, args.n)
+    print("# z mag width_68 median_CS")
+    for row in cells:
+        print(f"{row['z']:.3f} {row['mag']:.3f} {row['width']:.4f} {row['median']:.4f}")
     return 0
 
 
@@ -169,6 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("next", help="(z, m) cells where the fitted selection is least certain")
     s.add_argument("run_dir")
     s.add_argument("-n", type=int, default=5)
+    s.add_argument("--field", default=None, help="which field's fit, for per-field files")
     s.set_defaults(func=_cmd_next)
     return p
 

@@ -54,6 +54,14 @@ class SelectionFunction:
         Posterior-predictive check table.
     """
 
+    def area_arcmin2(self) -> float | None:
+        """Survey area of this fit [arcmin^2]: its field's, or the sum over fields when pooled.
+
+        The run manifest stores ``area_arcmin2`` per field (a mapping); older or
+        hand-made metadata may hold one number.
+        """
+        return _area_for(self.meta.get("area_arcmin2"), self.field)
+
     def __init__(self, model: SurfaceModel, draws, z_grid=None, m_grid=None, meta=None,
                  field: str = "all", ppc=None, fit_info=None):
         self.model = model
@@ -165,9 +173,10 @@ class SelectionFunction:
         if cosmology is None:
             from astropy.cosmology import Planck18 as cosmology
         if area is None:
-            if "area_arcmin2" not in self.meta or self.meta["area_arcmin2"] is None:
+            a = self.area_arcmin2()
+            if a is None:
                 raise ValueError("effective_volume: give `area` (the file's metadata has no area_arcmin2)")
-            area = float(self.meta["area_arcmin2"]) * u.arcmin ** 2
+            area = a * u.arcmin ** 2
         elif not isinstance(area, u.Quantity):
             area = float(area) * u.arcmin ** 2
         area_sr = area.to_value(u.sr)
@@ -303,8 +312,9 @@ class SelectionFunction:
         ph.header["NFITS"] = (len(fits_list), "number of fits (EXTVER 1..NFITS)")
         for i, sf in enumerate(fits_list):
             ph.header[f"FIELD{i + 1}"] = sf.field
-        if meta.get("area_arcmin2") is not None:
-            ph.header["AREA"] = (float(meta["area_arcmin2"]), "survey area [arcmin2]")
+        total_area = _area_for(meta.get("area_arcmin2"), "all")
+        if total_area is not None:
+            ph.header["AREA"] = (total_area, "survey area, all fields [arcmin2]")
         if meta.get("detection_band"):
             ph.header["DETBAND"] = str(meta["detection_band"])
         if meta.get("config_hash"):
@@ -386,3 +396,14 @@ class SelectionFunction:
     def __repr__(self):
         return (f"SelectionFunction(model={self.model.shape!r}, field={self.field!r}, "
                 f"n_draws={self.n_draws})")
+
+
+def _area_for(area, field: str) -> float | None:
+    """Area [arcmin^2] of ``field`` from a number or a per-field mapping ("all" sums them)."""
+    if area is None:
+        return None
+    if isinstance(area, dict):
+        if field in area:
+            return float(area[field])
+        return float(sum(float(v) for v in area.values()))
+    return float(area)
