@@ -736,17 +736,18 @@ def read_sex_file(path: str | os.PathLike) -> dict[str, Any]:
         with raw values: numbers, lists of numbers, booleans for Y/N keys,
         strings for ``FILTER_NAME``. Keys glaciar does not use are skipped.
     """
+    from .engine.detect import read_sex_file as _read_sex_tokens
+
     out: dict[str, Any] = {}
     wanted = set(_DETECTION_PARSERS) | {"FILTER_NAME", "THRESH_TYPE"}
-    for line in Path(path).read_text(errors="replace").splitlines():
-        line = line.split("#", 1)[0].strip()
-        if not line:
+    for key, value in _read_sex_tokens(path).items():
+        if key not in wanted:
             continue
-        parts = line.split(None, 1)
-        key = parts[0].upper()
-        if key not in wanted or len(parts) < 2:
+        # SExtractor separates list values with commas; accept blanks too.
+        tokens = [t for v in (value if isinstance(value, list) else [value])
+                  for t in re.split(r"[\s,]+", v.strip()) if t]
+        if not tokens:
             continue
-        tokens = [t for t in re.split(r"[\s,]+", parts[1].strip()) if t]
         if key in _SEX_BOOL_KEYS:
             out[key] = tokens[0]
         elif key in ("FILTER_NAME", "THRESH_TYPE", "FILTER_TYPE"):

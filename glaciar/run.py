@@ -115,7 +115,9 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
     det = cfg.survey.detection_band
     jd = bands.index(det)
     pixscale = survey.pixel_scale_arcsec(field)
-    params = DetectionParams.from_sextractor(cfg.detection, base_dir=cfg.base_dir)
+    # The config has already merged any .sex file into its detection keys.
+    params = DetectionParams.from_sextractor(
+        {k: v for k, v in cfg.detection.items() if k != "sex_file"}, base_dir=cfg.base_dir)
     footprint = survey.footprint(field)
     mask = ~footprint
     bases, rms = {}, {}
