@@ -259,6 +259,9 @@ def prepare_run_dir(cfg: Config, run_dir: Path, seed: int) -> dict:
         write_manifest(run_dir, manifest)
         atomic_write_text(run_dir / C.RUN_CONFIG_NAME,
                           yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+    # Temporary files of tasks that were in flight when an earlier run was killed.
+    for stale in (run_dir / C.RESULTS_DIRNAME).glob(".task_*.tmp"):
+        stale.unlink(missing_ok=True)
     return manifest
 
 
