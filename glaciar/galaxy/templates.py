@@ -34,6 +34,7 @@ import math
 from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -99,6 +100,17 @@ class CacheStats:
 def _readonly(a: np.ndarray) -> np.ndarray:
     a.flags.writeable = False
     return a
+
+
+class _Convolved(NamedTuple):
+    """A cached convolved stamp and its sum (the in-stamp light fraction)."""
+
+    data: np.ndarray
+    in_stamp_fraction: float
+
+
+def _nbytes(entry) -> int:
+    return entry.data.nbytes if isinstance(entry, _Convolved) else entry.nbytes
 
 
 class TemplateCache:
@@ -188,14 +200,15 @@ class TemplateCache:
             self._lru.move_to_end(key)
         return arr
 
-    def _put(self, key, arr: np.ndarray) -> None:
-        if arr.nbytes > self.max_bytes:
+    def _put(self, key, arr) -> None:
+        nbytes = _nbytes(arr)
+        if nbytes > self.max_bytes:
             return
         self._lru[key] = arr
-        self._bytes += arr.nbytes
+        self._bytes += nbytes
         while self._bytes > self.max_bytes:
             _, old = self._lru.popitem(last=False)
-            self._bytes -= old.nbytes
+            self._bytes -= _nbytes(old)
             self._counts["evictions"] += 1
 
     def _render_raw(self, shape_key) -> np.ndarray:
@@ -278,8 +291,8 @@ class TemplateCache:
         ix, iy = (qx + s // 2) // s, (qy + s // 2) // s
         ox, oy = qx - ix * s, qy - iy * s
         key = ("conv", band) + shape_key + (ox, oy)
-        data = self._get(key)
-        if data is None:
+        entry = self._get(key)
+        if entry is None:
             self._counts["misses"] += 1
             raw_key = ("raw",) + shape_key
             raw = self._get(raw_key)
@@ -289,12 +302,16 @@ class TemplateCache:
             else:
                 self._counts["render_hits"] += 1
             data = self._convolve(raw, self._shifted_psf(band, ox / s, oy / s))
-            self._put(key, data)
+            # The sum is kept beside the array: summing a large n = 4 stamp on every
+            # hit would cost more than the look-up itself.
+            entry = _Convolved(data, float(data.sum()))
+            self._put(key, entry)
         else:
             self._counts["hits"] += 1
+        data = entry.data
         # The source sits on the raw stamp's central pixel (+ the PSF shift), and
         # "full" convolution moves that pixel by the PSF half-size: to the centre.
         cy = (data.shape[0] - 1) // 2
         cx = (data.shape[1] - 1) // 2
         return PlacedStamp(data=data, y0=iy - cy, x0=ix - cx,
-                           in_stamp_fraction=float(data.sum()))
+                           in_stamp_fraction=entry.in_stamp_fraction)
