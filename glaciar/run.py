@@ -179,8 +179,8 @@ def spec_filename(spec: TaskSpec) -> str:
 _CONTEXTS: dict = {}
 
 
-def _context(cfg_dict: dict, base_dir: str, field: str) -> FieldContext:
-    key = (config_hash(config_from_dict(cfg_dict, base_dir)), field)
+def _context(cfg_dict: dict, base_dir: str, cfg_hash: str, field: str) -> FieldContext:
+    key = (cfg_hash, base_dir, field)
     ctx = _CONTEXTS.get(key)
     if ctx is None:
         cfg = config_from_dict(cfg_dict, base_dir)
@@ -190,13 +190,13 @@ def _context(cfg_dict: dict, base_dir: str, field: str) -> FieldContext:
     return ctx
 
 
-def _run_chunk(cfg_dict: dict, base_dir: str, run_dir: str, seed: int, specs: list[TaskSpec],
-               mode: str = "windowed") -> list[tuple[str, int, float]]:
+def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed: int,
+               specs: list[TaskSpec], mode: str = "windowed") -> list[tuple[str, int, float]]:
     """Run a chunk of tasks of one field and write each task's file; return (name, rows, seconds)."""
     done = []
     for spec in specs:
         t0 = time.process_time()
-        ctx = _context(cfg_dict, base_dir, spec.field)
+        ctx = _context(cfg_dict, base_dir, cfg_hash, spec.field)
         table = run_task(ctx, spec, seed, mode=mode)
         name = spec_filename(spec)
         write_task_table(run_dir, name, table)
@@ -307,6 +307,7 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
         pending = pending[:max_tasks]
     cfg_dict = config_to_dict(cfg)
     base_dir = str(cfg.base_dir)
+    cfg_hash = config_hash(cfg)
     n_workers = 1 if executor is None and workers <= 1 else max(1, workers)
     chunks = _chunks(pending, n_workers)
     stats = {"n_tasks": len(specs), "n_done_before": n_done_before, "n_run": 0, "n_sources": 0, "cpu_seconds": 0.0}
@@ -323,12 +324,12 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
     try:
         if executor is None and n_workers == 1:
             for ch in chunks:
-                account(_run_chunk(cfg_dict, base_dir, str(run_dir), seed, ch, mode))
+                account(_run_chunk(cfg_dict, base_dir, cfg_hash, str(run_dir), seed, ch, mode))
         else:
             own = executor is None
             ex = executor or cf.ProcessPoolExecutor(max_workers=n_workers)
             try:
-                futs = [ex.submit(_run_chunk, cfg_dict, base_dir, str(run_dir), seed, ch, mode)
+                futs = [ex.submit(_run_chunk, cfg_dict, base_dir, cfg_hash, str(run_dir), seed, ch, mode)
                         for ch in chunks]
                 for fut in cf.as_completed(futs):
                     account(fut.result())

@@ -92,11 +92,15 @@ def test_windowed_equals_full_frame(serial_run, tmp_path):
 
 
 def test_any_executor_gives_the_same_table(serial_run, tmp_path):
-    """The run loop takes any concurrent.futures.Executor (a Dask client's included)."""
+    """The run loop takes any concurrent.futures.Executor (a Dask client's included).
+
+    Spawned workers start from a fresh interpreter, as on a cluster.
+    """
     import concurrent.futures as cf
+    import multiprocessing
 
     cfg, _, rows = serial_run
-    with cf.ThreadPoolExecutor(max_workers=2) as ex:
+    with cf.ProcessPoolExecutor(max_workers=2, mp_context=multiprocessing.get_context("spawn")) as ex:
         simulate(cfg, tmp_path, executor=ex, progress=False)
     pd.testing.assert_frame_equal(_sorted(read_results(tmp_path)), rows)
 
