@@ -217,7 +217,8 @@ class DetectionParams:
     phot_autoparams : (float, float)
         Kron factor k and minimum radius R_min in units of (a, b) [PHOT_AUTOPARAMS].
     initial_window : int
-        Side of the first detection window around an injected source [pixels].
+        Side of the first detection window around an injected source [pixels]
+        (speed only: windows grow until exact).
     max_window : int
         Largest window side before giving up (FLAG_WINDOW_AT_LIMIT) [pixels].
     sub_object_limit : int
@@ -240,7 +241,7 @@ class DetectionParams:
     back_filtersize: int = 3
     phot_apertures: tuple = (4.0, 8.0)
     phot_autoparams: tuple = (2.5, 3.5)
-    initial_window: int = 33
+    initial_window: int = 41
     max_window: int = 1025
     sub_object_limit: int = 1024
     filter_name: str = "gauss_2.0_5x5"

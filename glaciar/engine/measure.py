@@ -41,6 +41,24 @@ approximately window-independent.
 
 The reference (original-image) extraction is a plain full-frame sep run with
 CLEAN as configured; it is done once per field and shared by both modes.
+
+Speed without changing answers
+------------------------------
+Each shortcut below only decides *how much* is computed, never a result
+(``tests/test_windowed.py``, ``tests/test_windowed_batching.py``):
+
+* the first window is ``DetectionParams.initial_window`` (41 px: most sources
+  are exact after one extraction); a side whose required box reaches the
+  window edge grows by half the window, other sides just enough;
+* canvases are built by :meth:`Scene.paste_windows` (one overlap search per
+  canvas, stamps added where windows read them);
+* a region's box is the union of its segments' boxes from sep's catalogue;
+* a re-extracted (deblended) region is cached by its image position and
+  pixels for the whole call, so a later round or an overlapping window reuses
+  it (the extraction depends on nothing else);
+* band canvases hold only the pixels photometry reads: each detection's
+  segment and AUTO/aperture box; the detection band reuses the detection
+  canvas; windows that must grow get no band photometry.
 """
 from __future__ import annotations
 
@@ -187,18 +205,13 @@ class _Canvas:
         else:
             self.oy, self.ox, self.shape = _pack(hh, ww, ctx.gap)
         self.full = full
-        H, W = self.shape
         det = np.zeros(self.shape)
         err = np.ones(self.shape, dtype=np.float32)
         nodata = np.ones(self.shape, dtype=bool)
         ref = np.zeros(self.shape, dtype=np.int32)
-        for k in range(len(rects)):
-            y0, y1, x0, x1 = rects[k]
+        ctx.det_scene.paste_windows(det, rects, self.oy, self.ox)
+        for k, (y0, y1, x0, x1) in enumerate(rects.tolist()):
             sl = self.slice(k)
-            if full:
-                det = ctx.det_scene.full()
-            else:
-                det[sl] = ctx.det_scene.window(y0, y1, x0, x1)
             err[sl] = ctx.det_rms[y0:y1, x0:x1]
             nodata[sl] = False if ctx.mask is None else ctx.mask[y0:y1, x0:x1]
             ref[sl] = ctx.ref_segmap[y0:y1, x0:x1]
@@ -216,25 +229,43 @@ class _Canvas:
         y0, y1, x0, x1 = self.rects[k]
         return (slice(self.oy[k], self.oy[k] + y1 - y0), slice(self.ox[k], self.ox[k] + x1 - x0))
 
-    def band(self, name, windows):
-        """Band data and RMS on the canvas (only the listed windows filled)."""
+    def band(self, name, windows, boxes=None):
+        """Band data, RMS and no-data mask on the canvas.
+
+        Only the listed windows are filled, or with ``boxes`` ((K, 4) canvas
+        y0, y1, x0, x1 inside those windows) only those parts.  Pixels not
+        filled are flagged as no data; no aperture of the sources measured
+        reaches them (see ``room`` in :func:`_analyse` and :func:`_band_boxes`).
+        """
         ctx = self.ctx
+        scene, brms = ctx.band_scenes[name], ctx.band_rms[name]
+        if scene is ctx.det_scene and brms is ctx.det_rms and ctx.det_rms.dtype == np.float32:
+            # The detection band read through the detection canvas: same pixels, same
+            # no-data definition (its RMS is float32, so err's cast changed nothing).
+            rms = self.err.astype(np.float64)
+            rms[self.nodata] = 0.0
+            return self.det, rms, self.nodata
+        windows = np.asarray(windows, dtype=np.int64)
+        if boxes is None:
+            cy, cx = self.oy[windows], self.ox[windows]
+            img = self.rects[windows]
+        else:
+            boxes = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
+            keep = (boxes[:, 1] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 2])
+            boxes, windows = boxes[keep], windows[keep]
+            cy, cx = boxes[:, 0], boxes[:, 2]
+            dy = self.rects[windows, 0] - self.oy[windows]      # canvas -> image
+            dx = self.rects[windows, 2] - self.ox[windows]
+            img = np.stack([boxes[:, 0] + dy, boxes[:, 1] + dy, boxes[:, 2] + dx, boxes[:, 3] + dx], axis=1)
         data = np.zeros(self.shape)
         rms = np.zeros(self.shape)
-        bad = self.nodata.copy()
-        scene, brms = ctx.band_scenes[name], ctx.band_rms[name]
-        for k in windows:
-            y0, y1, x0, x1 = self.rects[k]
-            sl = self.slice(k)
-            d = scene.full() if self.full else scene.window(y0, y1, x0, x1)
-            r = np.array(brms[y0:y1, x0:x1], dtype=np.float64)
-            with np.errstate(invalid="ignore"):
-                b = bad[sl] | ~np.isfinite(d) | ~(np.isfinite(r) & (r > 0))
-            d[b] = 0.0
-            r[b] = 0.0
-            data[sl] = d
-            rms[sl] = r
-            bad[sl] = b
+        scene.paste_windows(data, img, cy, cx)
+        for (y0, y1, x0, x1), py, px in zip(img.tolist(), cy.tolist(), cx.tolist()):
+            rms[py:py + y1 - y0, px:px + x1 - x0] = brms[y0:y1, x0:x1]
+        with np.errstate(invalid="ignore"):
+            bad = self.nodata | ~np.isfinite(data) | ~(np.isfinite(rms) & (rms > 0))
+        data[bad] = 0.0
+        rms[bad] = 0.0
         return data, rms, bad
 
 
@@ -259,7 +290,8 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
                      reference: FieldReference, params: DetectionParams,
                      classification: ClassificationParams, zeropoints: Mapping[str, float],
                      gains: Mapping[str, float | None], detection_band: str,
-                     mask: np.ndarray | None = None, mode: str = "windowed") -> dict[str, np.ndarray]:
+                     mask: np.ndarray | None = None, mode: str = "windowed",
+                     diagnostics: dict | None = None) -> dict[str, np.ndarray]:
     """Detect, classify and measure N injected sources.
 
     Parameters
@@ -285,6 +317,11 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         True where there are no data (all bands).
     mode : {"windowed", "full"}
         ``full`` extracts the whole injected image once (validation).
+    diagnostics : dict, optional
+        If given, filled with ``"window"``: (N, 4) int array, the last
+        window of each source (y0, y1, x0, x1, image pixels; the whole image
+        in ``full`` mode), and ``"rounds"``: number of extraction rounds
+        (benchmarks; no effect on the results).
 
     Returns
     -------
@@ -331,14 +368,19 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
     out["flags"] = np.zeros(n, dtype=np.int32)
     out["blend_original_id"] = np.zeros(n, dtype=np.int64)
     if n == 0:
+        if diagnostics is not None:
+            diagnostics.update(window=np.zeros((0, 4), dtype=np.int64), rounds=0)
         return out
     ctx.out = out
     ctx.at_max = np.zeros(n, dtype=bool)
+    ctx.isolated = {}
 
     ny, nx = ctx.shape
     if mode == "full":
         rects = np.array([[0, ny, 0, nx]], dtype=np.int64)
         _run_canvas(ctx, np.arange(n), rects, np.zeros(n, dtype=np.int64), full=True)
+        if diagnostics is not None:
+            diagnostics.update(window=np.repeat(rects, n, axis=0), rounds=1)
         return out
 
     ix, iy = input_pixel(x, y)
@@ -346,7 +388,9 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
     rects = np.stack([np.clip(iy - r, 0, ny), np.clip(iy + r + 1, 0, ny),
                       np.clip(ix - r, 0, nx), np.clip(ix + r + 1, 0, nx)], axis=1)
     pending = np.arange(n)
+    rounds = 0
     while pending.size:
+        rounds += 1
         # chunk so one sep call stays small
         areas = (rects[pending, 1] - rects[pending, 0] + ctx.gap) * (rects[pending, 3] - rects[pending, 2] + ctx.gap)
         chunks = np.split(pending, np.flatnonzero(np.diff(np.cumsum(areas) // _MAX_CANVAS_PIXELS)) + 1)
@@ -355,6 +399,8 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
             grow_all.append(_run_canvas(ctx, chunk, rects[chunk], np.arange(chunk.size), full=False,
                                         all_rects=rects))
         pending = np.concatenate(grow_all) if grow_all else np.zeros(0, dtype=np.int64)
+    if diagnostics is not None:
+        diagnostics.update(window=rects.copy(), rounds=rounds)
     return out
 
 
@@ -380,15 +426,24 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     full = cv.full
     # ---- regions (8-connected components of detected pixels) and their boxes
     comp, ncomp = ndimage.label(seg > 0, structure=_EIGHT)
-    sl = ndimage.find_objects(comp)
-    cb = np.zeros((ncomp + 1, 4), dtype=np.int64)
-    if ncomp:
-        cb[1:] = [(s[0].start, s[0].stop, s[1].start, s[1].stop) for s in sl]
     nseg = len(cat)
     seg2comp = np.zeros(nseg + 1, dtype=np.int64)
     nzpix = np.flatnonzero(seg)
     seg2comp[seg.ravel()[nzpix]] = comp.ravel()[nzpix]
     segs_per_comp = np.bincount(seg2comp[1:], minlength=ncomp + 1)
+    # A region's box is the union of its segments' boxes, which sep's catalogue
+    # gives (x/ymin, x/ymax: the extremes of each object's pixels, the same pixels
+    # it writes to the segmentation map; no CLEAN here): no scan of the canvas.
+    cb = np.zeros((ncomp + 1, 4), dtype=np.int64)
+    if ncomp:
+        cb[1:, 0] = cb[1:, 2] = np.iinfo(np.int64).max // 4
+        cb[1:, 1] = cb[1:, 3] = -(np.iinfo(np.int64).max // 4)
+        c = seg2comp[1:]
+        np.minimum.at(cb[:, 0], c, np.asarray(cat["ymin"], dtype=np.int64))
+        np.maximum.at(cb[:, 1], c, np.asarray(cat["ymax"], dtype=np.int64) + 1)
+        np.minimum.at(cb[:, 2], c, np.asarray(cat["xmin"], dtype=np.int64))
+        np.maximum.at(cb[:, 3], c, np.asarray(cat["xmax"], dtype=np.int64) + 1)
+        cb[0] = 0
 
     # ---- per-source window geometry on the canvas
     k = src_win
@@ -410,18 +465,29 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     edge = np.zeros(src.size, dtype=bool)
     need = np.stack([cy, cy + 1, cx, cx + 1], axis=1).astype(np.int64)   # canvas bbox required exact
 
+    # region boxes with a neutral entry for background (label 0), so the union of the
+    # boxes of the regions touching a bbox needs no filtering
+    big = 2 ** 40
+    cbn = cb.copy()
+    cbn[0] = (big, -big, big, -big)
+    lo_y_l, hi_y_l, lo_x_l, hi_x_l = lo_y.tolist(), hi_y.tolist(), lo_x.tolist(), hi_x.tolist()
+    need_l = need.tolist()
+    H_cv, W_cv = cv.shape
+
     def check(i, by0, by1, bx0, bx1):
         """Is bbox (canvas) and every region touching it exact for source i?  Updates need[i]."""
-        by0, by1 = max(by0, 0), min(by1, cv.shape[0])
-        bx0, bx1 = max(bx0, 0), min(bx1, cv.shape[1])
-        comps = np.unique(comp[by0:by1, bx0:bx1])
-        comps = comps[comps > 0]
-        ry0 = min([by0] + list(cb[comps, 0]))
-        ry1 = max([by1] + list(cb[comps, 1]))
-        rx0 = min([bx0] + list(cb[comps, 2]))
-        rx1 = max([bx1] + list(cb[comps, 3]))
-        need[i] = (min(need[i, 0], ry0), max(need[i, 1], ry1), min(need[i, 2], rx0), max(need[i, 3], rx1))
-        return ry0 >= lo_y[i] and ry1 <= hi_y[i] and rx0 >= lo_x[i] and rx1 <= hi_x[i]
+        by0, by1 = max(by0, 0), min(by1, H_cv)
+        bx0, bx1 = max(bx0, 0), min(bx1, W_cv)
+        ry0, ry1, rx0, rx1 = by0, by1, bx0, bx1
+        if by1 > by0 and bx1 > bx0:
+            b = cbn[np.unique(comp[by0:by1, bx0:bx1])]
+            ry0 = min(ry0, int(b[:, 0].min()))
+            ry1 = max(ry1, int(b[:, 1].max()))
+            rx0 = min(rx0, int(b[:, 2].min()))
+            rx1 = max(rx1, int(b[:, 3].max()))
+        nd = need_l[i]
+        nd[0], nd[1], nd[2], nd[3] = min(nd[0], ry0), max(nd[1], ry1), min(nd[2], rx0), max(nd[3], rx1)
+        return ry0 >= lo_y_l[i] and ry1 <= hi_y_l[i] and rx0 >= lo_x_l[i] and rx1 <= hi_x_l[i]
 
     def room(i, by0, by1, bx0, bx1):
         """Apertures running off the image edge are measured on the window alone.
@@ -435,6 +501,8 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
             edge[i] = True
 
     at_max = np.zeros(src.size, dtype=bool) if full else ctx.at_max[src]
+    # canvas box holding every band pixel a source's AUTO and circular apertures can touch
+    phot_box = np.zeros((src.size, 4), dtype=np.int64)
 
     def fail(i):
         if at_max[i]:
@@ -443,16 +511,28 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
             grow[i] = True
 
     # ---- stage A: regions in the search box must be exact
+    # (vectorised over sources: the regions of each search box, clipped to its window)
     icx, icy = input_pixel(cx, cy)
     h = cls.search_box // 2
-    box_comps = []
-    for i in range(src.size):
-        y0, y1 = max(icy[i] - h, wy0[i]), min(icy[i] + h + 1, wy1[i])
-        x0, x1 = max(icx[i] - h, wx0[i]), min(icx[i] + h + 1, wx1[i])
-        c = np.unique(comp[y0:y1, x0:x1]) if (y1 > y0 and x1 > x0) else np.zeros(0, dtype=np.int32)
-        box_comps.append(c[c > 0])
-        if not full and not check(i, y0, y1, x0, x1):
+    by0, by1 = np.maximum(icy - h, wy0), np.minimum(icy + h + 1, wy1)
+    bx0, bx1 = np.maximum(icx - h, wx0), np.minimum(icx + h + 1, wx1)
+    box_off = np.arange(-h, h + 1)
+    py, px = icy[:, None] + box_off, icx[:, None] + box_off
+    inbox = (((py >= by0[:, None]) & (py < by1[:, None]))[:, :, None]
+             & ((px >= bx0[:, None]) & (px < bx1[:, None]))[:, None, :])
+    box_lab = comp[np.clip(py, 0, H_cv - 1)[:, :, None], np.clip(px, 0, W_cv - 1)[:, None, :]]
+    box_lab = np.where(inbox, box_lab, 0).reshape(src.size, -1)
+    if not full:
+        rb = cbn[box_lab]
+        ry0, ry1 = np.minimum(by0, rb[:, :, 0].min(axis=1)), np.maximum(by1, rb[:, :, 1].max(axis=1))
+        rx0, rx1 = np.minimum(bx0, rb[:, :, 2].min(axis=1)), np.maximum(bx1, rb[:, :, 3].max(axis=1))
+        need = np.stack([np.minimum(need[:, 0], ry0), np.maximum(need[:, 1], ry1),
+                         np.minimum(need[:, 2], rx0), np.maximum(need[:, 3], rx1)], axis=1)
+        need_l = need.tolist()
+        exact = (ry0 >= lo_y) & (ry1 <= hi_y) & (rx0 >= lo_x) & (rx1 <= hi_x)
+        for i in np.flatnonzero(~exact):
             fail(i)
+    split_in_box = segs_per_comp[box_lab] >= 2
 
     # ---- canonical (isolated) re-extraction of deblended regions in search boxes
     pseg = seg.astype(np.int64)
@@ -460,22 +540,20 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     next_label = nseg + 1
     done_comps = {}
     sep_failed = np.zeros(src.size, dtype=bool)
-    for i in range(src.size):
-        if grow[i]:
-            continue
-        for c in box_comps[i]:
-            if segs_per_comp[c] < 2:
-                continue
+    for i in np.flatnonzero(split_in_box.any(axis=1) & ~grow):
+        for c in np.unique(box_lab[i][split_in_box[i]]).tolist():
             if c in done_comps:
                 if done_comps[c] is None:
                     sep_failed[i] = True
                 continue
             try:
-                next_label = _isolate(cv, comp, c, cb[c], bounds[i], pseg, tab, next_label, ctx)
+                off = (int(rect[i, 0] - wy0[i]), int(rect[i, 2] - wx0[i]))   # canvas -> image
+                next_label = _isolate(cv, comp, c, cb[c], bounds[i], pseg, tab, next_label, ctx, off)
                 done_comps[c] = True
             except DetectionError:
                 done_comps[c] = None
                 sep_failed[i] = True
+    tab = {f: np.concatenate(v) for f, v in tab.items()}
 
     # ---- choose the detection
     pix = np.flatnonzero(pseg)
@@ -520,8 +598,10 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
             if not check(i, *bb):
                 fail(i)
             room(i, *bb)
+            phot_box[i] = bb
 
     # ---- windows that must grow: new rects (or, at max_window, one last round unchecked)
+    need = np.array(need_l, dtype=np.int64).reshape(-1, 4)
     regrow = []
     if not full:
         for i in np.flatnonzero(grow):
@@ -532,13 +612,15 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
             ny1 = max(rect[i, 1], need[i, 1] - oy + pad)
             nx0 = min(rect[i, 2], need[i, 2] - ox - pad)
             nx1 = max(rect[i, 3], need[i, 3] - ox + pad)
-            # grow a side by at least half the window size, so the rounds stay few
+            # A side whose required box reaches the window edge may hide a region that
+            # continues outside: grow it by at least half the window size, so the rounds
+            # stay few.  A side whose box ends inside (within the margin) grows to it + pad.
             gy = max(16, (rect[i, 1] - rect[i, 0]) // 2)
             gx = max(16, (rect[i, 3] - rect[i, 2]) // 2)
-            ny0 = min(ny0, rect[i, 0] - gy) if ny0 < rect[i, 0] else ny0
-            ny1 = max(ny1, rect[i, 1] + gy) if ny1 > rect[i, 1] else ny1
-            nx0 = min(nx0, rect[i, 2] - gx) if nx0 < rect[i, 2] else nx0
-            nx1 = max(nx1, rect[i, 3] + gx) if nx1 > rect[i, 3] else nx1
+            ny0 = min(ny0, rect[i, 0] - gy) if need[i, 0] - oy <= rect[i, 0] else ny0
+            ny1 = max(ny1, rect[i, 1] + gy) if need[i, 1] - oy >= rect[i, 1] else ny1
+            nx0 = min(nx0, rect[i, 2] - gx) if need[i, 2] - ox <= rect[i, 2] else nx0
+            nx1 = max(nx1, rect[i, 3] + gx) if need[i, 3] - ox >= rect[i, 3] else nx1
             new = np.array([max(ny0, 0), min(ny1, ny), max(nx0, 0), min(nx1, nx)])
             mw = ctx.params.max_window
             iy_, ix_ = int(np.floor(ctx.y[s] + 0.5)), int(np.floor(ctx.x[s] + 0.5))
@@ -554,44 +636,58 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     fin = ~grow
     ctx.out["flags"][src[sep_failed]] |= FLAG_SEP_ERROR
     _finish(ctx, cv, pseg, pseg32, label * fin, xs, ys, a, b, th, scale, src, src_win, fin, rect, wy0, wx0,
-            edge)
+            edge, phot_box, bounds)
     return np.array(regrow, dtype=np.int64)
 
 
 def _segment_table(cat):
-    """Label-indexed geometry (index 0 = no detection), as growable lists."""
+    """Label-indexed geometry (index 0 = no detection), as lists of arrays to concatenate."""
     tab = {}
     for f in ("x", "y", "a", "b", "theta"):
-        tab[f] = np.concatenate([[np.nan], np.asarray(cat[f], dtype=np.float64)])
+        tab[f] = [np.array([np.nan]), np.asarray(cat[f], dtype=np.float64)]
     return tab
 
 
-def _isolate(cv, comp, c, box, win, pseg, tab, next_label, ctx):
+def _isolate(cv, comp, c, box, win, pseg, tab, next_label, ctx, offset):
     """Re-extract region ``c`` alone (fresh deblending RNG, CLEAN within the region).
 
     The cut-out is the region's box plus the filter half-width + 1, clipped to
     the window ``win`` (y0, y1, x0, x1), so it is the same array in a window
-    and in the full frame.
+    and in the full frame.  ``offset`` (dy, dx) turns canvas into image
+    coordinates: the same region (same image position, same pixels) met again
+    in another window or a later round reuses the first result, which is
+    exact because the extraction depends only on the cut-out.
     """
     params = ctx.params
     pad = params.filter_halfwidth + 1
     y0, y1 = max(box[0] - pad, win[0]), min(box[1] + pad, win[1])
     x0, x1 = max(box[2] - pad, win[2]), min(box[3] + pad, win[3])
     inside = comp[y0:y1, x0:x1] == c
-    data = np.ascontiguousarray(cv.det32[y0:y1, x0:x1])
-    err = np.array(cv.err[y0:y1, x0:x1], dtype=np.float32, order="C")
-    err[~inside] = _BIG_RMS   # nothing outside the region can pass the threshold
-    nod = np.ascontiguousarray(cv.nodata[y0:y1, x0:x1])
-    cat, seg = _sep_extract(data, err, nod, params, params.clean)
+    key = (y0 + offset[0], y1 + offset[0], x0 + offset[1], x1 + offset[1], inside.tobytes())
+    hit = ctx.isolated.get(key, False)
+    if hit is None:
+        raise DetectionError("sep failed on this region before")
+    if hit is False:
+        data = np.ascontiguousarray(cv.det32[y0:y1, x0:x1])
+        err = np.array(cv.err[y0:y1, x0:x1], dtype=np.float32, order="C")
+        err[~inside] = _BIG_RMS   # nothing outside the region can pass the threshold
+        nod = np.ascontiguousarray(cv.nodata[y0:y1, x0:x1])
+        try:
+            cat, seg = _sep_extract(data, err, nod, params, params.clean)
+        except DetectionError:
+            ctx.isolated[key] = None
+            raise
+        hit = (seg, {f: np.asarray(cat[f], dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}, len(cat))
+        ctx.isolated[key] = hit
+    seg, geo, k = hit
     region = pseg[y0:y1, x0:x1]
     region[inside] = 0
     new = seg > 0
     region[new] = seg[new] + (next_label - 1)
-    k = len(cat)
-    tab["x"] = np.concatenate([tab["x"], np.asarray(cat["x"], dtype=np.float64) + x0])
-    tab["y"] = np.concatenate([tab["y"], np.asarray(cat["y"], dtype=np.float64) + y0])
+    tab["x"].append(geo["x"] + x0)
+    tab["y"].append(geo["y"] + y0)
     for f in ("a", "b", "theta"):
-        tab[f] = np.concatenate([tab[f], np.asarray(cat[f], dtype=np.float64)])
+        tab[f].append(geo[f])
     return next_label + k
 
 
@@ -607,7 +703,42 @@ def _groups(cv, ii, edge, src_win):
         yield np.array([i]), cv.slice(src_win[i])
 
 
-def _finish(ctx, cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win, fin, rect, wy0, wx0, edge):
+def _band_boxes(width, pix, lab_pix, labels, phot_box, bounds):
+    """Per detected source, the part of its window the band photometry reads (canvas
+    coordinates): its segment (ISO) and its AUTO / aperture box, inside the window.
+    Band pixels elsewhere are never read, so they need not be pasted.
+
+    ``pix``, ``lab_pix``: flat canvas indices and labels of the segment pixels
+    (at least those of ``labels``)."""
+    boxes = np.array(phot_box, dtype=np.int64).reshape(-1, 4)
+    if labels.size and pix.size:
+        nl = int(max(labels.max(), lab_pix.max())) + 1
+        order = np.argsort(lab_pix, kind="stable")
+        ls = lab_pix[order]
+        rows, cols = np.divmod(pix[order], width)
+        start = np.flatnonzero(np.r_[True, ls[1:] != ls[:-1]])
+        present = ls[start]
+        seg = np.zeros((nl, 4), dtype=np.int64)
+        seg[:, 0] = seg[:, 2] = np.iinfo(np.int64).max // 4
+        seg[:, 1] = seg[:, 3] = -(np.iinfo(np.int64).max // 4)
+        seg[present, 0] = np.minimum.reduceat(rows, start)
+        seg[present, 1] = np.maximum.reduceat(rows, start) + 1
+        seg[present, 2] = np.minimum.reduceat(cols, start)
+        seg[present, 3] = np.maximum.reduceat(cols, start) + 1
+        sb = seg[labels]
+        boxes[:, 0] = np.minimum(boxes[:, 0], sb[:, 0])
+        boxes[:, 1] = np.maximum(boxes[:, 1], sb[:, 1])
+        boxes[:, 2] = np.minimum(boxes[:, 2], sb[:, 2])
+        boxes[:, 3] = np.maximum(boxes[:, 3], sb[:, 3])
+    boxes[:, 0] = np.maximum(boxes[:, 0], bounds[:, 0])
+    boxes[:, 1] = np.minimum(boxes[:, 1], bounds[:, 1])
+    boxes[:, 2] = np.maximum(boxes[:, 2], bounds[:, 2])
+    boxes[:, 3] = np.minimum(boxes[:, 3], bounds[:, 3])
+    return boxes
+
+
+def _finish(ctx, cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win, fin, rect, wy0, wx0, edge,
+            phot_box, bounds):
     """Classification and photometry of the finished sources of a canvas."""
     out, params, cls = ctx.out, ctx.params, ctx.cls
     idx = np.flatnonzero(fin)
@@ -620,12 +751,24 @@ def _finish(ctx, cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win,
     # classification geometry
     n_fp, n_ov, blend = footprint_overlap(pseg, lab, cv.ref, ctx.ref_mag)
     # photometry in every band
-    windows = np.unique(src_win[idx])
     di = np.flatnonzero(det)
+    # Pixels of the measured segments only: ISO sums per label are the same
+    # (bincount adds each label's pixels in the same row-major order).
     pix = np.flatnonzero(pseg)
+    lab_all = pseg.ravel()[pix]
+    wanted = np.zeros(int(max(lab_all.max(initial=0), lab.max(initial=0))) + 1, dtype=bool)
+    wanted[lab[det]] = True
+    keep = wanted[lab_all]
+    pix, lab_all = pix[keep], lab_all[keep]
+    if cv.full:
+        windows, boxes = np.zeros(1, dtype=np.int64), None
+    else:
+        j = idx[di]
+        windows = src_win[j]
+        boxes = _band_boxes(cv.shape[1], pix, lab_all, lab[di], phot_box[j], bounds[j])
     flux_sn = err_sn = None
     for band in ctx.bands:
-        data, rms, bad = cv.band(band, windows)
+        data, rms, bad = cv.band(band, windows, boxes)
         gain = ctx.gains.get(band)
         fi, fei = phot.iso_photometry(data, rms, pseg, lab, gain=gain, pixels=pix)
         fa = np.full((len(params.phot_apertures), lab.size), np.nan)

@@ -22,11 +22,15 @@ class Scene:
         Background-subtracted original band image [image units].  Any float
         dtype and byte order; it may be a memmap-derived view and is never
         copied whole except by :meth:`full`.
-    stamps : sequence of (y0, x0, data)
-        ``data`` (2-d, image units) is added to ``base[y0:y0+ny, x0:x0+nx]``.
-        Stamps may lie partly (or wholly) outside the image; the outside part
-        is dropped.  Stamps are added in the order given, so overlapping stamps
-        sum and the result is the same whichever window reads it.
+    stamps : sequence of (y0, x0, data) or (y0, x0, data, flux)
+        ``data`` (2-d, image units) is added to ``base[y0:y0+ny, x0:x0+nx]``;
+        with ``flux``, ``data * flux`` is added, multiplied only where a
+        window reads it (``data`` may then be a shared unit-flux template; the
+        pixels equal those of a stamp pre-multiplied by ``flux``, bit for
+        bit).  Stamps may lie partly (or wholly) outside the image; the
+        outside part is dropped.  Stamps are added in the order given, so
+        overlapping stamps sum and the result is the same whichever window
+        reads it.  Stamp arrays are never modified.
     """
 
     def __init__(self, base: np.ndarray, stamps: Sequence[tuple[int, int, np.ndarray]] = ()):
@@ -35,16 +39,23 @@ class Scene:
         self.base = base
         self.shape = tuple(int(s) for s in base.shape)
         stamp_list = []
+        scales = []
         for k, st in enumerate(stamps):
             try:
-                y0, x0, data = st
+                if len(st) == 4:
+                    y0, x0, data, flux = st
+                    flux = float(flux)
+                else:
+                    (y0, x0, data), flux = st, None
             except (TypeError, ValueError):
-                raise ValueError(f"stamp {k} must be a (y0, x0, data) tuple") from None
+                raise ValueError(f"stamp {k} must be a (y0, x0, data) or (y0, x0, data, flux) tuple") from None
             data = np.asarray(data, dtype=np.float64)
             if data.ndim != 2:
                 raise ValueError(f"stamp {k} must be 2-d, got shape {data.shape}")
             stamp_list.append((int(y0), int(x0), data))
+            scales.append(flux)
         self.stamps = stamp_list
+        self._flux = scales
         n = len(stamp_list)
         # Stamp bounding boxes as arrays so a window finds its stamps without a
         # Python loop over all of them.
@@ -84,7 +95,47 @@ class Scene:
         ax0 = max(sx0, x0)
         ay1 = min(sy0 + data.shape[0], y1)
         ax1 = min(sx0 + data.shape[1], x1)
-        out[ay0 - y0:ay1 - y0, ax0 - x0:ax1 - x0] += data[ay0 - sy0:ay1 - sy0, ax0 - sx0:ax1 - sx0]
+        part = data[ay0 - sy0:ay1 - sy0, ax0 - sx0:ax1 - sx0]
+        flux = self._flux[k]
+        out[ay0 - y0:ay1 - y0, ax0 - x0:ax1 - x0] += part if flux is None else part * flux
+
+    def paste_windows(self, canvas: np.ndarray, rects, oy, ox) -> None:
+        """Write many windows of the injected image into one tiled array.
+
+        Window ``k`` (image rows ``rects[k, 0]:rects[k, 1]``, columns
+        ``rects[k, 2]:rects[k, 3]``, inside the image) goes to
+        ``canvas[oy[k]:, ox[k]:]``.  Each written window is bit-identical to
+        :meth:`window` (base cast to float64, then the overlapping stamps added
+        in their order), but the overlap search is done once for all windows.
+        """
+        rects = np.asarray(rects, dtype=np.int64).reshape(-1, 4)
+        oy = np.asarray(oy, dtype=np.int64).ravel()
+        ox = np.asarray(ox, dtype=np.int64).ravel()
+        base = self.base
+        rl, ol = rects.tolist(), np.stack([oy, ox], axis=1).tolist()
+        for (y0, y1, x0, x1), (cy, cx) in zip(rl, ol):
+            canvas[cy:cy + y1 - y0, cx:cx + x1 - x0] = base[y0:y1, x0:x1]
+        if not self.stamps or not len(rl):
+            return
+        hit = ((self._y0[:, None] < rects[None, :, 1]) & (self._y1[:, None] > rects[None, :, 0])
+               & (self._x0[:, None] < rects[None, :, 3]) & (self._x1[:, None] > rects[None, :, 2]))
+        ks, ws = np.nonzero(hit)            # stamp-major: each pixel gets its stamps in order
+        boxes = self.__dict__.get("_boxes")
+        if boxes is None:       # stamp boxes as Python ints: the loop below is per pair
+            boxes = self._boxes = np.stack([self._y0, self._y1, self._x0, self._x1], axis=1).tolist()
+        stamps, fluxes = self.stamps, self._flux
+        for k, w in zip(ks.tolist(), ws.tolist()):
+            sy0, sy1, sx0, sx1 = boxes[k]
+            y0, y1, x0, x1 = rl[w]
+            cy, cx = ol[w]
+            ay0 = sy0 if sy0 > y0 else y0
+            ax0 = sx0 if sx0 > x0 else x0
+            ay1 = sy1 if sy1 < y1 else y1
+            ax1 = sx1 if sx1 < x1 else x1
+            part = stamps[k][2][ay0 - sy0:ay1 - sy0, ax0 - sx0:ax1 - sx0]
+            flux = fluxes[k]
+            canvas[cy + ay0 - y0:cy + ay1 - y0, cx + ax0 - x0:cx + ax1 - x0] += \
+                part if flux is None else part * flux
 
     def full(self) -> np.ndarray:
         """The whole injected image (float64 copy); for validation mode."""
