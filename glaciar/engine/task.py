@@ -143,7 +143,8 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
             ps = ctx.cache.stamp(band, src.sersic_n[i], src.axis_ratio[i], src.position_angle_deg[i],
                                  src.r_eff_pix[i], x[i], y[i])
             frac[i] = ps.in_stamp_fraction
-            stamps[band].append((ps.y0, ps.x0, ps.data * flux_in[i, j]))
+            # Scaled lazily, only where a detection window reads it.
+            stamps[band].append((ps.y0, ps.x0, ps.data, flux_in[i, j]))
             if (ps.y0 < 0 or ps.x0 < 0 or ps.y0 + ps.data.shape[0] > ctx.shape[0]
                     or ps.x0 + ps.data.shape[1] > ctx.shape[1]):
                 flags[i] |= C.FLAG_STAMP_CLIPPED
