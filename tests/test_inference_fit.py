@@ -265,3 +265,122 @@ def test_documented_reader_without_glaciar_matches(fitted_run):
     z, m = np.array([6.5, 7.2, 8.1]), np.array([26.0, 27.3, 28.0])
     np.testing.assert_allclose(ns["P"](z, m), SelectionFunction.read(path).selection(z, m, draws=True),
                                rtol=1e-10, atol=1e-14)
+
+
+# ------------------------------------------------------- speed-path identities
+@pytest.mark.parametrize("shape", ["logistic", "erf", "fleming"])
+def test_block_posterior_equals_model_log_posterior(shape):
+    """The sampler's BlockPosterior is the model's log posterior (other block's prior aside)."""
+    mdl, th = truth_model(shape)
+    rng = np.random.default_rng(11)
+    for scatter in (0.0, 0.1):           # grid magnitudes (shared terms) and continuous ones
+        cells = aggregate_cells(simulate(mdl, th, 6, rng, scatter=scatter))
+        pts = mdl.sample_prior(40, rng)
+        pts[0] = th
+        pts[1, mdl.param_names.index("logit_c_max")] = 40.0     # C_max = 1 to double precision
+        pts[2, mdl.param_names.index("logit_s_max")] = 40.0
+        pts[3, mdl.param_names.index("log_w_0")] = -8.0         # a near-perfect step
+        for part in ("c", "s"):
+            bp = mdl.block_log_posterior(cells, part)
+            other = np.setdiff1d(np.arange(mdl.n_params), bp.index)
+            t = (pts[:, other] - mdl.prior_mean[other]) / mdl.prior_sd[other]
+            other_prior = (-0.5 * np.sum(t * t, axis=1) - np.sum(np.log(mdl.prior_sd[other]))
+                           - 0.5 * len(other) * np.log(2 * np.pi))
+            ref = mdl.log_posterior(pts, cells, part) - other_prior
+            got = bp(pts[:, bp.index])
+            assert np.all(np.isfinite(got))
+            np.testing.assert_allclose(got, ref, rtol=1e-10)
+            assert bp(pts[0, bp.index]) == pytest.approx(ref[0], rel=1e-10)
+
+
+def test_tau_equals_emcee_integrated_time():
+    import emcee
+    from glaciar.inference.fit import _tau
+    rng = np.random.default_rng(12)
+    for n in (64, 257, 1000):
+        # AR(1) walkers: tau = (1 + phi) / (1 - phi) = 9 for phi = 0.8
+        x = np.empty((n, 20, 3))
+        x[0] = rng.standard_normal((20, 3))
+        for i in range(1, n):
+            x[i] = 0.8 * x[i - 1] + 0.6 * rng.standard_normal((20, 3))
+        ref = emcee.autocorr.integrated_time(x, tol=0, quiet=True)
+        np.testing.assert_allclose(_tau(x), ref, rtol=1e-10)
+    assert np.all(np.abs(_tau(x) - 9.0) < 2.0)
+
+
+def test_vectorised_moves_reproduce_emcee_moves():
+    """Same seed: the vectorised DE and stretch moves give emcee's chains bit for bit."""
+    import emcee
+    from glaciar.inference.fit import _DEMove, _StretchMove
+
+    def log_prob(x):
+        return -0.5 * np.sum(x * x * np.array([1.0, 4.0, 0.25]), axis=-1)
+
+    p0 = np.random.default_rng(13).standard_normal((16, 3))
+    chains = []
+    for moves in ([(emcee.moves.DEMove(), 0.5), (emcee.moves.StretchMove(), 0.5)],
+                  [(_DEMove(), 0.5), (_StretchMove(), 0.5)]):
+        s = emcee.EnsembleSampler(16, 3, log_prob, moves=moves, vectorize=True)
+        state = emcee.State(p0, random_state=np.random.RandomState(5).get_state())
+        s.run_mcmc(state, 200)
+        chains.append((s.get_chain(), s.backend.accepted))
+    np.testing.assert_array_equal(chains[0][0], chains[1][0])
+    np.testing.assert_array_equal(chains[0][1], chains[1][1])
+    assert 0.2 < np.mean(chains[1][1]) / 200 < 0.9
+
+
+# -------------------------------------------------------- V_eff in the summary
+def test_run_fit_summary_effective_volume_from_run_manifest(fitted_run, tmp_path):
+    """glaciar.run's manifest (per-field areas + total): V_eff(m) in summary.json."""
+    import astropy.units as u
+    from astropy.cosmology import FlatLambdaCDM
+    from astropy.io import fits
+    run, path, df, mdl, th = fitted_run
+    sub = df[df.z.isin([6.5, 7.0, 7.5, 8.0, 8.5])]
+    r3 = tmp_path / "r3"
+    write_task_table(r3, "task_x_z000_m000_i0000.parquet", sub)
+    areas = {"f1": 3.0, "f2": 1.5}
+    (r3 / "manifest.json").write_text(json.dumps({"fields": ["f1", "f2"], "area_arcmin2": areas,
+                                                  "area_arcmin2_total": 4.5}))
+    cosmo = FlatLambdaCDM(H0=70, Om0=0.3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        p = run_fit(r3, max_steps=300, plots=False, cosmology=cosmo, max_draws=300)
+    with fits.open(p) as h:
+        assert h[0].header["AREA"] == 4.5
+    sf = SelectionFunction.read(p)
+    assert sf.meta["area_arcmin2"] == 4.5 and sf.meta["area_arcmin2_field"] == areas
+    # pooled fit: total area; recompute from the file with the default 2001 Simpson nodes
+    e = json.loads((r3 / "fit" / "summary.json").read_text())["fits"]["all"]["effective_volume"]
+    assert e["area_arcmin2"] == 4.5 and e["interval"] == 0.68
+    np.testing.assert_allclose(e["mag"], sf.m_grid, rtol=0, atol=1e-9)
+    ref = sf.effective_volume(sf.m_grid[::8], area=4.5 * u.arcmin ** 2, cosmology=cosmo)
+    for key, q in (("median_mpc3", ref.median), ("lower_mpc3", ref.lower), ("upper_mpc3", ref.upper)):
+        np.testing.assert_allclose(e[key][::8], q.to_value(u.Mpc ** 3), rtol=1e-3, atol=1e-6)
+    assert np.all(np.array(e["lower_mpc3"]) < np.array(e["median_mpc3"]))
+    assert np.all(np.array(e["median_mpc3"]) < np.array(e["upper_mpc3"]))
+    assert e["median_mpc3"][0] > 10 * e["median_mpc3"][-1]      # falls with C at faint m
+    # per field: each field's own area, Planck18 by default
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        pf = run_fit(r3, max_steps=300, plots=False, per_field=True, max_draws=300)
+    summ = json.loads((r3 / "fit" / "summary.json").read_text())["fits"]
+    for f, a in areas.items():
+        ef = summ[f]["effective_volume"]
+        assert ef["area_arcmin2"] == a and ef["cosmology"] == "Planck18"
+        v = SelectionFunction.read(pf, field=f).effective_volume(np.array(ef["mag"][::40]), area=a)
+        np.testing.assert_allclose(ef["median_mpc3"][::40], v.median.to_value(u.Mpc ** 3), rtol=1e-3)
+
+
+@pytest.mark.parametrize("shape", ["logistic", "erf", "fleming"])
+def test_surfaces_on_grid_equal_pointwise_surfaces(shape):
+    mdl, th = truth_model(shape)
+    draws = mdl.sample_prior(5, np.random.default_rng(14))
+    draws[0] = th
+    z, m = np.linspace(5.5, 9.5, 9), np.linspace(24.0, 31.0, 11)
+    c, s = mdl.surfaces_on_grid(draws, z, m)
+    assert c.shape == s.shape == (5, 9, 11)
+    np.testing.assert_allclose(c, mdl.completeness(draws, m[None, :], z[:, None]), rtol=1e-12, atol=1e-300)
+    np.testing.assert_allclose(s, mdl.selection(draws, z[:, None], m[None, :]), rtol=1e-12, atol=1e-300)
+    c1, s1 = mdl.surfaces_on_grid(th, z, m)
+    np.testing.assert_array_equal(c1, c[0])

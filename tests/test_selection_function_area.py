@@ -19,6 +19,14 @@ def test_area_from_per_field_mapping():
     assert _sf("all", None).area_arcmin2() is None
 
 
+def test_area_prefers_the_per_field_entry():
+    mdl = SurfaceModel.for_data(np.array([8.0, 9.0]), np.array([25.0, 26.0]))
+    th = mdl.sample_prior(2, np.random.default_rng(1))
+    meta = {"area_arcmin2": 4.0, "area_arcmin2_field": {"a": 1.0, "b": 3.0}}
+    assert SelectionFunction(mdl, th, meta=meta, field="b").area_arcmin2() == 3.0
+    assert SelectionFunction(mdl, th, meta=meta, field="all").area_arcmin2() == 4.0
+
+
 def test_effective_volume_scales_with_field_area():
     areas = {"a": 1.0, "b": 3.0}
     va = _sf("a", areas).effective_volume(np.array([26.0]))

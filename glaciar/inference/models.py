@@ -354,6 +354,47 @@ class SurfaceModel:
         out = np.exp(log_s).reshape((len(th),) + z.shape)
         return out[0] if np.ndim(theta) == 1 else out
 
+    def surfaces_on_grid(self, theta, z, m):
+        """C(m, z) and S(z, m) on the outer grid ``z`` x ``m``, for many draws at once.
+
+        Same values as :meth:`completeness` and :meth:`selection` (tested to
+        1e-12), but m50(z), w(z) are evaluated per z and the edges per m, so a
+        grid point costs a few array operations (used for V_eff(m) integrals).
+
+        Parameters
+        ----------
+        theta : array_like, shape (P,) or (D, P)
+        z : array_like, shape (n_z,)
+            Redshifts.
+        m : array_like, shape (n_m,)
+            Input AB magnitudes [mag].
+
+        Returns
+        -------
+        C, S : ndarray
+            Shape (D, n_z, n_m), or (n_z, n_m) for one theta.
+        """
+        from scipy.special import expit
+
+        th = self._theta2d(theta)
+        s = self._slices
+        z = np.asarray(z, float).ravel()
+        m = np.asarray(m, float).ravel()
+        zp = self._powers(z, self.z_ref, self.z_scale, max(self.m50_degree, self.log_w_degree))
+        m50 = th[:, s["m50"]] @ zp[:, :self.m50_degree + 1].T                  # (D, n_z)
+        inv_w = np.exp(-(th[:, s["log_w"]] @ zp[:, :self.log_w_degree + 1].T))
+        u = (m[None, None, :] - m50[:, :, None]) * inv_w[:, :, None]
+        f = expit(-u) if self.shape == "logistic" else step_function(u, self.shape)
+        c = expit(th[:, s["logit_c_max"]])[:, :, None] * f
+        mp = self._powers(m, self.m_ref, self.m_scale, self.edge_degree)          # (n_m, k)
+        edge = {k: th[:, s[k]] @ mp.T for k in ("z_lo", "log_dz_lo", "z_hi", "log_dz_hi")}
+        a = (z[None, :, None] - edge["z_lo"][:, None, :]) * np.exp(-edge["log_dz_lo"])[:, None, :]
+        b = (edge["z_hi"][:, None, :] - z[None, :, None]) * np.exp(-edge["log_dz_hi"])[:, None, :]
+        sel = expit(th[:, s["logit_s_max"]])[:, :, None] * expit(a) * expit(b)
+        if np.ndim(theta) == 1:
+            return c[0], sel[0]
+        return c, sel
+
     @np.errstate(over="ignore", invalid="ignore")
     def log_likelihood(self, theta, cells: Cells, part: str = "both") -> np.ndarray:
         """Binomial log-likelihood of the cells (coefficients dropped).
@@ -433,15 +474,15 @@ class BlockPosterior:
 
     Why it is faster than :meth:`SurfaceModel.log_posterior` (same formulas):
 
-    - the smooth terms m50(z), w(z) depend on z only and the edges z_lo(m),
-      dz_lo(m), ... on m only, so they are evaluated on the distinct z (or m)
-      values of the cells and gathered, and the exponentials of the widths are
-      not taken per cell;
-    - the binomial sum is rearranged so each cell needs one ``log(1 + e)`` plus
-      one ``log(eps + e)`` only where it has failures: with e = exp(u),
+    - m50(z) and w(z) depend on z only, the edges z_lo(m), dz_lo(m), ... on m
+      only.  When the cells share few distinct z (or m) values -- a simulation
+      grid -- the cells are sorted by that value, the terms (and the
+      exponentials of the widths) are evaluated once per value and repeated
+      over its cells; otherwise they are evaluated per cell;
+    - the binomial sum is rearranged so that each cell needs one ``log1p`` and
+      one ``log``: with e = exp(u),
       ``k ln C + (n - k) ln(1 - C) = k ln C_max - n ln(1 + e) + (n - k) ln((1 - C_max) + e)``
-      (logistic; the selection term is the same with D - 1 = e_a + e_b + e_a e_b),
-      and cells with failures are stored first so that term works on a slice;
+      (logistic; the selection term is the same with D - 1 = e_a + e_b + e_a e_b);
     - cells without a recovered source carry no selection information and are
       dropped from the "s" block;
     - the normal prior of the block is a few array operations.
@@ -477,16 +518,16 @@ class BlockPosterior:
             trials, succ, group, x = kr[keep], ks[keep], m[keep], z[keep]
             ref, scale, deg = model.m_ref, model.m_scale, model.edge_degree
             self._sl = (sl["logit_s_max"], sl["z_lo"], sl["log_dz_lo"], sl["z_hi"], sl["log_dz_hi"])
-        fail = trials - succ
-        order = np.argsort(fail == 0, kind="stable")        # cells with failures first
-        self._n_fail_cells = int(np.sum(fail > 0))
-        self._trials, self._succ, self._fail = trials[order], succ[order], fail[order]
-        self._fail_head = self._fail[:self._n_fail_cells]
+        order = np.argsort(group, kind="stable")
+        ug, counts = np.unique(group[order], return_counts=True)
+        # Repeating per-value terms pays only when values are shared by several cells.
+        self._counts = counts if 4 * len(ug) <= len(group) else None
+        g = ug if self._counts is not None else group[order]
+        self._trials, self._succ = trials[order], succ[order]
+        self._fail = self._trials - self._succ
         self._k_total = float(np.sum(succ))
-        ug, gi = np.unique(group[order], return_inverse=True)
-        self._gi = gi.ravel()
         self._x = x[order]
-        self._gp = ((ug - ref) / scale)[:, None] ** np.arange(deg + 1)   # (n_groups, deg + 1)
+        self._gp = ((g - ref) / scale)[:, None] ** np.arange(deg + 1)   # (n_values, deg + 1)
 
     @property
     def n_params(self) -> int:
@@ -497,15 +538,20 @@ class BlockPosterior:
         return -0.5 * np.einsum("ij,ij->i", t, t) + self._prior_const
 
     def _lin(self, x, s):
-        gp = self._gp[:, :s.stop - s.start]
-        return x[:, s] @ gp.T                                  # (W, n_groups)
+        return x[:, s] @ self._gp[:, :s.stop - s.start].T                # (W, n_values)
+
+    def _expand(self, a):
+        return a if self._counts is None else np.repeat(a, self._counts, axis=1)
 
     @np.errstate(over="ignore", invalid="ignore")
     def __call__(self, x) -> np.ndarray:
         x = np.asarray(x, float)
         one = x.ndim == 1
         x = np.atleast_2d(x)
-        ll = self._log_like_c(x) if self.part == "c" else self._log_like_s(x)
+        if len(self._x) == 0:
+            ll = np.zeros(len(x))
+        else:
+            ll = self._log_like_c(x) if self.part == "c" else self._log_like_s(x)
         lp = self._prior(x) + ll
         lp = np.where(np.isfinite(lp), lp, -np.inf)
         return lp[0] if one else lp
@@ -513,11 +559,9 @@ class BlockPosterior:
     def _log_like_c(self, x):
         s_lcm, s_m50, s_lw = self._sl
         lcm = x[:, s_lcm.start]
-        inv_w = np.exp(-self._lin(x, s_lw))                    # per z: (W, n_z)
-        shift = self._lin(x, s_m50) * inv_w
-        gi, nf = self._gi, self._n_fail_cells
-        u = self._x * inv_w[:, gi]
-        u -= shift[:, gi]                                      # (m - m50) / w
+        inv_w = np.exp(-self._lin(x, s_lw))
+        u = self._x - self._expand(self._lin(x, s_m50))
+        u *= self._expand(inv_w)                                  # (m - m50) / w, (W, N)
         log_cmax = _log_sigmoid(lcm)
         if self.model.shape == "logistic":
             # e = exp(u); C = C_max / (1 + e), 1 - C = ((1 - C_max) + e) / (1 + e).
@@ -526,44 +570,32 @@ class BlockPosterior:
             e = np.exp(u, out=u)
             eps = np.exp(_log_sigmoid(-lcm))[:, None]
             ll = self._k_total * log_cmax - np.log1p(e) @ self._trials
-            if nf:
-                ll = ll + np.log(eps + e[:, :nf]) @ self._fail_head
-            return ll
+            e += eps
+            return ll + np.log(e, out=e) @ self._fail
         f = _LOG_FLOOR
         log_c = log_cmax[:, None] + log_step(u, self.model.shape)
-        ll = np.maximum(log_c, f) @ self._succ
-        if nf:
-            uf = u[:, :nf]
-            log_1mc = np.logaddexp(_log_sigmoid(-lcm)[:, None],
-                                   log_cmax[:, None] + log_step(-uf, self.model.shape))
-            ll = ll + np.maximum(log_1mc, f) @ self._fail_head
-        return ll
+        log_1mc = np.logaddexp(_log_sigmoid(-lcm)[:, None],
+                               log_cmax[:, None] + log_step(-u, self.model.shape))
+        return np.maximum(log_c, f) @ self._succ + np.maximum(log_1mc, f) @ self._fail
 
     def _log_like_s(self, x):
         s_lsm, s_zlo, s_dlo, s_zhi, s_dhi = self._sl
         lsm = x[:, s_lsm.start]
-        gi, nf, z = self._gi, self._n_fail_cells, self._x
-        if len(z) == 0:
-            return np.zeros(len(x))
-        a_lo = np.exp(-self._lin(x, s_dlo))                    # per m: (W, n_m)
-        b_lo = self._lin(x, s_zlo) * a_lo
-        a_hi = np.exp(-self._lin(x, s_dhi))
-        b_hi = self._lin(x, s_zhi) * a_hi
-        a = z * a_lo[:, gi]
-        a -= b_lo[:, gi]                                       # (z - z_lo) / dz_lo
-        b = b_hi[:, gi]
-        b -= z * a_hi[:, gi]                                   # (z_hi - z) / dz_hi
+        z, ex = self._x, self._expand
+        # Minus the edge arguments: -a = (z_lo - z) / dz_lo, -b = (z - z_hi) / dz_hi.
+        na = ex(self._lin(x, s_zlo)) - z
+        na *= ex(np.exp(-self._lin(x, s_dlo)))
+        nb = z - ex(self._lin(x, s_zhi))
+        nb *= ex(np.exp(-self._lin(x, s_dhi)))
         # S = S_max / D, D = (1 + e^-a)(1 + e^-b); D - 1 = ea + eb + ea eb, a sum of
-        # positives (same clipping as SurfaceModel._log_s).
-        np.clip(a, -300.0, 700.0, out=a)
-        np.clip(b, -300.0, 700.0, out=b)
-        ea = np.exp(np.negative(a, out=a), out=a)
-        eb = np.exp(np.negative(b, out=b), out=b)
+        # positives, > 0 after the clipping (same as SurfaceModel._log_s), so no log(0).
+        np.clip(na, -700.0, 300.0, out=na)
+        np.clip(nb, -700.0, 300.0, out=nb)
+        ea = np.exp(na, out=na)
+        eb = np.exp(nb, out=nb)
         t = ea * eb
         t += ea
         t += eb
         ll = self._k_total * _log_sigmoid(lsm) - np.log1p(t) @ self._trials
-        if nf:
-            eps = np.exp(_log_sigmoid(-lsm))[:, None]
-            ll = ll + np.log(eps + t[:, :nf]) @ self._fail_head
-        return ll
+        t += np.exp(_log_sigmoid(-lsm))[:, None]
+        return ll + np.log(t, out=t) @ self._fail

@@ -60,6 +60,9 @@ class SelectionFunction:
         The run manifest stores ``area_arcmin2`` per field (a mapping); older or
         hand-made metadata may hold one number.
         """
+        per_field = self.meta.get("area_arcmin2_field")
+        if isinstance(per_field, dict) and self.field in per_field:
+            return float(per_field[self.field])
         return _area_for(self.meta.get("area_arcmin2"), self.field)
 
     def __init__(self, model: SurfaceModel, draws, z_grid=None, m_grid=None, meta=None,
