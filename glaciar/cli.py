@@ -87,8 +87,12 @@ def _cmd_report(args) -> int:
 def _cmd_fit(args) -> int:
     from .inference import run_fit
 
+    cosmology = None
+    if args.cosmology:
+        from .galaxy.population import get_cosmology
+        cosmology = get_cosmology(args.cosmology)
     path = run_fit(args.run_dir, model=args.model, per_field=args.per_field, seed=args.seed,
-                   progress=not args.quiet)
+                   progress=not args.quiet, cosmology=cosmology, area_arcmin2=args.area_arcmin2)
     print(f"wrote {path}")
     return 0
 
@@ -175,9 +179,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("fit", help="fit C(m, z) and S(z, m) with emcee; write selection_function.fits")
     s.add_argument("run_dir")
-    s.add_argument("--model", default="logistic")
+    s.add_argument("--model", default="logistic", choices=["logistic", "erf", "fleming"])
     s.add_argument("--per-field", action="store_true")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--area-arcmin2", type=float, default=None,
+                   help="survey area for V_eff (default: the footprint area in the run manifest)")
+    s.add_argument("--cosmology", default=None, help="astropy realisation for V_eff (default Planck18)")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_fit)
 

@@ -62,3 +62,25 @@ def test_simulate_and_report(small_survey, tmp_path, capsys):
     assert main(["report", str(out), "--regions"]) == 0
     regs = list((out / C.SUMMARY_DIRNAME / "regions").glob("*.reg"))
     assert len(regs) == len(t) * cfg.simulation.n_iterations
+
+
+def test_fit_and_next_on_a_run(small_survey, tmp_path, capsys):
+    """`glaciar fit` writes a loadable selection function; `next` proposes cells inside the grid."""
+    from glaciar import SelectionFunction
+
+    out = tmp_path / "run"
+    assert main(["simulate", str(small_survey), "--out", str(out), "--workers", "1", "--quiet"]) == 0
+    assert main(["fit", str(out), "--quiet", "--area-arcmin2", "2.0"]) == 0
+    sf = SelectionFunction.read(out / C.SELECTION_FUNCTION_NAME)
+    assert sf.area_arcmin2() == 2.0
+    c = sf.completeness(np.array([24.0, 27.5]), np.array([8.0, 8.0]))
+    assert 0 <= c[1] < c[0] <= 1
+    capsys.readouterr()
+    assert main(["next", str(out), "-n", "3"]) == 0
+    lines = [l for l in capsys.readouterr().out.splitlines() if not l.startswith("#")]
+    assert len(lines) == 3
+    cfg = load_config(small_survey)
+    for line in lines:
+        z, m = map(float, line.split()[:2])
+        assert min(cfg.grid.z_values) <= z <= max(cfg.grid.z_values)
+        assert min(cfg.grid.mag_values) <= m <= max(cfg.grid.mag_values)
