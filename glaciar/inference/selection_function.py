@@ -309,7 +309,7 @@ class SelectionFunction:
             raise ValueError("to_bytes: nothing to write")
         meta = dict(meta if meta is not None else fits_list[0].meta)
         ph = fits.PrimaryHDU()
-        ph.header["FORMAT"] = (FILE_FORMAT, "layout: docs/selection-function-file.md")
+        ph.header["FORMAT"] = (FILE_FORMAT, "see docs/selection-function-file.md")
         ph.header["GLACVER"] = (__version__, "glaciar version that wrote the file")
         ph.header["MODEL"] = (fits_list[0].model.shape, "completeness step shape")
         ph.header["NFITS"] = (len(fits_list), "number of fits (EXTVER 1..NFITS)")
