@@ -480,11 +480,17 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
         bx0, bx1 = max(bx0, 0), min(bx1, W_cv)
         ry0, ry1, rx0, rx1 = by0, by1, bx0, bx1
         if by1 > by0 and bx1 > bx0:
-            b = cbn[np.unique(comp[by0:by1, bx0:bx1])]
-            ry0 = min(ry0, int(b[:, 0].min()))
-            ry1 = max(ry1, int(b[:, 1].max()))
-            rx0 = min(rx0, int(b[:, 2].min()))
-            rx1 = max(rx1, int(b[:, 3].max()))
+            sub = comp[by0:by1, bx0:bx1]
+            labs = sub[sub > 0]
+            if labs.size:
+                # the union of the boxes of the regions met (no np.unique: a repeated
+                # label only repeats its box)
+                b = cbn[labs]
+                lo_b, hi_b = b.min(axis=0).tolist(), b.max(axis=0).tolist()
+                ry0 = min(ry0, lo_b[0])
+                ry1 = max(ry1, hi_b[1])
+                rx0 = min(rx0, lo_b[2])
+                rx1 = max(rx1, hi_b[3])
         nd = need_l[i]
         nd[0], nd[1], nd[2], nd[3] = min(nd[0], ry0), max(nd[1], ry1), min(nd[2], rx0), max(nd[3], rx1)
         return ry0 >= lo_y_l[i] and ry1 <= hi_y_l[i] and rx0 >= lo_x_l[i] and rx1 <= hi_x_l[i]
@@ -635,8 +641,9 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
 
     fin = ~grow
     ctx.out["flags"][src[sep_failed]] |= FLAG_SEP_ERROR
+    # (pseg is unchanged since pix, lab_pix were taken from it)
     _finish(ctx, cv, pseg, pseg32, label * fin, xs, ys, a, b, th, scale, src, src_win, fin, rect, wy0, wx0,
-            edge, phot_box, bounds)
+            edge, phot_box, bounds, pix, lab_pix)
     return np.array(regrow, dtype=np.int64)
 
 
@@ -738,8 +745,10 @@ def _band_boxes(width, pix, lab_pix, labels, phot_box, bounds):
 
 
 def _finish(ctx, cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win, fin, rect, wy0, wx0, edge,
-            phot_box, bounds):
-    """Classification and photometry of the finished sources of a canvas."""
+            phot_box, bounds, pix, lab_all):
+    """Classification and photometry of the finished sources of a canvas.
+
+    ``pix``, ``lab_all``: ``np.flatnonzero(pseg)`` and the labels there."""
     out, params, cls = ctx.out, ctx.params, ctx.cls
     idx = np.flatnonzero(fin)
     if idx.size == 0:
@@ -754,8 +763,6 @@ def _finish(ctx, cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win,
     di = np.flatnonzero(det)
     # Pixels of the measured segments only: ISO sums per label are the same
     # (bincount adds each label's pixels in the same row-major order).
-    pix = np.flatnonzero(pseg)
-    lab_all = pseg.ravel()[pix]
     wanted = np.zeros(int(max(lab_all.max(initial=0), lab.max(initial=0))) + 1, dtype=bool)
     wanted[lab[det]] = True
     keep = wanted[lab_all]
