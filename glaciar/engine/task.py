@@ -90,11 +90,6 @@ def draw_task_sources(rng: np.random.Generator, n: int, z: float, mag: float, ct
                        r_eff_pix=np.asarray(r_pix, float) * np.ones(n))
 
 
-def _mag_of_flux(flux: np.ndarray, zeropoint: float) -> np.ndarray:
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(flux > 0, zeropoint - 2.5 * np.log10(np.where(flux > 0, flux, 1.0)), np.inf)
-
-
 def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
              skip_faint_bands: bool = True) -> pd.DataFrame:
     """Run one task on a prepared field context and return its per-source rows.
@@ -119,7 +114,7 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
     n = ctx.n_galaxies
     src = draw_task_sources(rng, n, spec.z, spec.mag, ctx)
 
-    # Stamp boxes (Sersic stamp + widest PSF) decide how close two sources may sit.
+    # Isolation boxes (most of the light + 2 PSF FWHM) decide how close two sources may sit.
     hh, hw = ctx.stamp_half_sizes(src.sersic_n, src.r_eff_pix, src.axis_ratio, src.position_angle_deg)
     x, y = draw_positions(rng, ctx.footprint, hh, hw)
     m = x.size
@@ -148,7 +143,7 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
             if (ps.y0 < 0 or ps.x0 < 0 or ps.y0 + ps.data.shape[0] > ctx.shape[0]
                     or ps.x0 + ps.data.shape[1] > ctx.shape[1]):
                 flags[i] |= C.FLAG_STAMP_CLIPPED
-        mag_stamp[:, j] = _mag_of_flux(flux_in[:, j] * frac, ctx.zeropoints[band])
+        mag_stamp[:, j] = sed.flux_to_mag(flux_in[:, j] * frac, ctx.zeropoints[band])
 
     scenes = {b: Scene(ctx.bases[b], stamps[b]) for b in bands}
     det = ctx.detection_band
