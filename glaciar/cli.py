@@ -1,11 +1,13 @@
 """The ``glaciar`` command: demo, init, simulate, report, fit, next.
 
 Every sub-command turns expected failures (bad config, missing file, mismatched
-store) into a one-line message on stderr and exit status 2.
+store) into a one-line message on stderr and exit status 2 (set GLACIAR_DEBUG=1
+to see the traceback instead).
 """
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -204,6 +206,8 @@ def main(argv=None) -> int:
         print("interrupted; finished tasks are kept, run the same command to resume", file=sys.stderr)
         return 130
     except (ValueError, FileNotFoundError, FileExistsError, RuntimeError, OSError, KeyError) as exc:
+        if os.environ.get("GLACIAR_DEBUG"):
+            raise
         print(f"glaciar {args.command}: error: {exc}", file=sys.stderr)
         return 2
 
