@@ -1,0 +1,67 @@
+"""A GLACiAR user's parameters.yaml and file layout run as they are."""
+import numpy as np
+from astropy.io import fits
+from astropy.table import Table
+
+from glaciar import constants as C
+from glaciar.cli import main
+from glaciar.demo import DEMO_BANDS, make_demo_images
+
+PARAMS = """\
+n_galaxies: 6
+n_iterations: 1
+mag_bins: 2
+min_mag: 24.0
+max_mag: 27.0
+z_bins: 1
+min_z: 8.0
+max_z: 8.0
+n_bands: 4
+lambda_detection: 15369.14
+detection_band: f160w
+bands: [f160w, f098m, f125w, f606w]
+zeropoints: [25.946, 25.667, 26.230, 26.08]
+gain_values: [2800, 4200, 2600, 3200]
+list_of_fields: fields.txt
+R_eff: 1.075
+beta_mean: -2.0
+beta_sd: 0.0
+size_pix: 0.08
+path_to_images: images/
+image_name: borg_
+types_galaxies: 2
+sersic_indices: [1, 4]
+fraction_type_galaxies: [0.5, 0.5]
+ibins: 1
+ebins: 1
+min_sn: 8.0
+dropouts: yes
+de_Vacouleur: No
+"""
+
+
+def test_glaciar_parameters_file_runs(tmp_path, capsys):
+    imgs = make_demo_images((200, 200), seed=5)
+    (tmp_path / "images").mkdir()
+    for band in DEMO_BANDS:
+        sci = imgs["science"][band]
+        w = imgs["weight"][band]
+        rms = np.where(w > 0, 1 / np.sqrt(np.where(w > 0, w, 1)), 0).astype(np.float32)
+        hdr = fits.Header({"CTYPE1": "RA---TAN", "CTYPE2": "DEC--TAN", "CD1_1": -0.08 / 3600,
+                           "CD2_2": 0.08 / 3600, "CD1_2": 0.0, "CD2_1": 0.0, "CRPIX1": 100.0,
+                           "CRPIX2": 100.0, "CRVAL1": 150.0, "CRVAL2": 2.0})
+        # GLACiAR's naming: <path_to_images><image_name><field>_<band>.fits and _rms.fits
+        fits.PrimaryHDU(sci, hdr).writeto(tmp_path / "images" / f"borg_0440-5244_{band}.fits")
+        fits.PrimaryHDU(rms, hdr).writeto(tmp_path / "images" / f"borg_0440-5244_{band}_rms.fits")
+    (tmp_path / "fields.txt").write_text("0440-5244  some comment\n")
+    (tmp_path / "parameters.yaml").write_text(PARAMS)
+    out = tmp_path / "run"
+    rc = main(["simulate", str(tmp_path / "parameters.yaml"), "--out", str(out), "--workers", "1", "--quiet"])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    assert "warning:" in captured.err            # the mapping's caveats are shown
+    t = Table.read(out / C.SUMMARY_DIRNAME / "summary_0440-5244.ecsv")
+    # GLACiAR bins: min + k (max - min) / (bins - 1)
+    np.testing.assert_allclose(sorted(set(t["mag"])), [24.0, 27.0])
+    np.testing.assert_allclose(t["z"], 8.0)
+    assert (t["n_input"] == 6).all()
