@@ -238,6 +238,23 @@ def test_pixels_match_adaptive_quadrature(n, r_eff, q, pa):
     assert np.max(np.abs(got_cheap - expected)) < 1e-5
 
 
+@pytest.mark.parametrize("n,r_eff,q,pa,center", [
+    (1.0, 1.0, 0.7, 30.0, (4.3, 5.1)),       # integer 2n: closed-form Q
+    (0.35, 0.3, 0.2, 60.0, (7.3, 6.85)),     # 2n = 0.7: scipy gammainc/gammaincc
+    (4.0, 2.0, 1.0, 0.0, (7.5, 7.0)),        # centre on a grid line: many panels per edge
+    (8.0, 0.3, 0.05, 10.0, (7.3, 6.85)),
+])
+def test_small_and_large_batch_layouts_agree(monkeypatch, n, r_eff, q, pa, center):
+    # Small batches evaluate all quadrature nodes as one flat array, large ones
+    # group panels by order; the pixel tests above see only the flat layout, so
+    # hold the grouped one to it (same nodes and weights: round-off level).
+    import glaciar.galaxy.sersic as sersic
+    flat = sersic_stamp(n, r_eff, q, pa, shape=(15, 15), center=center)
+    monkeypatch.setattr(sersic, "_FLAT_MAX_NODES", 0)
+    grouped = sersic_stamp(n, r_eff, q, pa, shape=(15, 15), center=center)
+    assert np.allclose(grouped, flat, rtol=0, atol=1e-15)
+
+
 @pytest.mark.parametrize("n,r_eff,q,pa", CASES)
 def test_stamp_sum_is_light_inside_rectangle(n, r_eff, q, pa):
     ny, nx = 21, 25

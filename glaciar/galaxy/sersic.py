@@ -52,8 +52,10 @@ adaptive 2-D quadrature for n = 0.5, 1, 2, 4, 8, r_eff = 0.3, 1, 3, 10 px,
 q = 0.2, 1 (plus n = 0.2, 10 and q = 0.05 extremes), and the stamp sum to
 < 1e-9 (measured <= 1e-11) of the exact light inside the stamp rectangle.
 
-Cost.  About 0.6 us per pixel plus ~0.3 ms per call on one core (e.g. 2 ms
-for 41 x 49, 10 ms for 119 x 141 px); benchmarks/render.py prints the table.
+Cost.  About 0.6 us per pixel plus ~0.15 ms per call on one core (e.g. 0.15 ms
+for 5 x 5, 1 ms for 41 x 49, 10 ms for 119 x 141 px); benchmarks/render.py
+prints the table.  Small stamps evaluate all quadrature nodes as one flat
+array (see _edge_light), so their cost is mostly numpy call overhead.
 """
 from __future__ import annotations
 
@@ -90,6 +92,11 @@ def _check_n(n):
 
 
 def _check_scalar_n(n):
+    if isinstance(n, (int, float)):         # fast path for plain numbers
+        value = float(n)
+        if not (N_MIN <= value <= N_MAX):   # also rejects NaN
+            raise ValueError(f"Sersic index n must be in [{N_MIN}, {N_MAX}], got {n!r}")
+        return value
     arr = _check_n(n)
     if arr.ndim != 0:
         raise ValueError(f"Sersic index n must be a scalar here, got shape {arr.shape}")
@@ -107,6 +114,15 @@ def _check_geometry(r_eff, axis_ratio, position_angle):
     if not np.isfinite(pa):
         raise ValueError(f"position_angle must be finite (degrees), got {position_angle!r}")
     return r_eff, q, pa
+
+
+def _check_scalar_fraction(fraction, name):
+    if isinstance(fraction, (int, float)):  # fast path for plain numbers
+        value = float(fraction)
+        if not (0 < value < 1):             # also rejects NaN
+            raise ValueError(f"{name} must be strictly between 0 and 1, got {fraction!r}")
+        return value
+    return float(_check_fraction(fraction, name))
 
 
 def _check_fraction(fraction, name):
@@ -186,6 +202,18 @@ def radius_enclosing(n, fraction):
     return float(r) if np.ndim(r) == 0 else r
 
 
+@lru_cache(maxsize=1024)
+def _bn_scalar(n):
+    """b_n for a validated float n (cached: stamps reuse a few indices)."""
+    return float(gammaincinv(2.0 * n, 0.5))
+
+
+@lru_cache(maxsize=1024)
+def _radius_enclosing_scalar(n, fraction):
+    """radius_enclosing for validated floats (cached, as _bn_scalar)."""
+    return float(radius_enclosing(n, fraction))
+
+
 def stamp_shape(n, r_eff, axis_ratio=1.0, position_angle=0.0, enclosed_fraction=0.995):
     """Smallest odd stamp holding the ellipse that contains ``enclosed_fraction`` of the light.
 
@@ -214,8 +242,8 @@ def stamp_shape(n, r_eff, axis_ratio=1.0, position_angle=0.0, enclosed_fraction=
     """
     n = _check_scalar_n(n)
     r_eff, q, pa = _check_geometry(r_eff, axis_ratio, position_angle)
-    frac = float(_check_fraction(enclosed_fraction, "enclosed_fraction"))
-    a = radius_enclosing(n, frac) * r_eff
+    frac = _check_scalar_fraction(enclosed_fraction, "enclosed_fraction")
+    a = _radius_enclosing_scalar(n, frac) * r_eff
     b = q * a
     phi = math.radians(pa)
     # half-extents of the bounding box of the rotated ellipse
@@ -269,6 +297,10 @@ def sersic_intensity(n, r_eff, x, y, axis_ratio=1.0, position_angle=0.0,
 # ---------------------------------------------------------------------------
 # stamp rendering
 # ---------------------------------------------------------------------------
+def _integer_order(a):
+    return a == round(a) and a <= 40
+
+
 def _upper_gamma(a, z):
     """Regularised upper incomplete gamma Q(a, z), fast for integer a.
 
@@ -276,7 +308,7 @@ def _upper_gamma(a, z):
     positive: relative error ~ a ulp), several times cheaper than
     ``scipy.special.gammaincc``; 2n is an integer for the common n = 0.5, 1, 4.
     """
-    if a != round(a) or a > 40:
+    if not _integer_order(a):
         return gammaincc(a, z)
     a = int(round(a))
     # z > 1e3 gives e^{-z} = 0 while z^(a-1) stays finite (a <= 40)
@@ -290,7 +322,7 @@ def _upper_gamma(a, z):
 
 def _lower_gamma(a, z):
     """Regularised lower incomplete gamma P(a, z) (absolute error ~1e-16)."""
-    if a != round(a) or a > 40:
+    if not _integer_order(a):
         return gammainc(a, z)
     return 1.0 - _upper_gamma(a, z)
 
@@ -358,11 +390,84 @@ def _edge_light(d, w_a, w_b, dphi, n, b_n, r_eff, tolerance, panel_width=None, o
     else:
         k = np.full(d.shape, int(order), dtype=np.int16)
 
+    a = 2.0 * n
+    inv_n = 1.0 / n
+    scale = b_n / r_eff ** inv_n
+    all_single = bool(np.all(n_panels == 1))
+    # Small batches (small stamps) evaluate all nodes of all panels as one
+    # flat array: ~10 distinct (order, form) groups would otherwise cost ~10
+    # rounds of numpy call overhead, more than the arithmetic.  Large batches
+    # group panels of equal order into (panels x order) blocks, which avoids
+    # the flat layout's gathers.  Both use the same nodes and weights.
+    n_nodes = int(k.sum(dtype=np.intp) if all_single else k @ n_panels)
+    if n_nodes <= _FLAT_MAX_NODES:
+        integral = _edges_flat(d, w_a, w_b, h, n_panels, all_single, k, complement,
+                               a, inv_n, scale)
+    else:
+        integral = _edges_grouped(d, w_a, w_b, h, n_panels, all_single, k, complement,
+                                  a, inv_n, scale)
+    # complement: the edge's light is its swept angle minus the light beyond it
+    return np.where(complement, dphi - integral, integral) / (2 * math.pi)
+
+
+# Largest number of quadrature nodes per batch evaluated flat (see _edge_light);
+# measured crossover of the two layouts is ~2e4-5e4 nodes.
+_FLAT_MAX_NODES = 20_000
+
+
+@lru_cache(maxsize=None)
+def _flat_rules():
+    """Gauss-Legendre rules of orders 1.._MAX_ORDER end to end, and where each starts."""
+    rules = [_gauss_legendre(order) for order in range(1, _MAX_ORDER + 1)]
+    nodes = np.concatenate([x for x, _ in rules])
+    weights = np.concatenate([w for _, w in rules])
+    first = np.zeros(_MAX_ORDER + 1, dtype=np.intp)
+    first[1:] = np.arange(_MAX_ORDER) * np.arange(1, _MAX_ORDER + 1) // 2
+    return nodes, weights, first
+
+
+def _edges_flat(d, w_a, w_b, h, n_panels, all_single, k, complement, a, inv_n, scale):
+    """Edge integrals with all nodes of all panels in one 1-D batch."""
+    if all_single:
+        mid = 0.5 * (w_a + w_b)
+        half_p, d_p, k_p, complement_p = 0.5 * h, d, k, complement
+    else:
+        # one row per panel
+        seg = np.repeat(np.arange(d.size), n_panels)
+        j = np.arange(seg.size) - np.repeat(np.cumsum(n_panels) - n_panels, n_panels)
+        h_p = h[seg]
+        mid = w_a[seg] + (j + 0.5) * h_p
+        half_p, d_p, k_p, complement_p = 0.5 * h_p, d[seg], k[seg], complement[seg]
+    k_p = k_p.astype(np.intp)
+    stops = np.cumsum(k_p)
+    starts = stops - k_p
+    owner = np.repeat(np.arange(k_p.size), k_p)
+    nodes, weights, first = _flat_rules()
+    rule = np.arange(stops[-1]) - np.repeat(starts - first[k_p], k_p)
+    cosh_w = np.cosh(mid[owner] + half_p[owner] * nodes[rule])
+    z = scale * (d_p[owner] * cosh_w) ** inv_n
+    use_q = complement_p[owner]
+    if _integer_order(a):
+        vals = _upper_gamma(a, z)
+        # P = 1 - Q, exactly as _lower_gamma computes it
+        vals = np.where(use_q, vals, 1.0 - vals)
+    else:
+        vals = np.empty_like(z)
+        vals[use_q] = gammaincc(a, z[use_q])
+        vals[~use_q] = gammainc(a, z[~use_q])
+    vals /= cosh_w
+    vals *= weights[rule]
+    panel = np.add.reduceat(vals, starts) * half_p
+    return panel if all_single else np.bincount(seg, weights=panel, minlength=d.size)
+
+
+def _edges_grouped(d, w_a, w_b, h, n_panels, all_single, k, complement, a, inv_n, scale):
+    """Edge integrals with panels of equal order and form evaluated as one block."""
     # One row per panel, sorted by (order, form) so that each group of equal
     # Gauss-Legendre order and form is a contiguous slice (int16: radix sort).
     key = 2 * k + complement.astype(np.int16)
     by_key = np.argsort(key, kind="stable")
-    if np.all(n_panels == 1):
+    if all_single:
         seg = by_key
         mid = 0.5 * (w_a + w_b)[seg]
         half_p = 0.5 * h[seg]
@@ -379,10 +484,6 @@ def _edge_light(d, w_a, w_b, dphi, n, b_n, r_eff, tolerance, panel_width=None, o
     bounds = np.flatnonzero(key_p[1:] != key_p[:-1]) + 1
     starts = np.concatenate([[0], bounds])
     stops = np.concatenate([bounds, [key_p.size]])
-
-    a = 2.0 * n
-    inv_n = 1.0 / n
-    scale = b_n / r_eff ** inv_n
     panel = np.empty(seg.size)
     for start, stop in zip(starts.tolist(), stops.tolist()):
         order_k, use_q = divmod(int(key_p[start]), 2)
@@ -394,16 +495,14 @@ def _edge_light(d, w_a, w_b, dphi, n, b_n, r_eff, tolerance, panel_width=None, o
         vals = _upper_gamma(a, z) if use_q else _lower_gamma(a, z)
         vals /= cosh_w
         panel[sl] = (vals @ wk) * half_p[sl]
-    integral = np.bincount(seg, weights=panel, minlength=d.size)
-    # complement: the edge's light is its swept angle minus the light beyond it
-    return np.where(complement, dphi - integral, integral) / (2 * math.pi)
+    return np.bincount(seg, weights=panel, minlength=d.size)
 
 
 def _render(n, r_eff, q, pa, shape, center, tolerance, panel_width=None, order=None):
     """Pixel integrals of the unit-flux profile (see the module docstring)."""
     ny, nx = shape
     x0, y0 = center
-    b_n = gammaincinv(2.0 * n, 0.5)
+    b_n = _bn_scalar(n)
     phi = math.radians(pa)
     c, s = math.cos(phi), math.sin(phi)
     xe = np.arange(nx + 1) - 0.5 - x0       # pixel edges relative to the centre
@@ -418,39 +517,43 @@ def _render(n, r_eff, q, pa, shape, center, tolerance, panel_width=None, order=N
     g_xy = c * s * (1.0 - 1.0 / q ** 2)
     len_x = math.sqrt(g_xx)
     len_y = math.sqrt(g_yy)
-    # horizontal lines y = ye[j], traversed toward +x: nodes at x = xe
-    h_d = np.broadcast_to((-ye / (q * len_x))[:, None], (ny + 1, nx + 1))
-    h_s = (xe[None, :] * g_xx + ye[:, None] * g_xy) / len_x
-    # vertical lines x = xe[i], traversed toward +y: nodes at y = ye
-    v_d = np.broadcast_to((xe / (q * len_y))[None, :], (ny + 1, nx + 1))
-    v_s = (xe[None, :] * g_xy + ye[:, None] * g_yy) / len_y
-
-    def node_coordinates(signed_d, pos):
-        # w = asinh(s/d) and the polar angle atan(s/d), once per grid node
-        d = np.abs(signed_d)
-        ratio = np.divide(pos, d, out=np.zeros_like(pos), where=d > 0)
-        # d can be ~1e-17 from round-off when the centre sits on a grid line;
-        # the w range then grows like log(1/d) (a few tens of panels)
-        np.clip(ratio, -1e300, 1e300, out=ratio)
-        return np.arcsinh(ratio), np.arctan(ratio)
-
-    h_w, h_phi = node_coordinates(h_d, h_s)
-    v_w, v_phi = node_coordinates(v_d, v_s)
+    # Grid nodes seen from both line families at once, index 0: horizontal
+    # lines y = ye[j] traversed toward +x (nodes at x = xe), index 1: vertical
+    # lines x = xe[i] traversed toward +y (nodes at y = ye).
+    node_d = np.empty((2, ny + 1, nx + 1))       # signed distance of the line
+    node_d[0] = (-ye / (q * len_x))[:, None]
+    node_d[1] = (xe / (q * len_y))[None, :]
+    node_s = np.empty((2, ny + 1, nx + 1))       # position along the line
+    node_s[0] = (xe[None, :] * g_xx + ye[:, None] * g_xy) / len_x
+    node_s[1] = (xe[None, :] * g_xy + ye[:, None] * g_yy) / len_y
+    # w = asinh(s/d) and the polar angle atan(s/d), once per grid node
+    abs_d = np.abs(node_d)
+    ratio = np.divide(node_s, abs_d, out=np.zeros_like(node_s), where=abs_d > 0)
+    # d can be ~1e-17 from round-off when the centre sits on a grid line;
+    # the w range then grows like log(1/d) (a few tens of panels)
+    np.clip(ratio, -1e300, 1e300, out=ratio)
+    node_w = np.arcsinh(ratio)
+    node_phi = np.arctan(ratio)
     # all edges in one batch: horizontal ones (ny+1, nx), then vertical (ny, nx+1)
-    signed_d = np.concatenate([h_d[:, :-1].ravel(), v_d[:-1, :].ravel()])
-    w_a = np.concatenate([h_w[:, :-1].ravel(), v_w[:-1, :].ravel()])
-    w_b = np.concatenate([h_w[:, 1:].ravel(), v_w[1:, :].ravel()])
-    dphi = np.concatenate([(h_phi[:, 1:] - h_phi[:, :-1]).ravel(),
-                           (v_phi[1:, :] - v_phi[:-1, :]).ravel()])
-    light = np.zeros(signed_d.size)
-    live = np.flatnonzero(signed_d != 0)     # d == 0: degenerate triangle, no light
+    signed_d = np.concatenate([node_d[0, :, :-1], node_d[1, :-1, :]], axis=None)
+    w_a = np.concatenate([node_w[0, :, :-1], node_w[1, :-1, :]], axis=None)
+    w_b = np.concatenate([node_w[0, :, 1:], node_w[1, 1:, :]], axis=None)
+    dphi = np.concatenate([node_phi[0, :, 1:] - node_phi[0, :, :-1],
+                           node_phi[1, 1:, :] - node_phi[1, :-1, :]], axis=None)
     # chunks bound the memory of the (edges x nodes) work arrays
     chunk = _CHUNK_SEGMENTS if order is None else max(1, _CHUNK_SEGMENTS * 4 // int(order))
-    for i in range(0, live.size, chunk):
-        idx = live[i:i + chunk]
-        light[idx] = np.sign(signed_d[idx]) * _edge_light(
-            np.abs(signed_d[idx]), w_a[idx], w_b[idx], dphi[idx], n, b_n, r_eff,
-            tolerance, panel_width, order)
+    if signed_d.size <= chunk and signed_d.all():
+        # the common small-stamp case: one batch, no degenerate edges
+        light = np.sign(signed_d) * _edge_light(
+            np.abs(signed_d), w_a, w_b, dphi, n, b_n, r_eff, tolerance, panel_width, order)
+    else:
+        light = np.zeros(signed_d.size)
+        live = np.flatnonzero(signed_d != 0)     # d == 0: degenerate triangle, no light
+        for i in range(0, live.size, chunk):
+            idx = live[i:i + chunk]
+            light[idx] = np.sign(signed_d[idx]) * _edge_light(
+                np.abs(signed_d[idx]), w_a[idx], w_b[idx], dphi[idx], n, b_n, r_eff,
+                tolerance, panel_width, order)
     n_h = (ny + 1) * nx
     h_seg = light[:n_h].reshape(ny + 1, nx)
     v_seg = light[n_h:].reshape(ny, nx + 1)
