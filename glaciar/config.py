@@ -1346,6 +1346,28 @@ def config_hash(cfg: Config) -> str:
     """
     d = config_to_dict(cfg, relative_to=cfg.base_dir)
     d.pop("output", None)
+    return _sha256_json(d)
+
+
+def store_hash(cfg: Config) -> str:
+    """SHA-256 (hex) of the settings that fix every task's rows.
+
+    As :func:`config_hash`, but without the field list, the grid's z and
+    magnitude values and ``simulation.n_iterations``: those only add or remove
+    tasks (each task's random stream is keyed by its field name, z, magnitude
+    and iteration, not by its position in the grid), so a results store can be
+    extended with more cells or iterations and stay consistent.
+    """
+    d = config_to_dict(cfg, relative_to=cfg.base_dir)
+    d.pop("output", None)
+    d["survey"].pop("fields", None)
+    d["grid"].pop("z", None)
+    d["grid"].pop("mag", None)
+    d["simulation"].pop("n_iterations", None)
+    return _sha256_json(d)
+
+
+def _sha256_json(d: dict) -> str:
     text = json.dumps(d, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 

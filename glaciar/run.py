@@ -19,7 +19,7 @@ import yaml
 
 from . import __version__
 from . import constants as C
-from .config import Config, config_from_dict, config_hash, config_to_dict
+from .config import Config, config_from_dict, config_hash, config_to_dict, store_hash
 from .engine.detect import DetectionParams, measure_background
 from .engine.measure import reference_extraction
 from .engine.classify import ClassificationParams
@@ -170,7 +170,7 @@ def plan_tasks(cfg: Config) -> list[TaskSpec]:
 
 
 def spec_filename(spec: TaskSpec) -> str:
-    return task_filename(spec.field, spec.z_index, spec.mag_index, spec.iteration)
+    return task_filename(spec.field, spec.z, spec.mag, spec.iteration)
 
 
 # --------------------------------------------------------------------------
@@ -227,6 +227,7 @@ def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
     return {
         "glaciar_version": __version__,
         "config_hash": config_hash(cfg),
+        "store_hash": store_hash(cfg),
         "seed": int(seed),
         "fields": list(cfg.survey.fields),
         "bands": [b.name for b in cfg.survey.bands],
@@ -244,18 +245,25 @@ def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
 
 
 def prepare_run_dir(cfg: Config, run_dir: Path, seed: int) -> dict:
-    """Create or validate the run directory; refuse a store made with another config or seed."""
+    """Create or validate the run directory.
+
+    A store made with other science settings or another seed is refused.  A
+    config that only adds (or drops) fields, grid values or iterations is
+    accepted: finished tasks keep their rows, and the manifest and the stored
+    config are updated to describe the run as now configured.
+    """
     run_dir.mkdir(parents=True, exist_ok=True)
     survey = Survey.from_config(cfg)
     manifest = _manifest(cfg, survey, seed)
     old = read_manifest(run_dir)
-    if old is not None:
-        if old.get("config_hash") != manifest["config_hash"] or old.get("seed") != manifest["seed"]:
-            raise StoreMismatchError(
-                f"{run_dir}: results were made with a different configuration or seed "
-                f"(stored hash {old.get('config_hash', '?')[:12]}, seed {old.get('seed')}; "
-                f"now {manifest['config_hash'][:12]}, seed {seed}); use another --out directory")
-    else:
+    if old is not None and (old.get("store_hash") != manifest["store_hash"]
+                            or old.get("seed") != manifest["seed"]):
+        raise StoreMismatchError(
+            f"{run_dir}: results were made with a different configuration or seed "
+            f"(stored hash {str(old.get('store_hash', '?'))[:12]}, seed {old.get('seed')}; "
+            f"now {manifest['store_hash'][:12]}, seed {seed}); only fields, grid values and "
+            "n_iterations may change between runs into one directory; use another --out")
+    if old is None or old.get("config_hash") != manifest["config_hash"]:
         write_manifest(run_dir, manifest)
         atomic_write_text(run_dir / C.RUN_CONFIG_NAME,
                           yaml.safe_dump(config_to_dict(cfg), sort_keys=False))

@@ -59,9 +59,13 @@ def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.+-]", "_", str(name))
 
 
-def task_filename(field: str, z_index: int, mag_index: int, iteration: int) -> str:
-    """File name (inside ``results/``) of one task's rows."""
-    return f"task_{_safe(field)}_z{z_index:03d}_m{mag_index:03d}_i{iteration:04d}.parquet"
+def task_filename(field: str, z: float, mag: float, iteration: int) -> str:
+    """File name (inside ``results/``) of one task's rows.
+
+    Named by values, not grid indices, so that extending the grid of a run
+    leaves the names (and the rows) of its finished tasks unchanged.
+    """
+    return f"task_{_safe(field)}_z{z:+09.4f}_m{mag:+09.4f}_i{iteration:04d}.parquet"
 
 
 def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame) -> Path:

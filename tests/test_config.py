@@ -276,6 +276,27 @@ def test_hash(tmp_path):
     assert config_hash(load(d, tmp_path)) == h
 
 
+def test_store_hash_ignores_only_what_adds_tasks(tmp_path):
+    from glaciar.config import store_hash
+
+    h = store_hash(load(base(), tmp_path))
+    # More fields, grid values or iterations only add tasks: same store identity.
+    for key, value in (("grid", {"z": {"values": [9.0, 9.4]}, "mag": {"values": [25.0]}}),
+                       ("simulation", {"n_iterations": 7})):
+        d = base()
+        d[key] = value
+        cfg = load(d, tmp_path)
+        assert store_hash(cfg) == h, key
+        assert config_hash(cfg) != config_hash(load(base(), tmp_path)), key
+    # Everything that changes a task's rows changes it.
+    for key, value in (("simulation", {"seed": 1}), ("detection", {"DETECT_THRESH": 0.8}),
+                       ("selection", ["sn_f160w >= 8"]), ("source", {"igm": "sharp"}),
+                       ("grid", {"magnitude_type": "absolute"})):
+        d = base()
+        d[key] = value
+        assert store_hash(load(d, tmp_path)) != h, key
+
+
 # ---------------------------------------------------------------------------
 # Files: fields file, check_files, SExtractor .sex files
 # ---------------------------------------------------------------------------

@@ -130,3 +130,45 @@ def test_kill_loses_only_tasks_in_flight(serial_run, small_survey, tmp_path):
     simulate(cfg, tmp_path, workers=1, progress=False)
     assert not list(results.glob(".*.tmp"))
     pd.testing.assert_frame_equal(_sorted(read_results(tmp_path)), rows)
+
+
+def _variant(cfg, **changes):
+    """The config with some sections changed (dotted keys), through its own dict form."""
+    from glaciar.config import config_from_dict, config_to_dict
+
+    d = config_to_dict(cfg)
+    for dotted, value in changes.items():
+        node = d
+        *path, last = dotted.split(".")
+        for k in path:
+            node = node[k]
+        node[last] = value
+    return config_from_dict(d, cfg.base_dir)
+
+
+def test_extending_grid_and_iterations_keeps_finished_rows(serial_run, tmp_path):
+    """More z values, magnitudes and iterations: only the new tasks run, old rows stay."""
+    import shutil
+
+    cfg, out, rows = serial_run
+    shutil.copytree(out, tmp_path / "ext")
+    zs = sorted(set(cfg.grid.z_values) | {9.2})
+    bigger = _variant(cfg, **{"grid.z": {"values": zs},
+                              "simulation.n_iterations": cfg.simulation.n_iterations + 1})
+    stats = simulate(bigger, tmp_path / "ext", workers=1, progress=False)
+    assert stats["n_done_before"] == len(plan_tasks(cfg))
+    assert stats["n_run"] == len(plan_tasks(bigger)) - len(plan_tasks(cfg))
+    ext = _sorted(read_results(tmp_path / "ext"))
+    keys = [C.COL_Z, C.COL_MAG, C.COL_ITERATION, C.COL_SOURCE]
+    old = ext.merge(rows[keys], on=keys)
+    pd.testing.assert_frame_equal(_sorted(old), rows)
+    # ... and the extended store equals a fresh run of the extended config.
+    simulate(bigger, tmp_path / "fresh", workers=1, progress=False)
+    pd.testing.assert_frame_equal(_sorted(read_results(tmp_path / "fresh")), ext)
+
+
+def test_refuses_store_of_other_science_settings(serial_run):
+    cfg, out, _ = serial_run
+    other = _variant(cfg, **{"detection.DETECT_THRESH": 1.5})
+    with pytest.raises(StoreMismatchError, match="only fields, grid values and n_iterations"):
+        simulate(other, out, workers=1, progress=False)

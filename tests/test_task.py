@@ -82,3 +82,14 @@ def test_injected_pixels_carry_the_in_stamp_flux(ctx):
         np.testing.assert_allclose(added.sum(), expect, rtol=1e-5)
     else:
         assert added.sum() <= expect * (1 + 1e-5)
+
+
+def test_task_stream_keyed_by_values_not_grid_position():
+    """The same (field, z, mag, iteration) draws the same stream wherever it sits in the grid."""
+    a, _ = task_rng(9, TaskSpec(field="f", field_index=0, z_index=0, mag_index=3, iteration=2, z=9.2, mag=26.5))
+    b, _ = task_rng(9, TaskSpec(field="f", field_index=4, z_index=7, mag_index=0, iteration=2, z=9.2, mag=26.5))
+    c, _ = task_rng(9, TaskSpec(field="g", field_index=0, z_index=0, mag_index=3, iteration=2, z=9.2, mag=26.5))
+    d, _ = task_rng(9, TaskSpec(field="f", field_index=0, z_index=0, mag_index=3, iteration=2, z=9.2, mag=-20.5))
+    xa, xb, xc, xd = (g.random(3) for g in (a, b, c, d))
+    np.testing.assert_array_equal(xa, xb)
+    assert not np.array_equal(xa, xc) and not np.array_equal(xa, xd)

@@ -1,12 +1,16 @@
 """One task, from random draws to per-source rows: the pure function workers call.
 
 A task is (field, z, nominal magnitude, iteration).  Everything random in it
-comes from one stream, ``numpy.random.SeedSequence(seed, spawn_key=(field_index,
-z_index, mag_index, iteration))``, so a task's rows do not depend on which
-worker ran it, in which order, or whether the run was resumed.
+comes from one stream, ``numpy.random.SeedSequence(seed, spawn_key=(field key,
+z key, mag key, iteration))``, so a task's rows do not depend on which worker
+ran it, in which order, or whether the run was resumed.  The keys are derived
+from the field's name and the z and magnitude values (to 1e-4), not from grid
+positions, so adding cells or iterations to a run leaves every finished task's
+stream, and rows, as they were.
 """
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,7 +22,7 @@ from .measure import measure_injected
 from .positions import draw_positions
 from .scene import Scene
 
-__all__ = ["TaskSpec", "task_rng", "run_task", "SourceDraws", "draw_task_sources"]
+__all__ = ["TaskSpec", "task_rng", "field_key", "grid_key", "run_task", "SourceDraws", "draw_task_sources"]
 
 
 @dataclass(frozen=True)
@@ -34,7 +38,17 @@ class TaskSpec:
     mag: float
 
     def spawn_key(self) -> tuple[int, int, int, int]:
-        return (self.field_index, self.z_index, self.mag_index, self.iteration)
+        return (field_key(self.field), grid_key(self.z), grid_key(self.mag), self.iteration)
+
+
+def field_key(field: str) -> int:
+    """A stable 63-bit integer for a field name (independent of the field list's order)."""
+    return int.from_bytes(hashlib.sha256(field.encode("utf-8")).digest()[:8], "big") >> 1
+
+
+def grid_key(value: float) -> int:
+    """A non-negative integer for a grid value (z or magnitude, absolute ones included) to 1e-4."""
+    return int(round((float(value) + 1000.0) * 1e4))
 
 
 def task_rng(seed: int, spec: TaskSpec) -> tuple[np.random.Generator, int]:
