@@ -9,7 +9,19 @@ import pandas as pd
 
 from .store import atomic_write_bytes
 
-__all__ = ["plot_summary_maps", "summary_grid"]
+__all__ = ["plot_summary_maps", "summary_grid", "save_png"]
+
+
+def save_png(fig, path, **savefig_kwargs) -> Path:
+    """Write a matplotlib figure as PNG atomically (temporary name, then rename) and close it."""
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", **savefig_kwargs)
+    plt.close(fig)
+    path = Path(path)
+    atomic_write_bytes(path, buf.getvalue())
+    return path
 
 
 def summary_grid(summary: pd.DataFrame, column: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -46,10 +58,5 @@ def plot_summary_maps(summary: pd.DataFrame, out_dir, label: str, mag_label: str
         ax.set_xlabel(mag_label)
         ax.set_ylabel("z")
         ax.set_title(f"{title} — {label}")
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", bbox_inches="tight")
-        plt.close(fig)
-        p = Path(out_dir) / f"{column}_{label}.png"
-        atomic_write_bytes(p, buf.getvalue())
-        out.append(p)
+        out.append(save_png(fig, Path(out_dir) / f"{column}_{label}.png", bbox_inches="tight"))
     return out

@@ -11,7 +11,6 @@ import math
 import os
 import time
 from dataclasses import dataclass, field as dc_field
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np

@@ -2,7 +2,6 @@
 import shutil
 
 import numpy as np
-import pytest
 import yaml
 from astropy.table import Table
 

@@ -1,5 +1,4 @@
 import numpy as np
-import pytest
 
 from glaciar.engine.positions import draw_positions
 

@@ -243,10 +243,10 @@ def _hessian(lp_fn, x, h):
     I, J = np.triu_indices(P)
     E = np.eye(P)
     d1, d2 = E[I] * h[I][:, None], E[J] * h[J][:, None]
-    pts = np.concatenate([x + d1 + d2, x + d1 - d2, x - d1 + d2, x - d1 - d2, x[None, :]])
+    pts = np.concatenate([x + d1 + d2, x + d1 - d2, x - d1 + d2, x - d1 - d2])
     lp = lp_fn(pts)
     k = len(I)
-    f_pp, f_pm, f_mp, f_mm, f0 = lp[:k], lp[k:2 * k], lp[2 * k:3 * k], lp[3 * k:4 * k], lp[-1]
+    f_pp, f_pm, f_mp, f_mm = lp[:k], lp[k:2 * k], lp[2 * k:3 * k], lp[3 * k:]
     H = np.empty((P, P))
     off = (f_pp - f_pm - f_mp + f_mm) / (4 * h[I] * h[J])
     # On the diagonal d1 = d2, so f_pm = f_mp = f0 and the formula is f(x+2h)-2f+f(x-2h) over 4h^2.

@@ -1,18 +1,19 @@
 """Plots of the fitted surfaces with credible bands over the binned (k+1)/(n+2) points."""
 from __future__ import annotations
 
-import io
-
 import numpy as np
+
+from ..plots import save_png
 
 __all__ = ["plot_completeness", "plot_selection"]
 
 
-def _save(fig, path):
-    from ..store import atomic_write_bytes
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    atomic_write_bytes(path, buf.getvalue())
+def _credible_band(ax, x, draws, color, label):
+    """Median line with 68 % and 95 % bands of posterior ``draws`` (shape (n_draws, len(x)))."""
+    q = np.quantile(draws, [0.5, 0.16, 0.84, 0.025, 0.975], axis=0)
+    ax.fill_between(x, q[3], q[4], color=color, alpha=0.15, lw=0)
+    ax.fill_between(x, q[1], q[2], color=color, alpha=0.35, lw=0)
+    ax.plot(x, q[0], color=color, label=label)
 
 
 def _zs_to_show(sf, max_panels=6):
@@ -43,10 +44,7 @@ def plot_completeness(sf, path):
     fig, ax = plt.subplots(figsize=(7, 4.5))
     colors = plt.cm.viridis(np.linspace(0, 0.9, len(zs)))
     for z, col in zip(zs, colors):
-        q = np.quantile(sf.completeness(m, z, draws=True), [0.5, 0.16, 0.84, 0.025, 0.975], axis=0)
-        ax.fill_between(m, q[3], q[4], color=col, alpha=0.15, lw=0)
-        ax.fill_between(m, q[1], q[2], color=col, alpha=0.35, lw=0)
-        ax.plot(m, q[0], color=col, label=f"z = {z:.2f}")
+        _credible_band(ax, m, sf.completeness(m, z, draws=True), col, f"z = {z:.2f}")
         if sf.ppc is not None:
             r = sf.ppc[np.isclose(sf.ppc["z"], z)]
             ax.errorbar(r["mag_input_mean"], r["c_binned"],
@@ -58,8 +56,7 @@ def plot_completeness(sf, path):
     ax.set_title(f"completeness ({sf.model.shape}, field {sf.field}); points: (k+1)/(n+2)")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    _save(fig, path)
-    plt.close(fig)
+    save_png(fig, path, dpi=110)
 
 
 def plot_selection(sf, path, n_mags=4):
@@ -85,11 +82,7 @@ def plot_selection(sf, path, n_mags=4):
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.5))
     colors = plt.cm.plasma(np.linspace(0, 0.85, len(mags)))
     for mv, col in zip(mags, colors):
-        q = np.quantile(sf.selection(z, mv, draws=True, conditional=True),
-                        [0.5, 0.16, 0.84, 0.025, 0.975], axis=0)
-        ax.fill_between(z, q[3], q[4], color=col, alpha=0.15, lw=0)
-        ax.fill_between(z, q[1], q[2], color=col, alpha=0.35, lw=0)
-        ax.plot(z, q[0], color=col, label=f"m = {mv:.2f}")
+        _credible_band(ax, z, sf.selection(z, mv, draws=True, conditional=True), col, f"m = {mv:.2f}")
         if sf.ppc is not None:
             r = sf.ppc[np.isclose(sf.ppc["mag"], mv) & (sf.ppc["k_rec"] > 0)]
             ax.errorbar(r["z"], r["s_binned"],
@@ -107,5 +100,4 @@ def plot_selection(sf, path, n_mags=4):
     ax2.set_ylabel("redshift z")
     fig.suptitle(f"selection (field {sf.field})")
     fig.tight_layout()
-    _save(fig, path)
-    plt.close(fig)
+    save_png(fig, path, dpi=110)
