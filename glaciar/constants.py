@@ -69,6 +69,13 @@ COL_FLAGS = "flags"
 COL_OVERLAP_FRACTION = "overlap_fraction"
 COL_BLEND_ID = "blend_original_id"
 COL_BLEND_MAG = "blend_original_mag"
+#: Local depth under the source: 5-sigma limiting AB magnitude of the detection band's noise
+#: in a circular aperture of radius DEPTH_APERTURE_RADIUS_FWHM x the detection PSF FWHM
+#: (see glaciar.engine.depth).  NaN where unknown.
+COL_DEPTH = "depth_local"
+DEPTH_NSIGMA = 5.0                   #: the depth is a DEPTH_NSIGMA-sigma aperture limit
+DEPTH_APERTURE_RADIUS_FWHM = 1.0     #: aperture radius of the local depth [detection PSF FWHM]
+DEPTH_BIN_MAG = 0.05                 #: bin width of the per-field area-by-depth histograms [mag]
 
 
 def band_column(quantity: str, band: str) -> str:
