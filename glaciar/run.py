@@ -10,6 +10,7 @@ import concurrent.futures as cf
 import math
 import os
 import time
+import warnings
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from .config import Config, config_from_dict, config_hash, config_to_dict, store
 from .engine.detect import DetectionParams, measure_background
 from .engine.measure import reference_extraction
 from .engine.classify import ClassificationParams
+from .engine.depth import depth_area_histogram, local_depth_map
 from .engine.selection import compile_selection
 from .engine.task import TaskSpec, run_task
 from .galaxy import population
@@ -33,7 +35,8 @@ from .store import (StoreMismatchError, atomic_write_text, finished_task_names, 
                     task_filename, write_manifest, write_task_table)
 from .survey import Survey
 
-__all__ = ["FieldContext", "build_field_context", "plan_tasks", "simulate", "R_EFF_LOG_STEP"]
+__all__ = ["FieldContext", "band_pixels", "build_field_context", "field_depth", "plan_tasks", "simulate",
+           "R_EFF_LOG_STEP"]
 
 #: r_e is rounded to a logarithmic grid of this step (0.2 %) so that sources whose sizes
 #: scatter still share cached templates; the rounded value is the one injected and stored.
@@ -57,6 +60,7 @@ class FieldContext:
     rms: dict              #: per-pixel RMS maps (inf where no data)
     mask: np.ndarray       #: True where the detection band has no valid data
     footprint: np.ndarray
+    depth: np.ndarray      #: local depth of the detection band [AB mag], NaN off the footprint
     reference: object
     cache: TemplateCache
     isolation_margin_pix: int    #: 2 x the widest PSF FWHM [pixels], added to each isolation box
@@ -108,37 +112,97 @@ def _resolve_filter(spec: str, base_dir: Path):
     return get_filter(str(p)) if p.is_file() else get_filter(spec)
 
 
+def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
+                params: DetectionParams) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Background-subtracted image and noise map of one band of a field.
+
+    Parameters
+    ----------
+    survey : Survey
+    field, band : str
+    footprint : ndarray of bool
+        Where the detection band has valid data (:meth:`Survey.footprint`).
+    params : DetectionParams
+        Background mesh settings.
+
+    Returns
+    -------
+    base : ndarray, float32
+        Science image minus the sep background [image units]; 0 where not valid.
+    rms : ndarray, float32
+        Per-pixel noise RMS [image units]: the survey's noise map, or sep's
+        background RMS when the survey has none; inf where not valid.
+    rms_from_background : bool
+        True when ``rms`` is sep's background RMS (no noise map).
+    """
+    img = survey.science(field, band)
+    noise = survey.rms(field, band)
+    valid = footprint & np.isfinite(img)
+    if noise is not None:
+        valid &= np.isfinite(noise) & (noise > 0)
+    bkg, bkg_rms = measure_background(img, ~valid, params)
+    base = np.where(valid, img - bkg, 0.0).astype(np.float32)
+    r = np.asarray(noise if noise is not None else bkg_rms, dtype=np.float32)
+    r = np.where(valid, r, np.float32(np.inf)).astype(np.float32)
+    return base, r, noise is None
+
+
+def field_depth(rms: np.ndarray, zeropoint: float, psf: np.ndarray) -> tuple[np.ndarray, float]:
+    """Local depth map of a field from its detection band's noise and PSF.
+
+    Parameters
+    ----------
+    rms : ndarray
+        Detection-band RMS map [image units], inf where there are no data (:func:`band_pixels`).
+    zeropoint : float
+        Detection-band AB zeropoint.
+    psf : ndarray
+        Detection PSF resampled to the image pixels.
+
+    Returns
+    -------
+    depth : ndarray, float32
+        :data:`~glaciar.constants.DEPTH_NSIGMA`-sigma limit [AB mag] in a circle of
+        radius :data:`~glaciar.constants.DEPTH_APERTURE_RADIUS_FWHM` x FWHM; NaN off the footprint.
+    radius_pix : float
+        That aperture radius [image pixels].
+    """
+    radius_pix = C.DEPTH_APERTURE_RADIUS_FWHM * measure_fwhm(psf, 1.0)
+    valid = np.isfinite(rms) & (rms > 0)
+    return local_depth_map(rms, valid, zeropoint, radius_pix, nsigma=C.DEPTH_NSIGMA), radius_pix
+
+
+def _detection_params(cfg: Config) -> DetectionParams:
+    # The config has already merged any .sex file into its detection keys.
+    return DetectionParams.from_sextractor(
+        {k: v for k, v in cfg.detection.items() if k != "sex_file"}, base_dir=cfg.base_dir)
+
+
+def _band_psf(cfg: Config, band, pixscale: float) -> np.ndarray:
+    if band.psf is None:
+        raise ValueError(f"survey.bands.{band.name}.psf: a PSF (FITS path or analytic profile) is required")
+    return prepare_psf(band.psf, pixscale, base_dir=cfg.base_dir,
+                       psf_pixel_scale_arcsec=band.psf_pixel_scale_arcsec)
+
+
 def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext:
     """Read a field's images once, measure backgrounds, extract the original image, set up caches."""
     bands = tuple(b.name for b in cfg.survey.bands)
     det = cfg.survey.detection_band
     jd = bands.index(det)
     pixscale = survey.pixel_scale_arcsec(field)
-    # The config has already merged any .sex file into its detection keys.
-    params = DetectionParams.from_sextractor(
-        {k: v for k, v in cfg.detection.items() if k != "sex_file"}, base_dir=cfg.base_dir)
+    params = _detection_params(cfg)
     footprint = survey.footprint(field)
     mask = ~footprint
     bases, rms = {}, {}
     psfs = {}
     for b in cfg.survey.bands:
-        if b.psf is None:
-            raise ValueError(f"survey.bands.{b.name}.psf: a PSF (FITS path or analytic profile) is required")
-        psfs[b.name] = prepare_psf(b.psf, pixscale, base_dir=cfg.base_dir,
-                                   psf_pixel_scale_arcsec=b.psf_pixel_scale_arcsec)
-        img = survey.science(field, b.name)
-        noise = survey.rms(field, b.name)
-        valid = footprint & np.isfinite(img)
-        if noise is not None:
-            valid &= np.isfinite(noise) & (noise > 0)
-        bkg, bkg_rms = measure_background(img, ~valid, params)
-        base = np.where(valid, img - bkg, 0.0).astype(np.float32)
-        r = np.asarray(noise if noise is not None else bkg_rms, dtype=np.float32)
-        r = np.where(valid, r, np.float32(np.inf)).astype(np.float32)
-        bases[b.name], rms[b.name] = base, r
+        psfs[b.name] = _band_psf(cfg, b, pixscale)
+        bases[b.name], rms[b.name], _ = band_pixels(survey, field, b.name, footprint, params)
     zps = {b.name: float(b.zeropoint) for b in cfg.survey.bands}
     gains = {b.name: (None if b.gain is None else float(b.gain)) for b in cfg.survey.bands}
     reference = reference_extraction(bases[det], rms[det], params, zps[det], mask=mask)
+    depth, _ = field_depth(rms[det], zps[det], psfs[det])
     model = population.SourceModel(**cfg.source)
     cache = TemplateCache(psfs, enclosed_fraction=model.stamp_flux_fraction)
     margin = int(math.ceil(2.0 * max(measure_fwhm(p, 1.0) for p in psfs.values())))
@@ -147,7 +211,8 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         field=field, bands=bands, detection_band=det, detection_index=jd,
         shape=survey.shape(field), pixel_scale_arcsec=pixscale, zeropoints=zps, gains=gains,
         filters=[_resolve_filter(b.filter, cfg.base_dir) for b in cfg.survey.bands],
-        bases=bases, rms=rms, mask=mask, footprint=footprint, reference=reference, cache=cache,
+        bases=bases, rms=rms, mask=mask, footprint=footprint, depth=depth, reference=reference,
+        cache=cache,
         isolation_margin_pix=margin, source_model=model, cosmology=population.get_cosmology(model.cosmology),
         magnitude_type=cfg.grid.magnitude_type, n_galaxies=cfg.simulation.n_galaxies,
         detection_params=params,
@@ -216,6 +281,29 @@ def _chunks(specs: list[TaskSpec], n_workers: int) -> list[list[TaskSpec]]:
     return out
 
 
+def _depth_area(cfg: Config, survey: Survey, field: str) -> dict:
+    """The manifest's footprint area by local depth of one field (one FFT; main process only).
+
+    Warns when the depth comes from sep's background RMS (no noise map): once
+    per field and run, here, rather than in every worker that builds the field.
+    """
+    det = cfg.survey.detection_band
+    band = cfg.survey.band(det)
+    pixscale = survey.pixel_scale_arcsec(field)
+    _, rms, from_background = band_pixels(survey, field, det, survey.footprint(field),
+                                          _detection_params(cfg))
+    if from_background:
+        warnings.warn(f"field {field!r}: no noise map for the detection band {det!r}; its local "
+                      "depth (column depth_local, manifest depth_area) comes from sep's background "
+                      "RMS mesh", UserWarning)
+    depth, radius_pix = field_depth(rms, float(band.zeropoint), _band_psf(cfg, band, pixscale))
+    edges, area = depth_area_histogram(depth, pixscale, C.DEPTH_BIN_MAG)
+    return {"band": det, "nsigma": C.DEPTH_NSIGMA, "aperture_radius_arcsec": radius_pix * pixscale,
+            "rms_source": "background" if from_background else "noise_map",
+            "bin_edges_mag": [round(float(e), 10) for e in edges],
+            "area_arcmin2": [float(a) for a in area]}
+
+
 def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
     area = {}
     pixscale = {}
@@ -240,6 +328,7 @@ def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
         "pixel_scale_arcsec": pixscale,
         "area_arcmin2": area,
         "area_arcmin2_total": float(sum(area.values())),
+        "depth_area": {f: _depth_area(cfg, survey, f) for f in cfg.survey.fields},
     }
 
 
@@ -249,23 +338,25 @@ def prepare_run_dir(cfg: Config, run_dir: Path, seed: int) -> dict:
     A store made with other science settings or another seed is refused.  A
     config that only adds (or drops) fields, grid values or iterations is
     accepted: finished tasks keep their rows, and the manifest and the stored
-    config are updated to describe the run as now configured.
+    config are updated to describe the run as now configured.  A manifest
+    written by an older glaciar gains the keys it lacks (e.g. ``depth_area``).
     """
     run_dir.mkdir(parents=True, exist_ok=True)
-    survey = Survey.from_config(cfg)
-    manifest = _manifest(cfg, survey, seed)
     old = read_manifest(run_dir)
-    if old is not None and (old.get("store_hash") != manifest["store_hash"]
-                            or old.get("seed") != manifest["seed"]):
+    # Checked before the manifest is built: a refused run reads no images.
+    if old is not None and (old.get("store_hash") != store_hash(cfg) or old.get("seed") != int(seed)):
         raise StoreMismatchError(
             f"{run_dir}: results were made with a different configuration or seed "
             f"(stored hash {str(old.get('store_hash', '?'))[:12]}, seed {old.get('seed')}; "
-            f"now {manifest['store_hash'][:12]}, seed {seed}); only fields, grid values and "
+            f"now {store_hash(cfg)[:12]}, seed {seed}); only fields, grid values and "
             "n_iterations may change between runs into one directory; use another --out")
+    manifest = _manifest(cfg, Survey.from_config(cfg), seed)
     if old is None or old.get("config_hash") != manifest["config_hash"]:
         write_manifest(run_dir, manifest)
         atomic_write_text(run_dir / C.RUN_CONFIG_NAME,
                           yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+    elif any(k not in old for k in manifest):
+        write_manifest(run_dir, {**manifest, **old})
     # Temporary files of tasks that were in flight when an earlier run was killed.
     for stale in (run_dir / C.RESULTS_DIRNAME).glob(".task_*.tmp"):
         stale.unlink(missing_ok=True)

@@ -18,6 +18,7 @@ import pandas as pd
 
 from .. import constants as C
 from ..galaxy import population, sed
+from .depth import depth_at
 from .measure import measure_injected
 from .positions import draw_positions
 from .scene import Scene
@@ -111,7 +112,8 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
     Parameters
     ----------
     ctx : glaciar.run.FieldContext
-        Images, noise, reference extraction, template cache and settings of the field.
+        Images, noise, local depth map, reference extraction, template cache and settings
+        of the field.
     spec : TaskSpec
         The (field, z, mag, iteration) cell.
     seed : int
@@ -175,6 +177,7 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
         C.COL_TASK_SEED: np.full(m, ident, dtype=np.int64),
         C.COL_SOURCE: np.arange(m, dtype=np.int64),
         C.COL_X: x, C.COL_Y: y,
+        C.COL_DEPTH: depth_at(ctx.depth, x, y),
         C.COL_SERSIC_N: src.sersic_n, C.COL_AXIS_RATIO: src.axis_ratio,
         C.COL_PA: src.position_angle_deg, C.COL_R_EFF_KPC: src.r_eff_kpc,
         C.COL_R_EFF_ARCSEC: src.r_eff_arcsec, C.COL_R_EFF_PIX: src.r_eff_pix,
