@@ -407,7 +407,7 @@ def _sersic_stamp_fast(x: float, y: float, r_eff_pix: float, n: float, q: float,
 def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
                      pixel_scale_arcsec: float = DEMO_PIXEL_SCALE_ARCSEC,
                      source_density_arcmin2: float = 250.0, n_galaxies: int | None = None,
-                     n_stars: int = 6) -> dict:
+                     n_stars: int = 6, field: str = DEMO_FIELD, noise_scale=1.0) -> dict:
     """Build the demo field in memory (no files written).
 
     Parameters
@@ -425,6 +425,15 @@ def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
         Exact number of background galaxies (overrides the density).
     n_stars : int
         Number of stars (the first two are bright, H = 18-19.5).
+    field : str
+        Field name (returned as ``"field"``; :func:`build_demo_survey` names files after it).
+    noise_scale : float or ndarray of shape ``shape``
+        Multiplier (> 0) of the sky-noise RMS of every pixel in every band: the
+        weight maps are divided by ``noise_scale**2`` and the sky noise added to the
+        science images is scaled by it (source shot noise is not).  2.5 makes a
+        field ~1 mag shallower; an array makes depth vary across it (e.g. 0.3 over
+        one quadrant: that quadrant 2.5 log10(1 / 0.3) = 1.31 mag deeper).  The
+        random draws do not depend on it.
 
     Returns
     -------
@@ -434,7 +443,9 @@ def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
         ``"model"``: {band: float64 noiseless scene [e-/s]};
         ``"psf"``: {band: float64 PSF at its own pixel scale, as written to the PSF file};
         ``"psf_pixel_scale_arcsec"``: {band: float};
-        ``"rms_nominal"``: {band: per-pixel noise RMS at relative exposure 1 [e-/s]};
+        ``"rms_nominal"``: {band: per-pixel noise RMS at relative exposure 1 and
+        ``noise_scale`` 1 [e-/s]};
+        ``"field"``: the field name;
         ``"truth"``: astropy Table of the real population (id, x, y, mag_<band>,
         r_eff_arcsec, r_eff_pix, sersic_n, axis_ratio, position_angle_deg,
         is_star, sed_type), galaxies first, then stars.
@@ -452,6 +463,7 @@ def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
         raise ValueError(f"source_density_arcmin2 must be in [0, {_MAX_DENSITY_ARCMIN2:g}] "
                          f"(denser fields are confusion-limited), got {source_density_arcmin2!r}")
     shape = (ny, nx)
+    noise_scale = _check_noise_scale(noise_scale, shape)
     streams = np.random.SeedSequence(int(seed)).spawn(1 + 2 * len(DEMO_BANDS))
     rng_pop = np.random.default_rng(streams[0])
 
@@ -481,7 +493,7 @@ def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
             intrinsic[b][int(truth[COL_Y][i]), int(truth[COL_X][i])] += flux[b][i]
 
     out = {"science": {}, "weight": {}, "model": {}, "psf": {}, "psf_pixel_scale_arcsec": {},
-           "rms_nominal": {}, "truth": truth}
+           "rms_nominal": {}, "truth": truth, "field": str(field)}
     for k, b in enumerate(DEMO_BANDS):
         spec = DEMO_BANDS_SPEC[b]
         rng_noise = np.random.default_rng(streams[1 + 2 * k])
@@ -495,9 +507,10 @@ def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
         e = exposure[b]
         has_data = e > 0
         weight = np.zeros(shape)
-        weight[has_data] = e[has_data] / rms_nominal ** 2
+        # Scaling after the nominal expressions keeps noise_scale = 1 bit-identical to no scale.
+        weight[has_data] = e[has_data] / rms_nominal ** 2 / noise_scale[has_data] ** 2
         rms = np.zeros(shape)
-        rms[has_data] = rms_nominal / np.sqrt(e[has_data])
+        rms[has_data] = rms_nominal / np.sqrt(e[has_data]) * noise_scale[has_data]
         science = model + rms * _correlated_unit_noise(rng_noise, shape, kernel_1d)
         # Source shot noise with the local exposure time (white: a simplification).
         shot_var = np.zeros(shape)
@@ -514,7 +527,19 @@ def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
     return out
 
 
-def _image_header(shape: tuple[int, int], band: str, pixel_scale_arcsec: float, kind: str):
+def _check_noise_scale(noise_scale, shape: tuple[int, int]) -> np.ndarray:
+    """``noise_scale`` as a float64 array of the image shape; finite and > 0 everywhere."""
+    a = np.asarray(noise_scale, dtype=np.float64)
+    if a.ndim not in (0, 2) or (a.ndim == 2 and a.shape != shape):
+        raise ValueError(f"noise_scale must be a number or an array of the image shape {shape}, "
+                         f"got shape {a.shape}")
+    if not (np.all(np.isfinite(a)) and np.all(a > 0)):
+        raise ValueError("noise_scale must be finite and > 0 everywhere")
+    return np.broadcast_to(a, shape)
+
+
+def _image_header(shape: tuple[int, int], band: str, pixel_scale_arcsec: float, kind: str,
+                  field: str = DEMO_FIELD):
     from astropy.io import fits
 
     spec = DEMO_BANDS_SPEC[band]
@@ -524,7 +549,7 @@ def _image_header(shape: tuple[int, int], band: str, pixel_scale_arcsec: float, 
     h["INSTRUME"] = "WFC3"
     h["DETECTOR"] = "UVIS" if "uvis" in spec.filter else "IR"
     h["FILTER"] = band.upper()
-    h["OBJECT"] = DEMO_FIELD
+    h["OBJECT"] = field
     h["ORIGIN"] = ("glaciar demo", "synthetic BoRG-like field")
     h["WCSAXES"] = 2
     h["CTYPE1"] = "RA---TAN"
@@ -585,13 +610,16 @@ def build_demo_survey(out_dir, *, shape: tuple[int, int] = (1000, 1000), seed: i
                       n_galaxies: int = 50, n_iterations: int = 2,
                       z_values=tuple(np.round(np.arange(9.0, 11.8 + 1e-9, 0.4), 6)),
                       mag_values=tuple(np.round(np.arange(24.5, 28.5 + 1e-9, 0.5), 6)),
-                      source_density_arcmin2: float = 250.0, n_stars: int = 6) -> Path:
+                      source_density_arcmin2: float = 250.0, n_stars: int = 6,
+                      field: str = DEMO_FIELD, noise_scale=1.0) -> Path:
     """Write the demo survey (FITS images, weight maps, PSFs and a config) to ``out_dir``.
 
-    Layout: ``out_dir/demo.yaml``, ``out_dir/images/demo01_<band>_drz.fits``
-    (float32, e-/s, TAN WCS at 0.08"/px), ``out_dir/images/demo01_<band>_wht.fits``
+    Layout: ``out_dir/demo.yaml``, ``out_dir/images/<field>_<band>_drz.fits``
+    (float32, e-/s, TAN WCS at 0.08"/px), ``out_dir/images/<field>_<band>_wht.fits``
     (inverse variance), ``out_dir/psf/psf_<band>.fits`` (with ``PIXSCALE``).
-    Every file is written atomically.
+    Every file is written atomically.  Fields of other names (and the same
+    pixel scale and PSFs) can be written into one directory; the config
+    ``demo.yaml`` then describes the last one written.
 
     Parameters
     ----------
@@ -608,7 +636,9 @@ def build_demo_survey(out_dir, *, shape: tuple[int, int] = (1000, 1000), seed: i
     z_values, mag_values : sequence of float
         Redshift grid and apparent F160W magnitude grid [AB] of the config.
         Defaults 9.0-11.8 step 0.4 and 24.5-28.5 step 0.5: 144 tasks, ~1-3 min on 2 cores.
-    source_density_arcmin2, n_stars : see :func:`make_demo_images`.
+    source_density_arcmin2, n_stars, noise_scale : see :func:`make_demo_images`.
+    field : str
+        Field name, used in the file names and the config (default ``demo01``).
 
     Returns
     -------
@@ -624,14 +654,15 @@ def build_demo_survey(out_dir, *, shape: tuple[int, int] = (1000, 1000), seed: i
         raise ValueError(f"n_galaxies and n_iterations must be >= 1, got {n_galaxies}, {n_iterations}")
     out_dir = Path(out_dir)
     demo = make_demo_images(shape, seed=seed, source_density_arcmin2=source_density_arcmin2,
-                            n_stars=n_stars)
+                            n_stars=n_stars, field=field, noise_scale=noise_scale)
     image_shape = demo["science"][DEMO_BANDS[0]].shape
 
     for b in DEMO_BANDS:
         for kind, name in (("science", "drz"), ("weight", "wht")):
-            atomic_write_bytes(out_dir / "images" / f"{DEMO_FIELD}_{b}_{name}.fits",
+            atomic_write_bytes(out_dir / "images" / f"{field}_{b}_{name}.fits",
                                _fits_bytes(demo[kind][b], _image_header(image_shape, b,
-                                                                        DEMO_PIXEL_SCALE_ARCSEC, kind)))
+                                                                        DEMO_PIXEL_SCALE_ARCSEC, kind,
+                                                                        field)))
         ph = fits.Header()
         ph["PIXSCALE"] = (demo["psf_pixel_scale_arcsec"][b], "[arcsec/pixel]")
         ph["FILTER"] = b.upper()
@@ -642,7 +673,7 @@ def build_demo_survey(out_dir, *, shape: tuple[int, int] = (1000, 1000), seed: i
 
     config = {
         "survey": {
-            "fields": [DEMO_FIELD],
+            "fields": [field],
             "image_dir": "images",
             "science": "{field}_{band}_drz.fits",
             "noise": "{field}_{band}_wht.fits",
@@ -681,13 +712,18 @@ def build_demo_survey(out_dir, *, shape: tuple[int, int] = (1000, 1000), seed: i
     depths = ", ".join(f"{b.upper()} {DEMO_BANDS_SPEC[b].depth_5sigma}" for b in DEMO_BANDS)
     header = (
         "# glaciar demo survey: a synthetic BoRG-like field (written by glaciar.demo).\n"
-        f"# Field {DEMO_FIELD}, {image_shape[1]} x {image_shape[0]} px at "
+        f"# Field {field}, {image_shape[1]} x {image_shape[0]} px at "
         f"{DEMO_PIXEL_SCALE_ARCSEC}\"/px, image seed {seed}; drizzle-like correlated noise,\n"
         "# inverse-variance weight maps, Moffat PSFs written at 0.13\"/px (IR) and 0.04\"/px (F606W).\n"
         f"# 5-sigma point-source depths (r = 0.2\" aperture, full exposure): {depths}.\n"
         "# gain = exposure time [s] (electrons per e-/s). Selection: BoRG J125-dropouts.\n"
         "# Paths are relative to this file. Schema: docs/config-schema.yaml.\n"
     )
+    scale = np.asarray(noise_scale, dtype=np.float64)
+    if np.any(scale != 1.0):
+        header += (f"# Sky noise RMS scaled by noise_scale = {float(scale.min()):g}"
+                   + (f" to {float(scale.max()):g} across the field" if np.ptp(scale) > 0 else "")
+                   + " (the depths above are for 1).\n")
     path = out_dir / DEMO_CONFIG_NAME
     atomic_write_text(path, header + yaml.dump(config, Dumper=_config_dumper(), sort_keys=False,
                                                default_flow_style=False, width=100))
