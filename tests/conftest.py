@@ -1,5 +1,30 @@
-"""Shared fixtures: a small demo survey built once per test session."""
+"""Shared fixtures: small demo surveys built once per test session.
+
+Sizes and costs (measured on a shared 2-core machine):
+
+* ``small_survey``: one 320x320 field, 2 z x 2 mag x 2 iterations x 12 sources.
+* ``two_depth_survey``: fields ``shallow`` (300x300, noise x2.5: ~1.0 mag shallower)
+  and ``deep`` (600x600), footprint areas 1:4; z = 8, 10 x mag 23.0-27.5 (step 0.5)
+  x 4 iterations x 30 sources = 160 tasks, ~4700 sources (the small field has room
+  for ~29 of the 30 per task).  Completeness runs from ~0.95 to 0 in both fields
+  (50 % near 25.1 shallow, 26.2 deep); selection is ~0 at z = 8 and up to ~0.7 at
+  z = 10.  Building takes ~1.5 s; ``two_depth_run`` ~13 s wall with 2 workers on an
+  idle machine (~25 s while another test job shares the cores).
+* ``deep_corner_survey``: one 400x400 field whose noise is x0.3 over the quadrant
+  ``DEEP_CORNER_QUADRANT`` (1.31 mag deeper there); z = 8, 10 x mag 23.5-28.5 x
+  5 iterations x 40 sources = 110 tasks, ~4400 sources (~1/4 in the deep quadrant).
+  ``deep_corner_run`` takes ~10 s wall with 2 workers (~14 s on a shared machine).
+
+The ``*_run`` fixtures simulate once per session (into a temporary run directory) so
+that every test reading those results shares one run.
+"""
+import numpy as np
 import pytest
+
+#: (rows, cols) slices of the deep quadrant of ``deep_corner_survey``.
+DEEP_CORNER_SHAPE = (400, 400)
+DEEP_CORNER_QUADRANT = (slice(0, 200), slice(0, 200))
+DEEP_CORNER_NOISE_SCALE = 0.3
 
 
 @pytest.fixture(scope="session")
@@ -10,3 +35,77 @@ def small_survey(tmp_path_factory):
     out = tmp_path_factory.mktemp("survey")
     return build_demo_survey(out, shape=(320, 320), seed=11, n_galaxies=12, n_iterations=2,
                              z_values=(8.0, 10.4), mag_values=(24.0, 27.5))
+
+
+def _write_config(demo_config, path, *, fields, z_values, mag_values, n_galaxies, n_iterations, seed):
+    """A copy of a demo config with other fields, grid and simulation settings."""
+    import yaml
+
+    cfg = yaml.safe_load(demo_config.read_text())
+    cfg["survey"]["fields"] = list(fields)
+    cfg["grid"] = {"z": {"values": [float(z) for z in z_values]},
+                   "mag": {"values": [round(float(m), 6) for m in mag_values]},
+                   "magnitude_type": "apparent"}
+    cfg["simulation"] = {"n_galaxies": int(n_galaxies), "n_iterations": int(n_iterations),
+                         "seed": int(seed)}
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return path
+
+
+@pytest.fixture(scope="session")
+def two_depth_survey(tmp_path_factory):
+    """Two fields, ``shallow`` (300^2, noise x2.5) and ``deep`` (600^2); returns the config path.
+
+    Both fields' files sit in one directory (they share the PSF files); the config
+    ``two_depth.yaml`` lists ``survey.fields: [shallow, deep]``.
+    """
+    from glaciar.demo import build_demo_survey
+
+    out = tmp_path_factory.mktemp("two_depth")
+    build_demo_survey(out, shape=(300, 300), seed=21, field="shallow", noise_scale=2.5)
+    demo = build_demo_survey(out, shape=(600, 600), seed=22, field="deep")
+    return _write_config(demo, out / "two_depth.yaml", fields=("shallow", "deep"),
+                         z_values=(8.0, 10.0), mag_values=np.arange(23.0, 27.5 + 1e-9, 0.5),
+                         n_galaxies=30, n_iterations=4, seed=5)
+
+
+@pytest.fixture(scope="session")
+def deep_corner_survey(tmp_path_factory):
+    """One 400^2 field, noise x0.3 over ``DEEP_CORNER_QUADRANT``; returns the config path."""
+    from glaciar.demo import build_demo_survey
+
+    out = tmp_path_factory.mktemp("deep_corner")
+    scale = np.ones(DEEP_CORNER_SHAPE)
+    scale[DEEP_CORNER_QUADRANT] = DEEP_CORNER_NOISE_SCALE
+    demo = build_demo_survey(out, shape=DEEP_CORNER_SHAPE, seed=31, field="corner",
+                             noise_scale=scale)
+    return _write_config(demo, out / "deep_corner.yaml", fields=("corner",),
+                         z_values=(8.0, 10.0), mag_values=np.arange(23.5, 28.5 + 1e-9, 0.5),
+                         n_galaxies=40, n_iterations=5, seed=6)
+
+
+@pytest.fixture(scope="session")
+def deep_corner_quadrant():
+    """(rows, cols) slices of the deep quadrant of ``deep_corner_survey``, and its noise factor."""
+    return DEEP_CORNER_QUADRANT, DEEP_CORNER_NOISE_SCALE
+
+
+def _simulated(config_path, run_dir):
+    from glaciar.config import load_config
+    from glaciar.run import simulate
+
+    cfg = load_config(config_path)
+    simulate(cfg, run_dir, workers=2, progress=False)
+    return cfg, run_dir
+
+
+@pytest.fixture(scope="session")
+def two_depth_run(two_depth_survey, tmp_path_factory):
+    """``two_depth_survey`` simulated once (2 workers): (Config, run directory)."""
+    return _simulated(two_depth_survey, tmp_path_factory.mktemp("two_depth_run"))
+
+
+@pytest.fixture(scope="session")
+def deep_corner_run(deep_corner_survey, tmp_path_factory):
+    """``deep_corner_survey`` simulated once (2 workers): (Config, run directory)."""
+    return _simulated(deep_corner_survey, tmp_path_factory.mktemp("deep_corner_run"))
