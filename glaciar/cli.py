@@ -86,15 +86,41 @@ def _cmd_report(args) -> int:
     return 0
 
 
-def _cmd_fit(args) -> int:
-    from .inference import run_fit
+def _print_warnings(caught) -> None:
+    """Each warning as one line on stderr (no source line, no repeats)."""
+    seen = set()
+    for w in caught:
+        msg = str(w.message)
+        if msg not in seen:
+            seen.add(msg)
+            print(f"warning: {msg}", file=sys.stderr)
 
+
+def _fit(run_dir, **kwargs) -> Path:
+    import json
+    import warnings
+
+    from .pipeline import format_summary, run_fit
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            path = run_fit(run_dir, **kwargs)
+        finally:
+            _print_warnings(caught)
+    summary = json.loads((Path(run_dir) / "fit" / "summary.json").read_text())
+    print(format_summary(summary), end="")
+    return path
+
+
+def _cmd_fit(args) -> int:
     cosmology = None
     if args.cosmology:
         from .galaxy.population import get_cosmology
         cosmology = get_cosmology(args.cosmology)
-    path = run_fit(args.run_dir, model=args.model, per_field=args.per_field, seed=args.seed,
-                   progress=not args.quiet, cosmology=cosmology, area_arcmin2=args.area_arcmin2)
+    path = _fit(args.run_dir, model=args.model, per_field=args.per_field, seed=args.seed,
+                progress=not args.quiet, cosmology=cosmology, area_arcmin2=args.area_arcmin2,
+                max_steps=args.max_steps, depth=args.depth)
     print(f"wrote {path}")
     return 0
 
@@ -138,12 +164,31 @@ def _cmd_demo(args) -> int:
     for p in _report(run_dir, regions=False):
         print(p)
     if not args.no_fit:
-        from .inference import run_fit
-
-        path = run_fit(run_dir, progress=not args.quiet)
+        path = _fit(run_dir, progress=not args.quiet)
         print(f"selection function: {path}")
     print(f"demo finished in {time.perf_counter() - t0:.1f} s; results in {run_dir}")
     return 0
+
+
+def _positive_float(text):
+    import math
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, not {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, not {text!r}")
+    return v
+
+
+def _positive_int(text):
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, not {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, not {text!r}")
+    return v
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -181,10 +226,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("fit", help="fit C(m, z) and S(z, m) with emcee; write selection_function.fits")
     s.add_argument("run_dir")
-    s.add_argument("--model", default="logistic", choices=["logistic", "erf", "fleming"])
+    s.add_argument("--model", default="auto", choices=["auto", "logistic", "erf", "fleming", "sas"],
+                   help="completeness step (auto: chosen by PSIS-LOO; sas: flexible monotone)")
+    s.add_argument("--max-steps", type=_positive_int, default=None,
+                   help="cap on each chain's steps in this call (a re-run extends unconverged chains)")
+    s.add_argument("--depth", default="auto", choices=["auto", "on", "off"],
+                   help="depth-aware completeness C(m - local depth, z) (auto: when depth varies)")
     s.add_argument("--per-field", action="store_true")
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--area-arcmin2", type=float, default=None,
+    s.add_argument("--area-arcmin2", type=_positive_float, default=None,
                    help="survey area for V_eff (default: the footprint area in the run manifest)")
     s.add_argument("--cosmology", default=None, help="astropy realisation for V_eff (default Planck18)")
     s.add_argument("--quiet", action="store_true")

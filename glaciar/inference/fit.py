@@ -57,7 +57,7 @@ import numpy as np
 import pandas as pd
 from scipy import optimize
 
-from ..constants import COL_FIELD, COL_MAG_INPUT, COL_RECOVERED, COL_SELECTED, COL_Z
+from ..constants import COL_DEPTH, COL_MAG_INPUT, COL_RECOVERED, COL_SELECTED, COL_Z
 from .models import Cells, SurfaceModel
 
 __all__ = ["ConvergenceWarning", "aggregate_cells", "find_map", "laplace_covariance",
@@ -65,7 +65,13 @@ __all__ = ["ConvergenceWarning", "aggregate_cells", "find_map", "laplace_covaria
 
 DEFAULT_MAG_RESOLUTION = 0.01    #: [mag] grouping resolution for continuous mag_input
 _T_DOF = 5.0                      # Student-t proposal degrees of freedom
-_MOVE_WEIGHTS = (0.6, 0.2, 0.2)   # independence, differential evolution, stretch
+_MOVE_WEIGHTS = (0.3, 0.3, 0.4)   # independence, differential evolution, stretch
+#: Steps of the discarded pilot run that sets the independence proposal.  Long
+#: enough that its covariance follows a posterior bounded on one side (an edge
+#: outside the simulated range): 50 steps left tau underestimated by 30-50 %.
+PILOT_STEPS = 200
+#: Default cap on each block's chain length per call [steps].
+DEFAULT_MAX_STEPS = 20000
 
 
 class ConvergenceWarning(UserWarning):
@@ -75,32 +81,68 @@ class ConvergenceWarning(UserWarning):
 # --------------------------------------------------------------------------
 # Aggregation
 # --------------------------------------------------------------------------
-def aggregate_cells(df: pd.DataFrame, mag_resolution: float | None = DEFAULT_MAG_RESOLUTION) -> Cells:
+def _flags(df: pd.DataFrame, col: str) -> np.ndarray:
+    """A recovered/selected column as bool; NaN or values other than 0/1/True/False are an error."""
+    v = df[col].to_numpy()
+    if v.dtype == bool:
+        return v
+    bad = None
+    try:
+        f = np.asarray(v, dtype=float)
+        bad = ~np.isin(f, (0.0, 1.0))          # NaN is not in {0, 1}
+    except (TypeError, ValueError):
+        bad = np.ones(len(v), bool)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"column {col!r} must be boolean: {int(bad.sum())} of {len(v)} values "
+                         f"are not True/False (first: row {i}, value {v[i]!r})")
+    return f.astype(bool)
+
+
+def aggregate_cells(df: pd.DataFrame, mag_resolution: float | None = DEFAULT_MAG_RESOLUTION,
+                    depth_ref: float | None = None, mag_column: str = COL_MAG_INPUT) -> Cells:
     """Sum per-source flags into binomial counts per (z, magnitude) cell.
 
     Parameters
     ----------
     df : pandas.DataFrame
-        Per-source rows with columns ``z``, ``mag_input`` [AB mag], ``recovered``
-        and ``selected`` (booleans; selected implies recovered).
+        Per-source rows with columns ``z``, ``mag_column`` [mag], ``recovered``
+        and ``selected`` (booleans; selected implies recovered) and, for a
+        depth-aware fit, ``depth_local`` [AB mag].
     mag_resolution : float or None
         Magnitude grouping resolution [mag]; ``None`` or 0 groups identical
         values only (exact).  See the module docstring for its accuracy.
+    depth_ref : float, optional
+        Reference depth [AB mag] of a depth-aware model: the cells' magnitude
+        is then ``m - (depth_local - depth_ref)``.
+    mag_column : str
+        The magnitude covariate: ``mag_input`` (apparent, detection band) or
+        ``M_uv`` for an absolute-magnitude run.
 
     Returns
     -------
     Cells
+
+    Raises
+    ------
+    ValueError
+        A column is missing, a flag is NaN or not boolean, a selected source
+        is not recovered, or nothing is left to fit.
     """
-    for col in (COL_Z, COL_MAG_INPUT, COL_RECOVERED, COL_SELECTED):
+    need = [COL_Z, mag_column, COL_RECOVERED, COL_SELECTED] + ([COL_DEPTH] if depth_ref is not None else [])
+    for col in need:
         if col not in df.columns:
             raise ValueError(f"per-source table lacks column {col!r} (have {list(df.columns)})")
     z = df[COL_Z].to_numpy(float)
-    m = df[COL_MAG_INPUT].to_numpy(float)
-    rec = df[COL_RECOVERED].to_numpy(bool)
-    sel = df[COL_SELECTED].to_numpy(bool)
+    m = df[mag_column].to_numpy(float)
+    if depth_ref is not None:
+        m = m - (df[COL_DEPTH].to_numpy(float) - float(depth_ref))
+    rec = _flags(df, COL_RECOVERED)
+    sel = _flags(df, COL_SELECTED)
     good = np.isfinite(z) & np.isfinite(m)
     if not good.all():
-        warnings.warn(f"aggregate_cells: dropping {np.sum(~good)} sources with non-finite z or mag_input")
+        what = "z, magnitude or depth" if depth_ref is not None else "z or magnitude"
+        warnings.warn(f"aggregate_cells: dropping {np.sum(~good)} sources with non-finite {what}")
         z, m, rec, sel = z[good], m[good], rec[good], sel[good]
     if np.any(sel & ~rec):
         raise ValueError(f"{np.sum(sel & ~rec)} sources are selected but not recovered; "
@@ -142,7 +184,7 @@ def _heuristic_start(model: SurfaceModel, cells: Cells) -> np.ndarray:
     below = np.nonzero(f_faint < 0.5 * top)[0]
     if len(below) and 0 < top < 1 + 1e-12:
         theta[names.index("m50_0")] = cells.mag[order][below[0]]
-        theta[names.index("logit_c_max")] = np.log((top + 0.01) / (1.01 - top))
+        theta[names.index("logit_c_max_0")] = np.log((top + 0.01) / (1.01 - top))
     return theta
 
 
@@ -370,6 +412,17 @@ class BlockChain:
     def flat(self) -> np.ndarray:
         return self.chain[self.burn::self.thin].reshape(-1, self.chain.shape[-1])
 
+    @property
+    def ess(self) -> np.ndarray:
+        """Effective sample size per parameter: walkers x (steps - burn-in) / tau."""
+        return self.chain.shape[1] * (self.n_steps - self.burn) / np.maximum(self.tau, 1.0)
+
+    @property
+    def split_rhat(self) -> np.ndarray:
+        """Split R-hat per parameter (Gelman et al. 2013), each walker's post-burn-in
+        chain split in halves and treated as a chain; ~1 when the walkers agree."""
+        return split_rhat(self.chain[self.burn:])
+
 
 @dataclass
 class FitResult:
@@ -410,6 +463,16 @@ class FitResult:
     @property
     def converged(self) -> bool:
         return all(b.converged for b in self.blocks)
+
+    @property
+    def ess(self) -> np.ndarray:
+        """Effective sample size per parameter (see :attr:`BlockChain.ess`)."""
+        return self._per_param("ess")
+
+    @property
+    def split_rhat(self) -> np.ndarray:
+        """Split R-hat per parameter (see :func:`split_rhat`)."""
+        return self._per_param("split_rhat")
 
     @property
     def acceptance_fraction(self) -> np.ndarray:
@@ -473,8 +536,27 @@ def _tau(chain, c: float = 5.0) -> np.ndarray:
     return out
 
 
+def split_rhat(chain) -> np.ndarray:
+    """Split R-hat of an ensemble chain (n_steps, n_walkers, n_params), per parameter.
+
+    Every walker's chain is split in two halves; with m = 2 W chains of n
+    steps, R-hat = sqrt(((n - 1)/n W_within + B/n) / W_within) (Gelman et al.
+    2013, BDA3 eq. 11.4 with split chains).
+    """
+    x = np.asarray(chain, float)
+    n = x.shape[0] // 2
+    if n < 2:
+        return np.full(x.shape[-1], np.nan)
+    halves = np.concatenate([x[:n], x[-n:]], axis=1)          # (n, 2W, P)
+    means = halves.mean(axis=0)
+    within = halves.var(axis=0, ddof=1).mean(axis=0)
+    between = n * means.var(axis=0, ddof=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.sqrt(((n - 1) / n * within + between / n) / within)
+
+
 def _sample_block(model, cells, part, theta_map, cov, seed, n_walkers, max_steps, min_steps,
-                  block, progress, resume: BlockChain | None, pilot=50):
+                  block, callback, resume: BlockChain | None, pilot=PILOT_STEPS):
     idx = model.block_indices(part)
     P = len(idx)
     base = np.asarray(theta_map, float)
@@ -513,14 +595,19 @@ def _sample_block(model, cells, part, theta_map, cov, seed, n_walkers, max_steps
         # Pilot run, discarded: re-centre and re-scale the independence proposal on
         # the pilot's second half, which follows skewed posteriors (a C_max or S_max
         # near 1, an edge outside the data) far better than the Laplace approximation.
-        state = sampler.run_mcmc(state, pilot, progress=False, skip_initial_state_check=True)
-        pil = sampler.get_chain()[pilot // 2:].reshape(-1, P)
-        pcov = np.cov(pil, rowvar=False)
-        try:
-            prop.__init__(pil.mean(axis=0), 0.5 * (pcov + pcov.T) + 1e-12 * np.diag(np.diag(cov)))
-            cov = prop.cov
-        except np.linalg.LinAlgError:
-            pass
+        # Two stages: the first moves the walkers off the Laplace guess, the second
+        # measures the covariance the chain will use.
+        for stage in (pilot // 4, pilot - pilot // 4):
+            sampler.reset()
+            state = sampler.run_mcmc(state, stage, progress=False, skip_initial_state_check=True)
+            pil = sampler.get_chain()[stage // 2:].reshape(-1, P)
+            pcov = np.cov(pil, rowvar=False)
+            try:
+                prop.__init__(pil.mean(axis=0),
+                              0.5 * (pcov + pcov.T) + 1e-12 * np.diag(np.diag(cov)))
+                cov = prop.cov
+            except np.linalg.LinAlgError:
+                pass
         sampler.reset()
         chains, lps, n_acc = [], [], np.zeros(n_walkers)
     else:
@@ -529,6 +616,8 @@ def _sample_block(model, cells, part, theta_map, cov, seed, n_walkers, max_steps
         chains, lps, n_acc = [resume.chain], [resume.log_prob], resume.n_accepted.copy()
 
     done = sum(c.shape[0] for c in chains)
+    # max_steps counts the steps of this call, so a re-run continues past an earlier cap.
+    limit = done + int(max_steps)
     tau_prev, tau = None, None
     converged = False
     while True:
@@ -540,17 +629,19 @@ def _sample_block(model, cells, part, theta_map, cov, seed, n_walkers, max_steps
             converged = (done >= 50 * tmax_now and tau_prev is not None
                          and abs(tmax_now - float(np.max(tau_prev))) < 0.1 * tmax_now)
             tau_prev = tau
-            if converged or done >= max_steps:
+            if converged or done >= limit:
                 break
-        nb = min(block, max_steps - done)
+        nb = min(block, limit - done)
         if nb <= 0:
             break
         sampler.reset()
-        state = sampler.run_mcmc(state, nb, progress=progress, skip_initial_state_check=True)
+        state = sampler.run_mcmc(state, nb, progress=False, skip_initial_state_check=True)
         chains.append(sampler.get_chain())
         lps.append(sampler.get_log_prob())
         n_acc = n_acc + sampler.backend.accepted
         done += nb
+        if callback is not None:
+            callback(nb)
     chain = np.concatenate(chains)
     if tau is None:
         tau = _tau(chain)
@@ -558,7 +649,7 @@ def _sample_block(model, cells, part, theta_map, cov, seed, n_walkers, max_steps
     if not converged:
         warnings.warn(f"emcee chain ({part} block) of {done} steps is shorter than 50 "
                       f"autocorrelation times (tau = {tmax:.1f} steps) or tau is still changing; "
-                      f"raise max_steps (now {max_steps}) or resume the fit",
+                      f"raise max_steps (this call ran {max_steps}) or re-run the fit to extend it",
                       ConvergenceWarning, stacklevel=3)
     return BlockChain(part=part, index=idx, chain=chain, log_prob=np.concatenate(lps),
                       n_accepted=n_acc, tau=tau, burn=min(int(math.ceil(2 * tmax)), done // 2),
@@ -568,8 +659,8 @@ def _sample_block(model, cells, part, theta_map, cov, seed, n_walkers, max_steps
 
 
 def fit_surfaces(cells: Cells, model: SurfaceModel, *, seed=0, n_walkers: int | None = None,
-                 max_steps: int = 5000, min_steps: int = 100, block: int = 100,
-                 progress: bool = False, resume: FitResult | None = None,
+                 max_steps: int = DEFAULT_MAX_STEPS, min_steps: int = 100, block: int = 100,
+                 callback=None, resume: FitResult | None = None,
                  theta_map=None) -> FitResult:
     """MAP start, then emcee until 50 autocorrelation times or ``max_steps``.
 
@@ -583,13 +674,14 @@ def fit_surfaces(cells: Cells, model: SurfaceModel, *, seed=0, n_walkers: int | 
     n_walkers : int, optional
         Walkers per block; default ``max(32, 2 * P_block + 2)``.
     max_steps : int
-        Cap on each block's total chain length [steps].
+        Cap on the steps each block runs in this call (a resumed chain may
+        grow by this much past its earlier length).
     min_steps : int
         Shortest chain considered for convergence [steps].
     block : int
         Steps between convergence checks.
-    progress : bool
-        Show emcee's progress bar.
+    callback : callable, optional
+        Called with the number of steps just run (for a progress bar at the edge).
     resume : FitResult, optional
         A previous result of the same model and data to extend: sampling
         continues from its last state and random state (bit-identical to an
@@ -612,335 +704,9 @@ def fit_surfaces(cells: Cells, model: SurfaceModel, *, seed=0, n_walkers: int | 
         prev = None if resume is None else resume.blocks[i]
         cov = None if prev is not None else laplace_covariance(model, cells, theta_map, part)
         blocks.append(_sample_block(model, cells, part, theta_map, cov, seeds[i], n_walkers,
-                                    max_steps, min_steps, block, progress, prev))
+                                    max_steps, min_steps, block, callback, prev))
     return FitResult(model=model, theta_map=np.asarray(theta_map, float), blocks=blocks,
                      wall_time=time.perf_counter() - t0,
                      info={"n_cells": len(cells), "n_sources": cells.n_sources})
 
 
-# --------------------------------------------------------------------------
-# Posterior-predictive check
-# --------------------------------------------------------------------------
-def ppc_table(df: pd.DataFrame, sf, mag_column: str | None = None) -> np.ndarray:
-    """Binned Beta(1, 1) estimates beside the fitted surfaces, per (z, m) cell.
-
-    Cells are the simulation grid: (z, nominal magnitude ``mag``) when that
-    column exists, else ``mag_input`` in 0.25 mag bins.  For each cell:
-    ``n``, ``k_rec``, ``k_sel``; binned estimates ``c_binned = (k_rec+1)/(n+2)``,
-    ``s_binned = (k_sel+1)/(k_rec+2)``, ``p_binned = (k_sel+1)/(n+2)`` (posterior
-    means under a uniform prior) with their 16/84 % Beta quantiles; the model's
-    pointwise posterior median and 16/84 % of C, S and C*S at (z, mean
-    ``mag_input`` of the cell); and posterior-predictive mid-p values of
-    ``k_rec`` and ``k_sel`` (binomial replicates with the draw's probability at
-    the cell's mean magnitude; values near 0 or 1 flag misfit).
-
-    Returns
-    -------
-    numpy structured array
-    """
-    from scipy import stats
-
-    from ..constants import COL_MAG
-    z = df[COL_Z].to_numpy(float)
-    mi = df[COL_MAG_INPUT].to_numpy(float)
-    if mag_column is None:
-        mag_column = COL_MAG if COL_MAG in df.columns else None
-    mbin = df[mag_column].to_numpy(float) if mag_column else np.round(mi / 0.25) * 0.25
-    rec = df[COL_RECOVERED].to_numpy(bool)
-    sel = df[COL_SELECTED].to_numpy(bool)
-    keys = pd.DataFrame({"z": z, "m": mbin, "mi": mi, "r": rec, "s": sel})
-    g = keys.groupby(["z", "m"], sort=True)
-    agg = g.agg(n=("r", "size"), k_rec=("r", "sum"), k_sel=("s", "sum"), mag_input=("mi", "mean"))
-    agg = agg.reset_index()
-    n = agg["n"].to_numpy(np.int64)
-    kr = agg["k_rec"].to_numpy(np.int64)
-    ks = agg["k_sel"].to_numpy(np.int64)
-    zc, mc, mm = agg["z"].to_numpy(float), agg["m"].to_numpy(float), agg["mag_input"].to_numpy(float)
-    C = sf.model.completeness(sf.draws, mm, zc)
-    S = sf.model.selection(sf.draws, zc, mm)
-    out = {"z": zc, "mag": mc, "mag_input_mean": mm, "n": n, "k_rec": kr, "k_sel": ks}
-    for name, k, nn in (("c", kr, n), ("s", ks, kr), ("p", ks, n)):
-        out[f"{name}_binned"] = (k + 1.0) / (nn + 2.0)
-        out[f"{name}_binned_q16"] = stats.beta.ppf(0.16, k + 1, nn - k + 1)
-        out[f"{name}_binned_q84"] = stats.beta.ppf(0.84, k + 1, nn - k + 1)
-    for name, v in (("c", C), ("s", S), ("p", C * S)):
-        q = np.quantile(v, [0.5, 0.16, 0.84], axis=0)
-        out[f"{name}_model"], out[f"{name}_model_q16"], out[f"{name}_model_q84"] = q
-    for name, k, nn, p in (("rec", kr, n, C), ("sel", ks, kr, S)):
-        midp = stats.binom.sf(k, nn, p) + 0.5 * stats.binom.pmf(k, nn, p)
-        out[f"ppc_p_{name}"] = midp.mean(axis=0)
-    return pd.DataFrame(out).to_records(index=False)
-
-
-# --------------------------------------------------------------------------
-# Entry point of `glaciar fit`
-# --------------------------------------------------------------------------
-def _grid(lo, hi, step, max_n=241):
-    n = int(min(max_n, max(2, round((hi - lo) / step) + 1)))
-    return np.linspace(lo, hi, n)
-
-
-def _cells_hash(cells: Cells, model: SurfaceModel, seed, n_walkers) -> str:
-    import hashlib
-    h = hashlib.sha256()
-    for a in (cells.z, cells.mag, cells.n, cells.k_rec, cells.k_sel):
-        h.update(np.ascontiguousarray(a).tobytes())
-    h.update(json.dumps([model.to_header_dict(), repr(seed), n_walkers], default=str).encode())
-    return h.hexdigest()[:16]
-
-
-def _save_chains(fit_dir, tag, res: FitResult, key: str):
-    """Chains as .npy (no pickle) + a JSON with what is needed to resume."""
-    from ..store import atomic_write_bytes, atomic_write_text
-    state = {"key": key, "theta_map": res.theta_map.tolist(), "blocks": []}
-    for b in res.blocks:
-        for name, arr in (("chain", b.chain), ("log_prob", b.log_prob)):
-            buf = io.BytesIO()
-            np.save(buf, arr, allow_pickle=False)
-            atomic_write_bytes(fit_dir / f"{name}_{tag}_{b.part}.npy", buf.getvalue())
-        rs = b.random_state
-        state["blocks"].append({
-            "part": b.part, "n_accepted": b.n_accepted.tolist(),
-            "laplace_cov": np.asarray(b.laplace_cov).tolist(),
-            "proposal_mean": np.asarray(b.proposal_mean).tolist(),
-            "random_state": [rs[0], np.asarray(rs[1]).tolist(), int(rs[2]), int(rs[3]), float(rs[4])]})
-    atomic_write_text(fit_dir / f"state_{tag}.json", json.dumps(state))
-
-
-def _load_chains(fit_dir, tag, model: SurfaceModel, key: str) -> FitResult | None:
-    p = fit_dir / f"state_{tag}.json"
-    if not p.exists():
-        return None
-    try:
-        state = json.loads(p.read_text())
-        if state.get("key") != key:
-            return None
-        blocks = []
-        for b in state["blocks"]:
-            chain = np.load(fit_dir / f"chain_{tag}_{b['part']}.npy", allow_pickle=False)
-            lp = np.load(fit_dir / f"log_prob_{tag}_{b['part']}.npy", allow_pickle=False)
-            rs = b["random_state"]
-            blocks.append(BlockChain(
-                part=b["part"], index=model.block_indices(b["part"]), chain=chain, log_prob=lp,
-                n_accepted=np.asarray(b["n_accepted"]), tau=None, burn=0, thin=1, converged=False,
-                random_state=(rs[0], np.asarray(rs[1], dtype=np.uint32), rs[2], rs[3], rs[4]),
-                laplace_cov=np.asarray(b["laplace_cov"]), proposal_mean=np.asarray(b["proposal_mean"])))
-        return FitResult(model=model, theta_map=np.asarray(state["theta_map"]), blocks=blocks)
-    except (OSError, ValueError, KeyError) as exc:
-        warnings.warn(f"{p}: cannot resume from the saved chains ({exc}); starting afresh")
-        return None
-
-
-def _manifest_area(manifest: dict, run_dir) -> tuple:
-    """(total area [arcmin^2] or None, {field: area}) from a run manifest.
-
-    ``glaciar.run`` writes ``area_arcmin2`` as a per-field mapping and
-    ``area_arcmin2_total``; a plain number under ``area_arcmin2`` is taken as
-    the total.
-    """
-    per = manifest.get("area_arcmin2")
-    total = manifest.get("area_arcmin2_total")
-    field_area = {}
-    if isinstance(per, dict):
-        try:
-            field_area = {str(k): float(v) for k, v in per.items()}
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{run_dir}/manifest.json: 'area_arcmin2' must map fields to "
-                             f"areas in arcmin^2 ({exc})") from exc
-        if total is None and field_area:
-            total = sum(field_area.values())
-    elif per is not None and total is None:
-        total = per
-    if total is not None:
-        try:
-            total = float(total)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{run_dir}/manifest.json: area_arcmin2_total must be a number "
-                             f"of arcmin^2, not {total!r}") from exc
-        if not total > 0:
-            raise ValueError(f"{run_dir}/manifest.json: survey area {total} arcmin^2 must be > 0")
-    return total, field_area
-
-
-# Simpson nodes of the V_eff integrals in the summary, over the fitted z range.
-# The integrand is smooth (logistic edges times dV/dz): over z = 6..9, 201 nodes
-# are within 1e-7 (relative) of 40001 for edges as sharp as dz = 0.02, and agree
-# with the 2001-node SelectionFunction.effective_volume (tested to 1e-3 on a fit).
-_VEFF_NZ = 201
-
-
-def _veff_summary(sf, area_arcmin2: float, cosmology=None, interval: float = 0.68) -> dict:
-    """V_eff(m) = area * int C S dV/dz dz on the file's magnitude grid [Mpc^3].
-
-    Per posterior draw (the draws in the file), Simpson over the fitted z
-    range; median and central ``interval`` over the draws -- the numbers
-    :meth:`SelectionFunction.effective_volume` gives for the same arguments.
-    """
-    import astropy.units as u
-    from scipy.integrate import simpson
-
-    if cosmology is None:
-        from astropy.cosmology import Planck18 as cosmology
-    zz = np.linspace(float(sf.z_grid[0]), float(sf.z_grid[-1]), _VEFF_NZ)
-    dvdz = cosmology.differential_comoving_volume(zz).to_value(u.Mpc ** 3 / u.sr)
-    area_sr = (float(area_arcmin2) * u.arcmin ** 2).to_value(u.sr)
-    out = np.empty((sf.n_draws, len(sf.m_grid)))
-    for i in range(0, sf.n_draws, 64):              # 64 draws x n_z x n_m doubles at a time
-        c, s = sf.model.surfaces_on_grid(sf.draws[i:i + 64], zz, sf.m_grid)
-        out[i:i + 64] = simpson(c * s * dvdz[None, :, None], x=zz, axis=1) * area_sr
-    lo, hi = 0.5 - 0.5 * interval, 0.5 + 0.5 * interval
-    q = np.quantile(out, [0.5, lo, hi], axis=0)
-    return {"area_arcmin2": float(area_arcmin2),
-            "cosmology": getattr(cosmology, "name", None) or repr(cosmology),
-            "z_range": [float(zz[0]), float(zz[-1])], "interval": interval,
-            "mag": sf.m_grid.tolist(), "median_mpc3": q[0].tolist(),
-            "lower_mpc3": q[1].tolist(), "upper_mpc3": q[2].tolist()}
-
-
-def run_fit(run_dir, *, model: str = "logistic", per_field: bool = False, seed=0,
-            n_walkers: int | None = None, max_steps: int = 5000, progress: bool = False,
-            cosmology=None, area_arcmin2: float | None = None,
-            mag_resolution: float | None = DEFAULT_MAG_RESOLUTION, resume: bool = True,
-            max_draws: int = 1000, plots: bool = True):
-    """Fit C and S to a run's per-source flags and write the selection-function file.
-
-    Parameters
-    ----------
-    run_dir : path-like
-        Run directory of ``glaciar simulate`` (``results/*.parquet``, ``manifest.json``).
-    model : {"logistic", "erf", "fleming"}
-        Completeness step shape.
-    per_field : bool
-        Fit every field separately (one fit per field in the file) instead of pooled.
-    seed : int
-        Sampler seed; the same seed and data give identical files.
-    n_walkers : int, optional
-        emcee walkers per parameter block.
-    max_steps : int
-        Cap on each chain's length [steps].
-    progress : bool
-        Show progress bars.
-    cosmology : astropy Cosmology, optional
-        Cosmology of the V_eff(m) entry of the summary (default Planck18).
-    area_arcmin2 : float, optional
-        Survey area [arcmin^2]; overrides the manifest's (``area_arcmin2_total``
-        and the per-field ``area_arcmin2`` written by ``glaciar simulate``).
-    mag_resolution : float or None
-        Grouping resolution of ``mag_input`` [mag] (see :func:`aggregate_cells`).
-    resume : bool
-        Continue the chains saved under ``RUN_DIR/fit/`` when model, data,
-        seed and walkers match (an unconverged fit is extended up to ``max_steps``).
-    max_draws : int
-        Posterior draws stored in the file.
-    plots : bool
-        Write PNG plots under ``RUN_DIR/fit/``.
-
-    Returns
-    -------
-    pathlib.Path
-        ``RUN_DIR/selection_function.fits``.
-
-    Files written
-    -------------
-    ``selection_function.fits``; ``fit/summary.json`` (per fit: parameters with
-    median and 68/95 % intervals, MAP, tau, acceptance fraction, chain
-    length, convergence; when the area is known, ``effective_volume``:
-    V_eff(m) [Mpc^3] on the magnitude grid, median and 68 % interval, over
-    the fitted z range -- per field with the field's area when ``per_field``);
-    ``fit/parameters_<field>.ecsv``; ``fit/ppc_<field>.ecsv``;
-    ``fit/chain_<field>_<c|s>.npy``, ``fit/log_prob_*.npy``, ``fit/state_<field>.json``;
-    ``fit/completeness_<field>.png`` and ``fit/selection_<field>.png``.
-    """
-    from pathlib import Path
-
-    from astropy.table import Table
-
-    from ..constants import SELECTION_FUNCTION_NAME
-    from ..store import atomic_write_bytes, atomic_write_text, read_manifest, read_results
-    from .models import COMPLETENESS_SHAPES
-    from .selection_function import SelectionFunction
-
-    if model not in COMPLETENESS_SHAPES:
-        raise ValueError(f"--model {model!r}: expected one of {COMPLETENESS_SHAPES}")
-    run_dir = Path(run_dir)
-    df = read_results(run_dir)
-    manifest = read_manifest(run_dir) or {}
-    meta = {k: manifest.get(k) for k in ("fields", "bands", "detection_band", "selection",
-                                         "config_hash") if k in manifest}
-    area_total, area_field = _manifest_area(manifest, run_dir)
-    if area_arcmin2 is not None:
-        area_total, area_field = float(area_arcmin2), {}
-    if area_total is not None:
-        meta["area_arcmin2"] = area_total
-    if area_field:
-        meta["area_arcmin2_field"] = area_field
-    if "fields" not in meta and COL_FIELD in df.columns:
-        meta["fields"] = sorted(map(str, df[COL_FIELD].unique()))
-    meta["likelihood"] = "recovered ~ Bernoulli(C); selected | recovered ~ Bernoulli(S)"
-    meta["mag_resolution"] = mag_resolution
-    meta["pooled"] = not per_field
-    fit_dir = run_dir / "fit"
-    fit_dir.mkdir(exist_ok=True)
-
-    cells_all = aggregate_cells(df, mag_resolution)
-    mdl = SurfaceModel.for_data(cells_all.z, cells_all.mag, shape=model)
-    zg = _grid(float(cells_all.z.min()), float(cells_all.z.max()), 0.05, max_n=81)
-    mg = _grid(float(cells_all.mag.min()), float(cells_all.mag.max()), 0.05, max_n=81)
-    if per_field:
-        if COL_FIELD not in df.columns:
-            raise ValueError(f"--per-field: the per-source table has no {COL_FIELD!r} column")
-        groups = [(str(f), d) for f, d in df.groupby(COL_FIELD, sort=True)]
-    else:
-        groups = [("all", df)]
-
-    sfs, summary = [], {"model": model, "seed": seed, "fits": {}}
-    for i, (field_name, d) in enumerate(groups):
-        cells = cells_all if not per_field else aggregate_cells(d, mag_resolution)
-        tag = "".join(c if c.isalnum() or c in "-_." else "_" for c in field_name)
-        fseed = [int(seed), i] if per_field else int(seed)
-        key = _cells_hash(cells, mdl, fseed, n_walkers)
-        prev = _load_chains(fit_dir, tag, mdl, key) if resume else None
-        res = fit_surfaces(cells, mdl, seed=fseed, n_walkers=n_walkers, max_steps=max_steps,
-                           progress=progress, resume=prev)
-        _save_chains(fit_dir, tag, res, key)
-        draws = res.draws(max_draws)
-        info = {"nsources": cells.n_sources, "ncells": len(cells), "converged": res.converged,
-                "taumax": float(np.max(res.tau))}
-        sf = SelectionFunction(mdl, draws, zg, mg, meta, field_name, fit_info=info)
-        sf.ppc = ppc_table(d, sf)
-        sfs.append(sf)
-        # Summary
-        q = np.quantile(draws, [0.5, 0.16, 0.84, 0.025, 0.975], axis=0)
-        ptab = Table({"name": mdl.param_names, "map": res.theta_map, "median": q[0], "q16": q[1],
-                      "q84": q[2], "q025": q[3], "q975": q[4], "tau": res.tau,
-                      "acceptance_fraction": res.acceptance_fraction, "n_steps": res.n_steps,
-                      "prior_mean": mdl.prior_mean, "prior_sd": mdl.prior_sd})
-        for name, tab in (("parameters", ptab), ("ppc", Table(sf.ppc))):
-            buf = io.StringIO()
-            tab.write(buf, format="ascii.ecsv")
-            atomic_write_text(fit_dir / f"{name}_{tag}.ecsv", buf.getvalue())
-        summary["fits"][field_name] = {
-            "n_sources": cells.n_sources, "n_cells": len(cells), "converged": res.converged,
-            "wall_time_s": res.wall_time,
-            "blocks": {b.part: {"n_steps": b.n_steps, "n_walkers": b.chain.shape[1],
-                                "burn": b.burn, "thin": b.thin, "tau": b.tau.tolist(),
-                                "acceptance_fraction": float(np.mean(b.acceptance_fraction)),
-                                "converged": b.converged} for b in res.blocks},
-            "parameters": {n: {"map": float(res.theta_map[j]), "median": float(q[0, j]),
-                               "ci68": [float(q[1, j]), float(q[2, j])],
-                               "ci95": [float(q[3, j]), float(q[4, j])], "tau": float(res.tau[j])}
-                           for j, n in enumerate(mdl.param_names)},
-            "ppc_fraction_extreme": float(np.mean((sf.ppc["ppc_p_rec"] < 0.01)
-                                                  | (sf.ppc["ppc_p_rec"] > 0.99))),
-        }
-        area = area_field.get(field_name) if per_field else area_total
-        if area is not None:
-            summary["fits"][field_name]["effective_volume"] = _veff_summary(sf, area, cosmology)
-        if plots:
-            from .plotting import plot_completeness, plot_selection
-            plot_completeness(sf, fit_dir / f"completeness_{tag}.png")
-            plot_selection(sf, fit_dir / f"selection_{tag}.png")
-    atomic_write_text(fit_dir / "summary.json", json.dumps(summary, indent=2, default=str))
-    out = run_dir / SELECTION_FUNCTION_NAME
-    atomic_write_bytes(out, SelectionFunction.to_bytes(sfs, meta))
-    return out

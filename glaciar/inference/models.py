@@ -1,44 +1,74 @@
 """Completeness and selection surfaces, their priors, and the binomial likelihood.
 
-The probability that an injected source of total input magnitude ``m`` (AB,
-detection band) at redshift ``z`` is *recovered* is
+Covariates
+----------
+``m`` is the total input magnitude of a source in the detection band (AB, or
+M_UV for an absolute-magnitude run), ``z`` its redshift and ``d`` the local
+depth under it (``depth_local``: the 5-sigma aperture limit of the detection
+band's noise map at its position, :mod:`glaciar.engine.depth`).  Completeness
+of a faint source is set by the noise under it: scaling the noise by a factor
+k scales every flux threshold by k, which moves the completeness curve by
+2.5 log10 k in magnitude without changing its shape.  A *depth-aware* model
+(``depth_ref`` set) therefore uses the depth-relative magnitude
 
-    C(m, z) = C_max * F((m - m50(z)) / w(z))
+    m_rel = m - (d - depth_ref)
+
+in place of ``m`` everywhere below: C(m, z | d) = C(m_rel, z).  A field of
+uniform depth d = depth_ref has m_rel = m and the model is the plain one.
+
+Surfaces
+--------
+The probability that an injected source is *recovered* is
+
+    C(m, z) = C_max(z) * F((m - m50(z)) / w(z))
 
 and the probability that it is *selected*, given that it is recovered, is
 
-    S(z, m) = S_max * sigma((z - z_lo(m)) / dz_lo(m)) * sigma((z_hi(m) - z) / dz_hi(m))
+    S(z, m) = S_max * sigma(a) * sigma(b),
+    a = eta_lo(m) + (z - z_min) / dz_lo(m),   b = eta_hi(m) + (z_max - z) / dz_hi(m)
 
 so that P(selected | z, m) = C(m, z) * S(z, m).  ``sigma`` is the logistic
-function, and ``F`` is a decreasing step with F(0) = 1/2 and F(-u) = 1 - F(u):
+function, [z_min, z_max] = [z_ref - z_scale, z_ref + z_scale] the simulated
+redshift range, and ``eta_lo`` (``eta_hi``) the logit of the rising (falling)
+edge *at the lower (upper) end of that range*: the 50 % point of the edge is
+z_min - eta_lo dz_lo (z_max + eta_hi dz_hi).  Parametrising an edge by its
+value at the range's end rather than by its position keeps it identifiable
+when it lies outside the simulated range: the data then bound eta from one
+side and leave dz to its prior, a rectangle the sampler crosses in a few
+steps, where (position, width) would form an unbounded curved ridge.
+
+``F`` is a decreasing step with F(-inf) = 1 and F(+inf) = 0:
 
 - ``"logistic"``: F(u) = 1 / (1 + exp(u))                      (w: e-folding width)
 - ``"erf"``:      F(u) = erfc(u / sqrt 2) / 2                   (w: Gaussian sigma)
 - ``"fleming"``:  F(u) = (1 - u / sqrt(1 + u^2)) / 2            (Fleming et al. 1995
   form as used by Pritchet; w = 1/alpha; power-law tails ~ 1/(4 u^2))
+- ``"sas"``:      F(u) = Phi(-sinh(delta asinh(u) - eps))       (sinh-arcsinh step,
+  Jones & Pewsey 2009: a flexible monotone family with skewness ``eps`` and
+  tail weight ``delta`` = exp(sas_log_delta) > 0; erf at eps = 0, delta = 1;
+  for eps != 0, m50 is the location, not the 50 % point)
 
 The smooth dependences are polynomials in normalised coordinates
 ``zc = (z - z_ref) / z_scale`` and ``mc = (m - m_ref) / m_scale``::
 
-    m50(z)   = sum_k m50_k   zc^k          (degree ``m50_degree``)
-    ln w(z)  = sum_k log_w_k zc^k          (degree ``log_w_degree``; w > 0)
-    z_lo(m)  = sum_k z_lo_k  mc^k,  ln dz_lo(m) = sum_k log_dz_lo_k mc^k
-    z_hi(m)  = sum_k z_hi_k  mc^k,  ln dz_hi(m) = sum_k log_dz_hi_k mc^k   (degree ``edge_degree``)
-    C_max = sigma(logit_c_max),  S_max = sigma(logit_s_max)
+    logit C_max(z) = sum_k logit_c_max_k zc^k  (degree ``c_max_degree``)
+    m50(z)         = sum_k m50_k   zc^k        (degree ``m50_degree``)
+    ln w(z)        = sum_k log_w_k zc^k        (degree ``log_w_degree``; w > 0)
+    eta_lo(m)      = sum_k eta_lo_k mc^k,  ln dz_lo(m) = sum_k log_dz_lo_k mc^k
+    eta_hi(m)      = sum_k eta_hi_k mc^k,  ln dz_hi(m) = sum_k log_dz_hi_k mc^k   (``edge_degree``)
+    S_max = sigma(logit_s_max)
 
 Priors: every parameter has an independent normal prior (see
-:meth:`SurfaceModel.prior_mean` / :meth:`SurfaceModel.prior_sd`), which is
-proper.  The likelihood is a product of probabilities, so it is bounded by 1,
-and the posterior is bounded by the (normalisable) prior: it stays proper and
-its maximum finite when the data are separable (everything recovered, nothing
-recovered, or a perfect step).
+:meth:`SurfaceModel.prior_mean` / :meth:`SurfaceModel.prior_sd` and the file
+docs), which is proper.  The likelihood is a product of probabilities, so it is
+bounded by 1, and the posterior is bounded by the (normalisable) prior: it
+stays proper and its maximum finite when the data are separable.
 
-Likelihood: the recovered and the selected flags factorise,
-``recovered ~ Bernoulli(C)`` and ``selected | recovered ~ Bernoulli(S)``,
-which is the same as ``selected ~ Bernoulli(C S)`` because selected implies
-recovered.  Per aggregated cell of ``n`` sources with ``k_rec`` recovered and
-``k_sel`` selected the log-likelihood is (binomial coefficients dropped):
-``k_rec ln C + (n - k_rec) ln(1 - C) + k_sel ln S + (k_rec - k_sel) ln(1 - S)``.
+Likelihood: ``recovered ~ Bernoulli(C)`` and ``selected | recovered ~
+Bernoulli(S)`` (the same as ``selected ~ Bernoulli(C S)``, since selected
+implies recovered).  Per aggregated cell of ``n`` sources with ``k_rec``
+recovered and ``k_sel`` selected the log-likelihood is (binomial coefficients
+dropped): ``k_rec ln C + (n - k_rec) ln(1 - C) + k_sel ln S + (k_rec - k_sel) ln(1 - S)``.
 """
 from __future__ import annotations
 
@@ -47,26 +77,45 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import log_ndtr
 
-__all__ = ["COMPLETENESS_SHAPES", "SurfaceModel", "Cells", "step_function", "log_step"]
+__all__ = ["COMPLETENESS_SHAPES", "SurfaceModel", "Cells", "BlockPosterior", "step_function",
+           "log_step"]
 
-COMPLETENESS_SHAPES = ("logistic", "erf", "fleming")
+COMPLETENESS_SHAPES = ("logistic", "erf", "fleming", "sas")
 
 # Prior constants (documented in docs/selection-function-file.md).  Logit
 # N(2, 2) puts the median of C_max and S_max at 0.88 with 95 % in [0.12, 0.998].
 _LOGIT_MAX_PRIOR = (2.0, 2.0)
+_LOGIT_MAX_SLOPE_SD = 1.0
 # ln w ~ N(ln 0.3 mag, 1): 95 % of widths in 0.04 .. 2.1 mag.
 _LOG_W_PRIOR = (np.log(0.3), 1.0)
 _LOG_W_SLOPE_SD = 0.5
-# ln dz ~ N(ln 0.2, 1): edge widths 0.03 .. 1.4 in z at 95 %.
+# eta (logit of an edge at the end of the simulated z range) ~ N(0, 6): from an
+# edge well inside the range (eta = -(distance inside) / dz, e.g. -10 for an edge
+# 1 in z inside with dz = 0.1) to one well outside it (eta >~ 5: S there is flat).
+_ETA_PRIOR = (0.0, 3.0)
+_ETA_SLOPE_SD = 1.5
+# ln dz ~ N(ln 0.2, 1): edge widths 0.03 .. 1.4 in z at 95 %; the slopes in m are
+# left wide (sd 1): the demo's J-dropout edges move with magnitude by more than
+# an sd-0.5 prior allows, which biased the lower-edge intervals.
 _LOG_DZ_PRIOR = (np.log(0.2), 1.0)
-_LOG_DZ_SLOPE_SD = 0.5
+_LOG_DZ_SLOPE_SD = 1.0
+# sinh-arcsinh step: skewness eps ~ N(0, 1), ln delta ~ N(0, 0.5).
+_SAS_PRIORS = {"sas_eps": (0.0, 1.0), "sas_log_delta": (0.0, 0.5)}
 # Floor on log-probabilities so that 0 * log(0) terms are 0, not NaN.
 _LOG_FLOOR = -1e200
+# |u| beyond which the steps are 0 or 1 to double precision; keeps exp() finite.
+_U_CLIP = 700.0
 
 
 def _log_sigmoid(x):
     """ln(1 / (1 + exp(-x))), exact and overflow-free for any x."""
     return -np.logaddexp(0.0, -x)
+
+
+def _sas_transform(u, eps, log_delta):
+    """sinh(delta asinh(u) - eps): maps the sas step onto the erf step."""
+    t = np.exp(log_delta) * np.arcsinh(u) - eps
+    return np.sinh(np.clip(t, -40.0, 40.0))
 
 
 def log_step(u, shape):
@@ -75,8 +124,9 @@ def log_step(u, shape):
     Parameters
     ----------
     u : array_like
-        Standardised magnitude (m - m50) / w (dimensionless).
-    shape : {"logistic", "erf", "fleming"}
+        Standardised magnitude (m - m50) / w (dimensionless); for ``"sas"``
+        the already transformed argument sinh(delta asinh(u) - eps).
+    shape : {"logistic", "erf", "fleming", "sas"}
 
     Returns
     -------
@@ -86,7 +136,7 @@ def log_step(u, shape):
     u = np.asarray(u, dtype=float)
     if shape == "logistic":
         return -np.logaddexp(0.0, u)
-    if shape == "erf":
+    if shape in ("erf", "sas"):
         return log_ndtr(-u)
     if shape == "fleming":
         a = np.abs(u)
@@ -98,7 +148,7 @@ def log_step(u, shape):
 
 
 def step_function(u, shape):
-    """F(u): the completeness step (1 at bright u -> -inf, 1/2 at 0, 0 at faint u -> +inf)."""
+    """F(u): the completeness step (1 at bright u -> -inf, 0 at faint u -> +inf)."""
     return np.exp(log_step(u, shape))
 
 
@@ -111,7 +161,8 @@ class Cells:
     z : ndarray
         Input redshift of the cell.
     mag : ndarray
-        Input AB magnitude of the cell (mean ``mag_input`` of its sources) [mag].
+        The model's magnitude covariate of the cell [mag]: the mean input
+        magnitude, depth-relative (m - (d - depth_ref)) for a depth-aware model.
     n, k_rec, k_sel : ndarray of int
         Sources in the cell, recovered ones, selected ones (k_sel <= k_rec <= n).
     """
@@ -138,20 +189,31 @@ class Cells:
         return len(self.z)
 
 
+def _poly(x, ref, scale, degree):
+    """Powers of the normalised coordinate, shape x.shape + (degree + 1,)."""
+    xc = (np.asarray(x, float) - ref) / scale
+    return xc[..., None] ** np.arange(degree + 1)
+
+
 @dataclass(frozen=True)
 class SurfaceModel:
     """The parametric C(m, z) and S(z, m) surfaces with their priors.
 
     Parameters
     ----------
-    shape : {"logistic", "erf", "fleming"}
+    shape : {"logistic", "erf", "fleming", "sas"}
         Completeness step shape.
     z_ref, z_scale : float
-        Redshift normalisation, zc = (z - z_ref) / z_scale.
+        Redshift normalisation, zc = (z - z_ref) / z_scale; the simulated range
+        is z_ref -+ z_scale (the selection edges are anchored at its ends).
     m_ref, m_scale : float
         Magnitude normalisation, mc = (m - m_ref) / m_scale [mag].
-    m50_degree, log_w_degree, edge_degree : int
-        Polynomial degrees of m50(z), ln w(z) and of the selection edges in m.
+    m50_degree, log_w_degree, edge_degree, c_max_degree : int
+        Polynomial degrees of m50(z), ln w(z), of the selection edges in m and
+        of logit C_max(z).
+    depth_ref : float or None
+        Reference depth [AB mag]: with a value, the model is depth-aware and
+        every magnitude is taken relative to the local depth, m - (d - depth_ref).
     """
 
     shape: str = "logistic"
@@ -162,6 +224,8 @@ class SurfaceModel:
     m50_degree: int = 2
     log_w_degree: int = 1
     edge_degree: int = 1
+    c_max_degree: int = 1
+    depth_ref: float | None = None
     _slices: dict = field(default=None, init=False, repr=False, compare=False)
     _cache: dict = field(default=None, init=False, repr=False, compare=False)
 
@@ -171,13 +235,18 @@ class SurfaceModel:
                              f"expected one of {COMPLETENESS_SHAPES}")
         if not (self.z_scale > 0 and self.m_scale > 0):
             raise ValueError("SurfaceModel: z_scale and m_scale must be positive")
-        for name in ("m50_degree", "log_w_degree", "edge_degree"):
+        for name in ("m50_degree", "log_w_degree", "edge_degree", "c_max_degree"):
             if int(getattr(self, name)) < 0:
                 raise ValueError(f"SurfaceModel: {name} must be >= 0")
-        sizes = [("logit_c_max", 1), ("m50", self.m50_degree + 1),
-                 ("log_w", self.log_w_degree + 1), ("logit_s_max", 1),
-                 ("z_lo", self.edge_degree + 1), ("log_dz_lo", self.edge_degree + 1),
-                 ("z_hi", self.edge_degree + 1), ("log_dz_hi", self.edge_degree + 1)]
+        if self.depth_ref is not None and not np.isfinite(self.depth_ref):
+            raise ValueError(f"SurfaceModel: depth_ref must be finite, not {self.depth_ref}")
+        e = self.edge_degree + 1
+        sizes = [("logit_c_max", self.c_max_degree + 1), ("m50", self.m50_degree + 1),
+                 ("log_w", self.log_w_degree + 1)]
+        if self.shape == "sas":
+            sizes += [("sas_eps", 1), ("sas_log_delta", 1)]
+        sizes += [("logit_s_max", 1), ("eta_lo", e), ("log_dz_lo", e), ("eta_hi", e),
+                  ("log_dz_hi", e)]
         sl, i = {}, 0
         for name, k in sizes:
             sl[name] = slice(i, i + k)
@@ -188,21 +257,25 @@ class SurfaceModel:
         names = []
         for name, sl_ in sl.items():
             k = sl_.stop - sl_.start
-            names += [name] if name.startswith("logit") else [f"{name}_{j}" for j in range(k)]
+            single = name in ("logit_s_max",) or name.startswith("sas_")
+            names += [name] if single else [f"{name}_{j}" for j in range(k)]
         object.__setattr__(self, "_cache", {"names": tuple(names), "mean": self._prior_mean(),
                                             "sd": self._prior_sd()})
 
     # ------------------------------------------------------------------ setup
     @classmethod
-    def for_data(cls, z, mag, shape="logistic", **degrees) -> "SurfaceModel":
+    def for_data(cls, z, mag, shape="logistic", depth_ref=None, **degrees) -> "SurfaceModel":
         """Model normalised to the covariate ranges of the data.
 
         Parameters
         ----------
         z, mag : array_like
-            Input redshifts and input magnitudes [mag] of the sources (or cells).
+            Input redshifts and the magnitude covariate [mag] of the sources
+            (or cells; depth-relative for a depth-aware model).
         shape : str
             Completeness step shape.
+        depth_ref : float, optional
+            Reference depth [AB mag] of a depth-aware model.
         """
         z = np.asarray(z, float)
         mag = np.asarray(mag, float)
@@ -212,7 +285,27 @@ class SurfaceModel:
         mlo, mhi = float(np.min(mag)), float(np.max(mag))
         # A single z (or magnitude) gives no lever arm: unit scale, the prior rules.
         return cls(shape=shape, z_ref=0.5 * (zlo + zhi), z_scale=0.5 * (zhi - zlo) or 1.0,
-                   m_ref=0.5 * (mlo + mhi), m_scale=0.5 * (mhi - mlo) or 1.0, **degrees)
+                   m_ref=0.5 * (mlo + mhi), m_scale=0.5 * (mhi - mlo) or 1.0,
+                   depth_ref=None if depth_ref is None else float(depth_ref), **degrees)
+
+    @property
+    def depth_aware(self) -> bool:
+        return self.depth_ref is not None
+
+    @property
+    def z_range(self) -> tuple[float, float]:
+        """The simulated redshift range the edges are anchored to."""
+        return self.z_ref - self.z_scale, self.z_ref + self.z_scale
+
+    def relative_magnitude(self, m, depth=None) -> np.ndarray:
+        """The model's magnitude covariate: m - (depth - depth_ref), or m.
+
+        ``depth=None`` (or a model that is not depth-aware) means the reference depth.
+        """
+        m = np.asarray(m, float)
+        if depth is None or self.depth_ref is None:
+            return m
+        return m - (np.asarray(depth, float) - self.depth_ref)
 
     @property
     def param_names(self) -> list[str]:
@@ -234,33 +327,40 @@ class SurfaceModel:
         return self._cache["sd"].copy()
 
     def _prior_mean(self) -> np.ndarray:
-        mu = np.zeros(self._slices["log_dz_hi"].stop)
         s = self._slices
-        mu[s["logit_c_max"]] = _LOGIT_MAX_PRIOR[0]
+        mu = np.zeros(s["log_dz_hi"].stop)
+        mu[s["logit_c_max"].start] = _LOGIT_MAX_PRIOR[0]
         mu[s["logit_s_max"]] = _LOGIT_MAX_PRIOR[0]
         mu[s["m50"].start] = self.m_ref                      # centre of the magnitude range
         mu[s["log_w"].start] = _LOG_W_PRIOR[0]
-        mu[s["z_lo"].start] = self.z_ref - 0.5 * self.z_scale  # rising edge in the lower half
-        mu[s["z_hi"].start] = self.z_ref + 0.5 * self.z_scale  # falling edge in the upper half
-        mu[s["log_dz_lo"].start] = _LOG_DZ_PRIOR[0]
-        mu[s["log_dz_hi"].start] = _LOG_DZ_PRIOR[0]
+        for e in ("eta_lo", "eta_hi"):
+            mu[s[e].start] = _ETA_PRIOR[0]
+        for e in ("log_dz_lo", "log_dz_hi"):
+            mu[s[e].start] = _LOG_DZ_PRIOR[0]
+        for name, (m, _) in _SAS_PRIORS.items():
+            if name in s:
+                mu[s[name]] = m
         return mu
 
     def _prior_sd(self) -> np.ndarray:
-        sd = np.ones(self._slices["log_dz_hi"].stop)
         s = self._slices
-        sd[s["logit_c_max"]] = _LOGIT_MAX_PRIOR[1]
+        sd = np.ones(s["log_dz_hi"].stop)
+        sd[s["logit_c_max"]] = _LOGIT_MAX_SLOPE_SD
+        sd[s["logit_c_max"].start] = _LOGIT_MAX_PRIOR[1]
         sd[s["logit_s_max"]] = _LOGIT_MAX_PRIOR[1]
         sd[s["m50"]] = self.m_scale                     # m50 may move by the half range per zc
         sd[s["m50"].start] = 2.0 * self.m_scale         # anywhere within +-1 full range
         sd[s["log_w"]] = _LOG_W_SLOPE_SD
         sd[s["log_w"].start] = _LOG_W_PRIOR[1]
-        for e in ("z_lo", "z_hi"):
-            sd[s[e]] = 0.5 * self.z_scale
-            sd[s[e].start] = self.z_scale
+        for e in ("eta_lo", "eta_hi"):
+            sd[s[e]] = _ETA_SLOPE_SD
+            sd[s[e].start] = _ETA_PRIOR[1]
         for e in ("log_dz_lo", "log_dz_hi"):
             sd[s[e]] = _LOG_DZ_SLOPE_SD
             sd[s[e].start] = _LOG_DZ_PRIOR[1]
+        for name, (_, v) in _SAS_PRIORS.items():
+            if name in s:
+                sd[s[name]] = v
         return sd
 
     def sample_prior(self, n, rng) -> np.ndarray:
@@ -275,48 +375,47 @@ class SurfaceModel:
                 - 0.5 * self.n_params * np.log(2 * np.pi))
 
     # ---------------------------------------------------------- evaluation
-    def _powers(self, x, ref, scale, degree):
-        xc = (np.asarray(x, float) - ref) / scale
-        return xc[..., None] ** np.arange(degree + 1)
+    def _c_terms(self, theta, z):
+        """Per-z terms of C: logit C_max, m50 and 1/w, each (W, n_z); theta (W, P)."""
+        s = self._slices
+        deg = max(self.m50_degree, self.log_w_degree, self.c_max_degree)
+        zp = _poly(z, self.z_ref, self.z_scale, deg)
+        lcm = theta[:, s["logit_c_max"]] @ zp[:, :self.c_max_degree + 1].T
+        m50 = theta[:, s["m50"]] @ zp[:, :self.m50_degree + 1].T
+        inv_w = np.exp(-(theta[:, s["log_w"]] @ zp[:, :self.log_w_degree + 1].T))
+        return lcm, m50, inv_w
+
+    def _sas(self, theta, u):
+        """The sas transform of u (W, N) with the draws' shape parameters."""
+        s = self._slices
+        return _sas_transform(u, theta[:, s["sas_eps"]], theta[:, s["sas_log_delta"]])
 
     def _log_c(self, theta, m, z):
         """ln C and ln(1 - C); theta (W, P), m and z 1-D (N,) -> two (W, N) arrays."""
-        s = self._slices
-        zp = self._powers(z, self.z_ref, self.z_scale, max(self.m50_degree, self.log_w_degree))
-        m50 = theta[:, s["m50"]] @ zp[:, :self.m50_degree + 1].T             # (W, N)
-        inv_w = np.exp(-(theta[:, s["log_w"]] @ zp[:, :self.log_w_degree + 1].T))
+        lcm, m50, inv_w = self._c_terms(theta, z)
         u = (np.asarray(m, float)[None, :] - m50) * inv_w
-        lcm = theta[:, s["logit_c_max"]]                                       # (W, 1)
-        log_cmax = _log_sigmoid(lcm)
-        if self.shape == "logistic":
-            # Two logs per element (logs dominate the cost): with e = exp(u),
-            # C = C_max / (1 + e) and 1 - C = ((1 - C_max) + e) / (1 + e), both
-            # sums of positives.  |u| <= 700 keeps exp finite; beyond it C is
-            # below 1e-304 or equal to C_max to double precision anyway.
-            e = np.exp(np.clip(u, -700.0, 700.0))
-            log1pe = np.log1p(e)
-            with np.errstate(divide="ignore"):
-                log_1mc = np.log(np.exp(_log_sigmoid(-lcm)) + e) - log1pe
-            return log_cmax - log1pe, log_1mc
-        lf = log_step(u, self.shape)
-        # 1 - C_max F(u) = (1 - C_max) + C_max F(-u): a sum of positives, no cancellation.
-        log_1mc = np.logaddexp(_log_sigmoid(-lcm), log_cmax + log_step(-u, self.shape))
-        return log_cmax + lf, log_1mc
+        return _log_c_terms(self, theta, lcm, u)
+
+    def _s_args(self, theta, z, m):
+        """Arguments a, b of the rising and falling edge, (W, N) each."""
+        s = self._slices
+        mp = _poly(m, self.m_ref, self.m_scale, self.edge_degree)
+        z = np.asarray(z, float)[None, :]
+        zmin, zmax = self.z_range
+        a = theta[:, s["eta_lo"]] @ mp.T + (z - zmin) * np.exp(-(theta[:, s["log_dz_lo"]] @ mp.T))
+        b = theta[:, s["eta_hi"]] @ mp.T + (zmax - z) * np.exp(-(theta[:, s["log_dz_hi"]] @ mp.T))
+        return a, b
 
     def _log_s(self, theta, z, m):
         """ln S and ln(1 - S); theta (W, P), z and m 1-D (N,) -> two (W, N) arrays."""
-        s = self._slices
-        mp = self._powers(m, self.m_ref, self.m_scale, self.edge_degree)
-        z = np.asarray(z, float)[None, :]
-        a = (z - theta[:, s["z_lo"]] @ mp.T) * np.exp(-(theta[:, s["log_dz_lo"]] @ mp.T))
-        b = (theta[:, s["z_hi"]] @ mp.T - z) * np.exp(-(theta[:, s["log_dz_hi"]] @ mp.T))
+        a, b = self._s_args(theta, z, m)
         # S = S_max / D with D = (1 + e^-a)(1 + e^-b), and 1 - S = (D - S_max) / D where
         # D - S_max = (1 - S_max) + ea + eb + ea eb is a sum of positives.  Clipping a, b
         # at -300 only matters where S < 1e-130, i.e. nowhere a posterior can sit.
-        ea = np.exp(-np.clip(a, -300.0, 700.0))
-        eb = np.exp(-np.clip(b, -300.0, 700.0))
+        ea = np.exp(-np.clip(a, -300.0, _U_CLIP))
+        eb = np.exp(-np.clip(b, -300.0, _U_CLIP))
         log_d = np.log1p(ea + eb + ea * eb)
-        lsm = theta[:, s["logit_s_max"]]
+        lsm = theta[:, self._slices["logit_s_max"]]
         with np.errstate(divide="ignore"):
             log_1ms = np.log(np.exp(_log_sigmoid(-lsm)) + ea + eb + ea * eb) - log_d
         return _log_sigmoid(lsm) - log_d, log_1ms
@@ -326,14 +425,17 @@ class SurfaceModel:
         theta = np.asarray(theta, float)
         return theta[None, :] if theta.ndim == 1 else theta
 
-    def completeness(self, theta, m, z) -> np.ndarray:
-        """C(m, z) for parameter vector(s) ``theta``.
+    def completeness(self, theta, m, z, depth=None) -> np.ndarray:
+        """C(m, z | depth) for parameter vector(s) ``theta``.
 
         Parameters
         ----------
         theta : array_like, shape (P,) or (D, P)
         m, z : array_like
-            Input AB magnitude [mag] and redshift, broadcast together.
+            Input magnitude [mag] and redshift, broadcast together.
+        depth : array_like, optional
+            Local depth [AB mag] (broadcast with m, z); default the reference
+            depth.  Ignored by a model that is not depth-aware.
 
         Returns
         -------
@@ -341,33 +443,36 @@ class SurfaceModel:
             Shape ``broadcast(m, z).shape`` for one theta, else ``(D,) + that``.
         """
         th = self._theta2d(theta)
-        m, z = np.broadcast_arrays(np.asarray(m, float), np.asarray(z, float))
+        m, z = np.broadcast_arrays(self.relative_magnitude(m, depth), np.asarray(z, float))
         log_c, _ = self._log_c(th, m.ravel(), z.ravel())
         out = np.exp(log_c).reshape((len(th),) + m.shape)
         return out[0] if np.ndim(theta) == 1 else out
 
-    def selection(self, theta, z, m) -> np.ndarray:
-        """S(z, m), the selection probability of a recovered source (see :meth:`completeness`)."""
+    def selection_given_recovered(self, theta, z, m, depth=None) -> np.ndarray:
+        """S(z, m | depth): probability that a *recovered* source is selected.
+
+        Same arguments as :meth:`completeness`; the probability that a source
+        is recovered and selected is ``completeness * selection_given_recovered``.
+        """
         th = self._theta2d(theta)
-        z, m = np.broadcast_arrays(np.asarray(z, float), np.asarray(m, float))
+        z, m = np.broadcast_arrays(np.asarray(z, float), self.relative_magnitude(m, depth))
         log_s, _ = self._log_s(th, z.ravel(), m.ravel())
         out = np.exp(log_s).reshape((len(th),) + z.shape)
         return out[0] if np.ndim(theta) == 1 else out
 
     def surfaces_on_grid(self, theta, z, m):
-        """C(m, z) and S(z, m) on the outer grid ``z`` x ``m``, for many draws at once.
+        """C(m, z) and S(z, m) on the outer grid ``z`` x ``m`` (model covariates), many draws.
 
-        Same values as :meth:`completeness` and :meth:`selection` (tested to
-        1e-12), but m50(z), w(z) are evaluated per z and the edges per m, so a
-        grid point costs a few array operations (used for V_eff(m) integrals).
+        Same values as :meth:`completeness` and :meth:`selection_given_recovered`
+        (tested to 1e-12), but the z terms are evaluated per z and the edges per
+        m, so a grid point costs a few array operations (V_eff integrals).
 
         Parameters
         ----------
         theta : array_like, shape (P,) or (D, P)
         z : array_like, shape (n_z,)
-            Redshifts.
         m : array_like, shape (n_m,)
-            Input AB magnitudes [mag].
+            Magnitude covariate [mag] (depth-relative for a depth-aware model).
 
         Returns
         -------
@@ -380,20 +485,57 @@ class SurfaceModel:
         s = self._slices
         z = np.asarray(z, float).ravel()
         m = np.asarray(m, float).ravel()
-        zp = self._powers(z, self.z_ref, self.z_scale, max(self.m50_degree, self.log_w_degree))
-        m50 = th[:, s["m50"]] @ zp[:, :self.m50_degree + 1].T                  # (D, n_z)
-        inv_w = np.exp(-(th[:, s["log_w"]] @ zp[:, :self.log_w_degree + 1].T))
+        lcm, m50, inv_w = self._c_terms(th, z)                                   # (D, n_z)
         u = (m[None, None, :] - m50[:, :, None]) * inv_w[:, :, None]
+        if self.shape == "sas":
+            u = _sas_transform(u, th[:, s["sas_eps"]][:, :, None],
+                               th[:, s["sas_log_delta"]][:, :, None])
         f = expit(-u) if self.shape == "logistic" else step_function(u, self.shape)
-        c = expit(th[:, s["logit_c_max"]])[:, :, None] * f
-        mp = self._powers(m, self.m_ref, self.m_scale, self.edge_degree)          # (n_m, k)
-        edge = {k: th[:, s[k]] @ mp.T for k in ("z_lo", "log_dz_lo", "z_hi", "log_dz_hi")}
-        a = (z[None, :, None] - edge["z_lo"][:, None, :]) * np.exp(-edge["log_dz_lo"])[:, None, :]
-        b = (edge["z_hi"][:, None, :] - z[None, :, None]) * np.exp(-edge["log_dz_hi"])[:, None, :]
+        c = expit(lcm)[:, :, None] * f
+        mp = _poly(m, self.m_ref, self.m_scale, self.edge_degree)                 # (n_m, k)
+        edge = {k: th[:, s[k]] @ mp.T for k in ("eta_lo", "log_dz_lo", "eta_hi", "log_dz_hi")}
+        zmin, zmax = self.z_range
+        a = edge["eta_lo"][:, None, :] + (z - zmin)[None, :, None] * np.exp(-edge["log_dz_lo"])[:, None, :]
+        b = edge["eta_hi"][:, None, :] + (zmax - z)[None, :, None] * np.exp(-edge["log_dz_hi"])[:, None, :]
         sel = expit(th[:, s["logit_s_max"]])[:, :, None] * expit(a) * expit(b)
         if np.ndim(theta) == 1:
             return c[0], sel[0]
         return c, sel
+
+    @np.errstate(over="ignore", invalid="ignore")
+    def cell_log_likelihood(self, theta, cells: Cells, part: str = "both") -> np.ndarray:
+        """Binomial log-likelihood of every cell (with the binomial coefficients).
+
+        Parameters
+        ----------
+        theta : array_like, shape (P,) or (W, P)
+        cells : Cells
+        part : {"both", "c", "s"}
+            The recovered term (C), the selected-given-recovered term (S), or both.
+
+        Returns
+        -------
+        ndarray, shape (W, n_cells) (or (n_cells,) for one theta)
+        """
+        from scipy.special import gammaln
+
+        th = self._theta2d(theta)
+        n = np.asarray(cells.n, float)
+        kr = np.asarray(cells.k_rec, float)
+        ks = np.asarray(cells.k_sel, float)
+        f = _LOG_FLOOR
+        out = np.zeros((len(th), len(n)))
+        if part not in ("both", "c", "s"):
+            raise ValueError(f"part must be 'both', 'c' or 's', not {part!r}")
+        if part in ("both", "c"):
+            log_c, log_1mc = self._log_c(th, cells.mag, cells.z)
+            out += (np.maximum(log_c, f) * kr + np.maximum(log_1mc, f) * (n - kr)
+                    + gammaln(n + 1) - gammaln(kr + 1) - gammaln(n - kr + 1))
+        if part in ("both", "s"):
+            log_s, log_1ms = self._log_s(th, cells.z, cells.mag)
+            out += (np.maximum(log_s, f) * ks + np.maximum(log_1ms, f) * (kr - ks)
+                    + gammaln(kr + 1) - gammaln(ks + 1) - gammaln(kr - ks + 1))
+        return out[0] if np.ndim(theta) == 1 else out
 
     @np.errstate(over="ignore", invalid="ignore")
     def log_likelihood(self, theta, cells: Cells, part: str = "both") -> np.ndarray:
@@ -417,14 +559,14 @@ class SurfaceModel:
         ks = np.asarray(cells.k_sel, float)
         f = _LOG_FLOOR
         ll = np.zeros(len(th))
+        if part not in ("both", "c", "s"):
+            raise ValueError(f"part must be 'both', 'c' or 's', not {part!r}")
         if part in ("both", "c"):
             log_c, log_1mc = self._log_c(th, cells.mag, cells.z)
             ll = ll + np.maximum(log_c, f) @ kr + np.maximum(log_1mc, f) @ (n - kr)
         if part in ("both", "s"):
             log_s, log_1ms = self._log_s(th, cells.z, cells.mag)
             ll = ll + np.maximum(log_s, f) @ ks + np.maximum(log_1ms, f) @ (kr - ks)
-        if part not in ("both", "c", "s"):
-            raise ValueError(f"part must be 'both', 'c' or 's', not {part!r}")
         return ll[0] if np.ndim(theta) == 1 else ll
 
     def log_posterior(self, theta, cells: Cells, part: str = "both") -> np.ndarray:
@@ -446,17 +588,42 @@ class SurfaceModel:
         """FITS-header keywords that fully specify the model (see the file docs)."""
         return {"CSHAPE": self.shape, "ZREF": self.z_ref, "ZSCALE": self.z_scale,
                 "MREF": self.m_ref, "MSCALE": self.m_scale, "DEGM50": self.m50_degree,
-                "DEGLOGW": self.log_w_degree, "DEGEDGE": self.edge_degree}
+                "DEGLOGW": self.log_w_degree, "DEGEDGE": self.edge_degree,
+                "DEGCMAX": self.c_max_degree,
+                "DEPTHREF": float("nan") if self.depth_ref is None else self.depth_ref}
 
     @classmethod
     def from_header_dict(cls, h) -> "SurfaceModel":
         try:
+            dref = float(h["DEPTHREF"])
             return cls(shape=str(h["CSHAPE"]), z_ref=float(h["ZREF"]), z_scale=float(h["ZSCALE"]),
                        m_ref=float(h["MREF"]), m_scale=float(h["MSCALE"]),
                        m50_degree=int(h["DEGM50"]), log_w_degree=int(h["DEGLOGW"]),
-                       edge_degree=int(h["DEGEDGE"]))
+                       edge_degree=int(h["DEGEDGE"]), c_max_degree=int(h["DEGCMAX"]),
+                       depth_ref=dref if np.isfinite(dref) else None)
         except KeyError as exc:
             raise ValueError(f"selection-function header lacks model keyword {exc}") from exc
+
+
+def _log_c_terms(model, theta, lcm, u):
+    """ln C and ln(1 - C) from logit C_max (W, N or broadcastable) and u (W, N)."""
+    log_cmax = _log_sigmoid(lcm)
+    if model.shape == "logistic":
+        # Two logs per element (logs dominate the cost): with e = exp(u),
+        # C = C_max / (1 + e) and 1 - C = ((1 - C_max) + e) / (1 + e), both
+        # sums of positives.  |u| <= 700 keeps exp finite; beyond it C is
+        # below 1e-304 or equal to C_max to double precision anyway.
+        e = np.exp(np.clip(u, -_U_CLIP, _U_CLIP))
+        log1pe = np.log1p(e)
+        with np.errstate(divide="ignore"):
+            log_1mc = np.log(np.exp(_log_sigmoid(-lcm)) + e) - log1pe
+        return log_cmax - log1pe, log_1mc
+    if model.shape == "sas":
+        u = model._sas(theta, u)
+    lf = log_step(u, model.shape)
+    # 1 - C_max F(u) = (1 - C_max) + C_max F(-u): a sum of positives, no cancellation.
+    log_1mc = np.logaddexp(_log_sigmoid(-lcm), log_cmax + log_step(-u, model.shape))
+    return log_cmax + lf, log_1mc
 
 
 class BlockPosterior:
@@ -474,11 +641,11 @@ class BlockPosterior:
 
     Why it is faster than :meth:`SurfaceModel.log_posterior` (same formulas):
 
-    - m50(z) and w(z) depend on z only, the edges z_lo(m), dz_lo(m), ... on m
-      only.  When the cells share few distinct z (or m) values -- a simulation
-      grid -- the cells are sorted by that value, the terms (and the
-      exponentials of the widths) are evaluated once per value and repeated
-      over its cells; otherwise they are evaluated per cell;
+    - C_max(z), m50(z) and w(z) depend on z only, the edges on m only.  When
+      the cells share few distinct z (or m) values -- a simulation grid -- the
+      cells are sorted by that value, the terms (and the exponentials of the
+      widths) are evaluated once per value and repeated over its cells;
+      otherwise they are evaluated per cell;
     - the binomial sum is rearranged so that each cell needs one ``log1p`` and
       one ``log``: with e = exp(u),
       ``k ln C + (n - k) ln(1 - C) = k ln C_max - n ln(1 + e) + (n - k) ln((1 - C_max) + e)``
@@ -503,7 +670,8 @@ class BlockPosterior:
         self._mu, self._isd = mu, 1.0 / sd
         self._prior_const = -np.sum(np.log(sd)) - 0.5 * len(sd) * np.log(2 * np.pi)
         off = self.index[0]
-        sl = {k: slice(v.start - off, v.stop - off) for k, v in model._slices.items()}
+        self._sl = {k: slice(v.start - off, v.stop - off) for k, v in model._slices.items()
+                    if v.start >= off and v.stop <= off + len(self.index)}
         n = np.asarray(cells.n, float)
         kr = np.asarray(cells.k_rec, float)
         ks = np.asarray(cells.k_sel, float)
@@ -511,21 +679,21 @@ class BlockPosterior:
         if part == "c":
             trials, succ, group, x = n, kr, z, m
             ref, scale = model.z_ref, model.z_scale
-            deg = max(model.m50_degree, model.log_w_degree)
-            self._sl = (sl["logit_c_max"], sl["m50"], sl["log_w"])
+            deg = max(model.m50_degree, model.log_w_degree, model.c_max_degree)
         else:
             keep = kr > 0
             trials, succ, group, x = kr[keep], ks[keep], m[keep], z[keep]
             ref, scale, deg = model.m_ref, model.m_scale, model.edge_degree
-            self._sl = (sl["logit_s_max"], sl["z_lo"], sl["log_dz_lo"], sl["z_hi"], sl["log_dz_hi"])
         order = np.argsort(group, kind="stable")
-        ug, counts = np.unique(group[order], return_counts=True)
+        ug, inv, counts = np.unique(group[order], return_inverse=True, return_counts=True)
         # Repeating per-value terms pays only when values are shared by several cells.
         self._counts = counts if 4 * len(ug) <= len(group) else None
         g = ug if self._counts is not None else group[order]
         self._trials, self._succ = trials[order], succ[order]
         self._fail = self._trials - self._succ
-        self._k_total = float(np.sum(succ))
+        # Successes per value (or per cell): the k ln C_max term is summed per value.
+        self._succ_g = (np.bincount(inv, weights=self._succ, minlength=len(ug))
+                        if self._counts is not None else self._succ)
         self._x = x[order]
         self._gp = ((g - ref) / scale)[:, None] ** np.arange(deg + 1)   # (n_values, deg + 1)
 
@@ -537,7 +705,8 @@ class BlockPosterior:
         t = (x - self._mu) * self._isd
         return -0.5 * np.einsum("ij,ij->i", t, t) + self._prior_const
 
-    def _lin(self, x, s):
+    def _lin(self, x, name):
+        s = self._sl[name]
         return x[:, s] @ self._gp[:, :s.stop - s.start].T                # (W, n_values)
 
     def _expand(self, a):
@@ -557,45 +726,46 @@ class BlockPosterior:
         return lp[0] if one else lp
 
     def _log_like_c(self, x):
-        s_lcm, s_m50, s_lw = self._sl
-        lcm = x[:, s_lcm.start]
-        inv_w = np.exp(-self._lin(x, s_lw))
-        u = self._x - self._expand(self._lin(x, s_m50))
+        lcm = self._lin(x, "logit_c_max")                          # (W, n_values)
+        inv_w = np.exp(-self._lin(x, "log_w"))
+        u = self._x - self._expand(self._lin(x, "m50"))
         u *= self._expand(inv_w)                                  # (m - m50) / w, (W, N)
         log_cmax = _log_sigmoid(lcm)
         if self.model.shape == "logistic":
             # e = exp(u); C = C_max / (1 + e), 1 - C = ((1 - C_max) + e) / (1 + e).
-            # |u| <= 700 keeps e finite and > 0, so no log(0) (see SurfaceModel._log_c).
-            np.clip(u, -700.0, 700.0, out=u)
+            # |u| <= 700 keeps e finite and > 0, so no log(0) (see _log_c_terms).
+            np.clip(u, -_U_CLIP, _U_CLIP, out=u)
             e = np.exp(u, out=u)
-            eps = np.exp(_log_sigmoid(-lcm))[:, None]
-            ll = self._k_total * log_cmax - np.log1p(e) @ self._trials
-            e += eps
+            ll = log_cmax @ self._succ_g - np.log1p(e) @ self._trials
+            e += self._expand(np.exp(_log_sigmoid(-lcm)))
             return ll + np.log(e, out=e) @ self._fail
+        if self.model.shape == "sas":
+            u = _sas_transform(u, x[:, self._sl["sas_eps"]], x[:, self._sl["sas_log_delta"]])
         f = _LOG_FLOOR
-        log_c = log_cmax[:, None] + log_step(u, self.model.shape)
-        log_1mc = np.logaddexp(_log_sigmoid(-lcm)[:, None],
-                               log_cmax[:, None] + log_step(-u, self.model.shape))
-        return np.maximum(log_c, f) @ self._succ + np.maximum(log_1mc, f) @ self._fail
+        lf = log_step(u, self.model.shape)
+        log_1mc = np.logaddexp(self._expand(_log_sigmoid(-lcm)),
+                               self._expand(log_cmax) + log_step(-u, self.model.shape))
+        return (log_cmax @ self._succ_g + np.maximum(lf, f) @ self._succ
+                + np.maximum(log_1mc, f) @ self._fail)
 
     def _log_like_s(self, x):
-        s_lsm, s_zlo, s_dlo, s_zhi, s_dhi = self._sl
-        lsm = x[:, s_lsm.start]
+        lsm = x[:, self._sl["logit_s_max"].start]
         z, ex = self._x, self._expand
-        # Minus the edge arguments: -a = (z_lo - z) / dz_lo, -b = (z - z_hi) / dz_hi.
-        na = ex(self._lin(x, s_zlo)) - z
-        na *= ex(np.exp(-self._lin(x, s_dlo)))
-        nb = z - ex(self._lin(x, s_zhi))
-        nb *= ex(np.exp(-self._lin(x, s_dhi)))
+        zmin, zmax = self.model.z_range
+        # Minus the edge arguments: -a = -eta_lo - (z - z_min) / dz_lo, -b likewise.
+        na = (zmin - z) * ex(np.exp(-self._lin(x, "log_dz_lo")))
+        na -= ex(self._lin(x, "eta_lo"))
+        nb = (z - zmax) * ex(np.exp(-self._lin(x, "log_dz_hi")))
+        nb -= ex(self._lin(x, "eta_hi"))
         # S = S_max / D, D = (1 + e^-a)(1 + e^-b); D - 1 = ea + eb + ea eb, a sum of
         # positives, > 0 after the clipping (same as SurfaceModel._log_s), so no log(0).
-        np.clip(na, -700.0, 300.0, out=na)
-        np.clip(nb, -700.0, 300.0, out=nb)
+        np.clip(na, -_U_CLIP, 300.0, out=na)
+        np.clip(nb, -_U_CLIP, 300.0, out=nb)
         ea = np.exp(na, out=na)
         eb = np.exp(nb, out=nb)
         t = ea * eb
         t += ea
         t += eb
-        ll = self._k_total * _log_sigmoid(lsm) - np.log1p(t) @ self._trials
+        ll = np.sum(self._succ) * _log_sigmoid(lsm) - np.log1p(t) @ self._trials
         t += np.exp(_log_sigmoid(-lsm))[:, None]
         return ll + np.log(t, out=t) @ self._fail

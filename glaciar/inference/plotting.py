@@ -26,6 +26,20 @@ def _zs_to_show(sf, max_panels=6):
     return zs
 
 
+def _binned(ppc, mask, k, n):
+    """(x, (k+1)/(n+2), 16 %, 84 %) of the PPC rows ``mask``, depth bins summed per magnitude."""
+    from scipy import stats
+
+    r = ppc[mask]
+    mags = np.unique(r["mag"])
+    kk = np.array([r[k][r["mag"] == m].sum() for m in mags], float)
+    nn = np.array([r[n][r["mag"] == m].sum() for m in mags], float)
+    keep = nn > 0
+    mags, kk, nn = mags[keep], kk[keep], nn[keep]
+    return (mags, (kk + 1) / (nn + 2), stats.beta.ppf(0.16, kk + 1, nn - kk + 1),
+            stats.beta.ppf(0.84, kk + 1, nn - kk + 1))
+
+
 def plot_completeness(sf, path):
     """C(m) at the simulated redshifts: median, 68 % and 95 % bands, binned points.
 
@@ -46,14 +60,13 @@ def plot_completeness(sf, path):
     for z, col in zip(zs, colors):
         _credible_band(ax, m, sf.completeness(m, z, draws=True), col, f"z = {z:.2f}")
         if sf.ppc is not None:
-            r = sf.ppc[np.isclose(sf.ppc["z"], z)]
-            ax.errorbar(r["mag_input_mean"], r["c_binned"],
-                        yerr=[r["c_binned"] - r["c_binned_q16"], r["c_binned_q84"] - r["c_binned"]],
-                        fmt="o", ms=3, color=col, lw=0.8)
-    ax.set_xlabel("input magnitude [AB]")
+            x, y, lo, hi = _binned(sf.ppc, np.isclose(sf.ppc["z"], z), "k_rec", "n")
+            ax.errorbar(x, y, yerr=[y - lo, hi - y], fmt="o", ms=3, color=col, lw=0.8)
+    ax.set_xlabel("input magnitude" + (" (M_UV)" if sf.magnitude_type == "absolute" else " [AB]"))
     ax.set_ylabel("completeness C(m)")
     ax.set_ylim(-0.02, 1.02)
-    ax.set_title(f"completeness ({sf.model.shape}, field {sf.field}); points: (k+1)/(n+2)")
+    ax.set_title(f"C, area-weighted ({sf.model.shape}, field {sf.field}); points: (k+1)/(n+2)",
+                 fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
     save_png(fig, path, dpi=110)
@@ -82,12 +95,14 @@ def plot_selection(sf, path, n_mags=4):
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.5))
     colors = plt.cm.plasma(np.linspace(0, 0.85, len(mags)))
     for mv, col in zip(mags, colors):
-        _credible_band(ax, z, sf.selection(z, mv, draws=True, conditional=True), col, f"m = {mv:.2f}")
+        _credible_band(ax, z, sf.selection_given_recovered(z, mv, draws=True), col, f"m = {mv:.2f}")
         if sf.ppc is not None:
-            r = sf.ppc[np.isclose(sf.ppc["mag"], mv) & (sf.ppc["k_rec"] > 0)]
-            ax.errorbar(r["z"], r["s_binned"],
-                        yerr=[r["s_binned"] - r["s_binned_q16"], r["s_binned_q84"] - r["s_binned"]],
-                        fmt="o", ms=3, color=col, lw=0.8)
+            zs = np.unique(sf.ppc["z"])
+            pts = [_binned(sf.ppc, np.isclose(sf.ppc["z"], zz) & np.isclose(sf.ppc["mag"], mv),
+                           "k_sel", "k_rec") for zz in zs]
+            for zz, (x, y, lo, hi) in zip(zs, pts):
+                if len(x):
+                    ax.errorbar([zz], y, yerr=[y - lo, hi - y], fmt="o", ms=3, color=col, lw=0.8)
     ax.set_xlabel("redshift z")
     ax.set_ylabel("S(z, m) = P(selected | recovered)")
     ax.set_ylim(-0.02, 1.02)
@@ -95,7 +110,7 @@ def plot_selection(sf, path, n_mags=4):
     P = sf.grid_quantiles("P", quantiles=(0.5,))[0]
     im = ax2.imshow(P, origin="lower", aspect="auto", vmin=0, vmax=1, cmap="magma",
                     extent=[sf.m_grid[0], sf.m_grid[-1], sf.z_grid[0], sf.z_grid[-1]])
-    fig.colorbar(im, ax=ax2, label="median P(selected | z, m) = C S")
+    fig.colorbar(im, ax=ax2, label="median selection probability P = C S")
     ax2.set_xlabel("input magnitude [AB]")
     ax2.set_ylabel("redshift z")
     fig.suptitle(f"selection (field {sf.field})")

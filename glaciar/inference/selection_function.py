@@ -1,5 +1,17 @@
 """The exported selection function: evaluate, sample, effective volume; FITS I/O.
 
+Three quantities, each with one name (so that nothing is multiplied twice):
+
+* :meth:`SelectionFunction.completeness` -- C = P(recovered | m, z);
+* :meth:`SelectionFunction.selection_given_recovered` -- S = P(selected | recovered, z, m);
+* :meth:`SelectionFunction.selection_probability` -- P = P(recovered and selected | z, m),
+  what a luminosity-function code multiplies by.
+
+Without a ``depth`` argument each is the *area-weighted survey average* over the
+fields' area-by-depth distributions (the one the file's grids tabulate):
+C̄ = Σ_j A_j C(m | d_j) / Σ A_j, P̄ likewise, and S̄ = P̄ / C̄, so that C̄ S̄ = P̄
+draw by draw.  With ``depth`` they are the surfaces at that local depth.
+
 The file layout is documented in ``docs/selection-function-file.md`` so that
 it can be read without glaciar.
 """
@@ -13,10 +25,16 @@ import numpy as np
 
 from .models import SurfaceModel
 
-__all__ = ["SelectionFunction", "EffectiveVolume", "GRID_QUANTILES", "FILE_FORMAT"]
+__all__ = ["SelectionFunction", "EffectiveVolume", "MagnitudeAt", "GRID_QUANTILES",
+           "FILE_FORMAT", "MAX_DEPTH_NODES"]
 
-GRID_QUANTILES = (0.5, 0.16, 0.84, 0.025, 0.975)   #: planes of the C/S/P grid cubes
-FILE_FORMAT = "glaciar-selection-function-1"
+GRID_QUANTILES = (0.5, 0.16, 0.84, 0.025, 0.975)   #: planes of the C/SR/P grid cubes
+FILE_FORMAT = "glaciar-selection-function-2"
+#: The area-by-depth histogram (0.05 mag bins) is merged into at most this many
+#: depth nodes, each at the area-weighted mean depth of its bins: the surfaces
+#: are smooth in depth on the scale of w (~0.3 mag), so the error of the mixture
+#: is second order in the node width (< 1e-3 for nodes <= 0.1 mag, tested).
+MAX_DEPTH_NODES = 24
 
 
 @dataclass(frozen=True)
@@ -36,8 +54,42 @@ class EffectiveVolume:
     draws: object
 
 
+@dataclass(frozen=True)
+class MagnitudeAt:
+    """Magnitude at which completeness reaches a level, per posterior draw.
+
+    Attributes
+    ----------
+    median, lower, upper : ndarray
+        Posterior median and central-interval bounds [mag]; NaN where the
+        level is above C_max (never reached).
+    draws : ndarray (n_draws,) + shape
+    """
+
+    median: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    draws: np.ndarray
+
+
+def _depth_nodes(edges, area, max_nodes=MAX_DEPTH_NODES):
+    """Merge an area-by-depth histogram into <= max_nodes (depth, area) nodes."""
+    edges, area = np.asarray(edges, float), np.asarray(area, float)
+    centre = 0.5 * (edges[:-1] + edges[1:])
+    keep = area > 0
+    centre, area = centre[keep], area[keep]
+    if len(centre) <= max_nodes:
+        return centre, area
+    lo, hi = centre.min(), centre.max()
+    k = np.minimum(((centre - lo) / (hi - lo) * max_nodes).astype(int), max_nodes - 1)
+    a = np.bincount(k, weights=area, minlength=max_nodes)
+    d = np.bincount(k, weights=area * centre, minlength=max_nodes)
+    ok = a > 0
+    return d[ok] / a[ok], a[ok]
+
+
 class SelectionFunction:
-    """Posterior draws of C(m, z) and S(z, m), evaluable anywhere.
+    """Posterior draws of C and S, evaluable anywhere inside the simulated box.
 
     Parameters
     ----------
@@ -45,28 +97,29 @@ class SelectionFunction:
     draws : ndarray, shape (n_draws, n_params)
         Posterior draws of the parameters.
     z_grid, m_grid : ndarray, optional
-        Grid used for the tabulated quantiles in the file.
+        Grid of the tabulated quantiles in the file.
     meta : dict, optional
-        Metadata (fields, area_arcmin2, bands, selection, config_hash, ...).
+        Metadata (fields, area_arcmin2, area_arcmin2_field, bands, selection,
+        magnitude_type, config_hash, ...).
     field : str
         Which field the fit describes ("all" when pooled).
     ppc : numpy structured array, optional
         Posterior-predictive check table.
+    fit_info : dict, optional
+        Scalar diagnostics (written to the DRAWS header).
+    depth_area : dict, optional
+        ``{field: (bin_edges_mag, area_arcmin2)}``: the area-by-depth
+        distribution of each field this fit describes.
+    domain : dict, optional
+        The simulated box: ``{"z": (lo, hi), "mag": (lo, hi), "depth": (lo, hi)}``;
+        evaluations outside it are NaN unless ``outside="extrapolate"``.
+    diagnostics : dict of arrays, optional
+        Per-parameter ``tau``, ``ess``, ``rhat`` (written to PARAMS).
     """
 
-    def area_arcmin2(self) -> float | None:
-        """Survey area of this fit [arcmin^2]: its field's, or the sum over fields when pooled.
-
-        The run manifest stores ``area_arcmin2`` per field (a mapping); older or
-        hand-made metadata may hold one number.
-        """
-        per_field = self.meta.get("area_arcmin2_field")
-        if isinstance(per_field, dict) and self.field in per_field:
-            return float(per_field[self.field])
-        return _area_for(self.meta.get("area_arcmin2"), self.field)
-
     def __init__(self, model: SurfaceModel, draws, z_grid=None, m_grid=None, meta=None,
-                 field: str = "all", ppc=None, fit_info=None):
+                 field: str = "all", ppc=None, fit_info=None, depth_area=None, domain=None,
+                 diagnostics=None):
         self.model = model
         self.draws = np.atleast_2d(np.asarray(draws, float))
         if self.draws.shape[1] != model.n_params:
@@ -78,6 +131,10 @@ class SelectionFunction:
         self.field = str(field)
         self.ppc = ppc
         self.fit_info = dict(fit_info or {})
+        self.depth_area = {str(k): (np.asarray(e, float), np.asarray(a, float))
+                           for k, (e, a) in (depth_area or {}).items()}
+        self.domain = {k: (float(v[0]), float(v[1])) for k, v in (domain or {}).items()}
+        self.diagnostics = dict(diagnostics or {})
 
     @property
     def n_draws(self) -> int:
@@ -87,44 +144,155 @@ class SelectionFunction:
     def param_names(self) -> list[str]:
         return self.model.param_names
 
-    # ---------------------------------------------------------------- evaluate
-    def _reduce(self, vals, draws):
-        return vals if draws else np.median(vals, axis=0)
+    @property
+    def magnitude_type(self) -> str:
+        """"apparent" (m is the detection-band AB magnitude) or "absolute" (M_UV at 1600 A)."""
+        return str(self.meta.get("magnitude_type", "apparent"))
 
-    def completeness(self, m, z, draws: bool = False) -> np.ndarray:
-        """Completeness C(m, z): probability that a source is recovered.
+    @property
+    def fields(self) -> list[str]:
+        """Fields this fit describes (those with a depth distribution, else from the metadata)."""
+        if self.depth_area:
+            return sorted(self.depth_area)
+        return [self.field] if self.field != "all" else list(self.meta.get("fields", []))
+
+    def area_arcmin2(self, field: str | None = None) -> float | None:
+        """Area [arcmin^2] of ``field``, or of all fields of this fit."""
+        if field is not None:
+            if field in self.depth_area:
+                return float(np.sum(self.depth_area[field][1]))
+            per = self.meta.get("area_arcmin2_field") or {}
+            return float(per[field]) if field in per else None
+        if self.depth_area:
+            return float(sum(np.sum(a) for _, a in self.depth_area.values()))
+        per = self.meta.get("area_arcmin2_field")
+        if isinstance(per, dict) and self.field in per:
+            return float(per[self.field])
+        a = self.meta.get("area_arcmin2")
+        return None if a is None else float(a)
+
+    # ------------------------------------------------------------- depth mixture
+    def depth_nodes(self, field: str | None = None):
+        """(depths [AB mag], areas [arcmin^2]) over which survey averages are taken.
+
+        A model that is not depth-aware (or a fit without depth distributions)
+        has one node at the reference depth carrying the whole area (or 1).
+        """
+        if not self.model.depth_aware or not self.depth_area:
+            a = self.area_arcmin2(field)
+            return np.array([np.nan]), np.array([a if a else 1.0])
+        if field is not None:
+            if field not in self.depth_area:
+                raise ValueError(f"no depth distribution for field {field!r} "
+                                 f"(have {sorted(self.depth_area)})")
+            items = [self.depth_area[field]]
+        else:
+            items = list(self.depth_area.values())
+        # Fields share the 0.05 mag lattice: sum their histograms bin by bin.
+        bins = {}
+        for e, a in items:
+            c = np.round(0.5 * (e[:-1] + e[1:]), 6)
+            w = np.round(e[1:] - e[:-1], 6)
+            for ci, wi, ai in zip(c, w, a):
+                key = (ci, wi)
+                bins[key] = bins.get(key, 0.0) + ai
+        keys = sorted(bins)
+        centres = np.array([k[0] for k in keys])
+        widths = np.array([k[1] for k in keys])
+        edges = np.concatenate([centres - widths / 2, centres[-1:] + widths[-1:] / 2])
+        if len(keys) > 1 and not np.allclose(edges[1:-1], (centres + widths / 2)[:-1]):
+            # Not contiguous: treat each bin as its own node.
+            return centres, np.array([bins[k] for k in keys])
+        return _depth_nodes(edges, np.array([bins[k] for k in keys]))
+
+    def _mask(self, m, z, depth):
+        """True where (m, z[, depth]) lies outside the simulated box."""
+        bad = np.zeros(np.broadcast(m, z).shape, bool)
+        for key, v in (("mag", m), ("z", z), ("depth", depth)):
+            if key in self.domain and v is not None:
+                lo, hi = self.domain[key]
+                tol = 1e-9 * max(1.0, abs(hi))
+                bad = bad | (np.asarray(v) < lo - tol) | (np.asarray(v) > hi + tol)
+        return bad
+
+    def _evaluate(self, which, m, z, depth, field, draws, outside):
+        if outside not in ("nan", "extrapolate"):
+            raise ValueError(f"outside must be 'nan' or 'extrapolate', not {outside!r}")
+        m = np.asarray(m, float)
+        z = np.asarray(z, float)
+        mdl, th = self.model, self.draws
+        if depth is not None or not mdl.depth_aware:
+            c = mdl.completeness(th, m, z, depth)
+            if which == "C":
+                out = c
+            else:
+                s = mdl.selection_given_recovered(th, z, m, depth)
+                out = s if which == "S" else c * s
+        else:
+            nodes, area = self.depth_nodes(field)
+            w = area / area.sum()
+            cbar = pbar = 0.0
+            for dj, wj in zip(nodes, w):
+                c = mdl.completeness(th, m, z, dj)
+                cbar = cbar + wj * c
+                if which != "C":
+                    pbar = pbar + wj * c * mdl.selection_given_recovered(th, z, m, dj)
+            if which == "C":
+                out = cbar
+            elif which == "P":
+                out = pbar
+            else:
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    out = pbar / cbar
+        if outside == "nan":
+            bad = self._mask(m, z, depth)
+            if bad.any():
+                out = np.where(bad, np.nan, out)
+        return out if draws else np.median(out, axis=0)
+
+    # ---------------------------------------------------------------- evaluate
+    def completeness(self, m, z, depth=None, *, field: str | None = None, draws: bool = False,
+                     outside: str = "nan") -> np.ndarray:
+        """Completeness C = P(recovered | m, z).
 
         Parameters
         ----------
         m : array_like
-            Total input AB magnitude in the detection band [mag].
+            Total input magnitude [mag]: AB in the detection band, or M_UV for
+            an absolute-magnitude fit (:attr:`magnitude_type`).
         z : array_like
             Redshift; broadcast against ``m``.
+        depth : array_like, optional
+            Local depth [AB mag, 5 sigma]: C at that depth.  Default: the
+            area-weighted average over the survey's (or ``field``'s) depths.
+        field : str, optional
+            Average over this field's area only (depth=None).
         draws : bool
-            Return all posterior draws, shape ``(n_draws,) + shape``, instead of
-            the pointwise posterior median.
+            Return every posterior draw, shape ``(n_draws,) + shape``, instead
+            of the pointwise posterior median.
+        outside : {"nan", "extrapolate"}
+            Outside the simulated (z, m[, depth]) box the value is NaN, unless
+            "extrapolate" asks for the parametric form's extrapolation.
         """
-        return self._reduce(self.model.completeness(self.draws, m, z), draws)
+        return self._evaluate("C", m, z, depth, field, draws, outside)
 
-    def selection(self, z, m, draws: bool = False, conditional: bool = False) -> np.ndarray:
-        """Selection probability at (z, m).
+    def selection_given_recovered(self, z, m, depth=None, *, field: str | None = None,
+                                  draws: bool = False, outside: str = "nan") -> np.ndarray:
+        """S = P(selected | recovered, z, m): the colour/S-N selection of a recovered source.
 
-        Parameters
-        ----------
-        z, m : array_like
-            Redshift and total input AB magnitude [mag], broadcast together.
-        draws : bool
-            Return all draws instead of the pointwise posterior median.
-        conditional : bool
-            If False (default), P(selected | z, m) = C(m, z) S(z, m), the
-            probability that a source is detected *and* selected -- what a
-            luminosity-function code needs.  If True, S(z, m) alone (selected
-            given recovered).
+        Survey averages are P̄ / C̄, so ``completeness * selection_given_recovered``
+        equals :meth:`selection_probability` draw by draw.  Arguments as
+        :meth:`completeness`.
         """
-        s = self.model.selection(self.draws, z, m)
-        if not conditional:
-            s = s * self.model.completeness(self.draws, m, z)
-        return self._reduce(s, draws)
+        return self._evaluate("S", m, z, depth, field, draws, outside)
+
+    def selection_probability(self, z, m, depth=None, *, field: str | None = None,
+                              draws: bool = False, outside: str = "nan") -> np.ndarray:
+        """P = P(recovered and selected | z, m) = C S: what an LF code multiplies by.
+
+        Arguments as :meth:`completeness`.
+        """
+        return self._evaluate("P", m, z, depth, field, draws, outside)
 
     def sample(self, n: int, seed=None) -> list["SelectionFunction"]:
         """``n`` posterior draws, each a one-draw SelectionFunction.
@@ -132,36 +300,75 @@ class SelectionFunction:
         Fitting a luminosity function once per returned object propagates the
         selection-function uncertainty.  Draws are taken without replacement
         when ``n <= n_draws``.
-
-        Parameters
-        ----------
-        n : int
-        seed : int, optional
         """
         rng = np.random.default_rng(seed)
         idx = rng.choice(self.n_draws, size=int(n), replace=int(n) > self.n_draws)
         return [SelectionFunction(self.model, self.draws[i:i + 1], self.z_grid, self.m_grid,
-                                  self.meta, self.field) for i in idx]
+                                  self.meta, self.field, depth_area=self.depth_area,
+                                  domain=self.domain) for i in idx]
 
-    def effective_volume(self, m, area=None, cosmology=None, z_min=None, z_max=None,
-                         n_z: int = 2001, interval: float = 0.68) -> EffectiveVolume:
-        """V_eff(m) = area * integral of C(m, z) S(z, m) dV/dz/dOmega dz.
+    def magnitude_at(self, completeness: float, z, *, field: str | None = None,
+                     interval: float = 0.68) -> MagnitudeAt:
+        """The magnitude where the survey-averaged C falls to ``completeness``, per draw.
+
+        C is monotone in m for every draw (and so is its area-weighted depth
+        average): C̄ is tabulated on a 0.005 mag grid over the simulated range
+        +- 3 mag and the crossing interpolated linearly (error < 1e-4 mag for
+        widths w >= 0.05 mag).  NaN where the level is not reached in that range
+        (e.g. above C_max).
+
+        Parameters
+        ----------
+        completeness : float
+            Level in (0, 1), e.g. 0.5 for m50.
+        z : float or 1-D array_like
+            Redshift(s).
+        """
+        level = float(completeness)
+        if not 0 < level < 1:
+            raise ValueError(f"completeness level must be in (0, 1), not {level}")
+        z = np.atleast_1d(np.asarray(z, float))
+        lo_m, hi_m = self.domain.get("mag", (self.model.m_ref - self.model.m_scale,
+                                             self.model.m_ref + self.model.m_scale))
+        mg = np.arange(lo_m - 3.0, hi_m + 3.0 + 1e-9, 0.005)
+        c = self.grid_draws(z, mg, field)["C"]                       # (D, n_z, n_m)
+        below = c < level
+        j = np.argmax(below, axis=-1)                                # first grid point below
+        ok = below.any(axis=-1) & (j > 0)
+        j = np.clip(j, 1, len(mg) - 1)
+        c1 = np.take_along_axis(c, (j - 1)[..., None], -1)[..., 0]
+        c2 = np.take_along_axis(c, j[..., None], -1)[..., 0]
+        frac = (c1 - level) / np.where(c1 > c2, c1 - c2, 1.0)
+        d = np.where(ok, mg[j - 1] + frac * (mg[j] - mg[j - 1]), np.nan)
+        with np.errstate(all="ignore"):
+            q = np.nanquantile(d, [0.5, 0.5 - interval / 2, 0.5 + interval / 2], axis=0) \
+                if np.isfinite(d).any() else np.full((3, len(z)), np.nan)
+        return MagnitudeAt(median=q[0], lower=q[1], upper=q[2], draws=d)
+
+    def effective_volume(self, m, area=None, cosmology=None, *, field: str | None = None,
+                         z_min=None, z_max=None, n_z: int = 2001,
+                         interval: float = 0.68) -> EffectiveVolume:
+        """V_eff(m) = Σ_fields Σ_depth A(d) ∫ C(m, z | d) S(z, m | d) dV/dz/dΩ dz.
 
         Parameters
         ----------
         m : float or array_like
-            Input AB magnitude(s) [mag].
+            Input magnitude(s) [mag].
         area : astropy Quantity (solid angle) or float, optional
-            Survey area; a float is in arcmin^2.  Default: ``meta["area_arcmin2"]``.
+            Survey area; a float is in arcmin^2.  Default: the fields' areas
+            (their area-by-depth distributions).  Given explicitly, it rescales
+            the depth distribution of the fields to this total area.
         cosmology : astropy.cosmology.Cosmology, optional
             Default Planck18.
+        field : str, optional
+            One field's V_eff (its area and depths); the fields' V_eff add up
+            to the survey's.
         z_min, z_max : float, optional
-            Integration range; default the fitted redshift range (the surface
-            is not constrained outside it).
+            Integration range; default (and at most) the simulated range.
         n_z : int
-            Simpson nodes (odd).  With the default 2001 nodes the integral is
-            accurate to < 1e-4 relative for edges wider than dz = 0.02 (tested
-            against scipy.integrate.quad to 1e-3).
+            Simpson nodes (odd).  With 2001 nodes the integral is accurate to
+            < 1e-4 relative for edges wider than dz = 0.02 (tested against
+            scipy.integrate.quad to 1e-3).
         interval : float
             Credible-interval probability (central).
 
@@ -169,35 +376,47 @@ class SelectionFunction:
         -------
         EffectiveVolume
             Quantities in Mpc^3.
+
+        Raises
+        ------
+        ValueError
+            No area known or given, or no redshift range (a single-z fit).
         """
         import astropy.units as u
         from scipy.integrate import simpson
 
         if cosmology is None:
             from astropy.cosmology import Planck18 as cosmology
-        if area is None:
-            a = self.area_arcmin2()
-            if a is None:
-                raise ValueError("effective_volume: give `area` (the file's metadata has no area_arcmin2)")
-            area = a * u.arcmin ** 2
-        elif not isinstance(area, u.Quantity):
-            area = float(area) * u.arcmin ** 2
-        area_sr = area.to_value(u.sr)
-        if z_min is None or z_max is None:
-            zr = self._z_range()
-            z_min = zr[0] if z_min is None else z_min
-            z_max = zr[1] if z_max is None else z_max
+        nodes, node_area = self.depth_nodes(field)
+        if area is not None:
+            if not isinstance(area, u.Quantity):
+                area = float(area) * u.arcmin ** 2
+            total = area.to_value(u.arcmin ** 2)
+            if not (np.isfinite(total) and total > 0):
+                raise ValueError(f"effective_volume: area must be a positive finite number, not {area}")
+            node_area = node_area / node_area.sum() * total
+        elif self.area_arcmin2(field) is None:
+            raise ValueError("effective_volume: give `area` (the file records no survey area)")
+        node_sr = (node_area * u.arcmin ** 2).to_value(u.sr)
+        zr = self.domain.get("z", self._z_range())
+        z_min = zr[0] if z_min is None else max(float(z_min), zr[0])
+        z_max = zr[1] if z_max is None else min(float(z_max), zr[1])
         if not z_max > z_min:
-            raise ValueError(f"effective_volume: z_max ({z_max}) must exceed z_min ({z_min})")
+            raise ValueError(f"effective_volume: no redshift range to integrate over "
+                             f"(z_min = {z_min}, z_max = {z_max}); simulate more than one redshift")
         n_z = int(n_z) | 1
         zz = np.linspace(z_min, z_max, n_z)
         dvdz = cosmology.differential_comoving_volume(zz).to_value(u.Mpc ** 3 / u.sr)
         m = np.asarray(m, float)
         mm = m.reshape(-1)
-        out = np.empty((self.n_draws, mm.size))
-        for j, mj in enumerate(mm):
-            p = self.model.selection(self.draws, zz, mj) * self.model.completeness(self.draws, mj, zz)
-            out[:, j] = simpson(p.reshape(self.n_draws, -1) * dvdz, x=zz, axis=-1) * area_sr
+        out = np.zeros((self.n_draws, mm.size))
+        for dj, sr in zip(nodes, node_sr):
+            mrel = self.model.relative_magnitude(mm, None if np.isnan(dj) else dj)
+            for i in range(0, self.n_draws, 64):
+                c, s = self.model.surfaces_on_grid(self.draws[i:i + 64], zz, mrel)
+                out[i:i + 64] += simpson(c * s * dvdz[None, :, None], x=zz, axis=1) * sr
+        if "mag" in self.domain:
+            out[:, self._mask(mm, np.full(mm.shape, zz[0]), None)] = np.nan
         out = out.reshape((self.n_draws,) + m.shape)
         lo, hi = 0.5 - 0.5 * interval, 0.5 + 0.5 * interval
         q = np.quantile(out, [0.5, lo, hi], axis=0)
@@ -208,41 +427,46 @@ class SelectionFunction:
     def _z_range(self):
         if self.z_grid is not None:
             return float(self.z_grid[0]), float(self.z_grid[-1])
-        mdl = self.model
-        return mdl.z_ref - mdl.z_scale, mdl.z_ref + mdl.z_scale
+        return self.model.z_range
 
     # ------------------------------------------------------------------- grids
-    def grid_quantiles(self, which: str, z_grid=None, m_grid=None, quantiles=GRID_QUANTILES):
+    def grid_draws(self, z_grid=None, m_grid=None, field: str | None = None):
+        """Draws of the survey-averaged C̄, S̄ = P̄/C̄ and P̄ on the outer grid z x m.
+
+        Returns
+        -------
+        dict of ndarray, each (n_draws, n_z, n_m), keys "C", "S", "P".
+        """
+        zg = self.z_grid if z_grid is None else np.asarray(z_grid, float)
+        mg = self.m_grid if m_grid is None else np.asarray(m_grid, float)
+        if zg is None or mg is None:
+            raise ValueError("grid_draws: no z/m grid given or stored")
+        nodes, area = self.depth_nodes(field)
+        w = area / area.sum()
+        cbar = np.zeros((self.n_draws, len(zg), len(mg)))
+        pbar = np.zeros_like(cbar)
+        for dj, wj in zip(nodes, w):
+            mrel = self.model.relative_magnitude(mg, None if np.isnan(dj) else dj)
+            c, s = self.model.surfaces_on_grid(self.draws, zg, mrel)
+            cbar += wj * c
+            pbar += wj * c * s
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sbar = pbar / cbar
+        return {"C": cbar, "S": sbar, "P": pbar}
+
+    def grid_quantiles(self, which: str, z_grid=None, m_grid=None, quantiles=GRID_QUANTILES,
+                       field: str | None = None):
         """Pointwise posterior quantiles on the (z, m) grid, shape (n_q, n_z, n_m).
 
         Parameters
         ----------
         which : {"C", "S", "P"}
-            Completeness, selection given recovery, or their product.
+            Completeness, selection given recovery, or selection probability
+            (survey averages, see the module docstring).
         """
-        zg = self.z_grid if z_grid is None else np.asarray(z_grid, float)
-        mg = self.m_grid if m_grid is None else np.asarray(m_grid, float)
-        if zg is None or mg is None:
-            raise ValueError("grid_quantiles: no z/m grid given or stored")
         if which not in ("C", "S", "P"):
             raise ValueError(f"which must be 'C', 'S' or 'P', not {which!r}")
-        return self._grids(zg, mg, quantiles, (which,))[which]
-
-    def _grids(self, zg, mg, quantiles, which=("C", "S", "P")):
-        out = {w: np.empty((len(quantiles), len(zg), len(mg))) for w in which}
-        zz = np.repeat(zg, len(mg))
-        mm = np.tile(mg, len(zg))
-        # Blocks of grid points: n_draws x block values at a time, bounded memory.
-        step = max(1, 2_000_000 // max(self.n_draws, 1))
-        for a in range(0, zz.size, step):
-            z, m = zz[a:a + step], mm[a:a + step]
-            c = self.model.completeness(self.draws, m, z).reshape(self.n_draws, -1)
-            s = self.model.selection(self.draws, z, m).reshape(self.n_draws, -1)
-            vals = {"C": c, "S": s, "P": c * s}
-            for w in which:
-                q = np.quantile(vals[w], quantiles, axis=0)
-                out[w].reshape(len(quantiles), -1)[:, a:a + step] = q
-        return out
+        return np.quantile(self.grid_draws(z_grid, m_grid, field)[which], quantiles, axis=0)
 
     # --------------------------------------------------------------------- I/O
     def _hdus(self, extver: int):
@@ -251,32 +475,36 @@ class SelectionFunction:
 
         mdl = self.model
         hdus = []
-        t = Table(self.draws, names=mdl.param_names)
-        h = fits.table_to_hdu(t)
+        h = fits.table_to_hdu(Table(self.draws, names=mdl.param_names))
         h.name, h.ver = "DRAWS", extver
         h.header["FIELD"] = (self.field, "field of this fit; all = pooled")
         h.header["MODEL"] = (mdl.shape, "completeness step shape")
         for k, v in mdl.to_header_dict().items():
-            h.header[k] = v
+            h.header[k] = v if not (isinstance(v, float) and np.isnan(v)) else "NONE"
+        for key, (lo, hi) in self.domain.items():
+            tag = {"z": "Z", "mag": "M", "depth": "D"}[key]
+            h.header[f"{tag}MIN"] = (lo, f"simulated {key} range, lower end")
+            h.header[f"{tag}MAX"] = (hi, f"simulated {key} range, upper end")
         for k, v in self.fit_info.items():
-            if np.isscalar(v) and k.upper() not in h.header:
+            if np.isscalar(v) and k.upper()[:8] not in h.header:
                 h.header[k.upper()[:8]] = v
         hdus.append(h)
-        # Parameter summary with priors.
-        d = self.draws
-        q = np.quantile(d, [0.5, 0.16, 0.84, 0.025, 0.975], axis=0)
-        pt = Table({"name": mdl.param_names, "prior_mean": mdl.prior_mean, "prior_sd": mdl.prior_sd,
-                    "median": q[0], "q16": q[1], "q84": q[2], "q025": q[3], "q975": q[4]})
-        h = fits.table_to_hdu(pt)
+        q = np.quantile(self.draws, [0.5, 0.16, 0.84, 0.025, 0.975], axis=0)
+        cols = {"name": mdl.param_names, "prior_mean": mdl.prior_mean, "prior_sd": mdl.prior_sd,
+                "median": q[0], "q16": q[1], "q84": q[2], "q025": q[3], "q975": q[4]}
+        for k in ("tau", "ess", "rhat"):
+            if k in self.diagnostics:
+                cols[k] = np.asarray(self.diagnostics[k], float)
+        h = fits.table_to_hdu(Table(cols))
         h.name, h.ver = "PARAMS", extver
         h.header["FIELD"] = self.field
         hdus.append(h)
         if self.z_grid is not None and self.m_grid is not None:
             zg, mg = self.z_grid, self.m_grid
-            grids = self._grids(zg, mg, GRID_QUANTILES)
-            for which in ("C", "S", "P"):
-                img = fits.ImageHDU(grids[which].astype(np.float32),
-                                    name=f"{which}_GRID", ver=extver)
+            gd = self.grid_draws()
+            for which, ext in (("C", "C_GRID"), ("S", "SR_GRID"), ("P", "P_GRID")):
+                img = fits.ImageHDU(np.quantile(gd[which], GRID_QUANTILES, axis=0).astype(np.float32),
+                                    name=ext, ver=extver)
                 hh = img.header
                 hh["FIELD"] = self.field
                 hh["CTYPE1"], hh["CRPIX1"], hh["CRVAL1"] = "MAG", 1.0, float(mg[0])
@@ -287,12 +515,21 @@ class SelectionFunction:
                 hh["CTYPE3"] = "QUANTILE"
                 for k, qv in enumerate(GRID_QUANTILES):
                     hh[f"QUANT{k + 1}"] = (qv, f"posterior quantile of plane {k + 1}")
-                hh["QUANTITY"] = {"C": "completeness C(m,z)", "S": "selection given recovery S(z,m)",
-                                  "P": "P(selected|z,m) = C*S"}[which]
+                hh["QUANTITY"] = {"C": "completeness C(m,z), area-weighted over depth",
+                                  "S": "selected given recovered = P/C",
+                                  "P": "selection probability P(rec and sel|z,m)"}[which]
                 hdus.append(img)
         if self.ppc is not None and len(self.ppc):
             h = fits.table_to_hdu(Table(self.ppc))
             h.name, h.ver = "PPC", extver
+            h.header["FIELD"] = self.field
+            hdus.append(h)
+        if self.depth_area:
+            rows = [(f, lo, hi, a) for f, (e, aa) in sorted(self.depth_area.items())
+                    for lo, hi, a in zip(e[:-1], e[1:], aa)]
+            t = Table(rows=rows, names=("field", "depth_lo", "depth_hi", "area_arcmin2"))
+            h = fits.table_to_hdu(t)
+            h.name, h.ver = "DEPTH", extver
             h.header["FIELD"] = self.field
             hdus.append(h)
         return hdus
@@ -312,12 +549,16 @@ class SelectionFunction:
         ph.header["FORMAT"] = (FILE_FORMAT, "see docs/selection-function-file.md")
         ph.header["GLACVER"] = (__version__, "glaciar version that wrote the file")
         ph.header["MODEL"] = (fits_list[0].model.shape, "completeness step shape")
+        ph.header["MAGTYPE"] = (str(meta.get("magnitude_type", "apparent")),
+                                "m: apparent (AB) or absolute (M_UV)")
+        ph.header["DEPTHAW"] = (bool(fits_list[0].model.depth_aware), "depth-aware model")
         ph.header["NFITS"] = (len(fits_list), "number of fits (EXTVER 1..NFITS)")
         for i, sf in enumerate(fits_list):
             ph.header[f"FIELD{i + 1}"] = sf.field
-        total_area = _area_for(meta.get("area_arcmin2"), "all")
-        if total_area is not None:
-            ph.header["AREA"] = (total_area, "survey area, all fields [arcmin2]")
+        areas = [sf.area_arcmin2() for sf in fits_list]
+        if all(a is not None for a in areas):
+            total = areas[0] if fits_list[0].field == "all" else sum(areas)
+            ph.header["AREA"] = (total, "survey area, all fields [arcmin2]")
         if meta.get("detection_band"):
             ph.header["DETBAND"] = str(meta["detection_band"])
         if meta.get("config_hash"):
@@ -342,32 +583,52 @@ class SelectionFunction:
     def read_all(cls, path) -> dict[str, "SelectionFunction"]:
         """All fits in the file, keyed by field name."""
         from astropy.io import fits
-        from astropy.table import Table
 
         out = {}
         with fits.open(path, memmap=False) as hdul:
             if hdul[0].header.get("FORMAT") != FILE_FORMAT:
-                raise ValueError(f"{path}: not a glaciar selection-function file "
+                raise ValueError(f"{path}: not a glaciar selection-function file of this version "
                                  f"(FORMAT={hdul[0].header.get('FORMAT')!r}, expected {FILE_FORMAT!r})")
             meta = {}
             if "META" in hdul:
-                for row in Table(hdul["META"].data):
-                    meta[str(row["key"])] = json.loads(str(row["value"]))
+                t = _native(hdul["META"].data)
+                for k, v in zip(t["key"], t["value"]):
+                    meta[str(k)] = json.loads(str(v))
             nfits = int(hdul[0].header["NFITS"])
             for v in range(1, nfits + 1):
                 dh = hdul["DRAWS", v]
-                model = SurfaceModel.from_header_dict(dh.header)
-                t = Table(dh.data)
+                hdr = dict(dh.header)
+                if hdr.get("DEPTHREF") == "NONE":
+                    hdr["DEPTHREF"] = float("nan")
+                model = SurfaceModel.from_header_dict(hdr)
+                t = _native(dh.data)
                 draws = np.column_stack([np.asarray(t[n], float) for n in model.param_names])
+                domain = {}
+                for key, tag in (("z", "Z"), ("mag", "M"), ("depth", "D")):
+                    if f"{tag}MIN" in hdr:
+                        domain[key] = (float(hdr[f"{tag}MIN"]), float(hdr[f"{tag}MAX"]))
                 zg = mg = None
                 if ("C_GRID", v) in hdul:
                     gh = hdul["C_GRID", v].header
                     n_m, n_z = gh["NAXIS1"], gh["NAXIS2"]
                     mg = gh["CRVAL1"] + (np.arange(n_m) + 1 - gh["CRPIX1"]) * gh["CDELT1"]
                     zg = gh["CRVAL2"] + (np.arange(n_z) + 1 - gh["CRPIX2"]) * gh["CDELT2"]
-                ppc = np.asarray(hdul["PPC", v].data).copy() if ("PPC", v) in hdul else None
-                field = str(dh.header.get("FIELD", "all"))
-                out[field] = cls(model, draws, zg, mg, meta, field, ppc)
+                ppc = _native(hdul["PPC", v].data) if ("PPC", v) in hdul else None
+                depth_area = {}
+                if ("DEPTH", v) in hdul:
+                    d = _native(hdul["DEPTH", v].data)
+                    for f in np.unique(d["field"]):
+                        r = d[d["field"] == f]
+                        depth_area[str(f)] = (np.append(r["depth_lo"], r["depth_hi"][-1]),
+                                              np.asarray(r["area_arcmin2"], float))
+                diag = {}
+                p = _native(hdul["PARAMS", v].data)
+                for k in ("tau", "ess", "rhat"):
+                    if k in p.dtype.names:
+                        diag[k] = np.asarray(p[k], float)
+                field = str(hdr.get("FIELD", "all"))
+                out[field] = cls(model, draws, zg, mg, meta, field, ppc, depth_area=depth_area,
+                                 domain=domain, diagnostics=diag)
         return out
 
     @classmethod
@@ -398,15 +659,16 @@ class SelectionFunction:
 
     def __repr__(self):
         return (f"SelectionFunction(model={self.model.shape!r}, field={self.field!r}, "
-                f"n_draws={self.n_draws})")
+                f"depth_aware={self.model.depth_aware}, n_draws={self.n_draws})")
 
 
-def _area_for(area, field: str) -> float | None:
-    """Area [arcmin^2] of ``field`` from a number or a per-field mapping ("all" sums them)."""
-    if area is None:
-        return None
-    if isinstance(area, dict):
-        if field in area:
-            return float(area[field])
-        return float(sum(float(v) for v in area.values()))
-    return float(area)
+def _native(data) -> np.ndarray:
+    """A FITS table as a structured array in native byte order (strings as str)."""
+    arr = np.asarray(data)
+    dt = [(n, arr.dtype[n].newbyteorder("=") if arr.dtype[n].kind in "iufb" else arr.dtype[n])
+          for n in arr.dtype.names]
+    out = np.empty(len(arr), dtype=dt)
+    for n in arr.dtype.names:
+        col = arr[n]
+        out[n] = np.char.strip(col.astype(str)) if col.dtype.kind in "SU" else col
+    return out
