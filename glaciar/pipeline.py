@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from . import constants as C
-from .inference.diagnostics import compare_models, edge_report, ppc_cells, ppc_verdict, psis_loo
+from .inference.diagnostics import edge_report, ppc_cells, ppc_verdict
 from .inference.fit import (DEFAULT_MAG_RESOLUTION, DEFAULT_MAX_STEPS, BlockChain, FitResult,
-                            aggregate_cells, fit_surfaces)
+                            aggregate_cells, fit_and_choose, fit_surfaces)
 from .inference.models import COMPLETENESS_SHAPES, Cells, SurfaceModel
 from .inference.selection_function import SelectionFunction
 
@@ -159,11 +159,6 @@ def _one_fit(cells, mdl, fit_dir, tag, seed, n_walkers, max_steps, resume, progr
     finally:
         bar.close()
     return res, key
-
-
-def _loo(res: FitResult, cells: Cells, n_draws: int) -> dict:
-    d = res.draws(n_draws)
-    return psis_loo(res.model.cell_log_likelihood(d, cells, part="c"))
 
 
 def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
@@ -320,20 +315,17 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
     for i, (name, d) in enumerate(groups):
         cells = cells_all if not per_field else aggregate_cells(d, mag_resolution, depth_ref, mag_col)
         fseed = [int(seed), i] if per_field else int(seed)
-        results, loos = {}, {}
-        for shape in shapes:
-            mdl = SurfaceModel.for_data(cells.z, cells.mag, shape=shape, depth_ref=depth_ref)
-            tag = _tag(f"{name}_{shape}")
-            res, key = _one_fit(cells, mdl, fit_dir, tag, fseed, n_walkers, max_steps, resume,
-                                progress)
-            results[shape] = (res, key, tag)
-            if len(shapes) > 1:
-                loos[shape] = _loo(res, cells, _DIAG_DRAWS)
-        if len(shapes) > 1:
-            chosen, comparison = compare_models(loos)
-        else:
-            chosen, comparison = shapes[0], []
-        res, key, tag = results[chosen]
+        keys = {}
+
+        def fit(c, mdl, name=name, fseed=fseed, keys=keys):
+            tag = _tag(f"{name}_{mdl.shape}")
+            res, keys[mdl.shape] = _one_fit(c, mdl, fit_dir, tag, fseed, n_walkers, max_steps,
+                                            resume, progress)
+            return res
+
+        chosen, results, comparison = fit_and_choose(cells, shapes, depth_ref=depth_ref,
+                                                     loo_draws=_DIAG_DRAWS, fit=fit)
+        res, key, tag = results[chosen], keys[chosen], _tag(f"{name}_{chosen}")
         mdl = res.model
         draws = res.draws(max_draws)
         info = {"nsources": cells.n_sources, "ncells": len(cells), "converge": res.converged,

@@ -5,13 +5,14 @@ directory and writing files is :mod:`glaciar.pipeline`'s job
 (:func:`run_fit` is re-exported from there for convenience).
 """
 from .adaptive import propose_cells
-from .fit import (ConvergenceWarning, FitResult, aggregate_cells, find_map, fit_surfaces,
+from .fit import (ConvergenceWarning, FitResult, aggregate_cells, find_map, fit_and_choose,
+                  fit_surfaces,
                   laplace_covariance)
 from .models import COMPLETENESS_SHAPES, Cells, SurfaceModel
 from .selection_function import EffectiveVolume, SelectionFunction
 
 __all__ = ["propose_cells", "ConvergenceWarning", "FitResult", "aggregate_cells", "find_map",
-           "fit_surfaces", "laplace_covariance", "run_fit", "COMPLETENESS_SHAPES",
+           "fit_and_choose", "fit_surfaces", "laplace_covariance", "run_fit", "COMPLETENESS_SHAPES",
            "Cells", "SurfaceModel", "EffectiveVolume", "SelectionFunction"]
 
 

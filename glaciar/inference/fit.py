@@ -710,3 +710,55 @@ def fit_surfaces(cells: Cells, model: SurfaceModel, *, seed=0, n_walkers: int | 
                      info={"n_cells": len(cells), "n_sources": cells.n_sources})
 
 
+
+
+def fit_and_choose(cells: Cells, shapes=None, *, depth_ref=None, seed=0, n_walkers=None,
+                   max_steps: int = DEFAULT_MAX_STEPS, loo_draws: int = 400, fit=None):
+    """Fit every completeness step in ``shapes`` and keep one by PSIS-LOO.
+
+    The selection block is the same for every step; the steps are compared on
+    the recovered flags alone (leave-one-cell-out, :func:`psis_loo` over the
+    aggregated cells), and the simplest step within 2 standard errors of the
+    best elpd is kept (:func:`compare_models`; ``shapes`` in order of simplicity).
+
+    Parameters
+    ----------
+    cells : Cells
+    shapes : sequence of str, optional
+        Default :data:`COMPLETENESS_SHAPES` (logistic, erf, fleming, sas).
+    depth_ref : float, optional
+        Reference depth of a depth-aware model (the cells must be depth-relative).
+    seed, n_walkers, max_steps
+        As :func:`fit_surfaces`.
+    loo_draws : int
+        Posterior draws used for PSIS-LOO.
+    fit : callable, optional
+        ``fit(cells, model) -> FitResult`` replacing :func:`fit_surfaces` (the
+        pipeline passes one that resumes saved chains and shows progress).
+
+    Returns
+    -------
+    chosen : str
+    results : dict
+        ``{shape: FitResult}``.
+    comparison : list of dict
+        :func:`compare_models` table (empty for a single shape).
+    """
+    from .diagnostics import compare_models, psis_loo
+    from .models import COMPLETENESS_SHAPES
+
+    shapes = list(COMPLETENESS_SHAPES if shapes is None else shapes)
+    if fit is None:
+        def fit(c, mdl):
+            return fit_surfaces(c, mdl, seed=seed, n_walkers=n_walkers, max_steps=max_steps)
+    results, loos = {}, {}
+    for shape in shapes:
+        mdl = SurfaceModel.for_data(cells.z, cells.mag, shape=shape, depth_ref=depth_ref)
+        results[shape] = fit(cells, mdl)
+        if len(shapes) > 1:
+            d = results[shape].draws(loo_draws)
+            loos[shape] = psis_loo(mdl.cell_log_likelihood(d, cells, part="c"))
+    if len(shapes) == 1:
+        return shapes[0], results, []
+    chosen, table = compare_models(loos)
+    return chosen, results, table
