@@ -64,9 +64,12 @@ def two_depth_survey(tmp_path_factory):
     out = tmp_path_factory.mktemp("two_depth")
     build_demo_survey(out, shape=(300, 300), seed=21, field="shallow", noise_scale=2.5)
     demo = build_demo_survey(out, shape=(600, 600), seed=22, field="deep")
+    # z inside the J125-dropout window, so that V_eff's z integral can be checked against
+    # the binned fractions (trapezoid over these z).
     return _write_config(demo, out / "two_depth.yaml", fields=("shallow", "deep"),
-                         z_values=(8.0, 10.0), mag_values=np.arange(23.0, 27.5 + 1e-9, 0.5),
-                         n_galaxies=30, n_iterations=4, seed=5)
+                         z_values=(9.5, 10.0, 10.5, 11.0, 11.5),
+                         mag_values=np.arange(23.0, 27.5 + 1e-9, 0.5),
+                         n_galaxies=30, n_iterations=3, seed=5)
 
 
 @pytest.fixture(scope="session")

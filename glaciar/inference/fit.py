@@ -66,10 +66,10 @@ __all__ = ["ConvergenceWarning", "aggregate_cells", "find_map", "laplace_covaria
 DEFAULT_MAG_RESOLUTION = 0.01    #: [mag] grouping resolution for continuous mag_input
 _T_DOF = 5.0                      # Student-t proposal degrees of freedom
 _MOVE_WEIGHTS = (0.3, 0.3, 0.4)   # independence, differential evolution, stretch
-#: Steps of the discarded pilot run that sets the independence proposal.  Long
-#: enough that its covariance follows a posterior bounded on one side (an edge
-#: outside the simulated range): 50 steps left tau underestimated by 30-50 %.
-PILOT_STEPS = 200
+#: Stages of the discarded pilot run that sets the independence proposal [steps];
+#: it stops after the second stage once the proposal is stable.  A single 50-step
+#: pilot left tau underestimated by 30-50 % where an edge lies outside the data.
+PILOT_STAGES = (50, 150, 400, 1000, 2500)
 #: Default cap on each block's chain length per call [steps].
 DEFAULT_MAX_STEPS = 20000
 
@@ -556,7 +556,7 @@ def split_rhat(chain) -> np.ndarray:
 
 
 def _sample_block(model, cells, part, theta_map, cov, seed, n_walkers, max_steps, min_steps,
-                  block, callback, resume: BlockChain | None, pilot=PILOT_STEPS):
+                  block, callback, resume: BlockChain | None):
     idx = model.block_indices(part)
     P = len(idx)
     base = np.asarray(theta_map, float)
@@ -595,19 +595,28 @@ def _sample_block(model, cells, part, theta_map, cov, seed, n_walkers, max_steps
         # Pilot run, discarded: re-centre and re-scale the independence proposal on
         # the pilot's second half, which follows skewed posteriors (a C_max or S_max
         # near 1, an edge outside the data) far better than the Laplace approximation.
-        # Two stages: the first moves the walkers off the Laplace guess, the second
-        # measures the covariance the chain will use.
-        for stage in (pilot // 4, pilot - pilot // 4):
+        # Stages of growing length, each re-fitting the proposal to the second half of
+        # its chain, until the proposal's centre and spread stop changing: a posterior
+        # bounded on one side only (an edge outside the simulated range, an edge
+        # between two simulated redshifts) is explored by the differential-evolution
+        # and stretch moves, and the proposal widens to it.  The chain proper then
+        # runs with a fixed proposal (no adaptation), so it is a valid MCMC.
+        for stage in PILOT_STAGES:
             sampler.reset()
             state = sampler.run_mcmc(state, stage, progress=False, skip_initial_state_check=True)
             pil = sampler.get_chain()[stage // 2:].reshape(-1, P)
             pcov = np.cov(pil, rowvar=False)
+            old_mean, old_sd = prop.mean.copy(), np.sqrt(np.diag(prop.cov))
             try:
                 prop.__init__(pil.mean(axis=0),
                               0.5 * (pcov + pcov.T) + 1e-12 * np.diag(np.diag(cov)))
                 cov = prop.cov
             except np.linalg.LinAlgError:
-                pass
+                continue
+            sd = np.sqrt(np.diag(prop.cov))
+            if (stage >= PILOT_STAGES[1] and np.all(np.abs(prop.mean - old_mean) < 0.2 * sd)
+                    and np.all(np.abs(np.log(sd / old_sd)) < 0.2)):
+                break
         sampler.reset()
         chains, lps, n_acc = [], [], np.zeros(n_walkers)
     else:

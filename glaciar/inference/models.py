@@ -283,6 +283,15 @@ class SurfaceModel:
             raise ValueError("SurfaceModel.for_data: no sources")
         zlo, zhi = float(np.min(z)), float(np.max(z))
         mlo, mhi = float(np.min(mag)), float(np.max(mag))
+        # A polynomial in z of degree >= the number of distinct z is not identified by
+        # the data (its value between the simulated redshifts is the prior's): cap the
+        # degrees of the z terms at n_z - 1 (and of the edges' m terms at n_m - 1).
+        n_z = len(np.unique(np.round(z, 6)))
+        n_m = len(np.unique(np.round(mag, 2)))
+        defaults = {f.name: f.default for f in cls.__dataclass_fields__.values()}
+        for name in ("m50_degree", "log_w_degree", "c_max_degree"):
+            degrees[name] = min(int(degrees.get(name, defaults[name])), n_z - 1)
+        degrees["edge_degree"] = min(int(degrees.get("edge_degree", defaults["edge_degree"])), n_m - 1)
         # A single z (or magnitude) gives no lever arm: unit scale, the prior rules.
         return cls(shape=shape, z_ref=0.5 * (zlo + zhi), z_scale=0.5 * (zhi - zlo) or 1.0,
                    m_ref=0.5 * (mlo + mhi), m_scale=0.5 * (mhi - mlo) or 1.0,

@@ -665,10 +665,15 @@ class SelectionFunction:
 def _native(data) -> np.ndarray:
     """A FITS table as a structured array in native byte order (strings as str)."""
     arr = np.asarray(data)
-    dt = [(n, arr.dtype[n].newbyteorder("=") if arr.dtype[n].kind in "iufb" else arr.dtype[n])
-          for n in arr.dtype.names]
+    def native(dt):
+        if dt.kind in "SU":
+            return np.dtype(f"U{max(dt.itemsize // (4 if dt.kind == 'U' else 1), 1)}")
+        return dt.newbyteorder("=") if dt.kind in "iufb" else dt
+
+    dt = [(n, native(arr.dtype[n])) for n in arr.dtype.names]
     out = np.empty(len(arr), dtype=dt)
     for n in arr.dtype.names:
         col = arr[n]
-        out[n] = np.char.strip(col.astype(str)) if col.dtype.kind in "SU" else col
+        out[n] = np.char.strip(np.char.decode(col) if col.dtype.kind == "S" else col) \
+            if col.dtype.kind in "SU" else col
     return out
