@@ -340,7 +340,8 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         if not depth_aware and per_field and name in field_area:
             sf.meta = dict(sf.meta, area_arcmin2_field={name: field_area[name]})
         # Posterior-predictive check on a subset of draws.
-        sub = SelectionFunction(mdl, res.draws(_DIAG_DRAWS), depth_area=sf.depth_area, domain=domain)
+        sub = SelectionFunction(mdl, res.draws(_DIAG_DRAWS), meta=sf.meta, field=name,
+                                depth_area=sf.depth_area, domain=domain)
         zz = d[C.COL_Z].to_numpy(float)
         mm = d[mag_col].to_numpy(float)
         dd = d[C.COL_DEPTH].to_numpy(float) if depth_aware else None
@@ -353,8 +354,11 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
             return sub.model.selection_given_recovered(sub.draws, zz[idx], mm[idx],
                                                        None if dd is None else dd[idx])
 
+        # Cells are split by depth whenever depths are known, also for a fit without
+        # depth: that is where such a fit fails.
         sf.ppc = ppc_cells(zz, mnom, mdl.relative_magnitude(mm, dd), d[C.COL_RECOVERED].to_numpy(bool),
-                           d[C.COL_SELECTED].to_numpy(bool), c_fn, s_fn, depth=dd)
+                           d[C.COL_SELECTED].to_numpy(bool), c_fn, s_fn,
+                           depth=d[C.COL_DEPTH].to_numpy(float) if has_depth else None)
         verdict = ppc_verdict(sf.ppc)
         sf.fit_info["adequate"] = verdict["adequate"]
         sf.fit_info["ppcext"] = verdict["fraction_extreme"]

@@ -8,22 +8,26 @@ import pytest
 from scipy import integrate, special, stats
 
 from glaciar.inference import (Cells, SelectionFunction, SurfaceModel, aggregate_cells,
-                               find_map, fit_surfaces, ppc_table, propose_cells, run_fit)
+                               find_map, fit_surfaces, propose_cells, run_fit)
 from glaciar.inference.fit import ConvergenceWarning
 from glaciar.store import write_task_table
 
 Z_GRID = np.array([6.0, 6.5, 7.0, 7.5, 8.0, 8.5, 9.0])
 M_GRID = np.arange(25.0, 29.51, 0.5)
-TRUTH = dict(logit_c_max=2.5, m50_0=27.4, m50_1=-0.3, m50_2=0.05, log_w_0=np.log(0.3),
-             log_w_1=0.1, logit_s_max=3.0, z_lo_0=6.8, z_lo_1=0.1, log_dz_lo_0=np.log(0.15),
-             log_dz_lo_1=0.1, z_hi_0=8.4, z_hi_1=-0.1, log_dz_hi_0=np.log(0.2), log_dz_hi_1=0.0)
+# Edges: rising 50 % point at z_min - eta_lo dz_lo = 6.8 (+ slope), falling at 8.4.
+TRUTH = dict(logit_c_max_0=2.5, logit_c_max_1=0.2, m50_0=27.4, m50_1=-0.3, m50_2=0.05,
+             log_w_0=np.log(0.3), log_w_1=0.1, logit_s_max=3.0, eta_lo_0=-0.8 / 0.15,
+             eta_lo_1=0.3, log_dz_lo_0=np.log(0.15), log_dz_lo_1=0.1, eta_hi_0=-0.6 / 0.2,
+             eta_hi_1=0.5, log_dz_hi_0=np.log(0.2), log_dz_hi_1=0.0, sas_eps=0.3,
+             sas_log_delta=-0.2)
 
 
-def truth_model(shape="logistic"):
-    mdl = SurfaceModel.for_data(Z_GRID, M_GRID, shape=shape)
+def truth_model(shape="logistic", depth_ref=None):
+    mdl = SurfaceModel.for_data(Z_GRID, M_GRID, shape=shape, depth_ref=depth_ref)
     th = mdl.prior_mean.copy()
     for k, v in TRUTH.items():
-        th[mdl.param_names.index(k)] = v
+        if k in mdl.param_names:
+            th[mdl.param_names.index(k)] = v
     return mdl, th
 
 
@@ -32,29 +36,31 @@ def simulate(mdl, th, n_per_cell, rng, scatter=0.05, fields=("f1",)):
     mnom = np.tile(np.repeat(M_GRID, n_per_cell), len(Z_GRID))
     mi = mnom + scatter * rng.standard_normal(z.size)
     rec = rng.random(z.size) < mdl.completeness(th, mi, z)
-    sel = rec & (rng.random(z.size) < mdl.selection(th, z, mi))
+    sel = rec & (rng.random(z.size) < mdl.selection_given_recovered(th, z, mi))
     return pd.DataFrame({"field": rng.choice(list(fields), z.size), "z": z, "mag": mnom,
                          "mag_input": mi, "recovered": rec, "selected": sel})
 
 
 # ----------------------------------------------------------------- models
-@pytest.mark.parametrize("shape", ["logistic", "erf", "fleming"])
+@pytest.mark.parametrize("shape", ["logistic", "erf", "fleming", "sas"])
 def test_completeness_analytic_values_and_limits(shape):
     mdl, th = truth_model(shape)
-    cmax = special.expit(2.5)
     z = 7.0
     zc = (z - mdl.z_ref) / mdl.z_scale
+    cmax = special.expit(2.5 + 0.2 * zc)
     m50 = 27.4 - 0.3 * zc + 0.05 * zc ** 2
     w = np.exp(np.log(0.3) + 0.1 * zc)
     m = m50 + w * np.array([-1.0, 0.0, 1.0, 2.0])
     u = (m - m50) / w
+    t = np.sinh(np.exp(-0.2) * np.arcsinh(u) - 0.3)
     expect = {"logistic": 1 / (1 + np.exp(u)), "erf": 0.5 * special.erfc(u / np.sqrt(2)),
-              "fleming": 0.5 * (1 - u / np.sqrt(1 + u ** 2))}[shape]
+              "fleming": 0.5 * (1 - u / np.sqrt(1 + u ** 2)),
+              "sas": 0.5 * special.erfc(t / np.sqrt(2))}[shape]
     np.testing.assert_allclose(mdl.completeness(th, m, z), cmax * expect, rtol=1e-12)
     # limits: C -> C_max bright, -> 0 faint; monotone decreasing in m
     mm = np.linspace(15, 45, 500)
     c = mdl.completeness(th, mm, z)
-    assert abs(c[0] - cmax) < 2e-3 and c[-1] < 2e-3
+    assert abs(c[0] - cmax) < 3e-3 and c[-1] < 3e-3
     assert np.all(np.diff(c) <= 0)
     # ln(1 - C) stays finite and exact where 1 - C is tiny / C underflows
     ll = mdl.log_likelihood(th, Cells(z=np.array([7.0, 7.0]), mag=np.array([5.0, 80.0]),
@@ -66,18 +72,20 @@ def test_selection_analytic_and_likelihood_against_bernoulli():
     mdl, th = truth_model()
     z, m = np.array([6.3, 7.6, 8.9]), np.array([25.5, 27.0, 29.0])
     mc = (m - mdl.m_ref) / mdl.m_scale
-    zlo, zhi = 6.8 + 0.1 * mc, 8.4 - 0.1 * mc
     dlo, dhi = np.exp(np.log(0.15) + 0.1 * mc), np.full(3, 0.2)
+    # 50 % points of the edges from their logits at the ends of the simulated range 6..9
+    zlo = 6.0 - (-0.8 / 0.15 + 0.3 * mc) * dlo
+    zhi = 9.0 + (-3.0 + 0.5 * mc) * dhi
     s = special.expit(3.0) * special.expit((z - zlo) / dlo) * special.expit((zhi - z) / dhi)
-    np.testing.assert_allclose(mdl.selection(th, z, m), s, rtol=1e-12)
-    assert np.all(mdl.selection(th, z, m) < special.expit(3.0))
+    np.testing.assert_allclose(mdl.selection_given_recovered(th, z, m), s, rtol=1e-12)
+    assert np.all(mdl.selection_given_recovered(th, z, m) < special.expit(3.0))
     # aggregated binomial likelihood == sum of per-source Bernoulli terms (exact aggregation)
     rng = np.random.default_rng(3)
     df = simulate(mdl, th, 5, rng, scatter=0.0)
     cells = aggregate_cells(df, mag_resolution=None)
     assert len(cells) == len(Z_GRID) * len(M_GRID)
     C = mdl.completeness(th, df.mag_input, df.z)
-    S = mdl.selection(th, df.z, df.mag_input)
+    S = mdl.selection_given_recovered(th, df.z, df.mag_input)
     r, sl = df.recovered.to_numpy(), df.selected.to_numpy()
     direct = np.sum(np.where(r, np.log(C), np.log1p(-C))) + np.sum(
         np.where(r, np.where(sl, np.log(S), np.log1p(-S)), 0.0))
@@ -130,9 +138,12 @@ def fitted_run(tmp_path_factory):
     run = tmp_path_factory.mktemp("run")
     for i, (z, d) in enumerate(df.groupby("z")):
         write_task_table(run, f"task_f_z{i:03d}_m000_i0000.parquet", d)
-    (run / "manifest.json").write_text(json.dumps({"fields": ["f1", "f2"], "area_arcmin2": 4.5,
+    (run / "manifest.json").write_text(json.dumps({"fields": ["f1", "f2"],
+                                                   "area_arcmin2": {"f1": 3.0, "f2": 1.5},
                                                    "bands": ["f125w", "f160w"], "config_hash": "abc"}))
-    path = run_fit(run, seed=3, max_steps=3000)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")      # no local depths in this hand-made run
+        path = run_fit(run, seed=3, model="logistic")
     return run, path, df, mdl, th
 
 
@@ -146,7 +157,8 @@ def test_run_fit_recovers_truth_and_writes_outputs(fitted_run):
     # truth inside the 99.7 % band of the surfaces at a few points
     zz, mm = np.array([6.5, 7.5, 8.0]), np.array([27.0, 27.5, 26.0])
     for f, tf in ((sf.completeness(mm, zz, draws=True), mdl.completeness(th, mm, zz)),
-                  (sf.selection(zz, mm, draws=True, conditional=True), mdl.selection(th, zz, mm))):
+                  (sf.selection_given_recovered(zz, mm, draws=True),
+                   mdl.selection_given_recovered(th, zz, mm))):
         lo, hi = np.quantile(f, [0.0015, 0.9985], axis=0)
         assert np.all((lo <= tf) & (tf <= hi))
 
@@ -160,8 +172,13 @@ def test_file_round_trip_and_determinism(fitted_run, tmp_path):
         grid = h["C_GRID", 1].data
         assert grid.shape == (5, len(sf.z_grid), len(sf.m_grid))
         names = {x.name for x in h}
-        assert {"DRAWS", "PARAMS", "C_GRID", "S_GRID", "P_GRID", "PPC", "META"} <= names
+        assert {"DRAWS", "PARAMS", "C_GRID", "SR_GRID", "P_GRID", "PPC", "META"} <= names
+        assert h[0].header["MAGTYPE"] == "apparent" and h[0].header["DEPTHAW"] is False
+        # grids: C * SR = P draw by draw, so the medians agree where C is not ~0
+        assert np.all(h["PARAMS", 1].data["rhat"] < 1.1) and np.all(h["PARAMS", 1].data["ess"] > 400)
     assert sf.meta["area_arcmin2"] == 4.5 and sf.meta["bands"] == ["f125w", "f160w"]
+    # tables come back in native byte order
+    assert sf.ppc.dtype["n"].isnative and sf.ppc.dtype["c_binned"].isnative
     # the stored grid equals quantiles of the stored draws (independent recomputation)
     c = sf.model.completeness(sf.draws, sf.m_grid[None, :], sf.z_grid[:, None])
     np.testing.assert_allclose(grid[0], np.median(c, axis=0), atol=1e-6)
@@ -180,7 +197,8 @@ def test_file_round_trip_and_determinism(fitted_run, tmp_path):
         a = fit_surfaces(cells, sf.model, seed=11, max_steps=200, min_steps=1000)
         b = fit_surfaces(cells, sf.model, seed=11, max_steps=200, min_steps=1000)
         half = fit_surfaces(cells, sf.model, seed=11, max_steps=100, min_steps=1000)
-        resumed = fit_surfaces(cells, sf.model, seed=11, max_steps=200, min_steps=1000, resume=half)
+        # a re-run with the same cap continues past it (max_steps counts this call's steps)
+        resumed = fit_surfaces(cells, sf.model, seed=11, max_steps=100, min_steps=1000, resume=half)
     for x, y in ((a, b), (a, resumed)):
         for bx, by in zip(x.blocks, y.blocks):
             np.testing.assert_array_equal(bx.chain, by.chain)
@@ -189,7 +207,7 @@ def test_file_round_trip_and_determinism(fitted_run, tmp_path):
 def test_ppc_table_is_beta_binomial_posterior_mean(fitted_run):
     run, path, df, mdl, th = fitted_run
     sf = SelectionFunction.read(path)
-    t = ppc_table(df, sf)
+    t = sf.ppc
     for row in t[::7]:
         d = df[(df.z == row["z"]) & (df.mag == row["mag"])]
         n, k, ks = len(d), int(d.recovered.sum()), int(d.selected.sum())
@@ -197,8 +215,34 @@ def test_ppc_table_is_beta_binomial_posterior_mean(fitted_run):
         assert row["c_binned"] == pytest.approx((k + 1) / (n + 2), rel=1e-12)
         assert row["p_binned"] == pytest.approx((ks + 1) / (n + 2), rel=1e-12)
         assert row["c_binned_q16"] == pytest.approx(stats.beta(k + 1, n - k + 1).ppf(0.16))
-    # a well-specified model: mid-p values are not piled up at 0 or 1
-    assert np.mean((t["ppc_p_rec"] < 0.01) | (t["ppc_p_rec"] > 0.99)) < 0.1
+        # the model column is the cell mean of C over its sources, posterior median
+        c = sf.model.completeness(sf.draws, d.mag_input.to_numpy(), d.z.to_numpy()).mean(axis=1)
+        assert row["c_model"] == pytest.approx(np.median(c), abs=0.02)
+    # a well-specified model: mid-p values are not piled up at 0 or 1, verdict adequate
+    assert np.mean(t["extreme"]) < 0.05
+    summ = json.loads((run / "fit" / "summary.json").read_text())["fits"]["all"]
+    assert summ["adequate"] and summ["converged"]
+
+
+def test_ppc_flags_a_misfit():
+    """Data from two depths fitted without depth: the PPC says 'not adequate'."""
+    from glaciar.inference.diagnostics import ppc_cells, ppc_verdict
+    mdl, th = truth_model()
+    rng = np.random.default_rng(21)
+    df = simulate(mdl, th, 60, rng, scatter=0.0)
+    shift = np.where(rng.random(len(df)) < 0.5, 0.0, 1.2)     # half the sources 1.2 mag deeper
+    df["recovered"] = rng.random(len(df)) < mdl.completeness(th, df.mag_input - shift, df.z)
+    df["selected"] = df.recovered & (rng.random(len(df)) < 0.8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        res = fit_surfaces(aggregate_cells(df), mdl, seed=2, max_steps=1500)
+    d = res.draws(300)
+    z, m = df.z.to_numpy(), df.mag_input.to_numpy()
+    t = ppc_cells(z, df.mag.to_numpy(), m, df.recovered, df.selected,
+                  lambda i: mdl.completeness(d, m[i], z[i]),
+                  lambda i: mdl.selection_given_recovered(d, z[i], m[i]), depth=27.0 + shift)
+    v = ppc_verdict(t)
+    assert not v["adequate"] and v["n_extreme"] > v["max_allowed"]
 
 
 def test_effective_volume_against_quad(fitted_run):
@@ -212,7 +256,7 @@ def test_effective_volume_against_quad(fitted_run):
     area_sr = (4.5 * u.arcmin ** 2).to_value(u.sr)
     for i in (0, 17):
         t = sf.draws[i]
-        f = lambda z: (sf.model.completeness(t, m, z) * sf.model.selection(t, z, m)
+        f = lambda z: (sf.model.completeness(t, m, z) * sf.model.selection_given_recovered(t, z, m)
                        * cosmo.differential_comoving_volume(z).to_value(u.Mpc ** 3 / u.sr))
         ref = integrate.quad(f, sf.z_grid[0], sf.z_grid[-1], epsabs=0, epsrel=1e-8, limit=200)[0]
         assert v.draws[i, 0].to_value(u.Mpc ** 3) == pytest.approx(ref * area_sr, rel=1e-3)
@@ -221,6 +265,10 @@ def test_effective_volume_against_quad(fitted_run):
     v2 = sf.effective_volume(m)
     v3 = sf.effective_volume(m, area=4.5, cosmology=Planck18)
     assert v2.median == v3.median
+    # per-field volumes (no depth: the field's share of the area) add up to the survey's
+    va, vb = (sf.effective_volume(m, field=f, cosmology=cosmo) for f in ("f1", "f2"))
+    np.testing.assert_allclose((va.draws + vb.draws).value, sf.effective_volume(m, cosmology=cosmo).draws.value,
+                               rtol=1e-12)
 
 
 def test_per_field_fits_and_sample(fitted_run, tmp_path):
@@ -254,7 +302,7 @@ def test_propose_cells_picks_widest_interval():
 
 
 def test_documented_reader_without_glaciar_matches(fitted_run):
-    """The stand-alone reader in docs/selection-function-file.md reproduces sf.selection."""
+    """The stand-alone reader in docs/selection-function-file.md reproduces selection_probability."""
     import pathlib
     import re
     run, path, df, mdl, th = fitted_run
@@ -263,12 +311,13 @@ def test_documented_reader_without_glaciar_matches(fitted_run):
     ns = {}
     exec(code.replace('"selection_function.fits"', repr(str(path))), ns)
     z, m = np.array([6.5, 7.2, 8.1]), np.array([26.0, 27.3, 28.0])
-    np.testing.assert_allclose(ns["P"](z, m), SelectionFunction.read(path).selection(z, m, draws=True),
+    np.testing.assert_allclose(ns["P"](z, m),
+                               SelectionFunction.read(path).selection_probability(z, m, draws=True),
                                rtol=1e-10, atol=1e-14)
 
 
 # ------------------------------------------------------- speed-path identities
-@pytest.mark.parametrize("shape", ["logistic", "erf", "fleming"])
+@pytest.mark.parametrize("shape", ["logistic", "erf", "fleming", "sas"])
 def test_block_posterior_equals_model_log_posterior(shape):
     """The sampler's BlockPosterior is the model's log posterior (other block's prior aside)."""
     mdl, th = truth_model(shape)
@@ -277,7 +326,7 @@ def test_block_posterior_equals_model_log_posterior(shape):
         cells = aggregate_cells(simulate(mdl, th, 6, rng, scatter=scatter))
         pts = mdl.sample_prior(40, rng)
         pts[0] = th
-        pts[1, mdl.param_names.index("logit_c_max")] = 40.0     # C_max = 1 to double precision
+        pts[1, mdl.param_names.index("logit_c_max_0")] = 40.0   # C_max = 1 to double precision
         pts[2, mdl.param_names.index("logit_s_max")] = 40.0
         pts[3, mdl.param_names.index("log_w_0")] = -8.0         # a near-perfect step
         for part in ("c", "s"):
@@ -331,7 +380,7 @@ def test_vectorised_moves_reproduce_emcee_moves():
 
 # -------------------------------------------------------- V_eff in the summary
 def test_run_fit_summary_effective_volume_from_run_manifest(fitted_run, tmp_path):
-    """glaciar.run's manifest (per-field areas + total): V_eff(m) in summary.json."""
+    """glaciar.run's manifest (per-field areas): V_eff(m) in summary.json, pooled and per field."""
     import astropy.units as u
     from astropy.cosmology import FlatLambdaCDM
     from astropy.io import fits
@@ -340,39 +389,43 @@ def test_run_fit_summary_effective_volume_from_run_manifest(fitted_run, tmp_path
     r3 = tmp_path / "r3"
     write_task_table(r3, "task_x_z000_m000_i0000.parquet", sub)
     areas = {"f1": 3.0, "f2": 1.5}
-    (r3 / "manifest.json").write_text(json.dumps({"fields": ["f1", "f2"], "area_arcmin2": areas,
-                                                  "area_arcmin2_total": 4.5}))
+    (r3 / "manifest.json").write_text(json.dumps({"fields": ["f1", "f2"], "area_arcmin2": areas}))
     cosmo = FlatLambdaCDM(H0=70, Om0=0.3)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        p = run_fit(r3, max_steps=300, plots=False, cosmology=cosmo, max_draws=300)
+        warnings.simplefilter("ignore")
+        p = run_fit(r3, model="logistic", plots=False, cosmology=cosmo, max_draws=400)
     with fits.open(p) as h:
         assert h[0].header["AREA"] == 4.5
     sf = SelectionFunction.read(p)
     assert sf.meta["area_arcmin2"] == 4.5 and sf.meta["area_arcmin2_field"] == areas
-    # pooled fit: total area; recompute from the file with the default 2001 Simpson nodes
     e = json.loads((r3 / "fit" / "summary.json").read_text())["fits"]["all"]["effective_volume"]
-    assert e["area_arcmin2"] == 4.5 and e["interval"] == 0.68
+    assert e["area_arcmin2"] == 4.5
     np.testing.assert_allclose(e["mag"], sf.m_grid, rtol=0, atol=1e-9)
     ref = sf.effective_volume(sf.m_grid[::8], area=4.5 * u.arcmin ** 2, cosmology=cosmo)
-    for key, q in (("median_mpc3", ref.median), ("lower_mpc3", ref.lower), ("upper_mpc3", ref.upper)):
-        np.testing.assert_allclose(e[key][::8], q.to_value(u.Mpc ** 3), rtol=1e-3, atol=1e-6)
+    # the summary uses 400 of the chain's draws and 201 Simpson nodes: same posterior
+    np.testing.assert_allclose(e["median_mpc3"][::8], ref.median.to_value(u.Mpc ** 3),
+                               rtol=0.02)
     assert np.all(np.array(e["lower_mpc3"]) < np.array(e["median_mpc3"]))
     assert np.all(np.array(e["median_mpc3"]) < np.array(e["upper_mpc3"]))
     assert e["median_mpc3"][0] > 10 * e["median_mpc3"][-1]      # falls with C at faint m
+    q = e["quoted"]
+    assert len(q["mag"]) == 3 and q["median_mpc3"][0] > q["median_mpc3"][2]
     # per field: each field's own area, Planck18 by default
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        pf = run_fit(r3, max_steps=300, plots=False, per_field=True, max_draws=300)
+        warnings.simplefilter("ignore")
+        pf = run_fit(r3, model="logistic", plots=False, per_field=True, max_draws=300)
     summ = json.loads((r3 / "fit" / "summary.json").read_text())["fits"]
     for f, a in areas.items():
         ef = summ[f]["effective_volume"]
         assert ef["area_arcmin2"] == a and ef["cosmology"] == "Planck18"
-        v = SelectionFunction.read(pf, field=f).effective_volume(np.array(ef["mag"][::40]), area=a)
-        np.testing.assert_allclose(ef["median_mpc3"][::40], v.median.to_value(u.Mpc ** 3), rtol=1e-3)
+        v = SelectionFunction.read(pf, field=f).effective_volume(np.array(ef["mag"][::40]))
+        # different draw subsets of one posterior: medians agree to a fraction of the 68 % width
+        width = (v.upper - v.lower).to_value(u.Mpc ** 3)
+        assert np.all(np.abs(np.array(ef["median_mpc3"][::40]) - v.median.to_value(u.Mpc ** 3))
+                      <= 0.25 * width)
 
 
-@pytest.mark.parametrize("shape", ["logistic", "erf", "fleming"])
+@pytest.mark.parametrize("shape", ["logistic", "erf", "fleming", "sas"])
 def test_surfaces_on_grid_equal_pointwise_surfaces(shape):
     mdl, th = truth_model(shape)
     draws = mdl.sample_prior(5, np.random.default_rng(14))
@@ -381,6 +434,7 @@ def test_surfaces_on_grid_equal_pointwise_surfaces(shape):
     c, s = mdl.surfaces_on_grid(draws, z, m)
     assert c.shape == s.shape == (5, 9, 11)
     np.testing.assert_allclose(c, mdl.completeness(draws, m[None, :], z[:, None]), rtol=1e-12, atol=1e-300)
-    np.testing.assert_allclose(s, mdl.selection(draws, z[:, None], m[None, :]), rtol=1e-12, atol=1e-300)
+    np.testing.assert_allclose(s, mdl.selection_given_recovered(draws, z[:, None], m[None, :]),
+                               rtol=1e-12, atol=1e-300)
     c1, s1 = mdl.surfaces_on_grid(th, z, m)
     np.testing.assert_array_equal(c1, c[0])

@@ -157,19 +157,27 @@ class SelectionFunction:
         return [self.field] if self.field != "all" else list(self.meta.get("fields", []))
 
     def area_arcmin2(self, field: str | None = None) -> float | None:
-        """Area [arcmin^2] of ``field``, or of all fields of this fit."""
-        if field is not None:
-            if field in self.depth_area:
-                return float(np.sum(self.depth_area[field][1]))
-            per = self.meta.get("area_arcmin2_field") or {}
-            return float(per[field]) if field in per else None
+        """Area [arcmin^2] of ``field``, or of all fields this fit describes.
+
+        From the depth distributions when present, else from the metadata:
+        ``area_arcmin2_field`` (or an ``area_arcmin2`` mapping) per field, or
+        one ``area_arcmin2`` number for the whole fit.
+        """
         if self.depth_area:
-            return float(sum(np.sum(a) for _, a in self.depth_area.values()))
+            if field is None:
+                return float(sum(np.sum(a) for _, a in self.depth_area.values()))
+            return float(np.sum(self.depth_area[field][1])) if field in self.depth_area else None
+        total = self.meta.get("area_arcmin2")
         per = self.meta.get("area_arcmin2_field")
-        if isinstance(per, dict) and self.field in per:
-            return float(per[self.field])
-        a = self.meta.get("area_arcmin2")
-        return None if a is None else float(a)
+        if per is None and isinstance(total, dict):
+            per, total = total, None
+        per = per or {}
+        key = field if field is not None else (self.field if self.field != "all" else None)
+        if key is not None:
+            return float(per[key]) if key in per else None
+        if total is not None:
+            return float(total)
+        return float(sum(map(float, per.values()))) if per else None
 
     # ------------------------------------------------------------- depth mixture
     def depth_nodes(self, field: str | None = None):
@@ -555,9 +563,12 @@ class SelectionFunction:
         ph.header["NFITS"] = (len(fits_list), "number of fits (EXTVER 1..NFITS)")
         for i, sf in enumerate(fits_list):
             ph.header[f"FIELD{i + 1}"] = sf.field
-        areas = [sf.area_arcmin2() for sf in fits_list]
-        if all(a is not None for a in areas):
-            total = areas[0] if fits_list[0].field == "all" else sum(areas)
+        total = SelectionFunction(fits_list[0].model, fits_list[0].draws[:1], meta=meta).area_arcmin2()
+        if total is None:
+            areas = [sf.area_arcmin2() for sf in fits_list]
+            if all(a is not None for a in areas):
+                total = areas[0] if fits_list[0].field == "all" else sum(areas)
+        if total is not None:
             ph.header["AREA"] = (total, "survey area, all fields [arcmin2]")
         if meta.get("detection_band"):
             ph.header["DETBAND"] = str(meta["detection_band"])
@@ -663,8 +674,9 @@ class SelectionFunction:
 
 
 def _native(data) -> np.ndarray:
-    """A FITS table as a structured array in native byte order (strings as str)."""
-    arr = np.asarray(data)
+    """A FITS table as a structured array in native byte order (strings as str, logicals as bool)."""
+    from astropy.table import Table
+    arr = Table(data).as_array()
     def native(dt):
         if dt.kind in "SU":
             return np.dtype(f"U{max(dt.itemsize // (4 if dt.kind == 'U' else 1), 1)}")
