@@ -363,7 +363,8 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         sf.fit_info["adequate"] = verdict["adequate"]
         sf.fit_info["ppcext"] = verdict["fraction_extreme"]
         gd = sub.grid_draws(zg, mg)
-        edges = edge_report(gd["P"], zg, mg) if len(zg) > 1 else []
+        edges = edge_report(gd["P"], zg, mg, extrapolate=lambda z, sub=sub: sub.grid_draws(z, mg)["P"]) \
+            if len(zg) > 1 else []
         entry = {
             "n_sources": cells.n_sources, "n_cells": len(cells), "model": chosen,
             "converged": res.converged, "adequate": verdict["adequate"], "ppc": verdict,
@@ -385,9 +386,9 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
                           f"(cells flagged 'extreme' in fit/ppc_{_tag(name)}.ecsv)", FitWarning)
         for e in edges:
             side = "above" if e["end"] == "high" else "below"
-            span = domain["z"][1] - domain["z"][0]
-            how = (f"extend the z grid {side} {e['z']:g} by about {abs(e['extend_dz']):.2g}"
-                   if np.isfinite(e["extend_dz"]) and abs(e["extend_dz"]) <= span else
+            how = (f"the fitted surface extrapolates to ~0 about {e['extend_dz']:.2g} {side} it: "
+                   f"extend the z grid to z = {e['z'] + (1 if side == 'above' else -1) * e['extend_dz']:.4g}"
+                   if np.isfinite(e["extend_dz"]) else
                    f"it has hardly started to fall there: extend the z grid {side} {e['z']:g} "
                    "until it has")
             warnings.warn(f"fit {name!r}: C*S has not fallen to ~0 at z = {e['z']:g} (still "

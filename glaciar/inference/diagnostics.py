@@ -245,7 +245,7 @@ def compare_models(loos: dict) -> tuple[str, list[dict]]:
 # --------------------------------------------------------------------------
 # Redshift edges
 # --------------------------------------------------------------------------
-def edge_report(p_draws, z_grid, m_grid, threshold: float = 0.05) -> list[dict]:
+def edge_report(p_draws, z_grid, m_grid, threshold: float = 0.05, extrapolate=None) -> list[dict]:
     """Where C*S has not fallen to ~0 at an end of the simulated z range.
 
     Parameters
@@ -255,6 +255,11 @@ def edge_report(p_draws, z_grid, m_grid, threshold: float = 0.05) -> list[dict]:
     z_grid, m_grid : ndarray
     threshold : float
         P at an end, relative to its peak over z, above which V_eff is truncated.
+    extrapolate : callable, optional
+        ``extrapolate(z) -> draws of P (n_draws, len(z), n_m)`` beyond the range
+        (the fitted parametric surface): used to say how far the grid should
+        extend.  Without it, or when the extrapolation has not fallen within
+        one more range, ``extend_dz`` is NaN.
 
     Returns
     -------
@@ -262,9 +267,8 @@ def edge_report(p_draws, z_grid, m_grid, threshold: float = 0.05) -> list[dict]:
         One per end ("low", "high") where, at some magnitude with a peak P
         above 0.05, the posterior median of P(end) / max_z P exceeds
         ``threshold``: ``end``, ``z``, ``ratio`` (largest such median),
-        ``mag`` (where), ``extend_dz`` (how far the grid should extend to
-        reach ``threshold``, extrapolating the falling edge exponentially
-        from its last two grid steps; NaN when it does not fall).
+        ``mag`` (where), ``extend_dz`` (distance beyond the end at which the
+        extrapolated median P falls to ``threshold`` x peak at that magnitude).
     """
     med = np.median(p_draws, axis=0)
     peak = med.max(axis=0)
@@ -272,18 +276,19 @@ def edge_report(p_draws, z_grid, m_grid, threshold: float = 0.05) -> list[dict]:
     out = []
     if len(z_grid) < 2 or not ok.any():
         return out
-    for end, i, j in (("low", 0, 1), ("high", -1, -2)):
+    span = float(z_grid[-1] - z_grid[0])
+    for end, i, sign in (("low", 0, -1.0), ("high", -1, 1.0)):
         ratio = np.where(ok, med[i] / np.maximum(peak, 1e-300), 0.0)
         if ratio.max() <= threshold:
             continue
         k = int(np.argmax(ratio))
-        r_end, r_in = med[i, k], med[j, k]
-        step = abs(float(z_grid[1] - z_grid[0]))
-        # The edge falls by r_end / r_in per grid step; steps to fall to threshold x peak.
-        if 0 < r_end < r_in:
-            extend = step * np.log(threshold * peak[k] / r_end) / np.log(r_end / r_in)
-        else:
-            extend = np.nan
+        extend = np.nan
+        if extrapolate is not None:
+            dz = np.linspace(0.0, span, 201)[1:]
+            pz = np.median(extrapolate(z_grid[i] + sign * dz), axis=0)[:, k]
+            below = np.flatnonzero(pz <= threshold * peak[k])
+            if below.size:
+                extend = float(dz[below[0]])
         out.append({"end": end, "z": float(z_grid[i]), "ratio": float(ratio[k]),
-                    "mag": float(m_grid[k]), "extend_dz": float(extend)})
+                    "mag": float(m_grid[k]), "extend_dz": extend})
     return out
