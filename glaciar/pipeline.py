@@ -363,7 +363,8 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         sf.fit_info["adequate"] = verdict["adequate"]
         sf.fit_info["ppcext"] = verdict["fraction_extreme"]
         gd = sub.grid_draws(zg, mg)
-        edges = edge_report(gd["P"], zg, mg, extrapolate=lambda z, sub=sub: sub.grid_draws(z, mg)["P"]) \
+        few = SelectionFunction(mdl, sub.draws[:100], meta=sf.meta, depth_area=sf.depth_area)
+        edges = edge_report(gd["P"], zg, mg, extrapolate=lambda z, few=few: few.grid_draws(z, mg)["P"]) \
             if len(zg) > 1 else []
         entry = {
             "n_sources": cells.n_sources, "n_cells": len(cells), "model": chosen,
@@ -395,7 +396,10 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
                           f"{e['ratio']:.0%} of its peak at m = {e['mag']:.2f}), so V_eff misses "
                           f"the volume {side} it; {how}", FitWarning)
         try:
-            ve = sub.effective_volume(mg, cosmology=cosmology, n_z=201)
+            # the full magnitude grid with 200 draws (its median to ~1/15 of the 68 % width)
+            ve = SelectionFunction(mdl, sub.draws[:200], meta=sf.meta, field=name,
+                                   depth_area=sf.depth_area, domain=domain
+                                   ).effective_volume(mg, cosmology=cosmology, n_z=201)
             lev = sub.magnitude_at(0.5, [np.median(zg)])
             quote = [float(x) for x in np.round(lev.median[0] + np.array([-1.0, 0.0, 0.5]), 2)] \
                 if np.isfinite(lev.median[0]) else [float(x) for x in mg[[0, len(mg) // 2, -1]]]

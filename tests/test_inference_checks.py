@@ -74,7 +74,7 @@ def test_edge_report_finds_truncated_edge_and_extrapolates_extent():
     assert [r["end"] for r in rep] == ["high"]
     # where the falling edge reaches 5 % of the peak: (8.5 - z) / 0.2 = logit(0.05 * peak)
     target = 8.5 - 0.2 * special.logit(0.05 * p.max()) - 8.0
-    assert rep[0]["extend_dz"] == pytest.approx(target, abs=0.011)     # the 0.01 search step
+    assert rep[0]["extend_dz"] == pytest.approx(target, abs=0.021)     # the 1 % search step
     assert np.isnan(edge_report(p[None], z, m)[0]["extend_dz"])           # nothing to extrapolate
     assert edge_report((p * special.expit((7.5 - z) / 0.1)[:, None])[None], z, m) == []
 
@@ -211,7 +211,8 @@ def test_single_redshift_run_has_no_zero_volume_or_zero_step(tmp_path):
     run = _run(tmp_path, df, {"fields": ["f"], "area_arcmin2": {"f": 2.0}})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        path = run_fit(run, model="logistic", plots=False, max_draws=200)
+        # one z leaves the selection's z edges to their prior: cap the chains (test speed)
+        path = run_fit(run, model="logistic", plots=False, max_draws=200, max_steps=1500)
     with fits.open(path) as h:
         assert h["C_GRID", 1].header["CDELT2"] != 0 and h["C_GRID", 1].header["CDELT1"] != 0
         assert h["C_GRID", 1].data.shape[1] == 1

@@ -268,7 +268,8 @@ def edge_report(p_draws, z_grid, m_grid, threshold: float = 0.05, extrapolate=No
         above 0.05, the posterior median of P(end) / max_z P exceeds
         ``threshold``: ``end``, ``z``, ``ratio`` (largest such median),
         ``mag`` (where), ``extend_dz`` (distance beyond the end at which the
-        extrapolated median P falls to ``threshold`` x peak at that magnitude).
+        extrapolated median P falls to ``threshold`` x peak at that magnitude,
+        searched in steps of 1 % of the range).
     """
     med = np.median(p_draws, axis=0)
     peak = med.max(axis=0)
@@ -284,7 +285,7 @@ def edge_report(p_draws, z_grid, m_grid, threshold: float = 0.05, extrapolate=No
         k = int(np.argmax(ratio))
         extend = np.nan
         if extrapolate is not None:
-            dz = np.linspace(0.0, span, 201)[1:]
+            dz = np.linspace(0.0, span, 101)[1:]
             pz = np.median(extrapolate(z_grid[i] + sign * dz), axis=0)[:, k]
             below = np.flatnonzero(pz <= threshold * peak[k])
             if below.size:

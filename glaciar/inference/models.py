@@ -469,6 +469,17 @@ class SurfaceModel:
         out = np.exp(log_s).reshape((len(th),) + z.shape)
         return out[0] if np.ndim(theta) == 1 else out
 
+    def completeness_per_draw(self, theta, m, z, depth=None) -> np.ndarray:
+        """C for draw i at magnitudes m[i]: theta (D, P), m (D, K), z scalar -> (D, K).
+
+        The per-draw counterpart of :meth:`completeness` (which evaluates every
+        draw at every point), for root finding along m draw by draw.
+        """
+        th = self._theta2d(theta)
+        lcm, m50, inv_w = self._c_terms(th, np.atleast_1d(float(z)))          # (D, 1)
+        u = (self.relative_magnitude(m, depth) - m50) * inv_w
+        return np.exp(_log_c_terms(self, th, lcm, u)[0])
+
     def surfaces_on_grid(self, theta, z, m):
         """C(m, z) and S(z, m) on the outer grid ``z`` x ``m`` (model covariates), many draws.
 
