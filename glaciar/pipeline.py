@@ -396,22 +396,7 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
                           f"{e['ratio']:.0%} of its peak at m = {e['mag']:.2f}), so V_eff misses "
                           f"the volume {side} it; {how}", FitWarning)
         try:
-            # the full magnitude grid with 200 draws (its median to ~1/15 of the 68 % width)
-            ve = SelectionFunction(mdl, sub.draws[:200], meta=sf.meta, field=name,
-                                   depth_area=sf.depth_area, domain=domain
-                                   ).effective_volume(mg, cosmology=cosmology, n_z=201)
-            lev = sub.magnitude_at(0.5, [np.median(zg)])
-            quote = [float(x) for x in np.round(lev.median[0] + np.array([-1.0, 0.0, 0.5]), 2)] \
-                if np.isfinite(lev.median[0]) else [float(x) for x in mg[[0, len(mg) // 2, -1]]]
-            vq = sub.effective_volume(quote, cosmology=cosmology, n_z=401)
-            entry["effective_volume"] = {
-                "area_arcmin2": sub.area_arcmin2(), "z_range": list(domain["z"]),
-                "cosmology": getattr(cosmology, "name", None) or "Planck18",
-                "mag": mg.tolist(), "median_mpc3": ve.median.value.tolist(),
-                "lower_mpc3": ve.lower.value.tolist(), "upper_mpc3": ve.upper.value.tolist(),
-                "quoted": {"mag": quote, "median_mpc3": vq.median.value.tolist(),
-                           "lower_mpc3": vq.lower.value.tolist(),
-                           "upper_mpc3": vq.upper.value.tolist()}}
+            entry["effective_volume"] = _veff_summary(mdl, sub, sf, name, domain, mg, zg, cosmology)
         except ValueError as exc:         # no area, or a single redshift
             entry["effective_volume"] = None
             entry["effective_volume_note"] = str(exc)
@@ -436,6 +421,27 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
     out = run_dir / C.SELECTION_FUNCTION_NAME
     atomic_write_bytes(out, SelectionFunction.to_bytes(sfs, meta))
     return out
+
+
+def _veff_summary(mdl, sub, sf, name, domain, mg, zg, cosmology) -> dict:
+    """V_eff on the file's magnitude grid, and at three magnitudes around m50, for the summary."""
+    with warnings.catch_warnings():
+        # the z-edge warning of the fit already covers V_eff's truncation
+        warnings.filterwarnings("ignore", message="effective_volume: C\\*S is still")
+        # the full magnitude grid with 200 draws (its median to ~1/15 of the 68 % width)
+        ve = SelectionFunction(mdl, sub.draws[:200], meta=sf.meta, field=name,
+                               depth_area=sf.depth_area, domain=domain
+                               ).effective_volume(mg, cosmology=cosmology, n_z=201)
+        lev = sub.magnitude_at(0.5, [np.median(zg)])
+        quote = ([float(x) for x in np.round(lev.median[0] + np.array([-1.0, 0.0, 0.5]), 2)]
+                 if np.isfinite(lev.median[0]) else [float(x) for x in mg[[0, len(mg) // 2, -1]]])
+        vq = sub.effective_volume(quote, cosmology=cosmology, n_z=401)
+    return {"area_arcmin2": sub.area_arcmin2(), "z_range": list(domain["z"]),
+            "cosmology": getattr(cosmology, "name", None) or "Planck18",
+            "mag": mg.tolist(), "median_mpc3": ve.median.value.tolist(),
+            "lower_mpc3": ve.lower.value.tolist(), "upper_mpc3": ve.upper.value.tolist(),
+            "quoted": {"mag": quote, "median_mpc3": vq.median.value.tolist(),
+                       "lower_mpc3": vq.lower.value.tolist(), "upper_mpc3": vq.upper.value.tolist()}}
 
 
 def _read_columns(read_results, run_dir, want):

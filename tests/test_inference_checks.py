@@ -122,6 +122,21 @@ def test_area_weighted_average_and_per_field_volumes_add_up():
     assert sf.area_arcmin2() == 5.0 and sf.area_arcmin2("a") == 1.0
 
 
+def test_effective_volume_warns_when_the_z_range_truncates_the_selection():
+    mdl, th = _toy_model()
+    sf = SelectionFunction(mdl, th, meta={"area_arcmin2": 1.0}, domain={"z": (7.0, 9.0), "mag": (25, 29)})
+    with pytest.warns(UserWarning, match="misses the volume beyond"):
+        sf.effective_volume(26.0)                 # prior-mean edges sit at the range's ends
+    inside = th.copy()
+    for k, v in (("eta_lo_0", -5.0), ("eta_hi_0", -5.0), ("log_dz_lo_0", np.log(0.1)),
+                 ("log_dz_hi_0", np.log(0.1))):
+        inside[:, mdl.param_names.index(k)] = v   # edges at 7.5 and 8.5, width 0.1
+    sf = SelectionFunction(mdl, inside, meta={"area_arcmin2": 1.0}, domain={"z": (7.0, 9.0), "mag": (25, 29)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert sf.effective_volume(26.0).median.value > 0
+
+
 def test_domain_outside_is_nan_unless_extrapolating():
     mdl, th = _toy_model()
     sf = SelectionFunction(mdl, th, domain={"z": (7.0, 9.0), "mag": (25.0, 29.0)})

@@ -402,9 +402,11 @@ def test_run_fit_summary_effective_volume_from_run_manifest(fitted_run, tmp_path
     assert e["area_arcmin2"] == 4.5
     np.testing.assert_allclose(e["mag"], sf.m_grid, rtol=0, atol=1e-9)
     ref = sf.effective_volume(sf.m_grid[::8], area=4.5 * u.arcmin ** 2, cosmology=cosmo)
-    # the summary uses 400 of the chain's draws and 201 Simpson nodes: same posterior
-    np.testing.assert_allclose(e["median_mpc3"][::8], ref.median.to_value(u.Mpc ** 3),
-                               rtol=0.02)
+    # the summary uses 200 of the chain's draws and 201 Simpson nodes: the same posterior,
+    # medians within a fraction of the 68 % width
+    width = (ref.upper - ref.lower).to_value(u.Mpc ** 3)
+    assert np.all(np.abs(np.array(e["median_mpc3"][::8]) - ref.median.to_value(u.Mpc ** 3))
+                  <= 0.25 * width)
     assert np.all(np.array(e["lower_mpc3"]) < np.array(e["median_mpc3"]))
     assert np.all(np.array(e["median_mpc3"]) < np.array(e["upper_mpc3"]))
     assert e["median_mpc3"][0] > 10 * e["median_mpc3"][-1]      # falls with C at faint m

@@ -60,8 +60,15 @@ def plot_completeness(sf, path):
     for z, col in zip(zs, colors):
         _credible_band(ax, m, sf.completeness(m, z, draws=True), col, f"z = {z:.2f}")
         if sf.ppc is not None:
-            x, y, lo, hi = _binned(sf.ppc, np.isclose(sf.ppc["z"], z), "k_rec", "n")
+            at_z = np.isclose(sf.ppc["z"], z)
+            x, y, lo, hi = _binned(sf.ppc, at_z, "k_rec", "n")
             ax.errorbar(x, y, yerr=[y - lo, hi - y], fmt="o", ms=3, color=col, lw=0.8)
+            # cells the posterior-predictive check flags (any depth bin): marked
+            bad = sf.ppc[at_z & sf.ppc["extreme"]]
+            if len(bad):
+                mags = np.unique(bad["mag"])
+                ax.plot(mags, np.interp(mags, x, y), "x", color="red", ms=8, mew=1.5,
+                        label="PPC extreme" if z == zs[0] else None)
     ax.set_xlabel("input magnitude" + (" (M_UV)" if sf.magnitude_type == "absolute" else " [AB]"))
     ax.set_ylabel("completeness C(m)")
     ax.set_ylim(-0.02, 1.02)

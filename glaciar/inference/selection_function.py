@@ -426,11 +426,23 @@ class SelectionFunction:
         m = np.asarray(m, float)
         mm = m.reshape(-1)
         out = np.zeros((self.n_draws, mm.size))
+        ends = np.zeros((2, mm.size))            # P at the two ends and its peak, draw 0..63
         for dj, sr in zip(nodes, node_sr):
             mrel = self.model.relative_magnitude(mm, None if np.isnan(dj) else dj)
             for i in range(0, self.n_draws, 64):
                 c, s = self.model.surfaces_on_grid(self.draws[i:i + 64], zz, mrel)
                 out[i:i + 64] += simpson(c * s * dvdz[None, :, None], x=zz, axis=1) * sr
+                if i == 0:
+                    p = np.median(c * s, axis=0)                          # (n_z, n_m)
+                    ends += sr * np.stack([np.maximum(p[0], p[-1]), p.max(axis=0)])
+        # V_eff counts only the simulated z range: say so when C*S is not ~0 at its ends.
+        cut = (ends[1] > 0) & (ends[0] > 0.05 * ends[1])
+        if cut.any() and (z_min, z_max) == tuple(zr):
+            import warnings
+            warnings.warn(f"effective_volume: C*S is still {np.max(ends[0][cut] / ends[1][cut]):.0%} "
+                          f"of its peak at an end of the simulated z range {zr[0]:g}-{zr[1]:g} "
+                          f"(m = {mm[cut][0]:g}...): V_eff misses the volume beyond it",
+                          stacklevel=2)
         if "mag" in self.domain:
             out[:, self._mask(mm, np.full(mm.shape, zz[0]), None)] = np.nan
         out = out.reshape((self.n_draws,) + m.shape)
