@@ -523,8 +523,9 @@ class SurfaceModel:
         return c, sel
 
     @np.errstate(over="ignore", invalid="ignore")
-    def cell_log_likelihood(self, theta, cells: Cells, part: str = "both") -> np.ndarray:
-        """Binomial log-likelihood of every cell (with the binomial coefficients).
+    def cell_log_likelihood(self, theta, cells: Cells, part: str = "both",
+                            coefficients: bool = True) -> np.ndarray:
+        """Binomial log-likelihood of every cell.
 
         Parameters
         ----------
@@ -532,6 +533,9 @@ class SurfaceModel:
         cells : Cells
         part : {"both", "c", "s"}
             The recovered term (C), the selected-given-recovered term (S), or both.
+        coefficients : bool
+            Include the log binomial coefficients (needed for predictive
+            densities; constant in theta).
 
         Returns
         -------
@@ -539,55 +543,35 @@ class SurfaceModel:
         """
         from scipy.special import gammaln
 
-        th = self._theta2d(theta)
-        n = np.asarray(cells.n, float)
-        kr = np.asarray(cells.k_rec, float)
-        ks = np.asarray(cells.k_sel, float)
-        f = _LOG_FLOOR
-        out = np.zeros((len(th), len(n)))
         if part not in ("both", "c", "s"):
             raise ValueError(f"part must be 'both', 'c' or 's', not {part!r}")
+        th = self._theta2d(theta)
+        f = _LOG_FLOOR
+        out = np.zeros((len(th), len(cells)))
+        # (probability, trials, successes) of the two binomial terms
+        terms = []
         if part in ("both", "c"):
-            log_c, log_1mc = self._log_c(th, cells.mag, cells.z)
-            out += (np.maximum(log_c, f) * kr + np.maximum(log_1mc, f) * (n - kr)
-                    + gammaln(n + 1) - gammaln(kr + 1) - gammaln(n - kr + 1))
+            terms.append((self._log_c(th, cells.mag, cells.z), cells.n, cells.k_rec))
         if part in ("both", "s"):
-            log_s, log_1ms = self._log_s(th, cells.z, cells.mag)
-            out += (np.maximum(log_s, f) * ks + np.maximum(log_1ms, f) * (kr - ks)
-                    + gammaln(kr + 1) - gammaln(ks + 1) - gammaln(kr - ks + 1))
+            terms.append((self._log_s(th, cells.z, cells.mag), cells.k_rec, cells.k_sel))
+        for (log_p, log_1mp), n, k in terms:
+            n, k = np.asarray(n, float), np.asarray(k, float)
+            out += np.maximum(log_p, f) * k + np.maximum(log_1mp, f) * (n - k)
+            if coefficients:
+                out += gammaln(n + 1) - gammaln(k + 1) - gammaln(n - k + 1)
         return out[0] if np.ndim(theta) == 1 else out
 
-    @np.errstate(over="ignore", invalid="ignore")
     def log_likelihood(self, theta, cells: Cells, part: str = "both") -> np.ndarray:
         """Binomial log-likelihood of the cells (coefficients dropped).
 
-        Parameters
-        ----------
-        theta : array_like, shape (P,) or (W, P)
-        cells : Cells
-        part : {"both", "c", "s"}
-            The recovered term (C), the selected-given-recovered term (S), or
-            both.  They depend on disjoint parameters, so the posterior factorises.
+        The recovered term (C) and the selected-given-recovered term (S) depend
+        on disjoint parameters, so the posterior factorises (``part``).
 
         Returns
         -------
         ndarray, shape theta.shape[:-1]
         """
-        th = self._theta2d(theta)
-        n = np.asarray(cells.n, float)
-        kr = np.asarray(cells.k_rec, float)
-        ks = np.asarray(cells.k_sel, float)
-        f = _LOG_FLOOR
-        ll = np.zeros(len(th))
-        if part not in ("both", "c", "s"):
-            raise ValueError(f"part must be 'both', 'c' or 's', not {part!r}")
-        if part in ("both", "c"):
-            log_c, log_1mc = self._log_c(th, cells.mag, cells.z)
-            ll = ll + np.maximum(log_c, f) @ kr + np.maximum(log_1mc, f) @ (n - kr)
-        if part in ("both", "s"):
-            log_s, log_1ms = self._log_s(th, cells.z, cells.mag)
-            ll = ll + np.maximum(log_s, f) @ ks + np.maximum(log_1ms, f) @ (kr - ks)
-        return ll[0] if np.ndim(theta) == 1 else ll
+        return self.cell_log_likelihood(theta, cells, part, coefficients=False).sum(axis=-1)
 
     def log_posterior(self, theta, cells: Cells, part: str = "both") -> np.ndarray:
         """Unnormalised log posterior (prior over all parameters); NaN -> -inf."""
