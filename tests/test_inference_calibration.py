@@ -173,6 +173,8 @@ def coverage_table(results):
     summary = {}
     for name in TRUTHS:
         out = [r for r in results if r["name"] == name]
+        if not out:
+            continue
         h = hits(out)                                        # (R, 3, 2, n_pts)
         per_rep = h.mean(axis=-1)                            # (R, 3, 2)
         cov = per_rep.mean(axis=0)
