@@ -216,7 +216,7 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         Bad arguments (checked before anything is read or sampled), a bad
         per-source table or manifest.
     """
-    from .store import atomic_write_bytes, atomic_write_text, read_manifest, read_results
+    from .store import atomic_write_bytes, atomic_write_text, read_manifest
 
     # Arguments first: nothing is read, sampled or written on bad input.
     if model not in MODEL_CHOICES:
@@ -232,7 +232,7 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
     magnitude_type = str(manifest.get("magnitude_type", "apparent"))
     mag_col = C.COL_M_UV if magnitude_type == "absolute" else C.COL_MAG_INPUT
     want = [C.COL_FIELD, C.COL_Z, C.COL_MAG, mag_col, C.COL_RECOVERED, C.COL_SELECTED, C.COL_DEPTH]
-    df = _read_columns(read_results, run_dir, want)
+    df = _read_columns(run_dir, want)
     if C.COL_FIELD not in df.columns:
         df[C.COL_FIELD] = "all"
     fields = sorted(map(str, df[C.COL_FIELD].unique()))
@@ -268,8 +268,6 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
             depth_ref = round(_weighted_median(cen, wts), 2)
         else:
             depth_ref = round(float(np.median(df[C.COL_DEPTH])), 2)
-    if not depth_area:
-        depth_area = {}
     if area_arcmin2 is not None:
         # Rescale the fields' areas (and depth distributions) to the given total.
         tot = sum(np.sum(a) for _, a in depth_area.values()) if depth_area else sum(
@@ -287,12 +285,12 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
                 pooled=not per_field, depth_aware=bool(depth_aware), depth_ref=depth_ref,
                 likelihood="recovered ~ Bernoulli(C); selected | recovered ~ Bernoulli(S)",
                 magnitude_column=mag_col)
-    if field_area:
-        meta["area_arcmin2_field"] = {f: field_area[f] for f in fields if f in field_area}
-        meta["area_arcmin2"] = float(sum(meta["area_arcmin2_field"].values()))
-    if depth_area:
-        meta["area_arcmin2_field"] = {f: float(np.sum(a)) for f, (_, a) in depth_area.items()}
-        meta["area_arcmin2"] = float(sum(meta["area_arcmin2_field"].values()))
+    # Per-field areas: the depth histograms' when known, else the manifest's footprints.
+    per_field_area = ({f: float(np.sum(a)) for f, (_, a) in depth_area.items()} if depth_area
+                      else {f: field_area[f] for f in fields if f in field_area})
+    if per_field_area:
+        meta["area_arcmin2_field"] = per_field_area
+        meta["area_arcmin2"] = float(sum(per_field_area.values()))
 
     fit_dir = run_dir / "fit"
     fit_dir.mkdir(exist_ok=True)
@@ -378,8 +376,6 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
             "m50": _m50_summary(sub, zg),
             "c_max": _cmax_summary(sub, zg),
         }
-        if not res.converged:
-            pass        # fit_surfaces has issued the ConvergenceWarning
         if not verdict["adequate"]:
             warnings.warn(f"fit {name!r} ({chosen}): {verdict['n_extreme']} of {verdict['n_cells']} "
                           f"cells are extreme in the posterior-predictive check (chance allows "
@@ -444,9 +440,11 @@ def _veff_summary(mdl, sub, sf, name, domain, mg, zg, cosmology) -> dict:
                        "lower_mpc3": vq.lower.value.tolist(), "upper_mpc3": vq.upper.value.tolist()}}
 
 
-def _read_columns(read_results, run_dir, want):
+def _read_columns(run_dir, want):
     """The wanted columns that the store has (column projection)."""
     import pyarrow.parquet as pq
+
+    from .store import read_results
 
     files = sorted((Path(run_dir) / C.RESULTS_DIRNAME).glob("task_*.parquet"))
     have = set(pq.read_schema(files[0]).names) if files else set(want)

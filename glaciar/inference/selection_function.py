@@ -184,11 +184,13 @@ class SelectionFunction:
         """(depths [AB mag], areas [arcmin^2]) over which survey averages are taken.
 
         A model that is not depth-aware (or a fit without depth distributions)
-        has one node at the reference depth carrying the whole area (or 1).
+        has one node at the reference depth carrying the whole area (or 1); a
+        model that is not depth-aware ignores the depth it is given (NaN here).
         """
         if not self.model.depth_aware or not self.depth_area:
             a = self.area_arcmin2(field)
-            return np.array([np.nan]), np.array([a if a else 1.0])
+            ref = self.model.depth_ref if self.model.depth_aware else np.nan
+            return np.array([ref]), np.array([a if a else 1.0])
         if field is not None:
             if field not in self.depth_area:
                 raise ValueError(f"no depth distribution for field {field!r} "
@@ -342,7 +344,7 @@ class SelectionFunction:
 
         def cbar(m, zj):                                       # (D,) per-draw mixture C
             return sum(wj * self.model.completeness_per_draw(
-                self.draws, m[:, None], zj, None if np.isnan(dj) else dj)[:, 0]
+                self.draws, m[:, None], zj, dj)[:, 0]
                 for dj, wj in zip(nodes, w))
 
         out = np.full((self.n_draws, len(z)), np.nan)
@@ -428,7 +430,7 @@ class SelectionFunction:
         out = np.zeros((self.n_draws, mm.size))
         ends = np.zeros((2, mm.size))            # P at the two ends and its peak, draw 0..63
         for dj, sr in zip(nodes, node_sr):
-            mrel = self.model.relative_magnitude(mm, None if np.isnan(dj) else dj)
+            mrel = self.model.relative_magnitude(mm, dj)
             for i in range(0, self.n_draws, 64):
                 c, s = self.model.surfaces_on_grid(self.draws[i:i + 64], zz, mrel)
                 out[i:i + 64] += simpson(c * s * dvdz[None, :, None], x=zz, axis=1) * sr
@@ -474,7 +476,7 @@ class SelectionFunction:
         cbar = np.zeros((self.n_draws, len(zg), len(mg)))
         pbar = np.zeros_like(cbar)
         for dj, wj in zip(nodes, w):
-            mrel = self.model.relative_magnitude(mg, None if np.isnan(dj) else dj)
+            mrel = self.model.relative_magnitude(mg, dj)
             c, s = self.model.surfaces_on_grid(self.draws, zg, mrel)
             cbar += wj * c
             pbar += wj * c * s
