@@ -55,7 +55,7 @@ def _cmd_simulate(args) -> int:
     print(f"{stats['n_run']} tasks run ({stats['n_done_before']} already done of {stats['n_tasks']}), "
           f"{stats['n_sources']} sources, {stats['wall_seconds']:.1f} s wall, "
           f"{1e3 * stats['cpu_seconds'] / max(stats['n_sources'], 1):.3f} ms CPU per source")
-    _report(out, regions=bool(cfg.output.get("regions", False)))
+    _report(out, regions=cfg.output.regions)
     print(f"results in {out}")
     return 0
 

@@ -20,7 +20,7 @@ import yaml
 from . import __version__
 from . import constants as C
 from .config import Config, config_from_dict, config_hash, config_to_dict, store_hash
-from .engine.detect import DetectionParams, measure_background
+from .engine.detect import DetectionParams, builtin_filter, measure_background, read_conv_file
 from .engine.measure import reference_extraction
 from .engine.classify import ClassificationParams
 from .engine.depth import depth_area_histogram, local_depth_map
@@ -173,9 +173,23 @@ def field_depth(rms: np.ndarray, zeropoint: float, psf: np.ndarray) -> tuple[np.
 
 
 def _detection_params(cfg: Config) -> DetectionParams:
-    # The config has already merged any .sex file into its detection keys.
-    return DetectionParams.from_sextractor(
-        {k: v for k, v in cfg.detection.items() if k != "sex_file"}, base_dir=cfg.base_dir)
+    """The engine's detection settings from the validated ``detection:`` section.
+
+    The config has merged any ``.sex`` file and made a ``.conv`` FILTER_NAME absolute.
+    """
+    d = cfg.detection
+    if not d.filter:
+        kernel, name = None, "none"
+    elif os.path.isabs(d.filter_name):
+        kernel, name = read_conv_file(d.filter_name), d.filter_name
+    else:
+        kernel, name = builtin_filter(d.filter_name), d.filter_name
+    return DetectionParams(
+        detect_thresh=d.detect_thresh, detect_minarea=d.detect_minarea, filter_kernel=kernel,
+        filter_type=d.filter_type, deblend_nthresh=d.deblend_nthresh,
+        deblend_mincont=d.deblend_mincont, clean=d.clean, clean_param=d.clean_param,
+        back_size=d.back_size, back_filtersize=d.back_filtersize,
+        phot_apertures=d.phot_apertures, phot_autoparams=d.phot_autoparams, filter_name=name)
 
 
 def _band_psf(cfg: Config, band, pixscale: float) -> np.ndarray:
@@ -203,7 +217,7 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
     gains = {b.name: (None if b.gain is None else float(b.gain)) for b in cfg.survey.bands}
     reference = reference_extraction(bases[det], rms[det], params, zps[det], mask=mask)
     depth, _ = field_depth(rms[det], zps[det], psfs[det])
-    model = population.SourceModel(**cfg.source)
+    model = population.SourceModel(**cfg.source.model_dump())
     cache = TemplateCache(psfs, enclosed_fraction=model.stamp_flux_fraction)
     margin = int(math.ceil(2.0 * max(measure_fwhm(p, 1.0) for p in psfs.values())))
     selection = compile_selection(cfg.selection) if cfg.selection else None
@@ -216,7 +230,7 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         isolation_margin_pix=margin, source_model=model, cosmology=population.get_cosmology(model.cosmology),
         magnitude_type=cfg.grid.magnitude_type, n_galaxies=cfg.simulation.n_galaxies,
         detection_params=params,
-        classification_params=ClassificationParams(**cfg.classification),
+        classification_params=ClassificationParams(**cfg.classification.model_dump()),
         selection=selection, enclosed_fraction=model.stamp_flux_fraction,
         isolation_fraction=cfg.simulation.isolation_fraction)
 

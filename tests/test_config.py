@@ -58,13 +58,13 @@ def test_paper_defaults(tmp_path):
     np.testing.assert_allclose(cfg.grid.mag_values, 24.1 + 0.2 * np.arange(20), atol=1e-9)
     np.testing.assert_allclose(cfg.grid.z_values, 9.0 + 0.2 * np.arange(15), atol=1e-9)
     src = cfg.source
-    assert src["r_eff_kpc_z6"] == 1.075 and (src["beta_mean"], src["beta_sd"]) == (-2.2, 0.4)
-    assert src["sersic_indices"] == (1.0, 4.0) and src["sersic_fractions"] == (0.5, 0.5)
-    assert src["ellipticity_bins"] == 1 and src["position_angle_bins"] == 1
-    assert src["round_de_vaucouleurs"] is False
-    assert cfg.classification["min_sn"] == 8.0 and cfg.classification["search_box"] == 3
-    assert cfg.classification["max_overlap_fraction"] == 0.25
-    assert cfg.detection["DETECT_THRESH"] == 0.7 and cfg.detection["DETECT_MINAREA"] == 9
+    assert src.r_eff_kpc_z6 == 1.075 and (src.beta_mean, src.beta_sd) == (-2.2, 0.4)
+    assert src.sersic_indices == (1.0, 4.0) and src.sersic_fractions == (0.5, 0.5)
+    assert src.ellipticity_bins == 1 and src.position_angle_bins == 1
+    assert src.round_de_vaucouleurs is False
+    assert cfg.classification.min_sn == 8.0 and cfg.classification.search_box == 3
+    assert cfg.classification.max_overlap_fraction == 0.25
+    assert cfg.detection.detect_thresh == 0.7 and cfg.detection.detect_minarea == 9
     # With the BoRG bands present the default selection is the paper's J-dropout.
     assert cfg.selection == DEFAULT_JDROPOUT
     assert cfg.survey.image_dir == (tmp_path / "images").resolve()
@@ -224,9 +224,9 @@ def test_numeric_strings_and_yaml11_words(tmp_path):
     d["detection"] = {"DEBLEND_MINCONT": "1e-3", "CLEAN": "N", "filter": "yes"}  # PyYAML: 1e-3 is a str
     d["source"] = {"round_de_vaucouleurs": "Yes"}
     cfg = load(d, tmp_path)
-    assert cfg.detection["DEBLEND_MINCONT"] == 1e-3
-    assert cfg.detection["CLEAN"] is False and cfg.detection["FILTER"] is True
-    assert cfg.source["round_de_vaucouleurs"] is True
+    assert cfg.detection.deblend_mincont == 1e-3
+    assert cfg.detection.clean is False and cfg.detection.filter is True
+    assert cfg.source.round_de_vaucouleurs is True
 
 
 # ---------------------------------------------------------------------------
@@ -357,13 +357,13 @@ def test_sex_file_merge(tmp_path):
     d = base()
     d["detection"] = {"sex_file": "sex/default.sex", "DEBLEND_NTHRESH": 16}
     det = load(d, tmp_path).detection
-    assert det["sex_file"] == str((sexdir / "default.sex").resolve())
-    assert det["DETECT_MINAREA"] == 5 and det["DETECT_THRESH"] == 1.5      # from the .sex file
-    assert det["DEBLEND_NTHRESH"] == 16                                     # explicit key wins
-    assert det["CLEAN"] is False and det["PHOT_APERTURES"] == (2.0, 4.0, 6.0)
-    assert det["PHOT_AUTOPARAMS"] == (2.5, 3.5) and det["BACK_SIZE"] == 128
-    assert det["FILTER_NAME"] == str((sexdir / "my.conv").resolve())       # next to the .sex
-    assert det["DEBLEND_MINCONT"] == 0.005                                  # default kept
+    assert det.sex_file == str((sexdir / "default.sex").resolve())
+    assert det.detect_minarea == 5 and det.detect_thresh == 1.5      # from the .sex file
+    assert det.deblend_nthresh == 16                                     # explicit key wins
+    assert det.clean is False and det.phot_apertures == (2.0, 4.0, 6.0)
+    assert det.phot_autoparams == (2.5, 3.5) and det.back_size == 128
+    assert det.filter_name == str((sexdir / "my.conv").resolve())       # next to the .sex
+    assert det.deblend_mincont == 0.005                                  # default kept
     (sexdir / "abs.sex").write_text("THRESH_TYPE ABSOLUTE\nDETECT_THRESH 0.01\n")
     d["detection"] = {"sex_file": "sex/abs.sex"}
     assert "THRESH_TYPE: only RELATIVE" in error_of(d, tmp_path)
@@ -452,14 +452,14 @@ def test_glaciar_parameters_file(glaciar_dir, tmp_path):
     np.testing.assert_allclose(cfg.grid.mag_values, 24.0 + np.arange(21) * 4.0 / 20, atol=1e-9)
     assert (cfg.simulation.n_galaxies, cfg.simulation.n_iterations) == (100, 3)
     src = cfg.source
-    assert src["r_eff_kpc_z6"] == 1.075 and src["beta_mean"] == -2.0 and src["beta_sd"] == 0.0
-    assert src["sersic_indices"] == (1.0, 4.0) and src["sersic_fractions"] == (0.5, 0.5)
-    assert src["ellipticity_bins"] == 2 and src["position_angle_bins"] == 1
-    assert src["round_de_vaucouleurs"] is True
-    assert src["beta_per"] == "iteration" and src["igm"] == "sharp"
-    assert cfg.classification["min_sn"] == 8.0
+    assert src.r_eff_kpc_z6 == 1.075 and src.beta_mean == -2.0 and src.beta_sd == 0.0
+    assert src.sersic_indices == (1.0, 4.0) and src.sersic_fractions == (0.5, 0.5)
+    assert src.ellipticity_bins == 2 and src.position_angle_bins == 1
+    assert src.round_de_vaucouleurs is True
+    assert src.beta_per == "iteration" and src.igm == "sharp"
+    assert cfg.classification.min_sn == 8.0
     assert cfg.selection == DEFAULT_JDROPOUT
-    assert cfg.detection["PHOT_APERTURES"] == (2.0, 4.0, 6.0, 8.0, 10.0)
+    assert cfg.detection.phot_apertures == (2.0, 4.0, 6.0, 8.0, 10.0)
     text = "\n".join(cfg.warnings)
     for needle in ("R_eff", "kpc", "f606w", "ebins", "Moffat", "beta_per"):
         assert needle in text, needle
@@ -478,14 +478,14 @@ def test_glaciar_variants(glaciar_dir, tmp_path):
     (gdir / "SExtractor_files").mkdir()
     (gdir / "SExtractor_files" / "parameters.sex").write_text("DETECT_THRESH 0.9\n")
     cfg = config_from_dict(data, gdir, "parameters.yaml")
-    assert cfg.source["round_de_vaucouleurs"] is False and cfg.selection == ()
-    assert cfg.source["position_angle_bins"] == 4
+    assert cfg.source.round_de_vaucouleurs is False and cfg.selection == ()
+    assert cfg.source.position_angle_bins == 4
     np.testing.assert_allclose(cfg.grid.z_values, np.linspace(9.0, 11.9, 15), atol=1e-9)
     assert any("z_bins" in w and "0.2" in w for w in cfg.warnings)
     assert any("ibins" in w and "180" in w for w in cfg.warnings)
     assert cfg.survey.band("f160w").psf == str(gdir / "Files" / "psf_f160w.fits")
-    assert cfg.detection["DETECT_THRESH"] == 0.9
-    assert cfg.detection["sex_file"] == str(gdir / "SExtractor_files" / "parameters.sex")
+    assert cfg.detection.detect_thresh == 0.9
+    assert cfg.detection.sex_file == str(gdir / "SExtractor_files" / "parameters.sex")
     # Non-standard band order: the J-dropout cuts follow GLACiAR's positional [H, Y, J, V].
     data.update(dropouts=True, min_sn=5)
     cfg = config_from_dict(data, gdir, "parameters.yaml")
@@ -514,3 +514,102 @@ def test_glaciar_errors(glaciar_dir, change, pattern):
     assert msg.startswith("parameters.yaml: ")
     if pattern:
         assert re.search(pattern, msg), msg
+
+
+# ---------------------------------------------------------------------------
+# SExtractor keys -> the engine's DetectionParams (one reader, one validator)
+# ---------------------------------------------------------------------------
+def test_sex_file_reader_and_detection_params(tmp_path):
+    from glaciar.config import read_sex_file
+    from glaciar.engine.detect import DetectionParams
+    from glaciar.run import _detection_params
+
+    (tmp_path / "my.conv").write_text("CONV NORM\n0 1 0\n1 4 1\n0 1 0\n")
+    sex = tmp_path / "det.sex"
+    sex.write_text("# comment\nDETECT_THRESH   1.5   # sigma\nDETECT_MINAREA 5\n"
+                   "PHOT_APERTURES 2,4,6\nFILTER_NAME my.conv\nCATALOG_NAME out.cat\nCLEAN N\n")
+    raw = read_sex_file(sex)
+    assert raw["DETECT_THRESH"] == "1.5" and raw["PHOT_APERTURES"] == ["2", "4", "6"]
+    d = base()
+    d["detection"] = {"sex_file": "det.sex", "DETECT_MINAREA": 12}
+    p = _detection_params(load(d, tmp_path))
+    assert p.detect_thresh == 1.5 and p.detect_minarea == 12          # explicit key wins
+    assert p.phot_apertures == (2.0, 4.0, 6.0) and p.clean is False
+    np.testing.assert_array_equal(p.filter_kernel, [[0, 1, 0], [1, 4, 1], [0, 1, 0]])
+    d["detection"] = {"FILTER": False}
+    q = _detection_params(load(d, tmp_path))
+    assert q.filter_kernel is None and q.filter_halfwidth == 0
+    d["detection"] = {"FILTER_NAME": "gauss_3.0_7x7"}
+    assert _detection_params(load(d, tmp_path)).filter_halfwidth == 3
+    # The config's defaults are the engine's defaults (one place).
+    assert _detection_params(load(base(), tmp_path)) == DetectionParams()
+
+
+@pytest.mark.parametrize("key,value,expected", [
+    ("DETECT_THRESH", "abc", "expected a number"), ("DETECT_MINAREA", 2.5, "expected an integer"),
+    ("CLEAN", "maybe", "expected true/false"), ("PHOT_APERTURES", [1, "x"], "expected a number"),
+    ("DEBLEND_MINCONT", 2.0, "must be <= 1"), ("FILTER_NAME", "nofilter", "unknown built-in filter"),
+    ("FILTER_TYPE", "gauss", "expected one of conv, matched")])
+def test_detection_errors_name_the_key(tmp_path, key, value, expected):
+    d = base()
+    d["detection"] = {key: value}
+    msg = error_of(d, tmp_path)
+    assert msg.startswith(f"config.yaml: detection.{key}") and expected in msg, msg
+
+
+def test_sex_file_values_are_checked_and_named(tmp_path):
+    (tmp_path / "bad.sex").write_text("DETECT_MINAREA 2.5\n")
+    d = base()
+    d["detection"] = {"sex_file": "bad.sex"}
+    msg = error_of(d, tmp_path)
+    assert "detection.DETECT_MINAREA: expected an integer" in msg
+    assert str((tmp_path / "bad.sex").resolve()) in msg        # where the value came from
+
+
+def test_missing_filter_file_is_reported(tmp_path):
+    d = base()
+    d["detection"] = {"FILTER_NAME": "nope.conv"}
+    assert any(m.startswith("detection.FILTER_NAME: ") and m.endswith("nope.conv")
+               for m in missing_files(load(d, tmp_path)))
+
+
+
+# ---------------------------------------------------------------------------
+# One source of truth: the template, the documented schema and the engine defaults
+# ---------------------------------------------------------------------------
+def test_documented_schema_is_generated_from_the_models():
+    from glaciar.config import schema_yaml
+
+    committed = (REPO / "docs" / "config-schema.yaml").read_text()
+    assert committed == schema_yaml(), (
+        "docs/config-schema.yaml is stale; regenerate it with "
+        "python -c \"import glaciar.config as c; print(c.schema_yaml(), end='')\" "
+        "> docs/config-schema.yaml")
+
+
+def test_template_and_schema_cover_every_key():
+    from glaciar.config import schema_yaml
+    from glaciar.config.models import SECTIONS, BandConfig
+
+    template = yaml.safe_load(template_yaml())
+    schema = yaml.safe_load(schema_yaml())
+    for section, info in SECTIONS.items():
+        assert section in template and section in schema
+        model = info.annotation
+        if not hasattr(model, "user_keys"):
+            continue
+        for key in model.user_keys():
+            assert key in schema[section]["keys"], (section, key)
+            if (section, key) != ("survey", "fields_file"):     # an alternative to fields
+                assert key in template[section], (section, key)
+    first_band = next(iter(template["survey"]["bands"].values()))
+    assert set(first_band) == set(BandConfig.user_keys())
+
+
+def test_config_defaults_are_the_engine_defaults(tmp_path):
+    from glaciar.engine.classify import ClassificationParams
+    from glaciar.galaxy.population import SourceModel
+
+    cfg = load(base(), tmp_path)
+    assert SourceModel(**cfg.source.model_dump()) == SourceModel()
+    assert ClassificationParams(**cfg.classification.model_dump()) == ClassificationParams()

@@ -4,7 +4,7 @@ import pytest
 from scipy import integrate
 
 from glaciar.engine.detect import (DetectionError, DetectionParams, builtin_filter, builtin_filter_names,
-                                   extract, measure_background, read_conv_file, read_sex_file)
+                                   extract, measure_background, read_conv_file)
 
 
 def test_builtin_gaussian_matches_numerical_pixel_integrals():
@@ -48,37 +48,6 @@ def test_read_conv_file(tmp_path):
         read_conv_file(p)
     with pytest.raises(FileNotFoundError):
         read_conv_file(tmp_path / "missing.conv")
-
-
-def test_sex_file_and_from_sextractor(tmp_path):
-    (tmp_path / "my.conv").write_text("CONV NORM\n0 1 0\n1 4 1\n0 1 0\n")
-    sex = tmp_path / "det.sex"
-    sex.write_text("# comment\nDETECT_THRESH   1.5   # sigma\nDETECT_MINAREA 5\n"
-                   "PHOT_APERTURES 2,4,6\nFILTER_NAME my.conv\nCATALOG_NAME out.cat\nCLEAN N\n")
-    d = read_sex_file(sex)
-    assert d["DETECT_THRESH"] == "1.5" and d["PHOT_APERTURES"] == ["2", "4", "6"]
-    p = DetectionParams.from_sextractor({"sex_file": "det.sex", "DETECT_MINAREA": 12}, base_dir=tmp_path)
-    assert p.detect_thresh == 1.5 and p.detect_minarea == 12          # explicit key wins
-    assert p.phot_apertures == (2.0, 4.0, 6.0) and p.clean is False
-    np.testing.assert_array_equal(p.filter_kernel, [[0, 1, 0], [1, 4, 1], [0, 1, 0]])
-    assert p.ignored_keys == ("CATALOG_NAME",)
-    q = DetectionParams.from_sextractor({"FILTER": False})
-    assert q.filter_kernel is None and q.filter_halfwidth == 0
-    assert DetectionParams.from_sextractor({"FILTER_NAME": "gauss_3.0_7x7"}).filter_halfwidth == 3
-    assert DetectionParams.from_sextractor({}) == DetectionParams()
-
-
-@pytest.mark.parametrize("key,value", [("DETECT_THRESH", "abc"), ("DETECT_MINAREA", 2.5),
-                                       ("CLEAN", "maybe"), ("PHOT_APERTURES", [1, "x"]),
-                                       ("DEBLEND_MINCONT", 2.0), ("FILTER_NAME", "nofilter")])
-def test_from_sextractor_errors_name_the_key(key, value):
-    with pytest.raises(ValueError, match=key.lower() if key == "DEBLEND_MINCONT" else key):
-        DetectionParams.from_sextractor({key: value})
-
-
-def test_missing_filter_file_is_reported(tmp_path):
-    with pytest.raises(FileNotFoundError, match="nope.conv"):
-        DetectionParams.from_sextractor({"FILTER_NAME": "nope.conv"}, base_dir=tmp_path)
 
 
 def _blob(n=64, x0=32.0, y0=32.0, amp=5.0, s=2.0):

@@ -19,14 +19,14 @@ import math
 import os
 from dataclasses import dataclass, field
 from importlib import resources
-from typing import Any, Mapping
+
 
 import numpy as np
 import sep
 
 __all__ = [
     "DetectionError", "DetectionParams", "builtin_filter", "builtin_filter_names",
-    "read_conv_file", "read_sex_file", "measure_background", "extract", "sanitize",
+    "read_conv_file", "measure_background", "extract", "sanitize",
 ]
 
 #: sep's object flag for "deblended from a larger region" (SExtractor flag 2 is
@@ -147,44 +147,11 @@ def read_conv_file(path) -> np.ndarray:
     return k
 
 
-def read_sex_file(path) -> dict[str, Any]:
-    """Read a SExtractor configuration (``.sex``) file.
-
-    Each line is ``KEY value[,value...]  # comment``.  Returns a dict
-    ``{KEY: str}`` for single values and ``{KEY: [str, ...]}`` for
-    comma-separated lists; conversion to numbers is done by
-    :meth:`DetectionParams.from_sextractor`.
-    """
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"SExtractor file {path!r} not found")
-    out: dict[str, Any] = {}
-    with open(path) as fh:
-        for raw in fh:
-            line = raw.split("#", 1)[0].strip()
-            if not line:
-                continue
-            parts = line.split(None, 1)
-            key = parts[0].upper()
-            value = parts[1].strip() if len(parts) > 1 else ""
-            if "," in value:
-                out[key] = [v.strip() for v in value.split(",") if v.strip()]
-            else:
-                out[key] = value
-    return out
-
-
 # --------------------------------------------------------------------------
 # Parameters
 # --------------------------------------------------------------------------
 def _default_kernel():
     return builtin_filter("gauss_2.0_5x5")
-
-
-#: SExtractor keys we read; every other key is accepted and recorded as ignored.
-_KNOWN_KEYS = ("DETECT_THRESH", "DETECT_MINAREA", "FILTER", "FILTER_NAME", "FILTER_TYPE",
-               "DEBLEND_NTHRESH", "DEBLEND_MINCONT", "CLEAN", "CLEAN_PARAM", "BACK_SIZE",
-               "BACK_FILTERSIZE", "PHOT_APERTURES", "PHOT_AUTOPARAMS", "THRESH_TYPE", "SEX_FILE")
 
 
 @dataclass(frozen=True)
@@ -225,8 +192,6 @@ class DetectionParams:
         sep's deblending sub-object limit (``sep.set_sub_object_limit``).
     filter_name : str
         Provenance of the kernel (built-in name or path).
-    ignored_keys : tuple of str
-        SExtractor keys that were given but have no meaning here.
     """
 
     detect_thresh: float = 0.7
@@ -245,7 +210,6 @@ class DetectionParams:
     max_window: int = 1025
     sub_object_limit: int = 1024
     filter_name: str = "gauss_2.0_5x5"
-    ignored_keys: tuple = ()
 
     def __post_init__(self):
         def bad(name, expected, value):
@@ -291,7 +255,6 @@ class DetectionParams:
         if len(au) != 2 or not all(math.isfinite(a) and a > 0 for a in au):
             bad("phot_autoparams", "two positive numbers (k, R_min)", self.phot_autoparams)
         object.__setattr__(self, "phot_autoparams", au)
-        object.__setattr__(self, "ignored_keys", tuple(self.ignored_keys))
 
     def __eq__(self, other):
         if not isinstance(other, DetectionParams):
@@ -316,143 +279,6 @@ class DetectionParams:
         if self.filter_kernel is None:
             return 0
         return int(max(self.filter_kernel.shape) // 2)
-
-    @classmethod
-    def from_sextractor(cls, mapping: Mapping[str, Any], base_dir=None, **overrides) -> "DetectionParams":
-        """Build parameters from SExtractor keys (a config ``detection:`` section).
-
-        Parameters
-        ----------
-        mapping : mapping
-            SExtractor keys (case-insensitive): DETECT_THRESH, DETECT_MINAREA,
-            FILTER, FILTER_NAME (built-in name or ``.conv`` path), FILTER_TYPE,
-            DEBLEND_NTHRESH, DEBLEND_MINCONT, CLEAN, CLEAN_PARAM, BACK_SIZE,
-            BACK_FILTERSIZE, PHOT_APERTURES, PHOT_AUTOPARAMS, THRESH_TYPE
-            (RELATIVE only), and ``sex_file`` (a ``.sex`` file read first;
-            keys given explicitly win).  Values may be typed (YAML) or strings
-            (``.sex``).  Other SExtractor keys are ignored and listed in
-            ``ignored_keys``.
-        base_dir : path, optional
-            Directory that relative ``sex_file`` and FILTER_NAME paths are
-            relative to.
-        **overrides
-            Non-SExtractor fields (e.g. ``initial_window``).
-        """
-        if mapping is None:
-            mapping = {}
-        if not isinstance(mapping, Mapping):
-            raise ValueError(f"detection section must be a mapping of SExtractor keys, got {type(mapping).__name__}")
-        explicit = {str(k).upper(): v for k, v in mapping.items()}
-
-        def resolve(p):
-            p = os.path.expanduser(str(p))
-            if base_dir is not None and not os.path.isabs(p):
-                p = os.path.join(os.fspath(base_dir), p)
-            return p
-
-        keys: dict[str, Any] = {}
-        sex_file = explicit.pop("SEX_FILE", None)
-        if sex_file not in (None, ""):
-            keys.update(read_sex_file(resolve(sex_file)))
-        keys.update({k: v for k, v in explicit.items() if v is not None})
-
-        def scalar(key, conv, expected):
-            v = keys[key]
-            if isinstance(v, (list, tuple)):
-                if len(v) == 0:
-                    raise ValueError(f"detection key {key}: expected {expected}, got an empty list")
-                v = v[0]  # SExtractor allows e.g. DETECT_THRESH <sigma>,<zeropoint>
-            if isinstance(v, bool):
-                raise ValueError(f"detection key {key}: expected {expected}, got {v!r}")
-            try:
-                out = conv(v)
-            except (TypeError, ValueError):
-                raise ValueError(f"detection key {key}: expected {expected}, got {v!r}") from None
-            if conv is int and isinstance(v, (float, np.floating)) and v != out:
-                raise ValueError(f"detection key {key}: expected {expected}, got {v!r}")
-            return out
-
-        def boolean(key):
-            v = keys[key]
-            if isinstance(v, (bool, np.bool_)):
-                return bool(v)
-            if isinstance(v, str) and v.strip().upper() in ("Y", "YES", "TRUE", "T", "1"):
-                return True
-            if isinstance(v, str) and v.strip().upper() in ("N", "NO", "FALSE", "F", "0"):
-                return False
-            raise ValueError(f"detection key {key}: expected Y/N or true/false, got {v!r}")
-
-        def numlist(key, expected):
-            v = keys[key]
-            if isinstance(v, str):
-                v = [s for s in v.replace(",", " ").split()]
-            if not isinstance(v, (list, tuple)):
-                v = [v]
-            try:
-                if any(isinstance(x, bool) for x in v):
-                    raise TypeError
-                return tuple(float(x) for x in v)
-            except (TypeError, ValueError):
-                raise ValueError(f"detection key {key}: expected {expected}, got {keys[key]!r}") from None
-
-        kw: dict[str, Any] = {}
-        if "DETECT_THRESH" in keys:
-            kw["detect_thresh"] = scalar("DETECT_THRESH", float, "a positive number (sigma)")
-        if "DETECT_MINAREA" in keys:
-            kw["detect_minarea"] = scalar("DETECT_MINAREA", int, "a positive integer (pixels)")
-        if "DEBLEND_NTHRESH" in keys:
-            kw["deblend_nthresh"] = scalar("DEBLEND_NTHRESH", int, "a positive integer")
-        if "DEBLEND_MINCONT" in keys:
-            kw["deblend_mincont"] = scalar("DEBLEND_MINCONT", float, "a number in [0, 1]")
-        if "CLEAN" in keys:
-            kw["clean"] = boolean("CLEAN")
-        if "CLEAN_PARAM" in keys:
-            kw["clean_param"] = scalar("CLEAN_PARAM", float, "a positive number")
-        if "BACK_SIZE" in keys:
-            kw["back_size"] = scalar("BACK_SIZE", int, "a positive integer (pixels)")
-        if "BACK_FILTERSIZE" in keys:
-            kw["back_filtersize"] = scalar("BACK_FILTERSIZE", int, "a positive integer")
-        if "PHOT_APERTURES" in keys:
-            kw["phot_apertures"] = numlist("PHOT_APERTURES", "aperture diameters in pixels")
-        if "PHOT_AUTOPARAMS" in keys:
-            kw["phot_autoparams"] = numlist("PHOT_AUTOPARAMS", "two numbers k, R_min")
-        if "FILTER_TYPE" in keys:
-            ft = str(keys["FILTER_TYPE"]).strip().lower()
-            kw["filter_type"] = ft
-        if "THRESH_TYPE" in keys:
-            tt = keys["THRESH_TYPE"]
-            tt = tt[0] if isinstance(tt, (list, tuple)) else tt
-            if str(tt).strip().upper() != "RELATIVE":
-                raise ValueError(f"detection key THRESH_TYPE: only RELATIVE is supported, got {tt!r}")
-        use_filter = boolean("FILTER") if "FILTER" in keys else True
-        if not use_filter:
-            kw["filter_kernel"] = None
-            kw["filter_name"] = "none"
-        elif "FILTER_NAME" in keys:
-            name = keys["FILTER_NAME"]
-            if not isinstance(name, str) or not name.strip():
-                raise ValueError(f"detection key FILTER_NAME: expected a built-in filter name or a .conv path, got {name!r}")
-            name = name.strip()
-            path = resolve(name)
-            if os.path.isfile(path):
-                kw["filter_kernel"] = read_conv_file(path)
-                kw["filter_name"] = path
-            else:
-                base = os.path.basename(name)
-                stem = base[:-5] if base.endswith(".conv") else base
-                if stem in _filter_table():
-                    kw["filter_kernel"] = builtin_filter(stem)
-                    kw["filter_name"] = stem
-                elif name.endswith(".conv") or os.sep in name:
-                    raise FileNotFoundError(f"detection key FILTER_NAME: filter file {path!r} not found "
-                                            f"and {stem!r} is not a built-in filter")
-                else:
-                    raise ValueError(f"detection key FILTER_NAME: unknown built-in filter {name!r}; "
-                                     f"expected one of {', '.join(_filter_table())} or a .conv path")
-        ignored = tuple(sorted(k for k in keys if k not in _KNOWN_KEYS))
-        kw["ignored_keys"] = ignored
-        kw.update(overrides)
-        return cls(**kw)
 
 
 # --------------------------------------------------------------------------

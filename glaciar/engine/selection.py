@@ -31,6 +31,13 @@ __all__ = ["DEFAULT_JDROPOUT", "SelectionError", "Selection", "compile_selection
 DEFAULT_JDROPOUT = ("sn_f160w >= 8", "sn_f606w < 1.5", "sn_f098m < 1.5",
                     "maglim_f125w - mag_f160w > 1.5")
 
+#: Longest expression [characters], most nested constructs, most expressions: real
+#: selections are far below; the limits keep a hostile configuration from
+#: exhausting memory or the recursion stack while it is parsed or reported.
+MAX_EXPRESSION_CHARS = 1000
+MAX_EXPRESSION_DEPTH = 60
+MAX_EXPRESSIONS = 100
+
 #: Functions an expression may call, with their number of arguments.
 ALLOWED_FUNCTIONS = {"abs": 1, "log10": 1, "sqrt": 1, "isfinite": 1,
                      "minimum": 2, "maximum": 2, "where": 3}
@@ -138,7 +145,7 @@ class _Validator:
                 and src[node.end_col_offset:].lstrip().startswith(b")"))
 
     def fail(self, what: str):
-        raise SelectionError(f"selection expression {self.expression!r}: {what} is not allowed")
+        raise SelectionError(f"selection expression {_quote(self.expression)}: {what} is not allowed")
 
     def visit(self, node: ast.AST, parent: ast.AST | None = None) -> None:
         if isinstance(node, ast.Expression):
@@ -154,7 +161,7 @@ class _Validator:
                 # `a > 1 & b < 2` parses as `a > (1 & b) < 2`: almost never meant.
                 sym = "&" if isinstance(node.op, ast.BitAnd) else "|"
                 raise SelectionError(
-                    f"selection expression {self.expression!r}: '{sym}' binds more tightly "
+                    f"selection expression {_quote(self.expression)}: '{sym}' binds more tightly "
                     f"than comparisons; put each comparison in parentheses or use "
                     f"'and'/'or'")
             self.visit(node.left, node)
@@ -181,7 +188,7 @@ class _Validator:
                 self.fail(f"keyword argument in {fname}()")
             if len(node.args) != ALLOWED_FUNCTIONS[fname]:
                 raise SelectionError(
-                    f"selection expression {self.expression!r}: {fname}() takes "
+                    f"selection expression {_quote(self.expression)}: {fname}() takes "
                     f"{ALLOWED_FUNCTIONS[fname]} argument(s), got {len(node.args)}")
             for a in node.args:
                 self.visit(a, node)
@@ -206,9 +213,32 @@ def _constant(value):
         return np.bool_(value)
     if isinstance(value, int):
         # numpy integers: `10 ** 10 ** 10` overflows instead of hanging on a
-        # Python big-int computation.
-        return np.int64(value) if -2**63 <= value < 2**63 else np.float64(value)
+        # Python big-int computation. Integers beyond 64 bits are refused at
+        # compile time (they could only enter bitwise tests, where a float is wrong).
+        return np.int64(value)
     return np.float64(value)
+
+
+def _real(x):
+    """Arithmetic is done in float64: integer overflow (``2 ** 64``) must not wrap silently."""
+    x = _number(x)
+    if np.asarray(x).dtype.kind in "iub":
+        return np.asarray(x, dtype=np.float64)
+    return x
+
+
+def _quote(expr: str, limit: int = 60) -> str:
+    """An expression as quoted in messages, shortened (a message stays one readable line)."""
+    return repr(expr) if len(expr) <= limit else repr(expr[:limit - 3]) + "..."
+
+
+def _depth(tree: ast.AST) -> int:
+    deepest, stack = 0, [(tree, 1)]
+    while stack:
+        node, d = stack.pop()
+        deepest = max(deepest, d)
+        stack.extend((child, d + 1) for child in ast.iter_child_nodes(node))
+    return deepest
 
 
 class _Evaluator:
@@ -236,7 +266,7 @@ class _Evaluator:
                 if isinstance(x, _Truth) or np.asarray(x).dtype == bool:
                     return _not(_truth(x))
                 return np.invert(_integer(x, "~"))
-            x = _number(x)
+            x = _real(x)
             return np.negative(x) if isinstance(node.op, ast.USub) else np.positive(x)
         if isinstance(node, ast.BinOp):
             a, b = self.eval(node.left), self.eval(node.right)
@@ -246,7 +276,7 @@ class _Evaluator:
                     return f(_truth(a), _truth(b))
                 f = np.bitwise_and if isinstance(node.op, ast.BitAnd) else np.bitwise_or
                 return f(_integer(a, "&/|"), _integer(b, "&/|"))
-            return _ARITH[type(node.op)](_number(a), _number(b))
+            return _ARITH[type(node.op)](_real(a), _real(b))
         if isinstance(node, ast.Compare):
             left = _number(self.eval(node.left))
             result = None
@@ -415,18 +445,35 @@ def compile_selection(expressions: Sequence[str],
     if isinstance(expressions, str):
         expressions = [expressions]
     available = None if available_columns is None else [str(c) for c in available_columns]
+    if len(expressions) > MAX_EXPRESSIONS:
+        raise SelectionError(f"{len(expressions)} selection expressions; at most "
+                             f"{MAX_EXPRESSIONS} are allowed")
     trees, columns = [], []
     for expr in expressions:
         if not isinstance(expr, str):
-            raise SelectionError(f"selection expression {expr!r}: expected a string, "
+            raise SelectionError(f"selection expression {str(expr)[:60]!r}: expected a string, "
                                  f"got {type(expr).__name__}")
         if not expr.strip():
             raise SelectionError("selection expression is empty")
+        if len(expr) > MAX_EXPRESSION_CHARS:
+            raise SelectionError(f"selection expression {_quote(expr)}: {len(expr)} characters "
+                                 f"(at most {MAX_EXPRESSION_CHARS} characters)")
         try:
             tree = ast.parse(expr.strip(), mode="eval")
         except SyntaxError as exc:
-            raise SelectionError(f"selection expression {expr!r}: invalid syntax "
+            raise SelectionError(f"selection expression {_quote(expr)}: invalid syntax "
                                  f"({exc.msg})") from None
+        except (RecursionError, MemoryError):
+            raise SelectionError(f"selection expression {_quote(expr)}: nested too deeply "
+                                 f"to parse") from None
+        if _depth(tree) > MAX_EXPRESSION_DEPTH:
+            raise SelectionError(f"selection expression {_quote(expr)}: nested more than "
+                                 f"{MAX_EXPRESSION_DEPTH} levels deep")
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Constant) and isinstance(node.value, int) \
+                    and not isinstance(node.value, bool) and not -2**63 <= node.value < 2**63:
+                raise SelectionError(f"selection expression {_quote(expr)}: integer constant "
+                                     f"{node.value:.3g} is outside the 64-bit range")
         v = _Validator(expr.strip())
         v.visit(tree)
         if available is not None:
@@ -434,7 +481,7 @@ def compile_selection(expressions: Sequence[str],
                 if name not in available:
                     close = difflib.get_close_matches(name, available, n=3)
                     hint = f"; did you mean {', '.join(map(repr, close))}?" if close else ""
-                    raise SelectionError(f"selection expression {expr!r}: unknown column "
+                    raise SelectionError(f"selection expression {_quote(expr)}: unknown column "
                                          f"{name!r}{hint}")
         trees.append(tree)
         columns.extend(c for c in v.columns if c not in columns)

@@ -1,0 +1,916 @@
+"""The configuration schema as typed models: every key, default, unit and constraint once.
+
+Each section of a glaciar YAML file is a frozen pydantic model. Defaults of
+the science settings are taken from the engine's own dataclasses
+(:class:`~glaciar.galaxy.population.SourceModel`,
+:class:`~glaciar.engine.detect.DetectionParams`,
+:class:`~glaciar.engine.classify.ClassificationParams`) so they cannot drift;
+``glaciar init``'s template and ``docs/config-schema.yaml`` are generated from
+these models (:mod:`glaciar.config.schema`). Paths in a file are relative to
+the file's directory, passed as the validation context ``base_dir``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import inspect
+import math
+import os
+import re
+import string
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Annotated, Any, ClassVar
+
+from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, ValidationError,
+                      ValidationInfo, field_validator, model_validator)
+
+from .. import constants
+from ..engine.classify import ClassificationParams
+from ..engine.detect import DetectionParams, builtin_filter_names
+from ..galaxy import psf as _psf
+from ..galaxy.population import SourceModel
+from ..galaxy.sersic import Q_MIN
+from ._types import At, Choice, Float, Int, show, unknown_key_error
+
+__all__ = ["Section", "PsfProfile", "BandConfig", "SurveyConfig", "AxisSpec", "GridConfig",
+           "SimulationConfig", "SourceConfig", "DetectionConfig", "ClassificationConfig",
+           "OutputConfig", "Config", "SECTIONS", "MAX_TASKS", "MAX_GRID_VALUES",
+           "selection_columns", "read_fields_file", "resolve_path", "looks_like_path"]
+
+#: Largest number of tasks a configuration may plan (fields x z x mag x iterations):
+#: the planner holds one small object per task (~10**7 is ~2 GB).
+MAX_TASKS = 10_000_000
+#: Largest number of values of one grid axis.
+MAX_GRID_VALUES = 10_000
+#: File suffixes that mark a filter name as a throughput-curve file.
+FILTER_FILE_SUFFIXES = (".tab", ".dat", ".par", ".fits", ".fit", ".txt", ".csv", ".ecsv")
+
+
+def _default(cls, name: str):
+    """Default of a dataclass field of the engine (the one place it is defined)."""
+    for f in dataclasses.fields(cls):
+        if f.name == name:
+            if f.default is not dataclasses.MISSING:
+                return f.default
+            break
+    raise KeyError(f"{cls.__name__}.{name} has no plain default")
+
+
+def _arg_default(func, name: str):
+    return inspect.signature(func).parameters[name].default
+
+
+def resolve_path(base_dir, value: str) -> str:
+    """``value`` (``~`` expanded) made absolute against ``base_dir``."""
+    p = Path(os.path.expanduser(value))
+    return str(p if p.is_absolute() else (Path(base_dir) / p).resolve())
+
+
+def looks_like_path(value: str, suffixes=()) -> bool:
+    """True for a string that names a file rather than a built-in (a separator or a suffix)."""
+    return "/" in value or "\\" in value or value.lower().endswith(tuple(suffixes))
+
+
+def _base_dir(info: ValidationInfo) -> Path:
+    return Path((info.context or {}).get("base_dir", "."))
+
+
+def _warn(info: ValidationInfo, message: str) -> None:
+    (info.context or {}).setdefault("warnings", []).append(message)
+
+
+def _float_list(*, min_length=1, max_length=None, **bounds):
+    item = Annotated[Float, Field(**bounds)] if bounds else Float
+
+    def as_list(value):
+        if isinstance(value, (int, float, str)) and not isinstance(value, bool):
+            return [value]
+        return value
+    return Annotated[tuple[item, ...], BeforeValidator(as_list),
+                     Field(min_length=min_length, max_length=max_length)]
+
+
+def _bool(value):
+    # GLACiAR and SExtractor files use YAML 1.1 / SExtractor words (yes, No, Y, N).
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, int) and value in (0, 1):
+        return bool(value)
+    if isinstance(value, str) and value.strip().lower() in ("yes", "y", "true", "t", "on", "1"):
+        return True
+    if isinstance(value, str) and value.strip().lower() in ("no", "n", "false", "f", "off", "0"):
+        return False
+    raise At(f"expected true/false, got {show(value)}")
+
+
+Bool = Annotated[bool, BeforeValidator(_bool)]
+
+
+class Section(BaseModel):
+    """A configuration section: frozen, unknown keys refused with a suggestion.
+
+    A key given as ``null`` takes its default. Subclasses adapt the raw
+    mapping in :meth:`_prepare` (e.g. reading a file the section points to).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    #: Fields set by glaciar, not by the user (refused in a file).
+    _internal: ClassVar[tuple[str, ...]] = ()
+    #: Extra words for specific unknown keys.
+    _hints: ClassVar[dict[str, str]] = {}
+    #: Keys whose explicit ``null`` means something (not "the default").
+    _keep_none: ClassVar[tuple[str, ...]] = ()
+
+    @classmethod
+    def user_keys(cls) -> tuple[str, ...]:
+        """The keys a configuration file may give in this section."""
+        return tuple(f.alias or n for n, f in cls.model_fields.items() if n not in cls._internal)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _check_keys(cls, data: Any, info: ValidationInfo):
+        if data is None:
+            data = {}
+        if isinstance(data, BaseModel):
+            return data
+        if not isinstance(data, Mapping):
+            raise At(f"expected a mapping of keys, got {show(data)}")
+        data = cls._normalise_keys(dict(data))
+        allowed = cls.user_keys()
+        for key in data:
+            if key not in allowed and key not in cls._internal:
+                raise unknown_key_error(key, allowed, cls._hints)
+        data = {k: v for k, v in data.items() if v is not None or k in cls._keep_none}
+        return cls._prepare(data, info)
+
+    @classmethod
+    def _normalise_keys(cls, data: dict) -> dict:
+        return data
+
+    @classmethod
+    def _prepare(cls, data: dict, info: ValidationInfo) -> dict:
+        return data
+
+
+def _nested(model: type[BaseModel], data, info: ValidationInfo, *loc):
+    """Validate ``data`` as ``model`` with the same context; errors keep their location."""
+    try:
+        return model.model_validate(data, context=info.context)
+    except ValidationError as exc:
+        raise At("", *loc, cause=exc) from None
+
+
+# ---------------------------------------------------------------------------
+# survey
+# ---------------------------------------------------------------------------
+#: profile -> (required keys, optional keys with the defaults of glaciar.galaxy.psf)
+PSF_PROFILES = {
+    "gaussian": (("fwhm_arcsec",), {}),
+    "moffat": (("fwhm_arcsec",), {"beta": _arg_default(_psf.moffat_psf, "beta")}),
+    "airy": (("wavelength_angstrom",), {"diameter_m": _arg_default(_psf.airy_psf, "diameter_m"),
+                                        "obscuration": _arg_default(_psf.airy_psf, "obscuration")}),
+}
+
+
+class PsfProfile(Section):
+    """An analytic PSF (the keys allowed depend on ``profile``)."""
+
+    profile: Choice(*PSF_PROFILES) = Field(description="moffat | gaussian | airy")
+    fwhm_arcsec: Float | None = Field(None, gt=0, description="FWHM [arcsec] (moffat, gaussian)")
+    beta: Float | None = Field(None, gt=1, description="Moffat index")
+    wavelength_angstrom: Float | None = Field(None, gt=0, description="wavelength [Å] (airy)")
+    diameter_m: Float | None = Field(None, gt=0, description="telescope diameter [m] (airy)")
+    obscuration: Float | None = Field(None, ge=0, lt=1,
+                                      description="central obscuration, fraction of the diameter")
+    size: Int | None = Field(None, ge=1, description="stamp side [pixels, odd]")
+
+    @model_validator(mode="after")
+    def _keys_of_profile(self):
+        required, optional = PSF_PROFILES[self.profile]
+        allowed = ("profile",) + required + tuple(optional) + ("size",)
+        for name in type(self).model_fields:
+            if getattr(self, name) is not None and name not in allowed:
+                raise At(f"unknown key {name!r} for a {self.profile} PSF; allowed keys: "
+                         f"{', '.join(allowed)}", name)
+        for name in required:
+            if getattr(self, name) is None:
+                raise At(f"missing required key for a {self.profile} PSF", name)
+        if self.size is not None and self.size % 2 == 0:
+            raise At(f"must be odd (PSF centred on a pixel), got {self.size}", "size")
+        return self
+
+    def spec(self) -> dict:
+        """The mapping :func:`glaciar.galaxy.psf.prepare_psf` takes (defaults filled in)."""
+        required, optional = PSF_PROFILES[self.profile]
+        out = {"profile": self.profile}
+        for key in required + tuple(optional):
+            value = getattr(self, key)
+            out[key] = optional[key] if value is None else value
+        if self.size is not None:
+            out["size"] = self.size
+        return out
+
+
+class BandConfig(Section):
+    """One photometric band; its key in ``survey.bands`` is its name."""
+
+    _internal = ("name",)
+    name: str = Field(description="band name: column suffix (lower case) and {band} in templates")
+    filter: str = Field(description="built-in filter (wfc3_ir_*, wfc3_uvis_*, acs_wfc_*, nircam_*) "
+                                    "or a throughput curve file (.tab/.dat/.par/.fits)",
+                        json_schema_extra={"example": "wfc3_ir_f160w"})
+    zeropoint: Float = Field(description="AB magnitude of one image unit (e.g. 1 e-/s) [mag]",
+                             json_schema_extra={"example": 25.946})
+    gain: Float | None = Field(None, gt=0, description="e- per image unit, adds source Poisson "
+                                                       "noise; null = none")
+    psf: str | dict = Field(description="a FITS file, or {profile: moffat|gaussian|airy, "
+                                        "fwhm_arcsec, beta, wavelength_angstrom, diameter_m, "
+                                        "obscuration, size}",
+                            json_schema_extra={"example": {"profile": "moffat",
+                                                           "fwhm_arcsec": 0.18, "beta": 2.5}})
+    psf_pixel_scale_arcsec: Float | None = Field(
+        None, gt=0, description="FITS PSF pixel scale [arcsec/pixel]; null = from its header "
+                                "(PIXSCALE, CD/CDELT)")
+
+    @field_validator("filter", mode="before")
+    @classmethod
+    def _filter(cls, value, info: ValidationInfo):
+        if not isinstance(value, str) or not value.strip():
+            raise At(f"expected a built-in filter name or a curve file, got {show(value)}")
+        value = value.strip()
+        if looks_like_path(value, FILTER_FILE_SUFFIXES):
+            return resolve_path(_base_dir(info), value)
+        from ..galaxy.filters import get_filter
+        try:
+            get_filter(value.lower())
+        except (ValueError, KeyError, FileNotFoundError) as exc:
+            raise At(str(exc)) from None
+        return value.lower()
+
+    @field_validator("psf", mode="before")
+    @classmethod
+    def _psf(cls, value, info: ValidationInfo):
+        if isinstance(value, str) and value.strip():
+            return resolve_path(_base_dir(info), value.strip())
+        if isinstance(value, Mapping):
+            return _nested(PsfProfile, value, info).spec()
+        raise At(f"expected a FITS path or a mapping {{profile, fwhm_arcsec, ...}}, "
+                 f"got {show(value)}")
+
+
+def read_fields_file(path) -> tuple[str, ...]:
+    """Field names from a list file: the first token of each non-blank, non-comment line.
+
+    Parameters
+    ----------
+    path : path-like
+        Text file (GLACiAR's ``list_of_fields`` format), UTF-8.
+
+    Returns
+    -------
+    tuple of str
+    """
+    fields = []
+    for line in Path(path).read_text(encoding="utf-8").splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            fields.append(line.split()[0])
+    return tuple(fields)
+
+
+def _template_names(template: str) -> set[str]:
+    return {name for _, name, _, _ in string.Formatter().parse(template) if name}
+
+
+def _check_template(value, what: str):
+    if not isinstance(value, str) or not value.strip():
+        raise At(f"expected a file-name template such as '{{field}}_{{band}}_{what}.fits', "
+                 f"got {show(value)}")
+    try:
+        parts = list(string.Formatter().parse(value))
+    except ValueError as exc:
+        raise At(f"invalid file-name template {value!r}: {exc}") from None
+    for _, name, spec, conv in parts:
+        if name is not None and (name not in ("field", "band") or spec or conv):
+            raise At(f"template {value!r}: only the placeholders {{field}} and {{band}} are "
+                     f"allowed, found {{{name}}}")
+    return value.strip()
+
+
+class SurveyConfig(Section):
+    """Fields, bands and where their images are."""
+
+    fields: tuple[str, ...] = Field(description="field names (quote them in YAML); or fields_file",
+                                    json_schema_extra={"example": ["field1"]})
+    fields_file: str | None = Field(None, description="a list file instead of fields: the first "
+                                                      "token of each non-comment line")
+    image_dir: Path = Field(Path("."), description="directory holding the images",
+                            json_schema_extra={"example": "images"})
+    science: str = Field(description="science image name inside image_dir ({field}, {band} are "
+                                     "filled in)",
+                         json_schema_extra={"example": "{field}_{band}_drz.fits"})
+    noise: str | None = Field(None, description="weight or RMS map name; null = no noise map "
+                                                "(RMS from the image)",
+                              json_schema_extra={"example": "{field}_{band}_wht.fits"})
+    noise_type: Choice("weight", "rms") = Field("weight", description="weight (inverse variance) "
+                                                                      "| rms")
+    pixel_scale_arcsec: Float | None = Field(None, gt=0, description="[arcsec/pixel]; null = from "
+                                                                     "the detection image's WCS")
+    detection_band: str = Field(description="band in which sources are detected (default: the "
+                                            "only band)", json_schema_extra={"example": "f160w"})
+    bands: tuple[BandConfig, ...] = Field(
+        description="ordered mapping band name -> settings (names become column suffixes)",
+        json_schema_extra={"example": {
+            "f160w": {"filter": "wfc3_ir_f160w", "zeropoint": 25.946,
+                      "psf": {"profile": "moffat", "fwhm_arcsec": 0.18}},
+            "f125w": {"filter": "wfc3_ir_f125w", "zeropoint": 26.230,
+                      "psf": {"profile": "moffat", "fwhm_arcsec": 0.17}},
+            "f098m": {"filter": "wfc3_ir_f098m", "zeropoint": 25.667,
+                      "psf": {"profile": "moffat", "fwhm_arcsec": 0.16}},
+            "f606w": {"filter": "wfc3_uvis_f606w", "zeropoint": 26.080,
+                      "psf": {"profile": "moffat", "fwhm_arcsec": 0.10}}}})
+
+    @classmethod
+    def _prepare(cls, data: dict, info: ValidationInfo) -> dict:
+        base = _base_dir(info)
+        if "fields" in data and "fields_file" in data:
+            raise At("give either fields or fields_file, not both", "fields")
+        if "fields_file" in data:
+            ff = data["fields_file"]
+            if not isinstance(ff, str) or not ff.strip():
+                raise At(f"expected a file name, got {show(ff)}", "fields_file")
+            path = resolve_path(base, ff.strip())
+            if not Path(path).is_file():
+                raise At(f"file not found: {path}", "fields_file")
+            try:
+                fields = read_fields_file(path)
+            except UnicodeDecodeError as exc:
+                raise At(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})",
+                         "fields_file") from None
+            if not fields:
+                raise At(f"no field names in {path}", "fields_file")
+            # The fields are the resolved truth; the list file is not kept (a run's stored
+            # config lists them, so it does not depend on the file staying unchanged).
+            del data["fields_file"]
+        elif "fields" in data:
+            raw = data["fields"]
+            raw = [raw] if isinstance(raw, str) else raw
+            if not isinstance(raw, (list, tuple)) or not raw:
+                raise At(f"expected a non-empty list of field names, got {show(raw)}", "fields")
+            fields = []
+            for i, f in enumerate(raw):
+                if not isinstance(f, str) or not f.strip():
+                    # YAML reads 0123 as an octal integer: ask for quotes rather than guess.
+                    raise At(f"expected a field name string, got {show(f)} (quote names in YAML)",
+                             "fields", i)
+                fields.append(f.strip())
+        else:
+            raise At("missing required key (a list of field names, or fields_file: a list "
+                     "file)", "fields")
+        dup = sorted({f for f in fields if fields.count(f) > 1})
+        if dup:
+            raise At(f"duplicate field name(s): {', '.join(dup)}", "fields")
+        data["fields"] = tuple(fields)
+
+        image_dir = data.get("image_dir", ".")
+        if not isinstance(image_dir, (str, os.PathLike)) or not str(image_dir).strip():
+            raise At(f"expected a directory name, got {show(image_dir)}", "image_dir")
+        data["image_dir"] = Path(resolve_path(base, str(image_dir).strip()))
+        if "science" not in data:
+            raise At("missing required key (file-name template, e.g. "
+                     "'{field}_{band}_drz.fits')", "science")
+        data["science"] = _at(_check_template, data["science"], "drz", loc=("science",))
+        if "noise" in data:
+            data["noise"] = _at(_check_template, data["noise"], "wht", loc=("noise",))
+
+        bands_raw = data.get("bands")
+        if bands_raw is None:
+            raise At("missing required key (mapping band -> settings)", "bands")
+        if not isinstance(bands_raw, Mapping) or not bands_raw:
+            raise At(f"expected a non-empty mapping band -> settings, got {show(bands_raw)}",
+                     "bands")
+        bands, lower = [], set()
+        for name, bdata in bands_raw.items():
+            if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9_]+", name):
+                raise At("band names must be strings of letters, digits and '_' (they become "
+                         "column names)", "bands", str(name))
+            if name.lower() in lower:
+                raise At("duplicate band name (case-insensitive)", "bands", name)
+            lower.add(name.lower())
+            if isinstance(bdata, Mapping) and "name" in bdata:
+                raise At("unknown key 'name' (the band's name is its key)", "bands", name, "name")
+            bdata = {} if bdata is None else bdata
+            if isinstance(bdata, Mapping):
+                bdata = {**bdata, "name": name}
+            bands.append(_nested(BandConfig, bdata, info, "bands", name))
+        data["bands"] = tuple(bands)
+
+        names = [b.name for b in bands]
+        det = data.get("detection_band")
+        if det is None:
+            if len(bands) != 1:
+                raise At(f"missing required key (one of {', '.join(names)})", "detection_band")
+            det = names[0]
+        if not isinstance(det, str) or not det.strip():
+            raise At(f"expected a band name, got {show(det)}", "detection_band")
+        match = [n for n in names if n.lower() == det.strip().lower()]
+        if not match:
+            close = difflib.get_close_matches(det, names, n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise At(f"{det!r} is not one of the bands ({', '.join(names)}){hint}",
+                     "detection_band")
+        data["detection_band"] = match[0]
+
+        for key in ("science", "noise"):
+            tmpl = data.get(key)
+            if tmpl is None:
+                continue
+            placeholders = _template_names(tmpl)
+            if len(bands) > 1 and "band" not in placeholders:
+                raise At(f"template {tmpl!r} has no {{band}} but there are {len(bands)} bands",
+                         key)
+            if len(fields) > 1 and "field" not in placeholders:
+                raise At(f"template {tmpl!r} has no {{field}} but there are {len(fields)} "
+                         "fields", key)
+        return data
+
+    @property
+    def band_names(self) -> tuple[str, ...]:
+        """Band names in configuration order."""
+        return tuple(b.name for b in self.bands)
+
+    def band(self, name: str) -> BandConfig:
+        """The :class:`BandConfig` called ``name`` (KeyError if absent)."""
+        for b in self.bands:
+            if b.name == name:
+                return b
+        raise KeyError(f"no band {name!r}; bands are {list(self.band_names)}")
+
+
+def _at(func, value, *args, loc):
+    try:
+        return func(value, *args)
+    except At as exc:
+        raise At(exc.message, *loc, *exc.loc) from None
+
+
+# ---------------------------------------------------------------------------
+# grid
+# ---------------------------------------------------------------------------
+class AxisSpec(Section):
+    """One grid axis: ``{min, max, step}`` (max included within step/1000),
+    ``{min, max, n_bins}`` or ``{values: [...]}``; validated to ``{values}``."""
+
+    #: Smallest allowed value (None: any).
+    _lower: ClassVar[float | None] = None
+    min: Float | None = Field(None, description="first value")
+    max: Float | None = Field(None, description="last value (included within step/1000)")
+    step: Float | None = Field(None, gt=0, description="spacing")
+    n_bins: Int | None = Field(None, ge=1, description="number of values from min to max")
+    values: tuple[Float, ...] | None = Field(None, description="explicit, strictly increasing")
+
+    @model_validator(mode="after")
+    def _canonical(self):
+        lower = type(self)._lower
+        if self.values is not None:
+            for key in ("min", "max", "step", "n_bins"):
+                if getattr(self, key) is not None:
+                    raise At("cannot be combined with values", key)
+            values = self.values
+            if not values:
+                raise At("expected at least 1 value(s), got 0", "values")
+            for i, v in enumerate(values):
+                if lower is not None and v < lower:
+                    raise At(f"must be >= {lower:g}, got {v:g}", "values", i)
+            if any(b <= a for a, b in zip(values, values[1:])):
+                raise At("must be strictly increasing", "values")
+        else:
+            for key in ("min", "max"):
+                if getattr(self, key) is None:
+                    raise At("missing required key", key)
+                if lower is not None and getattr(self, key) < lower:
+                    raise At(f"must be >= {lower:g}, got {getattr(self, key):g}", key)
+            lo, hi = self.min, self.max
+            if lo > hi:
+                raise At(f"min ({lo:g}) > max ({hi:g})")
+            if (self.step is None) == (self.n_bins is None):
+                raise At("give exactly one of step and n_bins")
+            if self.step is not None:
+                n = math.floor((hi - lo + self.step / 1000.0) / self.step) + 1
+                if n > MAX_GRID_VALUES:
+                    raise At(f"{n} grid values (more than {MAX_GRID_VALUES}): is the step too "
+                             "small?")
+                values = [lo + k * self.step for k in range(n)]
+            else:
+                n = self.n_bins
+                if n > MAX_GRID_VALUES:
+                    raise At(f"must be <= {MAX_GRID_VALUES}, got {n}", "n_bins")
+                if n == 1 and hi != lo:
+                    raise At("n_bins = 1 needs min == max", "n_bins")
+                values = [lo + k * (hi - lo) / (n - 1) for k in range(n)] if n > 1 else [lo]
+            # Round away binary noise (9.0 + 3*0.2 = 9.600000000000001).
+            values = tuple(round(v, 10) for v in values)
+        if len(values) > MAX_GRID_VALUES:
+            raise At(f"{len(values)} grid values (more than {MAX_GRID_VALUES})", "values")
+        # Canonical form: only `values` (so equal grids compare equal however written).
+        for key in ("min", "max", "step", "n_bins"):
+            object.__setattr__(self, key, None)
+        object.__setattr__(self, "values", tuple(float(v) for v in values))
+        return self
+
+
+class RedshiftAxis(AxisSpec):
+    _lower = 0.0
+
+
+class MagnitudeAxis(AxisSpec):
+    pass
+
+
+#: The paper's default z range is 9.0-11.9 in 15 bins (not an even step); we keep
+#: 15 bins at the even 0.2 step the code actually simulates.
+_Z_DEFAULT = {"min": 9.0, "max": 11.8, "step": 0.2}
+_MAG_DEFAULT = {"min": 24.1, "max": 27.9, "step": 0.2}
+
+
+class GridConfig(Section):
+    """Simulation grid: one task per (field, z, mag, iteration)."""
+
+    z: RedshiftAxis = Field(default_factory=lambda: RedshiftAxis(**_Z_DEFAULT),
+                            description="redshifts: {min, max, step}, {min, max, n_bins} or "
+                                        "{values: [...]}; max included",
+                            json_schema_extra={"template": _Z_DEFAULT})
+    mag: MagnitudeAxis = Field(default_factory=lambda: MagnitudeAxis(**_MAG_DEFAULT),
+                               description="magnitudes of the injected sources [AB mag]",
+                               json_schema_extra={"template": _MAG_DEFAULT})
+    magnitude_type: Choice("apparent", "absolute") = Field(
+        "apparent", description="apparent (detection band, AB) | absolute (M_UV at 1600 A)")
+
+    @property
+    def z_values(self) -> tuple[float, ...]:
+        """Redshifts of the grid."""
+        return self.z.values
+
+    @property
+    def mag_values(self) -> tuple[float, ...]:
+        """Magnitudes of the grid."""
+        return self.mag.values
+
+
+# ---------------------------------------------------------------------------
+# simulation, source
+# ---------------------------------------------------------------------------
+class SimulationConfig(Section):
+    """How many sources, how many iterations, which seed."""
+
+    n_galaxies: Int = Field(100, ge=1, description="sources injected per iteration (they never "
+                                                   "overlap)")
+    n_iterations: Int = Field(100, ge=1, description="iterations per (field, z, mag) (paper: "
+                                                     "100; 10 for a quick look)")
+    seed: Int = Field(12345, ge=0, lt=2 ** 63, description="master seed: results are identical "
+                                                           "for any number of workers")
+    isolation_fraction: Float = Field(0.95, gt=0, le=1, description="sources never overlap "
+                                      "within the box holding this light fraction + 2 PSF FWHM")
+
+
+# astropy's realisations; importing astropy.cosmology to list them takes seconds.
+_KNOWN_COSMOLOGIES = ("WMAP1", "WMAP3", "WMAP5", "WMAP7", "WMAP9", "Planck13", "Planck15",
+                      "Planck18")
+
+
+def _src(name):
+    return _default(SourceModel, name)
+
+
+class SourceConfig(Section):
+    """The artificial galaxies (fields of :class:`~glaciar.galaxy.population.SourceModel`)."""
+
+    r_eff_kpc_z6: Float = Field(_src("r_eff_kpc_z6"), gt=0, description="half-light radius "
+                                "(semi-major axis) at z = 6 [proper kpc]")
+    size_evolution: Float = Field(_src("size_evolution"), description="r_e ∝ (1+z)^size_evolution")
+    r_eff_scatter_dex: Float = Field(_src("r_eff_scatter_dex"), ge=0,
+                                     description="log-normal scatter of r_e [dex]")
+    size_luminosity_slope: Float = Field(_src("size_luminosity_slope"),
+                                         description="r_e ∝ L^slope (pivot M_UV = -21)")
+    sersic_indices: _float_list(ge=0.2, le=10.0) = Field(_src("sersic_indices"),
+                                                         description="Sersic indices n ...")
+    sersic_fractions: _float_list(ge=0.0, le=1.0) = Field(
+        _src("sersic_fractions"), description="... and their fractions (sum to 1)")
+    ellipticity_bins: Int = Field(_src("ellipticity_bins"), ge=1, le=int(round(1 / Q_MIN)),
+                                  description="e = 1 - q in {0, 1/ebins, ...}; 1 = all round "
+                                              f"(at most {int(round(1 / Q_MIN))}: q >= {Q_MIN})")
+    position_angle_bins: Int = Field(_src("position_angle_bins"), ge=1, le=3600,
+                                     description="PA in {0, 180/pbins, ...} [deg]")
+    round_de_vaucouleurs: Bool = Field(_src("round_de_vaucouleurs"),
+                                       description="n = 4 sources stay round")
+    beta_mean: Float = Field(_src("beta_mean"), description="UV slope beta ~ N(beta_mean, "
+                                                            "beta_sd), f_lambda ∝ lambda^beta")
+    beta_sd: Float = Field(_src("beta_sd"), ge=0, description="scatter of beta")
+    beta_per: Choice("source", "iteration") = Field(
+        _src("beta_per"), description="draw beta per source | per iteration (GLACiAR's choice)")
+    igm: Choice("inoue14", "madau95", "sharp") = Field(
+        _src("igm"), description="IGM attenuation: inoue14 | madau95 | sharp (zero below "
+                                 "1216 A rest)")
+    cosmology: str = Field(_src("cosmology"), description="an astropy.cosmology realisation")
+    stamp_flux_fraction: Float = Field(_src("stamp_flux_fraction"), gt=0, lt=1,
+                                       description="stamps hold this fraction of the total flux")
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        n_idx, n_frac = len(self.sersic_indices), len(self.sersic_fractions)
+        if n_idx != n_frac:
+            raise At(f"has {n_frac} value(s) but sersic_indices has {n_idx}", "sersic_fractions")
+        total = sum(self.sersic_fractions)
+        if abs(total - 1.0) > 1e-6:
+            raise At(f"must sum to 1, got {total:g}", "sersic_fractions")
+        names = _KNOWN_COSMOLOGIES
+        if self.cosmology not in names:
+            from astropy.cosmology import realizations
+            names = tuple(realizations.available)
+        if self.cosmology not in names:
+            close = difflib.get_close_matches(self.cosmology, names, n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise At(f"unknown astropy cosmology {self.cosmology!r} (available: "
+                     f"{', '.join(names)}){hint}", "cosmology")
+        return self
+
+
+# ---------------------------------------------------------------------------
+# detection (SExtractor vocabulary), classification, output
+# ---------------------------------------------------------------------------
+def _det(name):
+    return _default(DetectionParams, name)
+
+
+def _square(value):
+    # SExtractor allows "64,64"; sep's meshes are square.
+    if isinstance(value, (list, tuple)):
+        vals = set(value)
+        if len(vals) != 1:
+            raise At(f"different values per axis ({list(value)}) are not supported")
+        return vals.pop()
+    return value
+
+
+SquareInt = Annotated[Int, BeforeValidator(_square)]
+
+
+def _first(value):
+    # SExtractor allows e.g. DETECT_THRESH <sigma>,<zeropoint>: sigma is the first value.
+    if isinstance(value, (list, tuple)) and value:
+        return value[0]
+    return value
+
+
+class DetectionConfig(Section):
+    """Detection and photometry in SExtractor's vocabulary (run with sep)."""
+
+    sex_file: str | None = Field(None, alias="sex_file", description="read these keys from a "
+                                 "SExtractor .sex file; keys given here win")
+    detect_thresh: Annotated[Float, BeforeValidator(_first)] = Field(
+        _det("detect_thresh"), gt=0, alias="DETECT_THRESH",
+        description="threshold above the background [sigma]")
+    detect_minarea: Int = Field(_det("detect_minarea"), ge=1, alias="DETECT_MINAREA",
+                                description="minimum area above threshold [pixels]")
+    filter: Bool = Field(True, alias="FILTER", description="filter the detection image")
+    filter_name: str = Field(_det("filter_name"), alias="FILTER_NAME",
+                             description="built-in kernel name or a .conv file")
+    filter_type: Choice("conv", "matched", aliases={"convolve": "conv"}) = Field(
+        _det("filter_type"), alias="FILTER_TYPE",
+        description="CONVOLVE (SExtractor's) | MATCHED (sep's noise-aware filter)")
+    deblend_nthresh: Int = Field(_det("deblend_nthresh"), ge=1, alias="DEBLEND_NTHRESH",
+                                 description="deblending sub-thresholds")
+    deblend_mincont: Float = Field(_det("deblend_mincont"), ge=0, le=1, alias="DEBLEND_MINCONT",
+                                   description="minimum contrast for deblending")
+    clean: Bool = Field(_det("clean"), alias="CLEAN", description="clean spurious detections")
+    clean_param: Float = Field(_det("clean_param"), gt=0, alias="CLEAN_PARAM",
+                               description="cleaning efficiency")
+    back_size: SquareInt = Field(_det("back_size"), ge=1, alias="BACK_SIZE",
+                                 description="background mesh [pixels]")
+    back_filtersize: SquareInt = Field(_det("back_filtersize"), ge=1, alias="BACK_FILTERSIZE",
+                                       description="background median filter [meshes]")
+    phot_apertures: _float_list(gt=0) = Field(
+        _det("phot_apertures"), alias="PHOT_APERTURES",
+        description="aperture diameters [pixels] (columns flux_aper0_<band>, ...)")
+    phot_autoparams: _float_list(gt=0, min_length=2, max_length=2) = Field(
+        _det("phot_autoparams"), alias="PHOT_AUTOPARAMS",
+        description="Kron factor, minimum radius")
+
+    @classmethod
+    def _normalise_keys(cls, data: dict) -> dict:
+        return {(k if str(k) == "sex_file" else str(k).upper()): v for k, v in data.items()}
+
+    @classmethod
+    def _prepare(cls, data: dict, info: ValidationInfo) -> dict:
+        from .sextractor import detection_keys_from_sex
+
+        base = _base_dir(info)
+        merged: dict[str, Any] = {}
+        if "sex_file" in data:
+            sex = data["sex_file"]
+            if not isinstance(sex, str) or not sex.strip():
+                raise At(f"expected a file name, got {show(sex)}", "sex_file")
+            path = resolve_path(base, sex.strip())
+            if not Path(path).is_file():
+                raise At(f"file not found: {path}", "sex_file")
+            from_sex = detection_keys_from_sex(path, base, info)
+            merged.update(from_sex)
+            merged["sex_file"] = path
+            origins = (info.context or {}).setdefault("origins", {})
+            for key in from_sex:
+                if key not in data:
+                    origins[f"detection.{key}"] = f"from {path}"
+        for key, value in data.items():
+            if key == "FILTER_NAME":
+                value = _filter_name(value, [base])
+            if key != "sex_file":
+                merged[key] = value
+        return merged
+
+    @field_validator("filter_name")
+    @classmethod
+    def _builtin_or_file(cls, value: str):
+        if not looks_like_path(value, (".conv",)) and value not in builtin_filter_names():
+            close = difflib.get_close_matches(value, builtin_filter_names(), n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise At(f"unknown built-in filter {value!r} (and not a .conv file){hint}")
+        return value
+
+
+def _filter_name(value, base_dirs) -> str:
+    """A FILTER_NAME: a built-in kernel name as is, a ``.conv`` path made absolute."""
+    if not isinstance(value, str) or not value.strip():
+        raise At(f"expected a built-in kernel name or a .conv file, got {show(value)}",
+                 "FILTER_NAME")
+    value = value.strip()
+    if not looks_like_path(value, (".conv",)):
+        return value
+    for d in base_dirs:
+        p = resolve_path(d, value)
+        if Path(p).is_file():
+            return p
+    return resolve_path(base_dirs[0], value)    # missing: check_files reports it
+
+
+def _cls(name):
+    return _default(ClassificationParams, name)
+
+
+class ClassificationConfig(Section):
+    """Recovery status of each injected source (paper Sect. 2.4)."""
+
+    min_sn: Float = Field(_cls("min_sn"), ge=0, description="detections below this S/N in the "
+                                                            "detection band are status -2")
+    sn_definition: Choice("iso", "aper", "auto") = Field(
+        _cls("sn_definition"), description="iso (FLUX_ISO/FLUXERR_ISO) | aper | auto")
+    sn_aperture_index: Int = Field(_cls("sn_aperture_index"), ge=0,
+                                   description="which PHOT_APERTURES entry `aper` uses")
+    search_box: Int = Field(_cls("search_box"), ge=1, description="side of the box centred on "
+                                                                  "the input position [pixels, odd]")
+    max_overlap_fraction: Float = Field(_cls("max_overlap_fraction"), ge=0, le=1,
+                                        description="blended with a brighter source: recovered "
+                                                    "if overlap < this ...")
+    flux_tolerance: Float = Field(_cls("flux_tolerance"), gt=0, description="... and "
+                                  "|F_rec - F_in| / F_in < this")
+
+    @field_validator("search_box")
+    @classmethod
+    def _odd(cls, value: int):
+        if value % 2 == 0:
+            raise At(f"must be odd so the box is centred on the input position, got {value}")
+        return value
+
+
+class OutputConfig(Section):
+    """Optional outputs."""
+
+    regions: Bool = Field(False, description="DS9 region files coloured by status")
+
+
+# ---------------------------------------------------------------------------
+# The whole configuration
+# ---------------------------------------------------------------------------
+def selection_columns(band_names, n_apertures: int) -> tuple[str, ...]:
+    """Names of the per-source columns a selection expression may use.
+
+    Parameters
+    ----------
+    band_names : iterable of str
+        Survey bands.
+    n_apertures : int
+        Number of photometric apertures (``flux_aper{k}_<band>``, k = 0..n-1).
+
+    Returns
+    -------
+    tuple of str
+        Every ``COL_*`` column of :mod:`glaciar.constants` and every per-band
+        quantity (``BAND_QUANTITIES`` plus aperture fluxes) for every band.
+    """
+    cols = [getattr(constants, n) for n in dir(constants) if n.startswith("COL_")]
+    for b in band_names:
+        cols += [constants.band_column(q, b) for q in constants.BAND_QUANTITIES]
+        for k in range(n_apertures):
+            cols += [constants.band_column(f"flux_aper{k}", b),
+                     constants.band_column(f"fluxerr_aper{k}", b)]
+    return tuple(dict.fromkeys(cols))
+
+
+def _selection_list(value):
+    if isinstance(value, str):
+        return [value]
+    if not isinstance(value, (list, tuple)):
+        raise At(f"expected a list of expression strings, got {show(value)}")
+    for i, e in enumerate(value):
+        if not isinstance(e, str):
+            raise At(f"expected an expression string, got {show(e)} (quote expressions in YAML)",
+                     i)
+    return [e.strip() for e in value]
+
+
+class Config(Section):
+    """A complete, validated configuration.
+
+    ``path`` (the file it came from), ``base_dir`` (what relative paths were
+    relative to) and ``warnings`` (choices made while reading it, e.g. in a
+    GLACiAR file) do not take part in equality.
+    """
+
+    _internal = ("path", "base_dir", "warnings")
+    _keep_none = ("selection",)
+    survey: SurveyConfig = Field(description="fields, bands and images")
+    grid: GridConfig = Field(default_factory=GridConfig, description="simulation grid")
+    simulation: SimulationConfig = Field(default_factory=SimulationConfig,
+                                         description="sources, iterations, seed")
+    source: SourceConfig = Field(default_factory=SourceConfig, description="the artificial "
+                                                                           "galaxies")
+    detection: DetectionConfig = Field(default_factory=DetectionConfig,
+                                       description="SExtractor vocabulary (run with sep)")
+    classification: ClassificationConfig = Field(default_factory=ClassificationConfig,
+                                                 description="recovery status")
+    selection: Annotated[tuple[str, ...], BeforeValidator(_selection_list)] | None = Field(
+        None, description="all must hold; expressions over per-source columns (default: the "
+                          "BoRG J125-dropout of Bernard et al. 2016 when its bands exist; "
+                          "[] = selected means recovered)")
+    output: OutputConfig = Field(default_factory=OutputConfig, description="optional outputs")
+    path: Path | None = None
+    base_dir: Path = Path(".")
+    warnings: tuple[str, ...] = ()
+
+    @classmethod
+    def _prepare(cls, data: dict, info: ValidationInfo) -> dict:
+        # An explicit `selection: null` or [] means "no selection", unlike a missing key.
+        if "selection" not in data:
+            data["selection"] = None
+        elif data["selection"] is None:
+            data["selection"] = ()
+        return data
+
+    @model_validator(mode="after")
+    def _cross_checks(self, info: ValidationInfo):
+        from ..engine.selection import (DEFAULT_JDROPOUT, MAX_EXPRESSIONS, SelectionError,
+                                        compile_selection)
+
+        n_ap = len(self.detection.phot_apertures)
+        if self.classification.sn_aperture_index >= n_ap:
+            raise At(f"is {self.classification.sn_aperture_index} but detection.PHOT_APERTURES "
+                     f"has {n_ap} aperture(s)", "classification", "sn_aperture_index")
+        n_tasks = (len(self.survey.fields) * len(self.grid.z_values) * len(self.grid.mag_values)
+                   * self.simulation.n_iterations)
+        if n_tasks > MAX_TASKS:
+            raise At(f"{self.simulation.n_iterations} iterations x {len(self.survey.fields)} "
+                     f"field(s) x {len(self.grid.z_values)} z x {len(self.grid.mag_values)} mag "
+                     f"= {n_tasks:.3g} tasks, more than the {MAX_TASKS:.0e} one run can plan",
+                     "simulation", "n_iterations")
+        columns = selection_columns(self.survey.band_names, n_ap)
+        if self.selection is None:
+            try:
+                compile_selection(DEFAULT_JDROPOUT, columns)
+                selection = DEFAULT_JDROPOUT
+            except SelectionError:
+                _warn(info, "selection: no selection given and the default BoRG J-dropout "
+                            "criteria need bands f160w, f125w, f098m and f606w; no selection "
+                            "is applied (selected = recovered)")
+                selection = ()
+            object.__setattr__(self, "selection", tuple(selection))
+        if len(self.selection) > MAX_EXPRESSIONS:
+            raise At(f"{len(self.selection)} expressions (at most {MAX_EXPRESSIONS})", "selection")
+        for i, e in enumerate(self.selection):
+            try:
+                compile_selection([e], columns)
+            except SelectionError as exc:
+                raise At(str(exc), "selection", i) from None
+        return self
+
+    def __eq__(self, other):
+        if not isinstance(other, Config):
+            return NotImplemented
+        skip = set(self._internal)
+        return all(getattr(self, k) == getattr(other, k)
+                   for k in type(self).model_fields if k not in skip)
+
+    __hash__ = None
+
+
+#: Top-level sections in file order, with their models.
+SECTIONS = {name: f for name, f in Config.model_fields.items() if name not in Config._internal}
