@@ -1,5 +1,6 @@
 """Dual-mode photometry against direct numpy sums and analytic values."""
 import numpy as np
+import pytest
 
 from glaciar.engine import photometry as phot
 
@@ -79,3 +80,35 @@ def test_auto_excludes_neighbour_segments():
     np.testing.assert_allclose(h, np.pi * 12.0 ** 2, rtol=1e-9)
     g, _ = phot.auto_photometry(img, np.ones_like(img), [40.0], [40.0], [3.0], [3.0], [0.0], np.array([4.0]))
     assert g[0] > f[0] + 1000
+
+
+def test_correlated_noise_scales_only_the_background_variance():
+    from glaciar.engine.noise import CorrelatedNoise
+    from glaciar.engine.photometry import aperture_photometry, iso_photometry
+
+    rng = np.random.default_rng(0)
+    img = rng.normal(size=(40, 40)) + 5.0
+    rms = np.full(img.shape, 2.0)
+    seg = np.zeros(img.shape, dtype=np.int32)
+    seg[10:14, 10:15] = 1                       # 20 pixels
+    seg[20:30, 20:30] = 2                       # 100 pixels
+    model = CorrelatedNoise.fit([10.0, 100.0], [1.5, 3.0])      # r = 1.5 at 10 px, 3 at 100 px
+    _, err = iso_photometry(img, rms, seg, [1, 2], noise=model)
+    for lab, n in ((1, 20), (2, 100)):
+        expected = np.sqrt(model.variance_factor(n) * n * 4.0)   # hand: f(N) * N * rms^2
+        assert err[lab - 1] == pytest.approx(expected, rel=1e-12)
+    # With a gain the Poisson part is not scaled.
+    gain = 3.0
+    _, e_plain = iso_photometry(img, rms, seg, [2], gain=gain)
+    _, e_corr = iso_photometry(img, rms, seg, [2], gain=gain, noise=model)
+    poisson = np.clip(img[20:30, 20:30], 0, None).sum() / gain
+    assert e_corr[0] ** 2 == pytest.approx(model.variance_factor(100) * 400.0 + poisson, rel=1e-12)
+    assert e_plain[0] ** 2 == pytest.approx(400.0 + poisson, rel=1e-12)
+    # Apertures: background variance sum(w rms^2) = pi r^2 rms^2 scaled by f(pi r^2).
+    _, ea = aperture_photometry(img, rms, [20.0], [20.0], [6.0], noise=model)
+    area = np.pi * 9.0
+    assert ea[0, 0] == pytest.approx(np.sqrt(model.variance_factor(area) * area * 4.0), rel=1e-6)
+    _, eg = aperture_photometry(img, rms, [20.0], [20.0], [6.0], gain=gain, noise=model)
+    _, eg0 = aperture_photometry(img, rms, [20.0], [20.0], [6.0], gain=gain)
+    assert eg[0, 0] ** 2 - eg0[0, 0] ** 2 == pytest.approx((model.variance_factor(area) - 1) * area * 4.0,
+                                                            rel=1e-6)

@@ -18,7 +18,7 @@ __all__ = ["iso_photometry", "aperture_photometry", "kron_radius", "auto_photome
 _K = np.log(10.0) / 2.5
 
 
-def iso_photometry(image, rms, segmap, labels, gain=None, pixels=None):
+def iso_photometry(image, rms, segmap, labels, gain=None, pixels=None, noise=None):
     """Isophotal flux of detection segments measured in a band.
 
     Parameters
@@ -35,12 +35,15 @@ def iso_photometry(image, rms, segmap, labels, gain=None, pixels=None):
         Electrons per image unit for the source Poisson term; None = no term.
     pixels : ndarray of int, optional
         ``np.flatnonzero(segmap)``, to reuse across bands.
+    noise : glaciar.engine.noise.CorrelatedNoise, optional
+        Correlated-noise model: the background variance of a segment of N
+        pixels is multiplied by ``noise.variance_factor(N)``.
 
     Returns
     -------
     flux, fluxerr : ndarray
-        ``flux = sum(image)`` over the segment; ``fluxerr = sqrt(sum(rms^2) +
-        sum(max(image, 0))/gain)``.  Sums are in row-major pixel order, so the
+        ``flux = sum(image)`` over the segment; ``fluxerr = sqrt(f(N) sum(rms^2) +
+        sum(max(image, 0))/gain)`` with ``f = 1`` without a noise model.  Sums are in row-major pixel order, so the
         same segment in a cut-out and in the full frame gives bit-identical
         results.
     """
@@ -53,6 +56,8 @@ def iso_photometry(image, rms, segmap, labels, gain=None, pixels=None):
     var = np.asarray(rms, dtype=np.float64).ravel()[pixels] ** 2
     fsum = np.bincount(lab, weights=val, minlength=n)
     vsum = np.bincount(lab, weights=var, minlength=n)
+    if noise is not None:
+        vsum = vsum * noise.variance_factor(np.maximum(np.bincount(lab, minlength=n), 1))
     if gain is not None:
         if not gain > 0:
             raise ValueError(f"gain must be positive or None, got {gain!r}")
@@ -73,7 +78,13 @@ def _mask(m):
     return None if m is None else np.ascontiguousarray(m, dtype=bool)
 
 
-def aperture_photometry(image, rms, x, y, diameters, gain=None, mask=None):
+def _scaled_error(err_bkg, err_total, factor):
+    """Error with its background variance scaled by ``factor`` and its Poisson part kept."""
+    poisson = np.maximum(np.square(err_total) - np.square(err_bkg), 0.0)
+    return np.sqrt(np.square(err_bkg) * factor + poisson)
+
+
+def aperture_photometry(image, rms, x, y, diameters, gain=None, mask=None, noise=None):
     """Fluxes in circular apertures (SExtractor FLUX_APER).
 
     Parameters
@@ -89,6 +100,9 @@ def aperture_photometry(image, rms, x, y, diameters, gain=None, mask=None):
     mask : ndarray of bool, optional
         Pixels without data, excluded from the sums, which sep scales up by
         total/unmasked area.
+    noise : glaciar.engine.noise.CorrelatedNoise, optional
+        Scales the background variance of each aperture by
+        ``noise.variance_factor(pi r^2)``.
 
     Returns
     -------
@@ -106,6 +120,10 @@ def aperture_photometry(image, rms, x, y, diameters, gain=None, mask=None):
     for k, d in enumerate(diameters):
         f, fe, _ = sep.sum_circle(data, x, y, 0.5 * float(d), err=e, mask=_mask(mask),
                                   gain=gain, subpix=0)
+        if noise is not None:
+            fb = fe if gain is None else sep.sum_circle(data, x, y, 0.5 * float(d), err=e,
+                                                        mask=_mask(mask), subpix=0)[1]
+            fe = _scaled_error(fb, fe, noise.variance_factor(np.pi * (0.5 * float(d)) ** 2))
         flux[k], err[k] = f, fe
     return flux, err
 
@@ -142,13 +160,15 @@ def auto_scale(kron, autoparams):
 
 
 def auto_photometry(image, rms, x, y, a, b, theta, scale, gain=None,
-                    segmap=None, seg_id=None, mask=None):
+                    segmap=None, seg_id=None, mask=None, noise=None):
     """Flux in the AUTO (Kron) ellipse of semi-axes ``scale*a``, ``scale*b``.
 
     Pixels of other segments (``segmap``, ``seg_id``) are excluded; pixels
     flagged in ``mask`` (no data) are excluded and, as sep does, compensated
     by scaling the sum by total/unmasked area.  Pixel weights are the exact
-    pixel/ellipse overlap (``subpix=0``).
+    pixel/ellipse overlap (``subpix=0``). With a correlated-noise model
+    (``noise``) the background variance is scaled by
+    ``noise.variance_factor(pi a b scale^2)``.
 
     Returns
     -------
@@ -161,9 +181,15 @@ def auto_photometry(image, rms, x, y, a, b, theta, scale, gain=None,
     if segmap is not None:
         kw = dict(segmap=np.ascontiguousarray(segmap, dtype=np.int32),
                   seg_id=np.asarray(seg_id, dtype=np.int32))
-    f, fe, _ = sep.sum_ellipse(_f64(image), x, _f64(y), _f64(a), _f64(b), _f64(theta),
-                               _f64(scale), err=_f64(rms), mask=_mask(mask), gain=gain, subpix=0, **kw)
-    return np.asarray(f, dtype=np.float64), np.asarray(fe, dtype=np.float64)
+    args = (_f64(image), x, _f64(y), _f64(a), _f64(b), _f64(theta), _f64(scale))
+    f, fe, _ = sep.sum_ellipse(*args, err=_f64(rms), mask=_mask(mask), gain=gain, subpix=0, **kw)
+    fe = np.asarray(fe, dtype=np.float64)
+    if noise is not None:
+        fb = fe if gain is None else np.asarray(
+            sep.sum_ellipse(*args, err=_f64(rms), mask=_mask(mask), subpix=0, **kw)[1])
+        area = np.pi * np.asarray(a, float) * np.asarray(b, float) * np.asarray(scale, float) ** 2
+        fe = _scaled_error(fb, fe, noise.variance_factor(area))
+    return np.asarray(f, dtype=np.float64), fe
 
 
 def magnitudes(flux, fluxerr, zeropoint):
