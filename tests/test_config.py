@@ -613,3 +613,95 @@ def test_config_defaults_are_the_engine_defaults(tmp_path):
     cfg = load(base(), tmp_path)
     assert SourceModel(**cfg.source.model_dump()) == SourceModel()
     assert ClassificationParams(**cfg.classification.model_dump()) == ClassificationParams()
+
+
+# ---------------------------------------------------------------------------
+# Every SExtractor key honoured or refused (issue 9, point 2)
+# ---------------------------------------------------------------------------
+SEX_DEFAULTS = """\
+CATALOG_NAME     test.cat
+CATALOG_TYPE     ASCII_HEAD
+PARAMETERS_NAME  default.param
+DETECT_TYPE      CCD
+DETECT_MINAREA   3
+DETECT_THRESH    1.5
+ANALYSIS_THRESH  1.5
+FILTER           Y
+FILTER_NAME      gauss_2.0_5x5.conv
+DEBLEND_NTHRESH  32
+DEBLEND_MINCONT  0.005
+CLEAN            Y
+CLEAN_PARAM      1.0
+MASK_TYPE        CORRECT
+WEIGHT_TYPE      NONE
+WEIGHT_IMAGE     weight.fits
+FLAG_IMAGE       flag.fits
+FLAG_TYPE        OR
+PHOT_APERTURES   5
+PHOT_AUTOPARAMS  2.5, 3.5
+PHOT_PETROPARAMS 2.0, 3.5
+PHOT_AUTOAPERS   0.0,0.0
+SATUR_LEVEL      50000.0
+SATUR_KEY        SATURATE
+MAG_ZEROPOINT    0.0
+GAIN             0.0
+GAIN_KEY         GAIN
+PIXEL_SCALE      1.0
+SEEING_FWHM      1.2
+BACK_TYPE        AUTO
+BACK_VALUE       0.0
+BACK_SIZE        64
+BACK_FILTERSIZE  3
+BACKPHOTO_TYPE   GLOBAL
+CHECKIMAGE_TYPE  NONE
+MEMORY_OBJSTACK  3000
+VERBOSE_TYPE     NORMAL
+"""
+
+
+def test_sextractor_default_file_is_accepted(tmp_path):
+    (tmp_path / "default.sex").write_text(SEX_DEFAULTS)
+    d = base()
+    d["detection"] = {"sex_file": "default.sex"}
+    cfg = load(d, tmp_path)
+    det = cfg.detection
+    assert (det.detect_thresh, det.detect_minarea, det.phot_apertures) == (1.5, 3, (5.0,))
+    assert det.filter_name == "gauss_2.0_5x5" and det.weight_type is None
+    assert any("WEIGHT_TYPE NONE" in w for w in cfg.warnings)
+
+
+@pytest.mark.parametrize("line, needle", [
+    ("BACKPHOTO_TYPE LOCAL", "BACKPHOTO_TYPE LOCAL: not supported"),
+    ("BACK_TYPE MANUAL", "BACK_TYPE MANUAL: not supported"),
+    ("MASK_TYPE BLANK", "MASK_TYPE BLANK: not supported"),
+    ("GAIN 2.5", "GAIN 2.5: not supported"),
+    ("INTERP_TYPE ALL", "INTERP_TYPE ALL: not supported"),
+    ("DETECT_TYPE PHOTO", "DETECT_TYPE PHOTO"),
+    ("FANCY_NEW_KEY 3", "FANCY_NEW_KEY: SExtractor key not supported"),
+    ("WEIGHT_TYPE MAP_WEIGHT,MAP_RMS", "different types for detection and measurement"),
+])
+def test_sextractor_keys_that_would_change_the_answer_are_refused(tmp_path, line, needle):
+    (tmp_path / "x.sex").write_text(SEX_DEFAULTS.replace("WEIGHT_TYPE      NONE\n", "") + line + "\n")
+    d = base()
+    d["detection"] = {"sex_file": "x.sex"}
+    msg = error_of(d, tmp_path)
+    assert msg.startswith("config.yaml: detection.sex_file: ") and needle in msg, msg
+    assert str(tmp_path / "x.sex") in msg
+
+
+def test_weight_type_from_sex_and_consistency(tmp_path):
+    (tmp_path / "w.sex").write_text("WEIGHT_TYPE MAP_WEIGHT,MAP_WEIGHT\nWEIGHT_GAIN Y\n")
+    d = base()
+    d["detection"] = {"sex_file": "w.sex"}
+    cfg = load(d, tmp_path)
+    assert cfg.detection.weight_type == "map_weight" and cfg.detection.weight_gain is True
+    d["survey"]["noise_type"] = "rms"
+    assert "detection.WEIGHT_TYPE: MAP_WEIGHT needs survey.noise_type: weight" in error_of(d, tmp_path)
+    d = base()
+    d["detection"] = {"WEIGHT_GAIN": True}
+    d["survey"]["bands"]["f160w"]["gain"] = 2000.0
+    assert "detection.WEIGHT_GAIN: WEIGHT_GAIN Y" in error_of(d, tmp_path)
+    d = base()
+    del d["survey"]["noise"]
+    d["detection"] = {"WEIGHT_TYPE": "MAP_WEIGHT"}
+    assert "needs a noise map" in error_of(d, tmp_path)

@@ -21,7 +21,7 @@ __all__ = ["is_glaciar_parameters", "glaciar_to_schema", "GLACIAR_TO_SCHEMA", "T
 
 #: Sections of a glaciar configuration (a GLACiAR file has none of them).
 TOP_KEYS = ("survey", "grid", "simulation", "source", "detection", "classification",
-            "selection", "output")
+            "noise", "selection", "output")
 
 
 class _Ctx:

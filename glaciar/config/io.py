@@ -257,6 +257,7 @@ def config_to_dict(cfg: Config, relative_to: str | os.PathLike | None = None) ->
         "source": cfg.source.model_dump(mode="json"),
         "detection": cfg.detection.model_dump(mode="json", by_alias=True),
         "classification": cfg.classification.model_dump(mode="json"),
+        "noise": cfg.noise.model_dump(mode="json"),
         "selection": list(cfg.selection),
         "output": cfg.output.model_dump(mode="json"),
     }

@@ -27,6 +27,7 @@ from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, ValidationE
 
 from .. import constants
 from ..engine.classify import ClassificationParams
+from ..engine import noise as _noise
 from ..engine.detect import DetectionParams, builtin_filter_names
 from ..galaxy import psf as _psf
 from ..galaxy.population import SourceModel
@@ -35,7 +36,7 @@ from ._types import At, Choice, Float, Int, show, unknown_key_error
 
 __all__ = ["Section", "PsfProfile", "BandConfig", "SurveyConfig", "AxisSpec", "GridConfig",
            "SimulationConfig", "SourceConfig", "DetectionConfig", "ClassificationConfig",
-           "OutputConfig", "Config", "SECTIONS", "MAX_TASKS", "MAX_GRID_VALUES",
+           "OutputConfig", "NoiseConfig", "Config", "SECTIONS", "MAX_TASKS", "MAX_GRID_VALUES",
            "selection_columns", "read_fields_file", "resolve_path", "looks_like_path"]
 
 #: Largest number of tasks a configuration may plan (fields x z x mag x iterations):
@@ -696,6 +697,16 @@ class DetectionConfig(Section):
     phot_autoparams: _float_list(gt=0, min_length=2, max_length=2) = Field(
         _det("phot_autoparams"), alias="PHOT_AUTOPARAMS",
         description="Kron factor, minimum radius")
+    weight_type: Choice("map_weight", "map_rms", "background") | None = Field(
+        None, alias="WEIGHT_TYPE",
+        description="how the noise map is used: null = as an absolute map (survey.noise_type "
+                    "says weight or rms); MAP_WEIGHT = a relative weight map rescaled to the "
+                    "pixel noise measured on the image (drizzled, correlated noise); MAP_RMS = "
+                    "an absolute RMS map; BACKGROUND = ignore the map, use the measured "
+                    "background RMS")
+    weight_gain: Bool = Field(False, alias="WEIGHT_GAIN",
+                              description="Y (gain scaled by the weights) only without band "
+                                          "gains: the gain is per band (survey.bands.<band>.gain)")
 
     @classmethod
     def _normalise_keys(cls, data: dict) -> dict:
@@ -782,6 +793,23 @@ class ClassificationConfig(Section):
         return value
 
 
+class NoiseConfig(Section):
+    """Correlated noise: a model of photometric errors fitted from empty apertures."""
+
+    correlated: Choice("auto", "on", "off") = Field(
+        "auto", description="fit r(N) = scatter of sums over N empty pixels / noise-map "
+                            "prediction per field and band (recorded in the run); auto = "
+                            "apply it to photometric errors and S/N where it differs from 1, "
+                            "on = always, off = never")
+    empty_aperture_radii_pix: _float_list(gt=0) = Field(
+        tuple(_noise.DEFAULT_EMPTY_APERTURE_RADII_PIX),
+        description="radii of the empty apertures [pixels]")
+    n_empty_apertures: Int = Field(1000, ge=_noise.MIN_EMPTY_APERTURES, le=100_000,
+                                   description="empty apertures per radius")
+    identity_tolerance: Float = Field(0.05, ge=0, le=1, description="auto: r(N) within this of "
+                                      "1 (beyond its noise) counts as uncorrelated")
+
+
 class OutputConfig(Section):
     """Optional outputs."""
 
@@ -848,6 +876,8 @@ class Config(Section):
                                        description="SExtractor vocabulary (run with sep)")
     classification: ClassificationConfig = Field(default_factory=ClassificationConfig,
                                                  description="recovery status")
+    noise: NoiseConfig = Field(default_factory=NoiseConfig, description="correlated noise of "
+                                                                        "real images")
     selection: Annotated[tuple[str, ...], BeforeValidator(_selection_list)] | None = Field(
         None, description="all must hold; expressions over per-source columns (default: the "
                           "BoRG J125-dropout of Bernard et al. 2016 when its bands exist; "
@@ -871,6 +901,20 @@ class Config(Section):
         from ..engine.selection import (DEFAULT_JDROPOUT, MAX_EXPRESSIONS, SelectionError,
                                         compile_selection)
 
+        wt, nt = self.detection.weight_type, self.survey.noise_type
+        if wt in ("map_weight", "map_rms"):
+            wanted = {"map_weight": "weight", "map_rms": "rms"}[wt]
+            if self.survey.noise is None:
+                raise At(f"{wt.upper()} needs a noise map (survey.noise)", "detection",
+                         "WEIGHT_TYPE")
+            if nt != wanted:
+                raise At(f"{wt.upper()} needs survey.noise_type: {wanted}, got {nt}",
+                         "detection", "WEIGHT_TYPE")
+        gains = [b.name for b in self.survey.bands if b.gain is not None]
+        if self.detection.weight_gain and gains:
+            raise At(f"WEIGHT_GAIN Y (gain proportional to the weight) is not supported with band "
+                     f"gains ({', '.join(gains)}): the gain is per band; set WEIGHT_GAIN N",
+                     "detection", "WEIGHT_GAIN")
         n_ap = len(self.detection.phot_apertures)
         if self.classification.sn_aperture_index >= n_ap:
             raise At(f"is {self.classification.sn_aperture_index} but detection.PHOT_APERTURES "

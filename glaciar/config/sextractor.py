@@ -3,8 +3,12 @@
 A ``.sex`` file is lines of ``KEY value[,value...]  # comment``. glaciar reads
 the detection and photometry keys it honours (:data:`HONOURED_KEYS`) into the
 ``detection:`` section (:class:`glaciar.config.models.DetectionConfig`), where
-keys given explicitly in the YAML win. ``THRESH_TYPE`` must be RELATIVE (sep
-thresholds are in units of the background RMS).
+keys given explicitly in the YAML win. No key is ignored silently: a key
+either is honoured, has no effect on what glaciar measures
+(:data:`NO_EFFECT_KEYS`: catalogue output, memory, ...), is accepted at the
+one value glaciar reproduces (:data:`DEFAULT_ONLY_KEYS`, e.g. ``THRESH_TYPE
+RELATIVE``, ``BACKPHOTO_TYPE GLOBAL``), or is refused with a one-line error
+naming it.
 """
 from __future__ import annotations
 
@@ -15,13 +19,54 @@ from typing import Any
 
 from ._types import At
 
-__all__ = ["read_sex_file", "detection_keys_from_sex", "HONOURED_KEYS"]
+__all__ = ["read_sex_file", "detection_keys_from_sex", "HONOURED_KEYS", "NO_EFFECT_KEYS",
+           "DEFAULT_ONLY_KEYS"]
 
 #: SExtractor keys glaciar reads into ``detection:`` (upper case).
 HONOURED_KEYS = ("DETECT_THRESH", "DETECT_MINAREA", "FILTER", "FILTER_NAME", "FILTER_TYPE",
                  "DEBLEND_NTHRESH", "DEBLEND_MINCONT", "CLEAN", "CLEAN_PARAM", "BACK_SIZE",
-                 "BACK_FILTERSIZE", "PHOT_APERTURES", "PHOT_AUTOPARAMS")
+                 "BACK_FILTERSIZE", "PHOT_APERTURES", "PHOT_AUTOPARAMS", "WEIGHT_TYPE",
+                 "WEIGHT_GAIN")
 _LIST_KEYS = ("PHOT_APERTURES", "PHOT_AUTOPARAMS", "BACK_SIZE", "BACK_FILTERSIZE")
+
+#: Keys that do not change which injected sources are found or the fluxes glaciar
+#: measures (catalogue output, memory, verbosity, other measurements' parameters),
+#: and keys whose job glaciar does elsewhere (named in the value).
+NO_EFFECT_KEYS = {
+    "CATALOG_NAME": "catalogue output", "CATALOG_TYPE": "catalogue output",
+    "PARAMETERS_NAME": "catalogue columns", "VERBOSE_TYPE": "verbosity",
+    "HEADER_SUFFIX": "headers", "WRITE_XML": "XML output", "XML_NAME": "XML output",
+    "XSL_URL": "XML output", "NTHREADS": "threads", "FITS_UNSIGNED": "integer images",
+    "MEMORY_OBJSTACK": "memory", "MEMORY_PIXSTACK": "memory", "MEMORY_BUFSIZE": "memory",
+    "CHECKIMAGE_TYPE": "check images", "CHECKIMAGE_NAME": "check images",
+    "SEEING_FWHM": "star/galaxy classifier", "STARNNW_NAME": "star/galaxy classifier",
+    "PHOT_FLUXFRAC": "FLUX_RADIUS", "PHOT_PETROPARAMS": "Petrosian fluxes",
+    "ANALYSIS_THRESH": "isophotal shape parameters", "MAG_GAMMA": "photographic plates",
+    "MAG_ZEROPOINT": "survey.bands.<band>.zeropoint is used",
+    "PIXEL_SCALE": "survey.pixel_scale_arcsec or the WCS is used",
+    "INTERP_MAXXLAG": "interpolation (INTERP_TYPE)", "INTERP_MAXYLAG": "interpolation",
+    "WEIGHT_IMAGE": "survey.noise is used", "PSF_NAME": "PSF fitting",
+    "FLAG_IMAGE": "IMAFLAGS_* catalogue columns", "FLAG_TYPE": "IMAFLAGS_* catalogue columns",
+    "ASSOC_NAME": "catalogue association", "ASSOC_DATA": "catalogue association",
+    "ASSOC_PARAMS": "catalogue association", "ASSOC_RADIUS": "catalogue association",
+    "ASSOC_TYPE": "catalogue association", "ASSOCSELEC_TYPE": "catalogue association",
+    "ASSOCCOORD_TYPE": "catalogue association",
+    "SATUR_LEVEL": "the FLAGS saturation bit, which glaciar's statuses do not use (mask "
+                   "saturated stars instead)",
+    "SATUR_KEY": "the FLAGS saturation bit", "GAIN_KEY": "survey.bands.<band>.gain is used",
+    "BACK_VALUE": "BACK_TYPE MANUAL only",
+}
+#: Keys accepted at the value that reproduces what glaciar does (SExtractor's
+#: default, compared case-insensitively); any other value is refused.
+DEFAULT_ONLY_KEYS = {
+    "THRESH_TYPE": ("RELATIVE",), "BACK_TYPE": ("AUTO",), "DETECT_TYPE": ("CCD",),
+    "BACKPHOTO_TYPE": ("GLOBAL",), "BACK_FILTTHRESH": ("0", "0.0"),
+    "PHOT_AUTOAPERS": ("0.0,0.0", "0,0", "0.0", "0"), "GAIN": ("0", "0.0"),
+    "INTERP_TYPE": ("NONE",), "WEIGHT_THRESH": ("",),
+    # sep excludes neighbours' pixels from AUTO/aperture sums and rescales by the
+    # unmasked area: SExtractor's CORRECT in expectation.
+    "MASK_TYPE": ("CORRECT",),
+}
 
 
 def read_sex_file(path) -> dict[str, str | list[str]]:
@@ -75,11 +120,37 @@ def detection_keys_from_sex(path, base_dir, info=None) -> dict[str, Any]:
     if str(ttype).upper() != "RELATIVE":
         raise At(f"{path}: THRESH_TYPE: only RELATIVE thresholds (in units of the background "
                  f"RMS) are supported, got {ttype}", "sex_file")
+    for key, value in keys.items():
+        if key in HONOURED_KEYS or key in NO_EFFECT_KEYS:
+            continue
+        text = ",".join(value) if isinstance(value, list) else value
+        if key in DEFAULT_ONLY_KEYS:
+            if text.upper() not in DEFAULT_ONLY_KEYS[key]:
+                allowed = " or ".join(v or "(empty)" for v in DEFAULT_ONLY_KEYS[key])
+                raise At(f"{path}: {key} {text}: not supported (glaciar reproduces {key} "
+                         f"{allowed} only); remove the line or set it to that", "sex_file")
+            continue
+        raise At(f"{path}: {key}: SExtractor key not supported by glaciar (it would change "
+                 "the answer, and glaciar never ignores one silently); remove the line",
+                 "sex_file")
     out: dict[str, Any] = {}
     for key in HONOURED_KEYS:
         if key not in keys or keys[key] == []:
             continue
         value = keys[key]
+        if key == "WEIGHT_TYPE":
+            # Dual-image mode gives "detection,measurement"; glaciar uses one noise map per band.
+            kinds = {v.upper() for v in (value if isinstance(value, list) else [value])}
+            if len(kinds) > 1:
+                raise At(f"{path}: WEIGHT_TYPE: different types for detection and measurement "
+                         f"({', '.join(sorted(kinds))}) are not supported", "sex_file")
+            value = kinds.pop()
+            if value == "NONE":
+                if info is not None:
+                    _warn(info, f"{path}: WEIGHT_TYPE NONE: the survey's noise maps "
+                                "(survey.noise) are used as configured; set WEIGHT_TYPE "
+                                "BACKGROUND to ignore them")
+                continue
         if key == "FILTER_NAME":
             value = value[0] if isinstance(value, list) else value
             resolved = _filter_name(value, [Path(path).parent, Path(base_dir)])
