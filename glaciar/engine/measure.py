@@ -155,7 +155,7 @@ def _shape(a, b, theta):
 def output_columns(bands, n_apertures: int) -> list[str]:
     """Names of the per-source columns :func:`measure_injected` returns."""
     cols = ["status", "detection_id", "flags", "overlap_fraction", "blend_original_id",
-            "blend_original_mag", "x_det", "y_det"]
+            "blend_original_mag", "x_det", "y_det", "flux_auto_template"]
     for b in bands:
         q = ["flux_iso", "fluxerr_iso", "flux_auto", "fluxerr_auto"]
         for k in range(n_apertures):
@@ -291,7 +291,8 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
                      classification: ClassificationParams, zeropoints: Mapping[str, float],
                      gains: Mapping[str, float | None], detection_band: str,
                      mask: np.ndarray | None = None, mode: str = "windowed",
-                     diagnostics: dict | None = None) -> dict[str, np.ndarray]:
+                     diagnostics: dict | None = None, input_templates=None,
+                     noise_models: Mapping | None = None) -> dict[str, np.ndarray]:
     """Detect, classify and measure N injected sources.
 
     Parameters
@@ -322,6 +323,17 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         window of each source (y0, y1, x0, x1, image pixels; the whole image
         in ``full`` mode), and ``"rounds"``: number of extraction rounds
         (benchmarks; no effect on the results).
+    input_templates : sequence of length N, optional
+        Per source, its injected detection-band stamp ``(y0, x0, data, flux)``
+        (pixels ``data * flux`` [image units] at image row/column y0, x0) or
+        None if nothing was injected in that band.  Default: the stamps of
+        ``det_scene``, one per source in order.  The status-2 flux test
+        compares the detection's AUTO flux with this template's flux through
+        the same Kron ellipse and masks (column ``flux_auto_template``; see
+        :mod:`glaciar.engine.classify`).
+    noise_models : mapping band -> glaciar.engine.noise.CorrelatedNoise, optional
+        Correlated-noise models: the background variance of every ISO,
+        aperture and AUTO error in that band is scaled by ``r(N)^2``.
 
     Returns
     -------
@@ -354,13 +366,15 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         raise ValueError("x, y, input_flux_det and input_mag_det must have the same length")
 
     hw = params.filter_halfwidth
-    ctx = _Context(det_scene=det_scene, det_rms=det_rms, band_scenes=band_scenes, band_rms=band_rms,
+    ctx = _Context(noise_models=dict(noise_models or {}),
+                   det_scene=det_scene, det_rms=det_rms, band_scenes=band_scenes, band_rms=band_rms,
                    mask=mask, ref_segmap=reference.segmap, ref_mag=reference.mag, params=params,
                    cls=classification, zeropoints=zeropoints, gains=gains, det_band=detection_band,
                    bands=bands, shape=det_scene.shape, margin=hw + 1,
                    gap=max(hw + 1, 2),
                    input_flux=np.asarray(input_flux_det, dtype=np.float64).ravel(),
-                   input_mag=np.asarray(input_mag_det, dtype=np.float64).ravel(), x=x, y=y)
+                   input_mag=np.asarray(input_mag_det, dtype=np.float64).ravel(), x=x, y=y,
+                   templates=_input_templates(det_scene, input_templates, n))
 
     out = {c: np.full(n, np.nan) for c in output_columns(bands, len(params.phot_apertures))}
     out["status"] = np.full(n, STATUS_NOT_DETECTED, dtype=np.int8)
@@ -774,10 +788,12 @@ def _finish(ctx, cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win,
         windows = src_win[j]
         boxes = _band_boxes(cv.shape[1], pix, lab_all, lab[di], phot_box[j], bounds[j])
     flux_sn = err_sn = None
+    auto_det = tpl_det = None
     for band in ctx.bands:
         data, rms, bad = cv.band(band, windows, boxes)
         gain = ctx.gains.get(band)
-        fi, fei = phot.iso_photometry(data, rms, pseg, lab, gain=gain, pixels=pix)
+        noise = ctx.noise_models.get(band)
+        fi, fei = phot.iso_photometry(data, rms, pseg, lab, gain=gain, pixels=pix, noise=noise)
         fa = np.full((len(params.phot_apertures), lab.size), np.nan)
         fea = fa.copy()
         fau = np.full(lab.size, np.nan)
@@ -788,7 +804,8 @@ def _finish(ctx, cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win,
             oy, ox = sl[0].start, sl[1].start
             r = pos[j]
             fa[:, r], fea[:, r] = phot.aperture_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy,
-                                                           params.phot_apertures, gain=gain, mask=bad[sl])
+                                                           params.phot_apertures, gain=gain, mask=bad[sl],
+                                                           noise=noise)
             fau[r], feau[r] = phot.auto_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy, a[j], b[j], th[j],
                                                    scale[j], gain=gain, segmap=pseg32[sl], seg_id=lab[r],
                                                    mask=bad[sl])
@@ -816,18 +833,76 @@ def _finish(ctx, cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win,
         out[col("maglim")][s] = phot.limiting_magnitude(f, fe, zp)
         if band == ctx.det_band:
             flux_sn, err_sn = f, fe
+            # The status-2 flux test: AUTO flux vs the injected template through the same ellipse.
+            auto_det = fau
+            tpl_det = _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scale,
+                                          rect, wy0, wx0, edge, src_win, rms, bad)
     with np.errstate(divide="ignore", invalid="ignore"):
         sn_det = flux_sn / err_sn
     bmag = np.full(lab.size, np.nan)
     has = blend > 0
     bmag[has] = ctx.ref_mag[blend[has] - 1]
-    status = classify(lab, sn_det, n_fp, n_ov, bmag, ctx.input_mag[s], flux_sn, ctx.input_flux[s], cls)
+    status = classify(lab, sn_det, n_fp, n_ov, bmag, ctx.input_mag[s], auto_det, tpl_det, cls)
     out["status"][s] = status
     with np.errstate(divide="ignore", invalid="ignore"):
         out["overlap_fraction"][s] = np.where(det, n_ov / np.maximum(n_fp, 1), np.nan)
     out["blend_original_id"][s] = blend
+    out["flux_auto_template"][s] = tpl_det
     out["blend_original_mag"][s] = bmag
     # detection centroid in image coordinates
     j = idx
     out["x_det"][s] = np.where(det, xs[j] - wx0[j] + rect[j, 2], np.nan)
     out["y_det"][s] = np.where(det, ys[j] - wy0[j] + rect[j, 0], np.nan)
+
+
+def _input_templates(det_scene, templates, n):
+    """Per-source (y0, x0, data, flux) of the injected detection-band stamps (see measure_injected)."""
+    if templates is None:
+        # A Scene keeps each stamp's flux factor (None: pre-multiplied); one stamp per source.
+        templates = [(y0, x0, d, 1.0 if f is None else f)
+                     for (y0, x0, d), f in zip(det_scene.stamps, det_scene._flux)]
+    templates = list(templates)
+    if len(templates) != n:
+        raise ValueError(f"input_templates (default: the detection scene's stamps) has "
+                         f"{len(templates)} entries for {n} sources")
+    return templates
+
+
+def _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scale, rect, wy0, wx0, edge,
+                        src_win, rms, bad):
+    """AUTO flux of each finished source's own noiseless template (NaN if undetected).
+
+    Each template is pasted alone into a zero canvas (clipped to its window,
+    which holds its whole Kron ellipse) and measured with the source's ellipse,
+    neighbour segments and no-data mask, exactly as its data were: so a
+    windowed and a full-frame extraction give the same value, and other
+    injected sources never enter it.
+    """
+    out = np.full(lab.size, np.nan)
+    tcv = np.zeros(cv.shape)
+    pos = np.full(src_win.size, -1, dtype=np.int64)      # canvas source index -> row of lab
+    pos[idx] = np.arange(idx.size)
+    for jj, sl in _groups(cv, idx[di], edge, src_win):
+        oy, ox = sl[0].start, sl[1].start
+        for j in jj.tolist():
+            r = pos[j]
+            t = ctx.templates[s[r]]
+            if t is None:
+                out[r] = 0.0
+                continue
+            ty0, tx0, data, flux = t
+            ry0, ry1, rx0, rx1 = rect[j].tolist()
+            y0, y1 = max(ty0, ry0), min(ty0 + data.shape[0], ry1)
+            x0, x1 = max(tx0, rx0), min(tx0 + data.shape[1], rx1)
+            if y1 <= y0 or x1 <= x0:
+                out[r] = 0.0
+                continue
+            cy, cx = y0 - ry0 + wy0[j], x0 - rx0 + wx0[j]
+            box = (slice(cy, cy + y1 - y0), slice(cx, cx + x1 - x0))
+            tcv[box] = data[y0 - ty0:y1 - ty0, x0 - tx0:x1 - tx0] * flux
+            f, _ = phot.auto_photometry(tcv[sl], rms[sl], xs[j:j + 1] - ox, ys[j:j + 1] - oy, a[j:j + 1],
+                                        b[j:j + 1], th[j:j + 1], scale[j:j + 1], segmap=pseg32[sl],
+                                        seg_id=lab[r:r + 1], mask=bad[sl])
+            out[r] = f[0]
+            tcv[box] = 0.0
+    return out

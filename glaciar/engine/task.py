@@ -142,6 +142,7 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
     mag_stamp = np.empty((m, len(bands)))
     flags = np.zeros(m, dtype=np.int64)
     stamps = {b: [] for b in bands}
+    templates = [None] * m      # each source's own detection-band stamp (status-2 flux test)
     for j, band in enumerate(bands):
         flux = sed.mag_to_flux(src.mag_in[:, j], ctx.zeropoints[band])
         if skip_faint_bands:
@@ -156,6 +157,8 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
             frac[i] = ps.in_stamp_fraction
             # Scaled lazily, only where a detection window reads it.
             stamps[band].append((ps.y0, ps.x0, ps.data, flux_in[i, j]))
+            if j == ctx.detection_index:
+                templates[i] = stamps[band][-1]
             if (ps.y0 < 0 or ps.x0 < 0 or ps.y0 + ps.data.shape[0] > ctx.shape[0]
                     or ps.x0 + ps.data.shape[1] > ctx.shape[1]):
                 flags[i] |= C.FLAG_STAMP_CLIPPED
@@ -167,7 +170,8 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
     meas = measure_injected(scenes[det], ctx.rms[det], scenes, ctx.rms, x, y,
                             flux_in[:, jd], src.mag_in[:, jd], ctx.reference, ctx.detection_params,
                             ctx.classification_params, ctx.zeropoints, ctx.gains, det,
-                            mask=ctx.mask, mode=mode)
+                            mask=ctx.mask, mode=mode, input_templates=templates,
+                            noise_models=getattr(ctx, "noise_models", None))
 
     cols: dict[str, np.ndarray] = {
         C.COL_FIELD: np.full(m, spec.field, dtype=object),
