@@ -1,10 +1,17 @@
 """Recovery classes on small synthetic segmentation maps with known answers."""
+import math
+
 import numpy as np
 import pytest
+from scipy.special import erf
 
 from glaciar.constants import (STATUS_BLENDED_FAILED, STATUS_BLENDED_FAINTER, STATUS_BLENDED_PASSED,
                                STATUS_ISOLATED, STATUS_LOW_SN, STATUS_NOT_DETECTED)
-from glaciar.engine.classify import ClassificationParams, classify, footprint_overlap, select_detection
+from glaciar.engine.classify import (ClassificationParams, classify, flux_test, footprint_overlap,
+                                     select_detection)
+from glaciar.engine.detect import DetectionParams
+from glaciar.engine.measure import FieldReference, measure_injected
+from glaciar.engine.scene import Scene
 
 P = ClassificationParams()
 
@@ -39,10 +46,10 @@ def test_each_status_on_a_synthetic_scene():
     np.testing.assert_array_equal(blend, [0, 2, 3, 1, 0, 0])
     sn = np.array([20.0, 20.0, 20.0, 20.0, np.nan, 3.0])
     input_mag = np.full(6, 26.0)
-    input_flux = np.full(6, 100.0)
+    template = np.full(6, 100.0)     # the injected template's AUTO flux in the same ellipse
     recovered = np.array([100.0, 90.0, 110.0, 110.0, np.nan, 50.0])
     bmag = np.where(blend > 0, ref_mag[np.maximum(blend - 1, 0)], np.nan)
-    st = classify(lab, sn, n_fp, n_ov, bmag, input_mag, recovered, input_flux, P)
+    st = classify(lab, sn, n_fp, n_ov, bmag, input_mag, recovered, template, P)
     np.testing.assert_array_equal(st, [STATUS_ISOLATED, STATUS_BLENDED_FAINTER, STATUS_BLENDED_PASSED,
                                        STATUS_BLENDED_FAILED, STATUS_NOT_DETECTED, STATUS_LOW_SN])
 
@@ -109,3 +116,90 @@ def test_params_validation():
         ClassificationParams(sn_definition="peak")
     with pytest.raises(ValueError, match="max_overlap_fraction"):
         ClassificationParams(max_overlap_fraction=1.5)
+
+
+def test_flux_test_hand_cases():
+    rec = np.array([125.0, 75.0, 125.01, 74.99, 5.0, 0.0, np.nan, 100.0, 100.0])
+    tpl = np.array([100.0, 100.0, 100.0, 100.0, 0.0, 0.0, 100.0, np.nan, -100.0])
+    np.testing.assert_array_equal(flux_test(rec, tpl, 0.25),
+                                  [True, True, False, False, False, False, False, False, False])
+    # tolerance 0: only the exact template flux passes
+    np.testing.assert_array_equal(flux_test([100.0, 100.1], [100.0, 100.0], 0.0), [True, False])
+
+
+# ---------------------------------------------------------------------------
+# The status-2 flux test through the whole measurement, for every S/N definition
+# ---------------------------------------------------------------------------
+SIGMA = 2.0            # Gaussian source [pixels]
+FLUX = 200.0           # its input flux [image units]
+CENTRE = (40.0, 40.0)  # (y, x), a pixel centre
+
+
+def _gaussian_stamp(half=15):
+    """Pixel integrals (exact, erf) of a unit-flux round Gaussian centred on the central pixel."""
+    edges = np.arange(-half - 0.5, half + 1.0)
+    cdf = 0.5 * (1 + erf(edges / (SIGMA * math.sqrt(2))))
+    p = np.diff(cdf)
+    return np.outer(p, p), half
+
+
+def _measure(k_neighbour, sn_definition, mode="windowed", seed=3):
+    """One source injected on a noiseless-ish 80x80 field.
+
+    The original image holds ``k_neighbour`` x the source's own profile under
+    it: light of a neighbour that adds exactly that fraction of the source's
+    flux through *any* aperture (so the expected excess is known by
+    construction, whatever Kron ellipse sep finds).  The original
+    segmentation marks a brighter original source (mag 15) on 9 pixels of
+    the source's footprint (well under 25 %), so the flux test alone decides
+    between status 2 and -1.
+    """
+    rng = np.random.default_rng(seed)
+    rms = np.full((80, 80), 0.01)
+    stamp, h = _gaussian_stamp()
+    y0, x0 = int(CENTRE[0]) - h, int(CENTRE[1]) - h
+    base = rng.normal(size=(80, 80)) * rms
+    base[y0:y0 + stamp.shape[0], x0:x0 + stamp.shape[1]] += k_neighbour * FLUX * stamp
+    ref_seg = np.zeros((80, 80), dtype=np.int32)
+    ref_seg[41:44, 41:44] = 1
+    reference = FieldReference(ref_seg, np.array([1e4]), np.array([15.0]))
+    scene = Scene(base, [(y0, x0, stamp, FLUX)])
+    cls = ClassificationParams(sn_definition=sn_definition)
+    return measure_injected(scene, rms, {"h": scene}, {"h": rms}, np.array([CENTRE[1]]),
+                            np.array([CENTRE[0]]), np.array([FLUX]),
+                            np.array([25.0 - 2.5 * math.log10(FLUX)]), reference, DetectionParams(),
+                            cls, {"h": 25.0}, {"h": None}, "h", mode=mode)
+
+
+@pytest.mark.parametrize("sn_definition", ["iso", "aper", "auto"])
+def test_isolated_source_passes_the_flux_test_whatever_the_sn_definition(sn_definition):
+    out = _measure(0.0, sn_definition)
+    assert out["sn_h"][0] > 100                            # noiseless-ish
+    assert 0 < out["overlap_fraction"][0] <= 0.25          # brighter blend by overlap only
+    # The template's AUTO flux is the input flux times the Kron ellipse's enclosed fraction:
+    # a Kron aperture holds more than 90 % of a Gaussian's light.
+    assert 0.9 * FLUX < out["flux_auto_template"][0] <= FLUX
+    assert out["status"][0] == STATUS_BLENDED_PASSED
+    # The old rule (S/N flux against the total input flux) fails it with aperture S/N: a
+    # 4-px-diameter aperture holds 1 - exp(-r^2 / 2 sigma^2) = 39 % of a sigma = 2 px Gaussian.
+    frac = 1 - math.exp(-2.0 ** 2 / (2 * SIGMA ** 2))
+    assert abs(frac * FLUX - FLUX) > 0.25 * FLUX
+    np.testing.assert_allclose(out["flux_aper0_h"][0], frac * FLUX, rtol=0.05)
+
+
+@pytest.mark.parametrize("sn_definition", ["iso", "aper", "auto"])
+@pytest.mark.parametrize("k, expected", [(0.10, STATUS_BLENDED_PASSED), (0.18, STATUS_BLENDED_PASSED),
+                                         (0.32, STATUS_BLENDED_FAILED), (0.45, STATUS_BLENDED_FAILED)])
+def test_neighbour_adding_more_than_the_tolerance_fails(sn_definition, k, expected):
+    out = _measure(k, sn_definition)
+    assert 0 < out["overlap_fraction"][0] <= 0.25
+    # the measured AUTO flux is the template's plus the neighbour's k of it (by construction)
+    np.testing.assert_allclose(out["flux_auto_h"][0] / out["flux_auto_template"][0], 1 + k, atol=0.01)
+    assert out["status"][0] == expected
+
+
+def test_flux_test_same_in_windowed_and_full_frame():
+    for k in (0.0, 0.4):
+        w, f = _measure(k, "iso", "windowed"), _measure(k, "iso", "full")
+        assert w["status"][0] == f["status"][0]
+        np.testing.assert_allclose(w["flux_auto_template"], f["flux_auto_template"], rtol=1e-12)
