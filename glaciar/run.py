@@ -24,8 +24,9 @@ from .engine.detect import DetectionParams, builtin_filter, measure_background, 
 from .engine.measure import reference_extraction
 from .engine.classify import ClassificationParams
 from .engine.depth import depth_area_histogram, local_depth_map
+from .engine.noise import CorrelatedNoise, empty_aperture_scatter, weight_rescale_factor
 from .engine.selection import compile_selection
-from .engine.task import TaskSpec, run_task
+from .engine.task import TaskSpec, field_key, run_task
 from .galaxy import population
 from .galaxy.filters import get_filter
 from .galaxy.psf import measure_fwhm, prepare_psf
@@ -73,6 +74,8 @@ class FieldContext:
     selection: object
     enclosed_fraction: float
     isolation_fraction: float
+    #: band -> CorrelatedNoise applied to photometric errors (bands where it does not apply absent)
+    noise_models: dict = dc_field(default_factory=dict)
     _shape_cache: dict = dc_field(default_factory=dict)
 
     @staticmethod
@@ -113,7 +116,8 @@ def _resolve_filter(spec: str, base_dir: Path):
 
 
 def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
-                params: DetectionParams) -> tuple[np.ndarray, np.ndarray, bool]:
+                params: DetectionParams, weight_type: str | None = None
+                ) -> tuple[np.ndarray, np.ndarray, bool]:
     """Background-subtracted image and noise map of one band of a field.
 
     Parameters
@@ -124,16 +128,22 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
         Where the detection band has valid data (:meth:`Survey.footprint`).
     params : DetectionParams
         Background mesh settings.
+    weight_type : {None, "map_weight", "map_rms", "background"}
+        SExtractor's WEIGHT_TYPE (config ``detection.WEIGHT_TYPE``): None or
+        ``map_rms`` use the noise map as absolute; ``map_weight`` rescales it
+        by one factor to the pixel noise measured on the image
+        (:func:`glaciar.engine.noise.weight_rescale_factor`); ``background``
+        ignores it for the noise (it still marks pixels without data).
 
     Returns
     -------
     base : ndarray, float32
         Science image minus the sep background [image units]; 0 where not valid.
     rms : ndarray, float32
-        Per-pixel noise RMS [image units]: the survey's noise map, or sep's
-        background RMS when the survey has none; inf where not valid.
+        Per-pixel noise RMS [image units] used for detection and errors; inf
+        where not valid.
     rms_from_background : bool
-        True when ``rms`` is sep's background RMS (no noise map).
+        True when ``rms`` is sep's background RMS (no noise map, or BACKGROUND).
     """
     img = survey.science(field, band)
     noise = survey.rms(field, band)
@@ -142,9 +152,15 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
         valid &= np.isfinite(noise) & (noise > 0)
     bkg, bkg_rms = measure_background(img, ~valid, params)
     base = np.where(valid, img - bkg, 0.0).astype(np.float32)
-    r = np.asarray(noise if noise is not None else bkg_rms, dtype=np.float32)
-    r = np.where(valid, r, np.float32(np.inf)).astype(np.float32)
-    return base, r, noise is None
+    from_background = noise is None or weight_type == "background"
+    if from_background:
+        r = bkg_rms
+    elif weight_type == "map_weight":
+        r = noise * weight_rescale_factor(bkg_rms, noise, valid)
+    else:
+        r = noise
+    r = np.where(valid, np.asarray(r, dtype=np.float32), np.float32(np.inf)).astype(np.float32)
+    return base, r, from_background
 
 
 def field_depth(rms: np.ndarray, zeropoint: float, psf: np.ndarray) -> tuple[np.ndarray, float]:
@@ -199,6 +215,37 @@ def _band_psf(cfg: Config, band, pixscale: float) -> np.ndarray:
                        psf_pixel_scale_arcsec=band.psf_pixel_scale_arcsec)
 
 
+#: Pixels around every detected original source left out of the empty apertures.
+_EMPTY_SKY_MARGIN_PIX = 3
+
+
+def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: np.ndarray,
+                     segmap: np.ndarray) -> CorrelatedNoise:
+    """The correlated-noise model of one band of a field, from empty apertures.
+
+    Empty sky: pixels with data, more than a few pixels from every source the
+    detection band finds in the original image. Aperture positions come from a
+    generator keyed by the field and band names only (not the run's seed): the
+    model is a measurement of the image, the same in every run and worker.
+    """
+    from scipy import ndimage
+
+    usable = np.isfinite(rms) & ~ndimage.binary_dilation(
+        segmap > 0, iterations=_EMPTY_SKY_MARGIN_PIX)
+    seq = np.random.SeedSequence([field_key(field), field_key(band)])
+    npix, ratio, n = empty_aperture_scatter(base, rms, usable, cfg.noise.empty_aperture_radii_pix,
+                                            cfg.noise.n_empty_apertures,
+                                            np.random.default_rng(seq))
+    if len(npix) < 2:
+        return CorrelatedNoise()        # too little empty sky to say: no correction
+    return CorrelatedNoise.fit(npix, ratio, n)
+
+
+def _applies(cfg: Config, model: CorrelatedNoise) -> bool:
+    mode = cfg.noise.correlated
+    return mode == "on" or (mode == "auto" and not model.is_identity(cfg.noise.identity_tolerance))
+
+
 def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext:
     """Read a field's images once, measure backgrounds, extract the original image, set up caches."""
     bands = tuple(b.name for b in cfg.survey.bands)
@@ -212,10 +259,13 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
     psfs = {}
     for b in cfg.survey.bands:
         psfs[b.name] = _band_psf(cfg, b, pixscale)
-        bases[b.name], rms[b.name], _ = band_pixels(survey, field, b.name, footprint, params)
+        bases[b.name], rms[b.name], _ = band_pixels(survey, field, b.name, footprint, params,
+                                                    cfg.detection.weight_type)
     zps = {b.name: float(b.zeropoint) for b in cfg.survey.bands}
     gains = {b.name: (None if b.gain is None else float(b.gain)) for b in cfg.survey.bands}
     reference = reference_extraction(bases[det], rms[det], params, zps[det], mask=mask)
+    noise_models = {b: correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap)
+                    for b in bands}
     depth, _ = field_depth(rms[det], zps[det], psfs[det])
     model = population.SourceModel(**cfg.source.model_dump())
     cache = TemplateCache(psfs, enclosed_fraction=model.stamp_flux_fraction)
@@ -232,7 +282,8 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         detection_params=params,
         classification_params=ClassificationParams(**cfg.classification.model_dump()),
         selection=selection, enclosed_fraction=model.stamp_flux_fraction,
-        isolation_fraction=cfg.simulation.isolation_fraction)
+        isolation_fraction=cfg.simulation.isolation_fraction,
+        noise_models={b: m for b, m in noise_models.items() if _applies(cfg, m)})
 
 
 def plan_tasks(cfg: Config) -> list[TaskSpec]:
@@ -305,7 +356,7 @@ def _depth_area(cfg: Config, survey: Survey, field: str) -> dict:
     band = cfg.survey.band(det)
     pixscale = survey.pixel_scale_arcsec(field)
     _, rms, from_background = band_pixels(survey, field, det, survey.footprint(field),
-                                          _detection_params(cfg))
+                                          _detection_params(cfg), cfg.detection.weight_type)
     if from_background:
         warnings.warn(f"field {field!r}: no noise map for the detection band {det!r}; its local "
                       "depth (column depth_local, manifest depth_area) comes from sep's background "

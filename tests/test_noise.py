@@ -93,13 +93,16 @@ def test_weight_rescale_factor_recovers_the_overestimate():
     assert f == pytest.approx(1 / 2.3, rel=0.03)
 
 
-def test_power_law_fit_and_clamping():
-    npix = np.array([3.0, 12.0, 50.0, 200.0])
-    model = CorrelatedNoise.fit(npix, 0.4 * npix ** 0.2)
-    assert model.r1 == pytest.approx(0.4) and model.gamma == pytest.approx(0.2)
-    assert model.ratio_at(1.0) == pytest.approx(0.4 * 3.0 ** 0.2)       # held at the range's end
-    assert model.ratio_at(1e4) == pytest.approx(0.4 * 200.0 ** 0.2)
-    assert model.variance_factor(50.0) == pytest.approx((0.4 * 50 ** 0.2) ** 2)
+def test_table_interpolation_and_clamping():
+    npix = np.array([12.0, 3.0, 50.0, 200.0])
+    ratio = np.array([1.3, 1.1, 1.5, 1.6])
+    model = CorrelatedNoise.fit(npix, ratio)
+    assert model.npix == (3.0, 12.0, 50.0, 200.0)                 # sorted by area
+    assert model.ratio_at(12.0) == pytest.approx(1.3)
+    assert model.ratio_at(6.0) == pytest.approx(1.2)              # halfway in log N
+    assert model.ratio_at(1.0) == pytest.approx(1.1)              # held at the range's ends
+    assert model.ratio_at(1e4) == pytest.approx(1.6)
+    assert model.variance_factor(50.0) == pytest.approx(1.5 ** 2)
     assert not model.is_identity()
     # 1 within tolerance + 3 standard errors of each measurement
     assert CorrelatedNoise.fit([5, 50], [1.06, 0.95], [1000, 1000]).is_identity(0.05)

@@ -808,7 +808,7 @@ def _finish(ctx, cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win,
                                                            noise=noise)
             fau[r], feau[r] = phot.auto_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy, a[j], b[j], th[j],
                                                    scale[j], gain=gain, segmap=pseg32[sl], seg_id=lab[r],
-                                                   mask=bad[sl])
+                                                   mask=bad[sl], noise=noise)
         if cls.sn_definition == "iso":
             f, fe = fi, fei
         elif cls.sn_definition == "auto":

@@ -15,9 +15,9 @@ right. This module supplies the two corrections SExtractor users apply:
   units of the true pixel noise.
 * :class:`CorrelatedNoise` -- the ratio ``r(N)`` of the measured scatter of
   sums over ``N`` empty pixels (random apertures placed off every source) to
-  the scatter the noise map predicts for them, ``sqrt(sum rms^2)``, fitted as
-  a power law ``r(N) = r1 N^gamma`` (uncorrelated noise with a correct map:
-  ``r = 1``; correlated noise: ``gamma > 0``; the same idea as
+  the scatter the noise map predicts for them, ``sqrt(sum rms^2)``, kept as a
+  table in ``N`` (uncorrelated noise with a correct map: ``r = 1``;
+  correlated noise: ``r`` grows with ``N``; the empirical version of
   ``sigma(N) = sigma_1 alpha N^beta`` of Labbe et al. 2003). Photometric
   errors multiply the background part of their variance by ``r(N)^2`` for the
   number of pixels ``N`` they sum.
@@ -39,7 +39,8 @@ __all__ = ["weight_rescale_factor", "empty_aperture_scatter", "CorrelatedNoise",
 #: drizzle kernel) to ~200 pixels (a faint galaxy's isophotal area).
 #: Radii avoid distances at which pixel centres lie exactly on the circle
 #: (1, sqrt 2, 2, ...), so each aperture holds a well-defined set of pixels.
-DEFAULT_EMPTY_APERTURE_RADII_PIX = (1.2, 1.7, 2.2, 3.2, 4.2, 6.2, 8.2)
+#: The 0.5-pixel "aperture" is one pixel: r(1), the pixel noise over the map.
+DEFAULT_EMPTY_APERTURE_RADII_PIX = (0.5, 1.2, 1.7, 2.2, 3.2, 4.2, 6.2, 8.2, 11.2)
 #: Fewest apertures of one radius for its scatter to enter the fit: with n
 #: apertures the clipped scatter has a relative error of ~1/sqrt(2n) (9 % at 60).
 MIN_EMPTY_APERTURES = 60
@@ -170,53 +171,45 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
 
 @dataclass(frozen=True)
 class CorrelatedNoise:
-    """Scatter of sums over ``N`` pixels relative to the noise map: ``r(N) = r1 N^gamma``.
+    """Scatter of sums over ``N`` empty pixels relative to the noise map, as a table.
+
+    ``r(N)`` is interpolated linearly in ``log N`` between the measured
+    aperture areas and held at its end values outside them (no extrapolation
+    to areas never measured). Drizzled noise rises from ``r(1)`` (the pixel
+    noise over the map) and levels off once apertures are much larger than the
+    correlation length, a shape a single power law does not follow.
 
     Attributes
     ----------
-    r1 : float
-        Ratio for one pixel (extrapolated from the fit).
-    gamma : float
-        Power-law index (0: uncorrelated).
-    npix_min, npix_max : float
-        Range of aperture areas the fit is based on [pixels]; outside it the
-        ratio is held at its value at the nearer end (no extrapolation of the
-        power law to areas never measured).
-    npix, ratio, n_apertures : tuple
-        The measurements (recorded with the run).
+    npix : tuple of float
+        Pixels per aperture, increasing.
+    ratio : tuple of float
+        Measured ``r(N)``.
+    n_apertures : tuple of int
+        Apertures behind each ratio (its standard error is ~1/sqrt(2n)).
     """
 
-    r1: float = 1.0
-    gamma: float = 0.0
-    npix_min: float = 1.0
-    npix_max: float = 1.0
-    npix: tuple = ()
-    ratio: tuple = ()
+    npix: tuple = (1.0,)
+    ratio: tuple = (1.0,)
     n_apertures: tuple = ()
 
     @classmethod
     def fit(cls, npix, ratio, n_apertures=None) -> "CorrelatedNoise":
-        """Least-squares power law in log space, weighted by the apertures per area.
-
-        The relative error of a robust scatter from ``n`` apertures is
-        ~1.1/sqrt(2n), so the weights are ``n``.
-        """
+        """The table of measurements (finite, positive), sorted by area."""
         npix = np.asarray(npix, dtype=np.float64)
         ratio = np.asarray(ratio, dtype=np.float64)
+        n = np.full(npix.size, 1000) if n_apertures is None else np.asarray(n_apertures)
         ok = np.isfinite(npix) & np.isfinite(ratio) & (npix > 0) & (ratio > 0)
         if ok.sum() < 2:
             raise ValueError(f"need empty-aperture scatters at >= 2 areas, got {int(ok.sum())}")
-        n = np.full(npix.size, 1000.0) if n_apertures is None else \
-            np.asarray(n_apertures, float)
-        gamma, log_r1 = np.polyfit(np.log(npix[ok]), np.log(ratio[ok]), 1, w=np.sqrt(n[ok]))
-        return cls(r1=float(np.exp(log_r1)), gamma=float(gamma), npix_min=float(npix[ok].min()),
-                   npix_max=float(npix[ok].max()), npix=tuple(map(float, npix[ok])),
-                   ratio=tuple(map(float, ratio[ok])), n_apertures=tuple(map(int, n[ok])))
+        order = np.argsort(npix[ok], kind="stable")
+        return cls(npix=tuple(map(float, npix[ok][order])), ratio=tuple(map(float, ratio[ok][order])),
+                   n_apertures=tuple(map(int, n[ok][order])))
 
     def ratio_at(self, npix) -> np.ndarray:
-        """``r(N)`` for sums over ``npix`` pixels (clamped to the measured range)."""
-        n = np.clip(np.asarray(npix, dtype=np.float64), self.npix_min, self.npix_max)
-        return self.r1 * n ** self.gamma
+        """``r(N)`` for sums over ``npix`` pixels."""
+        logn = np.log(np.maximum(np.asarray(npix, dtype=np.float64), 1e-300))
+        return np.interp(logn, np.log(self.npix), self.ratio)
 
     def variance_factor(self, npix) -> np.ndarray:
         """Factor on the background variance of a sum over ``npix`` pixels: ``r(N)^2``."""
@@ -234,6 +227,5 @@ class CorrelatedNoise:
 
     def to_dict(self) -> dict:
         """Plain values for the run's manifest."""
-        return {"r1": self.r1, "gamma": self.gamma, "npix_min": self.npix_min,
-                "npix_max": self.npix_max, "npix": list(self.npix), "ratio": list(self.ratio),
+        return {"npix": list(self.npix), "ratio": list(self.ratio),
                 "n_apertures": list(self.n_apertures)}
