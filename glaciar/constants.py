@@ -26,7 +26,7 @@ STATUS_LABELS = {
     STATUS_NOT_DETECTED: "not_detected",
 }
 
-# Per-task flags (bit field, column FLAGS)
+# Per-source quality flags (bit field, column COL_FLAGS)
 FLAG_SEP_ERROR = 1             #: sep raised (e.g. deblending overflow) for this source's window
 FLAG_WINDOW_AT_LIMIT = 2       #: detection window hit its maximum size before isolating the source
 FLAG_STAMP_CLIPPED = 4         #: stamp partly outside the image
@@ -65,7 +65,9 @@ COL_STATUS = "status"
 COL_RECOVERED = "recovered"
 COL_SELECTED = "selected"
 COL_DETECTION_ID = "detection_id"
-COL_FLAGS = "flags"
+#: Bit field of FLAG_* values.  Not "flags": a DataFrame column of that name is shadowed by
+#: ``DataFrame.flags`` in attribute access (``rows.flags``).
+COL_FLAGS = "source_flags"
 COL_OVERLAP_FRACTION = "overlap_fraction"
 COL_BLEND_ID = "blend_original_id"
 COL_BLEND_MAG = "blend_original_mag"
@@ -103,3 +105,9 @@ MANIFEST_NAME = "manifest.json"
 RUN_CONFIG_NAME = "config.yaml"      #: the resolved config the run was made with
 SUMMARY_DIRNAME = "summary"
 SELECTION_FUNCTION_NAME = "selection_function.fits"
+LOCK_NAME = ".lock"                  #: advisory lock of the run writing into the directory
+FINGERPRINT_CACHE_NAME = ".input_fingerprints.json"   #: input hashes by (path, size, mtime)
+#: Format of a run directory.  2: task files named by a hash of the exact task key, with the
+#: key and row count in their metadata; manifest with store settings and input fingerprints.
+#: Directories of format 1 (no ``store_format`` in the manifest) can be read but not resumed.
+STORE_FORMAT = 2

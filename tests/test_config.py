@@ -239,7 +239,7 @@ def test_round_trip(tmp_path):
     d["survey"]["bands"]["f098m"]["filter"] = "curves/f098m.tab"
     d["survey"]["bands"]["f098m"]["gain"] = 2000
     d["grid"] = {"z": {"min": 9, "max": 10, "n_bins": 3}, "mag": {"values": [25, 26]}}
-    d["selection"] = ["sn_f160w >= 5", "(flags & 1) == 0"]
+    d["selection"] = ["sn_f160w >= 5", "(source_flags & 1) == 0"]
     cfg = load(d, tmp_path)
     out = config_to_dict(cfg)
     json.dumps(out)                                   # JSON-serialisable

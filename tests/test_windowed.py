@@ -115,13 +115,13 @@ def test_scene_adds_and_clips_stamps():
 
 
 def test_sep_errors_are_flagged_not_raised(field):
-    from glaciar.constants import FLAG_SEP_ERROR, STATUS_NOT_DETECTED
+    from glaciar.constants import COL_FLAGS, FLAG_SEP_ERROR, STATUS_NOT_DETECTED
     sub, rms, _, ref = field
     bad = DetectionParams(sub_object_limit=1, deblend_mincont=0.0)
     xs, ys, flux, st = _stamps(np.random.default_rng(1), nsrc=20)
     det = Scene(sub, st)
     out = measure_injected(det, rms, {"h": det}, {"h": rms}, xs, ys, flux, 25 - 2.5 * np.log10(flux), ref,
                            bad, ClassificationParams(), {"h": 25.0}, {"h": None}, "h")
-    err = (out["flags"] & FLAG_SEP_ERROR) > 0
+    err = (out[COL_FLAGS] & FLAG_SEP_ERROR) > 0
     assert err.any()
     assert np.all(out["status"][err] == STATUS_NOT_DETECTED) and np.all(np.isnan(out["flux_iso_h"][err]))

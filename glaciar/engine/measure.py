@@ -68,8 +68,8 @@ from typing import Mapping
 import numpy as np
 from scipy import ndimage
 
-from glaciar.constants import (FLAG_SEP_ERROR, FLAG_WINDOW_AT_LIMIT, STATUS_NOT_DETECTED,
-                               band_column)
+from glaciar.constants import (COL_FLAGS, FLAG_SEP_ERROR, FLAG_WINDOW_AT_LIMIT,
+                               STATUS_NOT_DETECTED, band_column)
 from glaciar.engine import photometry as phot
 from glaciar.engine.classify import ClassificationParams, classify, footprint_overlap, input_pixel, \
     select_detection
@@ -154,7 +154,7 @@ def _shape(a, b, theta):
 
 def output_columns(bands, n_apertures: int) -> list[str]:
     """Names of the per-source columns :func:`measure_injected` returns."""
-    cols = ["status", "detection_id", "flags", "overlap_fraction", "blend_original_id",
+    cols = ["status", "detection_id", COL_FLAGS, "overlap_fraction", "blend_original_id",
             "blend_original_mag", "x_det", "y_det", "flux_auto_template"]
     for b in bands:
         q = ["flux_iso", "fluxerr_iso", "flux_auto", "fluxerr_auto"]
@@ -379,7 +379,7 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
     out = {c: np.full(n, np.nan) for c in output_columns(bands, len(params.phot_apertures))}
     out["status"] = np.full(n, STATUS_NOT_DETECTED, dtype=np.int8)
     out["detection_id"] = np.zeros(n, dtype=np.int64)
-    out["flags"] = np.zeros(n, dtype=np.int32)
+    out[COL_FLAGS] = np.zeros(n, dtype=np.int32)
     out["blend_original_id"] = np.zeros(n, dtype=np.int64)
     if n == 0:
         if diagnostics is not None:
@@ -428,7 +428,7 @@ def _run_canvas(ctx, src, rects, src_win, full, all_rects=None):
             grow = [_run_canvas(ctx, src[i:i + 1], rects[src_win[i]][None], np.zeros(1, dtype=np.int64),
                                 full, all_rects) for i in range(src.size)]
             return np.concatenate(grow)
-        ctx.out["flags"][src] |= FLAG_SEP_ERROR
+        ctx.out[COL_FLAGS][src] |= FLAG_SEP_ERROR
         return np.zeros(0, dtype=np.int64)
     return _analyse(ctx, canvas, cat, seg, src, src_win, all_rects)
 
@@ -526,7 +526,7 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
 
     def fail(i):
         if at_max[i]:
-            ctx.out["flags"][src[i]] |= FLAG_WINDOW_AT_LIMIT
+            ctx.out[COL_FLAGS][src[i]] |= FLAG_WINDOW_AT_LIMIT
         else:
             grow[i] = True
 
@@ -654,7 +654,7 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
             regrow.append(s)
 
     fin = ~grow
-    ctx.out["flags"][src[sep_failed]] |= FLAG_SEP_ERROR
+    ctx.out[COL_FLAGS][src[sep_failed]] |= FLAG_SEP_ERROR
     # (pseg is unchanged since pix, lab_pix were taken from it)
     _finish(ctx, cv, pseg, pseg32, label * fin, xs, ys, a, b, th, scale, src, src_win, fin, rect, wy0, wx0,
             edge, phot_box, bounds, pix, lab_pix)
