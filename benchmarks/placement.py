@@ -15,18 +15,21 @@ Cases:
 * ``open``: a 1000 x 1000 footprint, half sizes 10-25 px (isolation boxes of
   typical high-z sources plus two PSF FWHMs on HST/JWST pixels), n = 10 ... 10^6;
 * ``crowded``: a 600 x 600 footprint with a chip gap and masked stars, half sizes
-  20-45 px (large low-z sources), n = 50, 100, 5000: more is asked than fits.
+  20-45 px (large low-z sources), n = 50 (fits), 100 and 5000 (more than fits).
 
 The old sampler gives up after 200 batches of 4n candidates, each checked against
-every source already placed, so on a full field it spends O(n^2 x placed) work and
-still places fewer; for n = 10^6 it would draw 4 x 10^6 candidates per batch and is
+every source already placed, so on a full field it spends up to 800 n x placed
+candidate checks before giving up (and places fewer when it gives up before the field
+is full); for n = 10^6 it would draw 4 x 10^6 candidates per batch and is
 not run ("-").
 
-Measured (2 shared cores, numpy 2.4): open field, all placed, 0.01-0.02 ms per source
-(7x faster than old at n = 100-300); n = 1000 and 5000 (about 430 fit): 0.1 s per call,
-153x and 729x less time per placed source than old (15 s and 69 s); n = 10^6: 449
-placed in 0.19 s (old: hangs).  Crowded field: n = 100 places 62 in 0.02 s (old: 55 in
-1.1 s), n = 5000 places 54 in 0.016 s (old: 54 in 58 s).
+Measured (2 shared cores, busy; numpy 2.4): open field, all placed: 0.008-0.02 ms per
+source, 2-10x less than old.  n = 1000 and 5000 (about 430 fit): 0.07-0.08 s per call
+against 15-19 s and 40-69 s for old, 150-730x less time per placed source; n = 10^6: 449
+placed in 0.06 s (old: hangs).  Crowded field: n = 100 places 53 in 0.006 s (old: 55 in
+0.5-1.1 s), n = 5000 places 54 in 0.007 s (old: 54 in 31-58 s), ~4000x.  Both samplers
+fill a field to about the same count (random sequential jamming); old times vary ~2x
+with machine load.
 """
 from __future__ import annotations
 
@@ -129,7 +132,7 @@ def main() -> None:
         cap = placement_capacity(fp, hh[:1000], hw[:1000])
         print(f"{name:8s} placement_capacity: upper_bound {cap.upper_bound}, random_fill "
               f"{cap.random_fill} ({time.perf_counter() - t0:.2f} s)")
-    print("old/new: ratio of the times per placed source (the old sampler also places fewer).")
+    print("old/new: ratio of the times per placed source.")
 
 
 if __name__ == "__main__":
