@@ -93,11 +93,16 @@ def _tau_inoue14(lobs: np.ndarray, zs: np.ndarray) -> np.ndarray:
         tau[active] += laf_a * np.exp(laf_p * lx) + dla_a * np.exp(dla_p * lx)
 
     # Lyman continuum (eqs. 25-29), for lobs < lambda_L (1+z_S).  The published
-    # fits are used as printed; below lobs = lambda_L (outside the model's
-    # domain and of no use for observations) they are simply extended.
+    # fits are used as printed for lambda_L <= lobs (the model's domain: absorbers
+    # at 0 <= z <= z_S).  Below lobs = lambda_L they are held at their value at
+    # lambda_L: the fits' polynomials in x = lobs / lambda_L are not valid for
+    # x < 1 and, extended there, turn negative (tau = -0.25 at 100 A for z_S = 3,
+    # -362 for z_S = 20, i.e. "transmission" e^362; property test in
+    # tests/test_properties.py), against the documented 0 <= T <= 1.
     lc = np.flatnonzero(lobs < _INOUE_LYMAN_LIMIT * one_z)
     if lc.size:
-        x, oz, z_lc = lobs[lc] / _INOUE_LYMAN_LIMIT, one_z[lc], zs[lc]
+        x = np.maximum(lobs[lc], _INOUE_LYMAN_LIMIT) / _INOUE_LYMAN_LIMIT
+        oz, z_lc = one_z[lc], zs[lc]
         # LAF, eqs. 25 (z_S < 1.2), 26 (1.2 <= z_S < 4.7), 27 (z_S >= 4.7)
         laf_low = 0.325 * (x**1.2 - oz**-0.9 * x**2.1)
         laf_mid = np.where(
@@ -120,6 +125,11 @@ def _tau_inoue14(lobs: np.ndarray, zs: np.ndarray) -> np.ndarray:
             4.70e-2 * oz**3 - 1.78e-2 * oz**3.3 * x**-0.3 - 2.92e-2 * x**3)
         dla = np.where(z_lc < 2.0, dla_low, dla_high)
         tau[lc] += laf + dla
+    # Inside the domain the DLA fit of eq. 28 dips just below zero for z_S -> 0
+    # (its constants give 0.211 - 0.0766 - 0.135 = -6e-4 at x = 1 + z_S = 1;
+    # measured tau = -3.7e-4 at z_S = 0.001, lobs = 912.3 A): an optical depth
+    # cannot be negative (as for Madau's continuum fit below).
+    np.maximum(tau, 0.0, out=tau)
     return tau.reshape(shape)
 
 
