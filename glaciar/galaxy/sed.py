@@ -23,7 +23,7 @@ import numpy as np
 from glaciar.constants import FAINT_MAG_LIMIT, LYA_REST_ANGSTROM, UV_REST_ANGSTROM
 from glaciar.galaxy.filters import Filter, get_filter
 from glaciar.galaxy.igm import IGM_MODELS, igm_discontinuities, igm_transmission
-from glaciar.galaxy.population import get_cosmology
+from glaciar.galaxy.population import Z_MIN_DISTANCE, get_cosmology
 
 __all__ = ["uv_flambda", "band_magnitudes", "absolute_magnitude", "apparent_uv_magnitude",
            "mag_to_flux", "flux_to_mag", "bands_to_skip"]
@@ -182,10 +182,30 @@ def _check_igm(igm: str) -> str:
 
 def _distance_term(z: float, cosmology) -> float:
     """DM(z) - 2.5 log10(1+z): m_obs(1600 A (1+z)) - M_UV for a source at z."""
-    if not z > 0:
-        raise ValueError(f"absolute magnitudes need z > 0, got {z}")
+    if not z >= Z_MIN_DISTANCE:     # not only z = 0: denormal z give D_L = 0 (see the constant)
+        raise ValueError(f"absolute magnitudes need z > 0 (at least {Z_MIN_DISTANCE:g}), got {z}")
     cosmo = get_cosmology(cosmology)
     return float(cosmo.distmod(z).value) - 2.5 * np.log10(1.0 + z)
+
+
+def _check_detection_colour(c_det: np.ndarray, name: str, z: float, igm: str,
+                            faint_limit: float) -> None:
+    """Refuse to normalise to a band that receives no flux at this z.
+
+    ``c_det`` = m_band - m_1600 (rest).  A band counts as receiving no flux when
+    ``c_det > faint_limit``: a source with m_1600 = 0 would be fainter than the
+    faint limit there, GLACiAR's rule for "no flux" (``FAINT_MAG_LIMIT`` = 50).
+    Why not only exact zero: beyond a band's red edge the Inoue+14 IGM leaves a
+    trace (e.g. F160W at z >= 13.0 is attenuated by 50-800 mag, F200W at
+    z = 19.9 by ~800); normalising m = 10 there made the other bands as bright
+    as -803 mag, whose fluxes overflow float64 (``mag_to_flux`` -> inf, then
+    inf/NaN pixels).  Found by the property tests (tests/test_properties.py).
+    """
+    if np.any(~(c_det <= faint_limit)):
+        worst = float(np.max(c_det))
+        raise ValueError(f"detection band {name!r} receives no flux at z = {z} with igm = {igm!r} "
+                         f"(it is {worst:.4g} mag fainter than rest-frame 1600 A, beyond the "
+                         f"faint limit of {faint_limit:g} mag): an apparent magnitude cannot be set")
 
 
 def band_magnitudes(z: float, beta, filters, *, mag=None, detection_index: int | None = None,
@@ -229,7 +249,12 @@ def band_magnitudes(z: float, beta, filters, *, mag=None, detection_index: int |
     ------
     ValueError
         Both or neither normalisation given; the detection band receives no
-        flux at this z (no magnitude can be set there).
+        flux at this z (no magnitude can be set there).  With ``mag``, "no
+        flux" follows the ``faint_limit`` rule: the detection band counts as
+        receiving none when even a source of AB magnitude 0 at rest-frame
+        1600 A would be fainter than ``faint_limit`` in it (see
+        `_check_detection_colour`); with ``faint_limit=None`` only when it
+        receives exactly nothing.
 
     Notes
     -----
@@ -265,9 +290,8 @@ def band_magnitudes(z: float, beta, filters, *, mag=None, detection_index: int |
                 -len(filts) <= detection_index < len(filts)):
             raise ValueError(f"detection_index {detection_index!r} out of range for {len(filts)} bands")
         c_det = colours[:, detection_index]
-        if np.any(np.isinf(c_det)):
-            raise ValueError(f"detection band {filts[detection_index].name!r} receives no flux "
-                             f"at z = {z} with igm = {igm!r}: an apparent magnitude cannot be set")
+        _check_detection_colour(c_det, filts[detection_index].name, z, igm,
+                                np.inf if faint_limit is None else faint_limit)
         out = norm[:, None] + (colours - c_det[:, None])
         # exact by construction where c - c_det cancels
         out[:, detection_index] = norm
@@ -291,7 +315,7 @@ def absolute_magnitude(mag, z: float, beta, detection_filter, *, cosmology=None,
     mag : float or array_like
         Apparent AB magnitude(s) in ``detection_filter``.
     z : float
-        Redshift (> 0).
+        Redshift (>= ``Z_MIN_DISTANCE`` = 1e-8).
     beta : float or array_like
         UV slope(s), broadcast against ``mag``.
     detection_filter : Filter or str
@@ -303,14 +327,20 @@ def absolute_magnitude(mag, z: float, beta, detection_filter, *, cosmology=None,
     -------
     numpy.ndarray or float
         M_UV (AB), shape of ``mag`` and ``beta`` broadcast.
+
+    Raises
+    ------
+    ValueError
+        The band receives no flux at this z: even a source of AB magnitude 0
+        at rest 1600 A would be fainter than ``FAINT_MAG_LIMIT`` in it (the rule
+        of `band_magnitudes`).
     """
     z = _check_z(z)
     _check_igm(igm)
     filt = get_filter(detection_filter)
     m, b = np.broadcast_arrays(np.asarray(mag, dtype=float), np.asarray(beta, dtype=float))
     c = _band_table(z, filt, igm).colour(np.ravel(b)).reshape(b.shape)
-    if np.any(np.isinf(c)):
-        raise ValueError(f"band {filt.name!r} receives no flux at z = {z} with igm = {igm!r}")
+    _check_detection_colour(c, filt.name, z, igm, FAINT_MAG_LIMIT)
     out = m - c - _distance_term(z, cosmology)
     return out if out.ndim else float(out)
 
