@@ -17,10 +17,16 @@ import numpy as np
 from glaciar.galaxy.igm import IGM_MODELS
 
 __all__ = ["SourceModel", "get_cosmology", "r_eff_kpc", "kpc_to_arcsec",
-           "draw_beta", "draw_shapes", "M_UV_SIZE_PIVOT"]
+           "draw_beta", "draw_shapes", "M_UV_SIZE_PIVOT", "Z_MIN_DISTANCE"]
 
 #: Absolute UV magnitude at which the size-luminosity relation is pivoted.
 M_UV_SIZE_PIVOT = -21.0
+#: Smallest redshift given a distance (angular sizes, absolute magnitudes): a luminosity
+#: distance of ~0.04 pc, far below any use.  Not just z > 0: float64 distances break
+#: down for denormal z (found by tests/test_properties.py): at z = 5e-324 astropy's
+#: D_L is 0 (distmod -inf, with a divide-by-zero warning), at z = 2e-313 its
+#: arcsec per kpc overflows to inf.
+Z_MIN_DISTANCE = 1e-8
 _BETA_PER = ("source", "iteration")
 
 
@@ -236,7 +242,8 @@ def kpc_to_arcsec(r_kpc, z, cosmology="Planck18"):
     r_kpc : float or array_like
         Proper sizes [kpc].
     z : float or array_like
-        Redshift(s) (> 0), broadcast against ``r_kpc``.
+        Redshift(s) (>= :data:`Z_MIN_DISTANCE` = 1e-8; there is no angular size at
+        z = 0), broadcast against ``r_kpc``.
     cosmology : str or astropy.cosmology.Cosmology
         See `get_cosmology`.
 
@@ -247,8 +254,8 @@ def kpc_to_arcsec(r_kpc, z, cosmology="Planck18"):
     """
     cosmo = get_cosmology(cosmology)
     z = np.asarray(z, dtype=float)
-    if np.any(~(z > 0)):
-        raise ValueError(f"kpc_to_arcsec: z must be > 0, got {z}")
+    if np.any(~(z >= Z_MIN_DISTANCE)):
+        raise ValueError(f"kpc_to_arcsec: z must be > 0 (at least {Z_MIN_DISTANCE:g}), got {z}")
     return np.asarray(r_kpc, dtype=float) * cosmo.arcsec_per_kpc_proper(z).value
 
 
