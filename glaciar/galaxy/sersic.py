@@ -77,6 +77,12 @@ __all__ = [
 N_MIN, N_MAX = 0.2, 10.0            #: supported Sersic indices
 Q_MIN, Q_MAX = 0.05, 1.0            #: supported axis ratios
 DEFAULT_TOLERANCE = 1e-9            #: target |pixel error| / total flux
+#: Largest stamp sersic_stamp renders [pixels]: rendering needs ~200 bytes and
+#: ~0.6 us per pixel, so this is ~5 GB and ~15 s (n = 4, r_eff = 100 px at 99.5 %
+#: is 4985 x 4985 px).  Larger stamps are refused with a ValueError instead of a
+#: MemoryError or an OOM kill: n = 10, r_eff = 100 px at 99.5 % is 39699 x 39699 px
+#: (1.6e9 px, ~300 GB).
+MAX_STAMP_PIXELS = 25_000_000
 _MAX_ORDER = 40                     #: largest Gauss-Legendre order per panel
 _CHUNK_SEGMENTS = 50_000            #: pixel edges integrated per vectorised batch
 
@@ -598,6 +604,12 @@ def sersic_stamp(n, r_eff, axis_ratio=1.0, position_angle=0.0, *, shape=None, ce
     stamp : ndarray, float64, shape (ny, nx)
         ``flux`` x the integral of the unit-flux profile over each pixel, so
         ``stamp.sum()`` is ``flux`` x the light fraction inside the stamp.
+
+    Raises
+    ------
+    ValueError
+        Invalid parameters, or a stamp of more than :data:`MAX_STAMP_PIXELS`
+        pixels (e.g. the default shape of n >= 6 with r_eff >~ 45 px).
     """
     n = _check_scalar_n(n)
     r_eff, q, pa = _check_geometry(r_eff, axis_ratio, position_angle)
@@ -611,6 +623,11 @@ def sersic_stamp(n, r_eff, axis_ratio=1.0, position_angle=0.0, *, shape=None, ce
         shape = stamp_shape(n, r_eff, q, pa, enclosed_fraction)
     shape = _check_shape(shape)
     ny, nx = shape
+    if ny * nx > MAX_STAMP_PIXELS:
+        raise ValueError(
+            f"a {ny} x {nx} px Sersic stamp ({ny * nx:.3g} px, ~{ny * nx * 200 / 1e9:.0f} GB to "
+            f"render) exceeds MAX_STAMP_PIXELS = {MAX_STAMP_PIXELS:,} (n = {n:g}, "
+            f"r_eff = {r_eff:g} px, axis_ratio = {q:g}); give a smaller shape or enclosed_fraction")
     if center is None:
         center = ((nx - 1) / 2.0, (ny - 1) / 2.0)
     try:
