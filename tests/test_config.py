@@ -452,7 +452,16 @@ def test_glaciar_parameters_file(glaciar_dir, tmp_path):
     np.testing.assert_allclose(cfg.grid.mag_values, 24.0 + np.arange(21) * 4.0 / 20, atol=1e-9)
     assert (cfg.simulation.n_galaxies, cfg.simulation.n_iterations) == (100, 3)
     src = cfg.source
-    assert src.r_eff_kpc_z6 == 1.075 and src.beta_mean == -2.0 and src.beta_sd == 0.0
+    # R_eff is GLACiAR's size in pixels at z = 6: 1.075 px x 0.08"/px, as a proper size through
+    # Planck18's angular-diameter distance at z = 6 (hand computation: theta [rad] x D_A).
+    from astropy import units as u
+    from astropy.cosmology import Planck18
+    theta_rad = 1.075 * 0.08 / 3600 * np.pi / 180
+    r_kpc = theta_rad * Planck18.angular_diameter_distance(6.0).to(u.kpc).value
+    assert abs(src.r_eff_kpc_z6 / r_kpc - 1) < 1e-9 and 0.49 < r_kpc < 0.51
+    note = next(w for w in cfg.warnings if w.startswith("R_eff"))
+    assert f'{1.075 * 0.08:.4g}"' in note and f"{r_kpc:.4g} proper kpc" in note, note
+    assert src.beta_mean == -2.0 and src.beta_sd == 0.0
     assert src.sersic_indices == (1.0, 4.0) and src.sersic_fractions == (0.5, 0.5)
     assert src.ellipticity_bins == 2 and src.position_angle_bins == 1
     assert src.round_de_vaucouleurs is True
@@ -484,6 +493,9 @@ def test_glaciar_variants(glaciar_dir, tmp_path):
     assert any("z_bins" in w and "0.2" in w for w in cfg.warnings)
     assert any("ibins" in w and "180" in w for w in cfg.warnings)
     assert cfg.survey.band("f160w").psf == str(gdir / "Files" / "psf_f160w.fits")
+    # not FITS: no scale is guessed (the run's input check names the file)
+    assert cfg.survey.band("f160w").psf_pixel_scale_arcsec is None
+    assert any("psf_f160w" in w and "not readable" in w for w in cfg.warnings)
     assert cfg.detection.detect_thresh == 0.9
     assert cfg.detection.sex_file == str(gdir / "SExtractor_files" / "parameters.sex")
     # Non-standard band order: the J-dropout cuts follow GLACiAR's positional [H, Y, J, V].
@@ -491,6 +503,85 @@ def test_glaciar_variants(glaciar_dir, tmp_path):
     cfg = config_from_dict(data, gdir, "parameters.yaml")
     assert cfg.selection == ("sn_f160w >= 5", "sn_f606w < 1.5", "sn_f098m < 1.5",
                              "maglim_f125w - mag_f160w > 1.5")
+
+
+def _glaciar_fits(path, data, header=None):
+    from astropy.io import fits
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fits.PrimaryHDU(np.asarray(data, dtype=np.float32), header).writeto(path)
+
+
+def test_glaciar_psf_scale_from_size_pix(glaciar_dir):
+    """A PSF without a header scale is at size_pix; a header scale, where there is one, wins."""
+    from astropy.io import fits
+
+    from glaciar.galaxy.psf import prepare_psf
+
+    gdir = glaciar_dir.parent
+    data = yaml.safe_load(GLACIAR_PARAMETERS)
+    data["size_pix"] = 0.06
+    yy, xx = np.mgrid[-7:8, -7:8]
+    psf = np.exp(-(xx ** 2 + yy ** 2) / (2 * 1.5 ** 2))
+    _glaciar_fits(gdir / "Files" / "psf_f160w.fits", psf)                   # no scale at all
+    _glaciar_fits(gdir / "Files" / "psf_f125w.fits.gz", psf, fits.Header({"PIXSCALE": 0.13}))
+    cfg = config_from_dict(data, gdir, "parameters.yaml")
+    h, j = cfg.survey.band("f160w"), cfg.survey.band("f125w")
+    assert h.psf == str(gdir / "Files" / "psf_f160w.fits") and h.psf_pixel_scale_arcsec == 0.06
+    assert j.psf == str(gdir / "Files" / "psf_f125w.fits.gz") and j.psf_pixel_scale_arcsec is None
+    assert any("psf_f160w" in w and "size_pix = 0.06" in w for w in cfg.warnings)
+    assert any("psf_f125w" in w and "header pixel scale 0.13" in w for w in cfg.warnings)
+    # At its own (image) scale the header-less PSF is used as written: odd, centred, sum 1.
+    got = prepare_psf(h.psf, 0.06, psf_pixel_scale_arcsec=h.psf_pixel_scale_arcsec)
+    np.testing.assert_allclose(got, psf / psf.sum(), rtol=1e-6)
+    with pytest.raises(ValueError, match="psf_pixel_scale_arcsec"):       # as before, alone
+        prepare_psf(h.psf, 0.06)
+
+
+def test_glaciar_gzipped_images(glaciar_dir, tmp_path):
+    """Images found as <path_to_images><image_name><field>_<band>.fits.gz are read gzipped."""
+    gdir = glaciar_dir.parent
+    stem = tmp_path / "hlsp_borg_hst_wfc3_par"
+    bands = ("f160w", "f098m", "f125w", "f606w")
+    for field in ("0440-5244", "0240-1857"):
+        for b in bands:
+            _glaciar_fits(Path(f"{stem}{field}_{b}.fits.gz"), np.ones((4, 4)))
+            _glaciar_fits(Path(f"{stem}{field}_{b}_rms.fits.gz"), np.ones((4, 4)))
+    cfg = load_config(glaciar_dir)
+    s = cfg.survey
+    assert s.image_dir / s.science.format(field="0440-5244", band="f125w") == \
+        Path(f"{stem}0440-5244_f125w.fits.gz")
+    assert s.noise.format(field="x", band="f098m") == "hlsp_borg_hst_wfc3_parx_f098m_rms.fits.gz"
+    assert check_files(cfg) is None                          # every file named is there
+    # A mixed layout: the majority naming, and a warning with the count left out.
+    Path(f"{stem}0240-1857_f606w.fits.gz").unlink()
+    _glaciar_fits(Path(f"{stem}0240-1857_f606w.fits"), np.ones((4, 4)))
+    cfg = load_config(glaciar_dir)
+    assert cfg.survey.science.endswith(".fits.gz")
+    assert any("1 file(s) are .fits and 7 .fits.gz" in w and "1 file(s) not found" in w
+               for w in cfg.warnings), cfg.warnings
+
+
+def test_glaciar_size_pix_missing(glaciar_dir, tmp_path):
+    """Without size_pix: the detection image's header scale, else GLACiAR's default 0.08"/px."""
+    from astropy import units as u
+    from astropy.cosmology import Planck18
+    from astropy.io import fits
+
+    gdir = glaciar_dir.parent
+    data = yaml.safe_load(GLACIAR_PARAMETERS)
+    data["size_pix"] = None          # GLACiAR: present and empty -> the default
+    cfg = config_from_dict(data, gdir, "parameters.yaml")
+    assert cfg.survey.pixel_scale_arcsec == 0.08
+    assert any(w.startswith("size_pix") and "0.08" in w for w in cfg.warnings)
+    hdr = fits.Header({"CTYPE1": "RA---TAN", "CTYPE2": "DEC--TAN", "CD1_1": -0.06 / 3600,
+                       "CD2_2": 0.06 / 3600, "CD1_2": 0.0, "CD2_1": 0.0})
+    _glaciar_fits(tmp_path / "hlsp_borg_hst_wfc3_par0440-5244_f160w.fits", np.ones((4, 4)), hdr)
+    cfg = config_from_dict(data, gdir, "parameters.yaml")
+    assert cfg.survey.pixel_scale_arcsec is None               # the survey reads the same WCS
+    d_a = Planck18.angular_diameter_distance(6.0).to(u.kpc).value
+    expected = 1.075 * 0.06 / 3600 * np.pi / 180 * d_a
+    assert abs(cfg.source.r_eff_kpc_z6 / expected - 1) < 1e-6
 
 
 @pytest.mark.parametrize("change, pattern", [

@@ -5,6 +5,21 @@ keys into glaciar's sections, and every choice made on the way (filter
 curves, PSFs, the spectrum model, grid labels) is recorded as a warning. The
 schema key each GLACiAR key became is remembered, so a later validation error
 names the GLACiAR key the user actually wrote.
+
+GLACiAR's inputs are read as GLACiAR's *code* uses them (reference notes,
+sections 1, 4 and 7), where the paper says otherwise:
+
+* ``R_eff`` is the half-light radius in *pixels* at z = 6 (the code draws
+  Re = 7 R_eff / (1+z) px and has no cosmology), so it becomes
+  ``source.r_eff_kpc_z6 = R_eff * size_pix / (arcsec per proper kpc at z = 6)``
+  in the source model's cosmology (Planck18); the warning gives r_e in kpc and
+  arcsec, and how far glaciar's (1+z)^-1 scaling of the proper size departs
+  from GLACiAR's (1+z)^-1 scaling of the angle over the grid's redshifts.
+* Images are ``<path_to_images><image_name><field>_<band>.fits`` and
+  ``..._rms.fits``, or the same names gzipped (``.fits.gz``), whichever exist.
+* ``Files/psf_<band>.fits`` (or ``.fits.gz``) without a pixel scale in its
+  header is at ``size_pix`` (GLACiAR placed its stamps without resampling
+  anything); a header scale, where there is one, is used instead.
 """
 from __future__ import annotations
 
@@ -179,7 +194,7 @@ def _glaciar_filter(ctx, band: str, base_dir: Path) -> str:
     """Built-in HST filter for a GLACiAR band name, else GLACiAR's Files/<band>.tab."""
     name = _glaciar_hst_name(ctx, band.lower())
     try:
-        from .galaxy.filters import BUILTIN_FILTERS
+        from ..galaxy.filters import BUILTIN_FILTERS
         shipped = name is not None and BUILTIN_FILTERS.get(name) is not None
     except ImportError:
         shipped = name is not None
@@ -193,6 +208,88 @@ def _glaciar_filter(ctx, band: str, base_dir: Path) -> str:
         f"{band!r} is not an HST filter name"
     raise ctx.error("bands", f"band {band!r}: {what} and there is no {tab}; use a schema "
                              f"config with survey.bands.{band}.filter: <curve file>")
+
+
+def _read_field_names(path: Path) -> list[str]:
+    """First token of each non-blank, non-comment line (GLACiAR's list_of_fields); [] if unreadable."""
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError):
+        return []
+    return [ln.split()[0] for ln in (x.strip() for x in lines) if ln and not ln.startswith("#")]
+
+
+def _fits_suffix(ctx, what: str, directory: Path, names: list[str]) -> str:
+    """``.fits`` or ``.fits.gz``: how the files ``names`` (without suffix) exist in ``directory``.
+
+    GLACiAR's code opened ``.fits`` only; gzipped copies are common and astropy
+    reads them as they are.  With no file found (images not there yet) the
+    GLACiAR name ``.fits`` is kept, and the run's input check names what is
+    missing.
+    """
+    plain = sum((directory / f"{n}.fits").is_file() for n in names)
+    gz = sum((directory / f"{n}.fits.gz").is_file() for n in names)
+    suffix = ".fits.gz" if gz > plain else ".fits"
+    if plain and gz:
+        found = max(plain, gz)
+        ctx.warnings.append(f"{what}: {plain} file(s) are .fits and {gz} .fits.gz; glaciar reads "
+                            f"one naming, {suffix} ({len(names) - found} file(s) not found with "
+                            f"it: gzip or gunzip them alike)")
+    elif gz:
+        ctx.warnings.append(f"{what}: read gzipped ({directory / names[0]}.fits.gz, ...); "
+                            f"GLACiAR's code opened .fits only")
+    return suffix
+
+
+def _existing_fits(base: Path) -> Path | None:
+    """``base.fits`` or ``base.fits.gz``, whichever exists (the plain name first)."""
+    for suffix in (".fits", ".fits.gz"):
+        p = base.parent / (base.name + suffix)
+        if p.is_file():
+            return p
+    return None
+
+
+def _r_eff_kpc_z6(r_eff_pix: float, pixel_scale: float, z_values) -> tuple[float, str]:
+    """GLACiAR's R_eff [pixels at z = 6] as proper kpc at z = 6, and the warning that says so.
+
+    GLACiAR's code gives a source at z a half-light radius of 7 R_eff / (1+z)
+    pixels: R_eff is the size in pixels at z = 6, and pixels are ``size_pix``
+    arcsec.  glaciar's source model takes proper kpc at z = 6 and converts with
+    the cosmology of the source model (its default, Planck18: a GLACiAR file
+    has no cosmology key), so r_kpc = R_eff size_pix / (arcsec per kpc at z = 6).
+    """
+    from ..galaxy.population import SourceModel, kpc_to_arcsec
+
+    cosmology = SourceModel().cosmology
+    r_arcsec = r_eff_pix * pixel_scale
+    arcsec_per_kpc = float(kpc_to_arcsec(1.0, 6.0, cosmology))
+    r_kpc = r_arcsec / arcsec_per_kpc
+    note = (f"R_eff: {r_eff_pix:g} is GLACiAR's half-light radius in pixels at z = 6 (its code "
+            f"draws Re = 7 R_eff/(1+z) px, no cosmology; the paper's 'kpc' is not what it does): "
+            f"at size_pix = {pixel_scale:.4g}\"/px, r_e = {r_arcsec:.4g}\" = {r_kpc:.4g} proper "
+            f"kpc at z = 6 ({cosmology}), used as source.r_eff_kpc_z6")
+    z = [float(v) for v in z_values if float(v) > 0]
+    if z:
+        # glaciar scales the proper size as (1+z)^-1, GLACiAR the angle: they differ by the
+        # ratio of the angular scales, arcsec/kpc(z) / arcsec/kpc(6).
+        lo, hi = min(z), max(z)
+        ratio = [float(kpc_to_arcsec(1.0, v, cosmology)) / arcsec_per_kpc for v in (lo, hi)]
+        span = f"z = {lo:g}" if lo == hi else f"z = {lo:g}-{hi:g}"
+        rr = f"{ratio[0]:.3f}" if lo == hi else f"{ratio[0]:.3f}-{ratio[1]:.3f}"
+        note += (f"; glaciar scales the proper size as (1+z)^-1, GLACiAR the angle, so at {span} "
+                 f"r_e is {rr} x GLACiAR's")
+        # The proper-size power law closest to GLACiAR's angles on the grid (least squares in
+        # log r): r_kpc(z)/r_kpc(6) = (7/(1+z)) a(6)/a(z) ~ ((1+z)/7)^s.
+        x = [math.log((1 + v) / 7.0) for v in z]
+        y = [math.log(7.0 / (1 + v) * arcsec_per_kpc / float(kpc_to_arcsec(1.0, v, cosmology)))
+             for v in z]
+        if any(abs(xi) > 1e-9 for xi in x):
+            slope = sum(a * b for a, b in zip(x, y)) / sum(a * a for a in x)
+            worst = max(abs(math.exp(slope * a - b) - 1) for a, b in zip(x, y))
+            note += (f" (source.size_evolution: {slope:.2f} in a schema config follows them to "
+                     f"{100 * worst:.0f} %)")
+    return r_kpc, note
 
 
 def glaciar_to_schema(data: Mapping, base_dir: Path) -> tuple[dict, dict[str, str], list[str]]:
@@ -253,20 +350,68 @@ def glaciar_to_schema(data: Mapping, base_dir: Path) -> tuple[dict, dict[str, st
         raise ctx.error("gain_values", f"expected a list of {nb} gains (one per band), "
                                        f"got {_show(gains)}")
 
-    # Science: <path_to_images><image_name><field>_<band>.fits (string concatenation).
+    # Science: <path_to_images><image_name><field>_<band>.fits (string concatenation),
+    # or the same name gzipped.
     prefix = _str(ctx, "path_to_images", get("path_to_images")) + \
         _str(ctx, "image_name", get("image_name"))
-    image_dir, stem = os.path.split(prefix)
-    stem = stem.replace("{", "{{").replace("}", "}}")
+    image_dir, raw_stem = os.path.split(prefix)
+    stem = raw_stem.replace("{", "{{").replace("}", "}}")
+    img_dir = base_dir / (image_dir or ".")          # relative to the file, as the schema's
+    fields_file = _str(ctx, "list_of_fields", get("list_of_fields"))
+    fields = _read_field_names(base_dir / fields_file)
+    sci_suffix = _fits_suffix(ctx, "path_to_images", img_dir,
+                              [f"{raw_stem}{f}_{b}" for f in fields for b in bands])
+    rms_suffix = _fits_suffix(ctx, "path_to_images (_rms maps)", img_dir,
+                              [f"{raw_stem}{f}_{b}_rms" for f in fields for b in bands])
+
+    # size_pix: the images' pixel scale [arcsec/px], the unit of R_eff and of header-less PSFs.
+    size_pix = data.get("size_pix")
+    if size_pix is not None:
+        pixel_scale = _float(ctx, "size_pix", size_pix, gt=0)
+    else:
+        # GLACiAR's code defaults to 0.08; the detection image's own header is better.
+        from ..galaxy.psf import fits_pixel_scale
+        pixel_scale = None
+        det_image = img_dir / f"{raw_stem}{fields[0]}_{det}{sci_suffix}" if fields else None
+        try:
+            pixel_scale = fits_pixel_scale(det_image) if det_image is not None else None
+        except (OSError, ValueError):
+            pass
+        if pixel_scale is not None:
+            warn(f"size_pix: missing; {pixel_scale:.4g}\"/px from {det_image.name}'s header is "
+                 f"used for R_eff and PSFs")
+            size_pix = None        # the survey reads the same scale from the WCS
+        else:
+            pixel_scale = size_pix = 0.08
+            warn("size_pix: missing and no detection image header to read; GLACiAR's default "
+                 "0.08\"/px is used (pixel scale, R_eff, PSFs)")
 
     band_cfg = {}
     for i, b in enumerate(bands):
-        psf_file = base_dir / "Files" / f"psf_{b}.fits"
-        if psf_file.is_file():
+        psf_file = _existing_fits(base_dir / "Files" / f"psf_{b}")
+        psf_scale = None
+        if psf_file is not None:
             psf = str(psf_file)
+            from ..galaxy.psf import fits_pixel_scale
+            try:
+                header_scale, readable = fits_pixel_scale(psf_file), True
+            except (OSError, ValueError):
+                header_scale, readable = None, False      # the run's input check reports it
+            if header_scale is not None:
+                how = f"resampled from its header pixel scale {header_scale:.4g}\"/px"
+            elif readable:
+                # GLACiAR convolved (and discarded) its PSFs at the image grid: a PSF without a
+                # scale is taken at size_pix rather than refused.
+                psf_scale = pixel_scale
+                ctx.origins[f"survey.bands.{b}.psf_pixel_scale_arcsec"] = "size_pix"
+                how = (f"no pixel scale in its header, so taken at size_pix = {pixel_scale:.4g}\"/px "
+                       f"(GLACiAR's shipped Tiny Tim PSFs are 0.13\"/px IR, 0.0495\"/px UVIS: "
+                       f"if yours are, set survey.bands.{b}.psf_pixel_scale_arcsec in a schema "
+                       f"config)")
+            else:
+                how = "not readable as FITS"
             warn(f"bands: {b}: using the PSF file {psf_file} (GLACiAR computed but never "
-                 f"applied its PSF convolution; glaciar applies it, resampled by its header "
-                 f"pixel scale)")
+                 f"applied its PSF convolution; glaciar applies it): {how}")
         else:
             fwhm = _HST_FWHM_ARCSEC.get(b.lower(), _HST_OPTICAL_FWHM_ARCSEC)
             psf = {"profile": "moffat", "fwhm_arcsec": fwhm, "beta": 2.5}
@@ -274,17 +419,19 @@ def glaciar_to_schema(data: Mapping, base_dir: Path) -> tuple[dict, dict[str, st
                  f"HST-like FWHM {fwhm}\" (set survey.bands.{b}.psf in a schema config)")
         band_cfg[b] = {"filter": _glaciar_filter(ctx, b, base_dir), "zeropoint": zps[i],
                        "gain": None if gains is None else gains[i], "psf": psf}
+        if psf_scale is not None:
+            band_cfg[b]["psf_pixel_scale_arcsec"] = psf_scale
         ctx.origins[f"survey.bands.{b}.zeropoint"] = f"zeropoints[{i}]"
         ctx.origins[f"survey.bands.{b}.gain"] = f"gain_values[{i}]"
     if gains is None:
         warn("gain_values: missing; no source Poisson noise is added")
 
-    survey = {"fields_file": _str(ctx, "list_of_fields", get("list_of_fields")),
+    survey = {"fields_file": fields_file,
               "image_dir": image_dir or ".",
-              "science": stem + "{field}_{band}.fits",
-              "noise": stem + "{field}_{band}_rms.fits",
+              "science": stem + "{field}_{band}" + sci_suffix,
+              "noise": stem + "{field}_{band}_rms" + rms_suffix,
               "noise_type": "rms",
-              "pixel_scale_arcsec": data.get("size_pix"),
+              "pixel_scale_arcsec": size_pix if size_pix is None else pixel_scale,
               "detection_band": det,
               "bands": band_cfg}
 
@@ -319,9 +466,9 @@ def glaciar_to_schema(data: Mapping, base_dir: Path) -> tuple[dict, dict[str, st
                                           f"{len(indices)} value(s)")
     ctx.origins["source.sersic_fractions"] = "fraction_type_galaxies" \
         if "fraction_type_galaxies" in data else "fractions"
-    r_eff = _float(ctx, "R_eff", get("R_eff", 1.075), gt=0)
-    warn(f"R_eff: {r_eff:g} is read as proper kpc at z = 6 (the paper's meaning); GLACiAR's "
-         f"code used it as pixels at z = 6 with no cosmology")
+    r_eff_pix = _float(ctx, "R_eff", get("R_eff", 1.075), gt=0)
+    r_eff, r_eff_note = _r_eff_kpc_z6(r_eff_pix, pixel_scale, grid["z"]["values"])
+    warn(r_eff_note)
     ibins = _int(ctx, "ibins", get("ibins", 1), ge=1)
     ebins = _int(ctx, "ebins", get("ebins", 1), ge=1)
     if ibins > 1:

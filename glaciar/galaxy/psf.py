@@ -39,6 +39,7 @@ __all__ = [
     "moffat_psf",
     "airy_psf",
     "read_psf",
+    "fits_pixel_scale",
     "resample_psf",
     "measure_fwhm",
     "prepare_psf",
@@ -278,6 +279,50 @@ def _header_pixel_scale(header) -> float | None:
     return math.sqrt(abs(np.linalg.det(cd))) * unit
 
 
+def _first_image_hdu(hdul, path):
+    found = [h for h in hdul if h.data is not None and getattr(h, "is_image", False)
+             and h.data.ndim >= 2]
+    if not found:
+        raise ValueError(f"{path}: no image HDU found")
+    return found[0]
+
+
+def fits_pixel_scale(path, hdu: int | str | None = None) -> float | None:
+    """Pixel scale written in a FITS header, or None when the header has none.
+
+    The same header keys :func:`read_psf` reads: ``PIXSCALE`` [arcsec] (Tiny
+    Tim), else the CD matrix or ``CDELT`` x ``PC`` [degrees unless ``CUNIT1``
+    says otherwise], as the geometric mean of the two axes.  Used to decide,
+    before a run, whether a PSF file needs its scale from the configuration
+    (GLACiAR's PSFs often have none: its code never resampled them).
+
+    Parameters
+    ----------
+    path : str or path-like
+        FITS file (may be gzipped).
+    hdu : int or str, optional
+        HDU index or name.  Default: the first HDU holding an image.
+
+    Returns
+    -------
+    float or None
+        [arcsec / pixel]; not checked for plausibility (:func:`read_psf` does).
+
+    Raises
+    ------
+    FileNotFoundError, OSError, ValueError
+        Missing or unreadable file, no image HDU.
+    """
+    from astropy.io import fits
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"file not found: {path}")
+    with fits.open(path, memmap=False) as hdul:
+        h = _first_image_hdu(hdul, path) if hdu is None else hdul[hdu]
+        return _header_pixel_scale(h.header)
+
+
 def read_psf(path, psf_pixel_scale_arcsec: float | None = None,
              hdu: int | str | None = None) -> tuple[np.ndarray, float]:
     """Read a PSF image from a FITS file.
@@ -315,11 +360,7 @@ def read_psf(path, psf_pixel_scale_arcsec: float | None = None,
         raise FileNotFoundError(f"PSF file not found: {path}")
     with fits.open(path, memmap=False) as hdul:
         if hdu is None:
-            found = [h for h in hdul if h.data is not None and getattr(h, "is_image", False)
-                     and h.data.ndim >= 2]
-            if not found:
-                raise ValueError(f"{path}: no image HDU found")
-            h = found[0]
+            h = _first_image_hdu(hdul, path)
         else:
             try:
                 h = hdul[hdu]
@@ -335,7 +376,8 @@ def read_psf(path, psf_pixel_scale_arcsec: float | None = None,
             scale = _header_pixel_scale(header)
             if scale is None:
                 raise ValueError(f"{path}: no pixel scale in the header (PIXSCALE, CD1_1 or "
-                                 "CDELT1); pass psf_pixel_scale_arcsec")
+                                 "CDELT1); pass psf_pixel_scale_arcsec (in a config: "
+                                 "survey.bands.<band>.psf_pixel_scale_arcsec)")
             if not (0 < scale < 10.0):
                 raise ValueError(f"{path}: header pixel scale {scale:g} arcsec is implausible; "
                                  "pass psf_pixel_scale_arcsec")
