@@ -444,11 +444,11 @@ def _read_columns(run_dir, want):
     """The wanted columns that the store has (column projection)."""
     import pyarrow.parquet as pq
 
-    from .store import read_results
+    from .store import read_current_results
 
     files = sorted((Path(run_dir) / C.RESULTS_DIRNAME).glob("task_*.parquet"))
     have = set(pq.read_schema(files[0]).names) if files else set(want)
-    return read_results(run_dir, columns=[c for c in want if c in have])
+    return read_current_results(run_dir, columns=[c for c in want if c in have])
 
 
 def _json(o):

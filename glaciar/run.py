@@ -7,8 +7,12 @@ of a prepared :class:`FieldContext` and a :class:`~glaciar.engine.task.TaskSpec`
 from __future__ import annotations
 
 import concurrent.futures as cf
+import json
 import math
 import os
+import signal
+import sys
+import threading
 import time
 import warnings
 from dataclasses import dataclass, field as dc_field
@@ -19,7 +23,7 @@ import yaml
 
 from . import __version__
 from . import constants as C
-from .config import Config, config_from_dict, config_hash, config_to_dict, store_hash
+from .config import Config, check_files, config_from_dict, config_hash, config_to_dict
 from .engine.detect import DetectionParams, builtin_filter, measure_background, read_conv_file
 from .engine.measure import reference_extraction
 from .engine.classify import ClassificationParams
@@ -32,11 +36,14 @@ from .galaxy.filters import get_filter
 from .galaxy.psf import measure_fwhm, prepare_psf
 from .galaxy.sersic import stamp_shape
 from .galaxy.templates import TemplateCache
-from .store import (StoreMismatchError, atomic_write_text, finished_task_names, read_manifest,
-                    task_filename, write_manifest, write_task_table)
+from .store import (RunLock, StoreMismatchError, StoreWarning, atomic_write_text,
+                    field_file_prefix, file_fingerprint, finished_task_names, manifest_text,
+                    read_manifest, store_format, task_filename, task_key, verified_task_names,
+                    write_manifest, write_task_table)
 from .survey import Survey
 
 __all__ = ["FieldContext", "band_pixels", "build_field_context", "field_depth", "plan_tasks", "simulate",
+           "prepare_run_dir", "input_files", "check_inputs", "store_settings", "InputError",
            "R_EFF_LOG_STEP"]
 
 #: r_e is rounded to a logarithmic grid of this step (0.2 %) so that sources whose sizes
@@ -299,7 +306,13 @@ def plan_tasks(cfg: Config) -> list[TaskSpec]:
 
 
 def spec_filename(spec: TaskSpec) -> str:
+    """File name of a task's rows (:func:`glaciar.store.task_filename`)."""
     return task_filename(spec.field, spec.z, spec.mag, spec.iteration)
+
+
+def spec_key(spec: TaskSpec) -> str:
+    """Exact identity of a task (:func:`glaciar.store.task_key`)."""
+    return task_key(spec.field, spec.z, spec.mag, spec.iteration)
 
 
 # --------------------------------------------------------------------------
@@ -328,7 +341,7 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
         ctx = _context(cfg_dict, base_dir, cfg_hash, spec.field)
         table = run_task(ctx, spec, seed, mode=mode)
         name = spec_filename(spec)
-        write_task_table(run_dir, name, table)
+        write_task_table(run_dir, name, table, key=spec_key(spec))
         done.append((name, len(table), time.process_time() - t0))
     return done
 
@@ -369,6 +382,244 @@ def _depth_area(cfg: Config, survey: Survey, field: str) -> dict:
             "area_arcmin2": [float(a) for a in area]}
 
 
+# --------------------------------------------------------------------------
+# Inputs: every file a run reads, checked and fingerprinted before anything is written
+# --------------------------------------------------------------------------
+class InputError(ValueError):
+    """An input file of the configuration is unusable; the message names its key and path."""
+
+
+@dataclass(frozen=True)
+class InputFile:
+    """One input file of a run, named by the configuration key it comes from."""
+
+    key: str                  #: e.g. ``survey.bands.f160w.psf`` or ``survey.science (field 'a', band 'b')``
+    path: Path
+    kind: str                 #: science, noise, psf, filter, sex_file or conv
+    field: str | None = None  #: the field whose tasks read it (None: every task)
+    band: str | None = None
+
+
+def _file_or_none(value, base_dir: Path) -> Path | None:
+    """``value`` as an existing file (relative to ``base_dir``), or None (e.g. a built-in name)."""
+    if not isinstance(value, str) or not value:
+        return None
+    p = Path(value).expanduser()
+    if not p.is_absolute():
+        p = Path(base_dir) / p
+    return p.resolve() if p.is_file() else None
+
+
+def input_files(cfg: Config) -> list[InputFile]:
+    """Every input file of ``cfg``: images and noise maps, FITS PSFs, filter curves, .sex, .conv.
+
+    Built-in filters, analytic PSFs and built-in detection kernels are not files
+    (their definitions are in the configuration and the code).
+    """
+    s = cfg.survey
+    out = []
+    for f in s.fields:
+        for b in s.bands:
+            for kind, tmpl in (("science", s.science), ("noise", s.noise)):
+                if tmpl is not None:
+                    out.append(InputFile(f"survey.{kind} (field {f!r}, band {b.name!r})",
+                                         Path(s.image_dir) / tmpl.format(field=f, band=b.name),
+                                         kind, f, b.name))
+    for b in s.bands:
+        if isinstance(b.psf, str):
+            p = Path(b.psf) if Path(b.psf).is_absolute() else Path(cfg.base_dir) / b.psf
+            out.append(InputFile(f"survey.bands.{b.name}.psf", p, "psf", None, b.name))
+        fp = _file_or_none(b.filter, cfg.base_dir)
+        if fp is not None:
+            out.append(InputFile(f"survey.bands.{b.name}.filter", fp, "filter", None, b.name))
+    det = config_to_dict(cfg).get("detection") or {}
+    for key, kind in (("sex_file", "sex_file"), ("FILTER_NAME", "conv")):
+        p = _file_or_none(det.get(key), cfg.base_dir)
+        if p is not None:
+            out.append(InputFile(f"detection.{key}", p, kind))
+    return out
+
+
+def _reason(exc: BaseException, path: Path) -> str:
+    """An exception's message without a leading copy of the path."""
+    msg = str(exc).strip() or type(exc).__name__
+    for prefix in (f"{path}: ", f"{path}:", "PSF file not found: "):
+        if msg.startswith(prefix):
+            msg = msg[len(prefix):]
+    return msg.splitlines()[0]
+
+
+def _check_image(item: InputFile) -> None:
+    """A science or noise image: a readable FITS file with a 2-D image holding finite pixels."""
+    from .survey import _read_array
+
+    with warnings.catch_warnings():
+        # astropy only warns about a file shorter than its header says; that is an error here.
+        warnings.filterwarnings("error", message=".*truncated.*")
+        arr = _read_array(item.path)
+    if arr.ndim != 2 or arr.size == 0:
+        raise ValueError(f"expected a non-empty 2-D image, got shape {arr.shape}")
+    if not np.isfinite(arr).any():
+        raise ValueError("no finite pixel in the image")
+
+
+def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None = None) -> dict:
+    """Check every input file of ``cfg`` and return its fingerprint.
+
+    Science and noise images must be readable FITS files with a 2-D image that
+    has finite pixels (checked once per file version: ``cache`` remembers it by
+    path, size and mtime); FITS PSFs must be finite with a positive sum and a
+    pixel scale (checked at every field's pixel scale); filter curves and
+    detection files must parse.  Nothing is written.
+
+    Parameters
+    ----------
+    cfg : Config
+    survey : Survey, optional
+    cache : dict, optional
+        ``{path: {"size", "mtime_ns", "blake2b", "checked"}}``, updated in place.
+
+    Returns
+    -------
+    dict
+        ``{key: {"path", "size", "blake2b"}}`` for every :func:`input_files` entry.
+
+    Raises
+    ------
+    FileNotFoundError
+        Missing files (all listed, by key).
+    InputError
+        The first unusable file: ``"<key>: <path>: <cause>"``.
+    """
+    check_files(cfg)
+    survey = survey or Survey.from_config(cfg)
+    cache = {} if cache is None else cache
+    items = input_files(cfg)
+    by_path: dict[str, list[InputFile]] = {}
+    for it in items:
+        by_path.setdefault(str(it.path.resolve()), []).append(it)
+
+    def fail(item, exc):
+        return InputError(f"{item.key}: {item.path}: {_reason(exc, item.path)}")
+
+    out = {}
+    errors = (OSError, ValueError, TypeError, KeyError, IndexError, EOFError, UnicodeDecodeError,
+              Warning)
+    for item in items:
+        try:
+            fp = file_fingerprint(item.path, cache)
+        except OSError as exc:
+            raise fail(item, exc) from None
+        entry = cache.get(str(item.path.resolve()), {})
+        try:
+            if item.kind in ("science", "noise") and not entry.get("checked"):
+                _check_image(item)
+            elif item.kind == "filter":
+                get_filter(str(item.path))
+        except errors as exc:
+            raise fail(item, exc) from None
+        if item.kind in ("science", "noise"):
+            entry["checked"] = True
+        out[item.key] = {"path": str(item.path), **fp}
+    # Shapes agree within each field, pixel scales are known, PSFs resample at every scale.
+    scales = set()
+    for f in cfg.survey.fields:
+        survey.shape(f)
+        scales.add(survey.pixel_scale_arcsec(f))
+    for b in cfg.survey.bands:
+        key = f"survey.bands.{b.name}.psf"
+        for scale in sorted(scales):
+            try:
+                _band_psf(cfg, b, scale)
+            except errors as exc:
+                where = Path(b.psf) if isinstance(b.psf, str) else None
+                if where is not None and not where.is_absolute():
+                    where = Path(cfg.base_dir) / where
+                if where is None:
+                    raise InputError(f"{key}: {_reason(exc, Path('.'))}") from None
+                raise InputError(f"{key}: {where}: {_reason(exc, where)}") from None
+    try:
+        _detection_params(cfg)
+    except errors as exc:
+        raise InputError(f"detection: {str(exc).splitlines()[0]}") from None
+    return out
+
+
+def _load_fingerprint_cache(run_dir: Path) -> dict:
+    p = run_dir / C.FINGERPRINT_CACHE_NAME
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+# --------------------------------------------------------------------------
+# Store identity: the settings that fix every task's rows (no paths, no task list)
+# --------------------------------------------------------------------------
+_FILE = "<file>"   #: stands for a path in the store settings (its content is fingerprinted)
+
+
+def store_settings(cfg: Config) -> dict:
+    """The configuration's settings that fix every task's rows, as plain data.
+
+    ``config_to_dict(cfg)`` without ``output``, the field list, the grid's z
+    and magnitude values, ``simulation.n_iterations`` and ``simulation.seed``
+    (the run's seed is compared on its own), and with every path replaced by
+    ``"<file>"``: files are identified by content (the manifest's ``inputs``),
+    so a run directory's own ``config.yaml`` (absolute paths) or a moved project
+    is the same store.
+    """
+    d = config_to_dict(cfg)
+    d.pop("output", None)
+    sv = d["survey"]
+    sv.pop("fields", None)
+    sv.pop("image_dir", None)
+    sv.pop("science", None)
+    sv["noise"] = _FILE if sv.get("noise") is not None else None
+    sv["band_order"] = list(sv["bands"])
+    for b in sv["bands"].values():
+        if isinstance(b.get("psf"), str):
+            b["psf"] = _FILE
+        if _file_or_none(b.get("filter"), cfg.base_dir) is not None:
+            b["filter"] = _FILE
+    d["grid"].pop("z", None)
+    d["grid"].pop("mag", None)
+    d["simulation"].pop("n_iterations", None)
+    d["simulation"].pop("seed", None)
+    det = d.get("detection") or {}
+    for key in ("sex_file", "FILTER_NAME"):
+        if _file_or_none(det.get(key), cfg.base_dir) is not None:
+            det[key] = _FILE
+    return json.loads(json.dumps(d, sort_keys=True))
+
+
+def _settings_hash(settings: dict) -> str:
+    import hashlib
+
+    text = json.dumps(settings, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _flatten(d, prefix=""):
+    if isinstance(d, dict):
+        out = {}
+        for k, v in d.items():
+            out.update(_flatten(v, f"{prefix}{k}."))
+        return out or {prefix[:-1]: {}}
+    return {prefix[:-1]: d}
+
+
+def _settings_diff(old: dict, new: dict, limit: int = 3) -> str:
+    a, b = _flatten(old), _flatten(new)
+    diffs = []
+    for k in sorted(set(a) | set(b)):
+        if a.get(k, "<unset>") != b.get(k, "<unset>"):
+            diffs.append(f"{k}: {str(a.get(k, '<unset>'))[:40]} -> {str(b.get(k, '<unset>'))[:40]}")
+    more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
+    return "; ".join(diffs[:limit]) + more
+
+
 def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
     area = {}
     pixscale = {}
@@ -376,10 +627,14 @@ def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
         ps = survey.pixel_scale_arcsec(f)
         pixscale[f] = ps
         area[f] = float(survey.footprint(f).sum()) * ps ** 2 / 3600.0
+    settings = store_settings(cfg)
     return {
+        "store_format": C.STORE_FORMAT,
         "glaciar_version": __version__,
+        "glaciar_versions": [__version__],
         "config_hash": config_hash(cfg),
-        "store_hash": store_hash(cfg),
+        "store_hash": _settings_hash(settings),
+        "store_settings": settings,
         "seed": int(seed),
         "fields": list(cfg.survey.fields),
         "bands": [b.name for b in cfg.survey.bands],
@@ -397,35 +652,174 @@ def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
     }
 
 
-def prepare_run_dir(cfg: Config, run_dir: Path, seed: int) -> dict:
-    """Create or validate the run directory.
-
-    A store made with other science settings or another seed is refused.  A
-    config that only adds (or drops) fields, grid values or iterations is
-    accepted: finished tasks keep their rows, and the manifest and the stored
-    config are updated to describe the run as now configured.  A manifest
-    written by an older glaciar gains the keys it lacks (e.g. ``depth_area``).
-    """
-    run_dir.mkdir(parents=True, exist_ok=True)
-    old = read_manifest(run_dir)
-    # Checked before the manifest is built: a refused run reads no images.
-    if old is not None and (old.get("store_hash") != store_hash(cfg) or old.get("seed") != int(seed)):
+def _check_same_store(run_dir: Path, old: dict, manifest: dict, items: list[InputFile],
+                      finished: set[str]) -> None:
+    """Refuse to add tasks to a store whose finished tasks were made differently."""
+    what = []
+    if old.get("seed") != manifest["seed"]:
+        what.append(f"seed: {old.get('seed')} -> {manifest['seed']}")
+    if old.get("store_hash") != manifest["store_hash"]:
+        what.append(_settings_diff(old.get("store_settings") or {}, manifest["store_settings"]))
+    if what:
         raise StoreMismatchError(
             f"{run_dir}: results were made with a different configuration or seed "
-            f"(stored hash {str(old.get('store_hash', '?'))[:12]}, seed {old.get('seed')}; "
-            f"now {store_hash(cfg)[:12]}, seed {seed}); only fields, grid values and "
-            "n_iterations may change between runs into one directory; use another --out")
-    manifest = _manifest(cfg, Survey.from_config(cfg), seed)
-    if old is None or old.get("config_hash") != manifest["config_hash"]:
-        write_manifest(run_dir, manifest)
-        atomic_write_text(run_dir / C.RUN_CONFIG_NAME,
-                          yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-    elif any(k not in old for k in manifest):
-        write_manifest(run_dir, {**manifest, **old})
-    # Temporary files of tasks that were in flight when an earlier run was killed.
-    for stale in (run_dir / C.RESULTS_DIRNAME).glob(".task_*.tmp"):
-        stale.unlink(missing_ok=True)
+            f"({'; '.join(what)}); only fields, grid values and n_iterations may change between "
+            "runs into one directory; use another --out")
+    old_inputs = old.get("inputs") or {}
+    for item in items:
+        prev, now = old_inputs.get(item.key), manifest["inputs"][item.key]
+        if not isinstance(prev, dict) or (prev.get("size"), prev.get("blake2b")) == \
+                (now["size"], now["blake2b"]):
+            continue
+        if item.field is None:
+            used = bool(finished)
+        else:
+            prefix = field_file_prefix(item.field)
+            used = any(n.startswith(prefix) for n in finished)
+        if used:
+            raise StoreMismatchError(f"{item.key}: {item.path} changed since the run started "
+                                     "(content differs); use another --out")
+
+
+def _open_run(cfg: Config, run_dir: Path, seed: int) -> tuple[dict, RunLock]:
+    """Validate everything, then create or update the run directory under its lock.
+
+    Every check (inputs, store identity, lock) runs before anything is
+    created or modified: a refused start leaves an existing run directory
+    byte-identical and creates no new one.  Returns the manifest and the held
+    lock (the caller releases it).
+    """
+    run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise FileExistsError(f"{run_dir}: exists and is not a directory")
+    lock = RunLock(run_dir)
+    lock.check_free()
+    old = read_manifest(run_dir) if run_dir.is_dir() else None
+    finished = finished_task_names(run_dir)
+    if finished and old is None:
+        raise StoreMismatchError(f"{run_dir / C.RESULTS_DIRNAME}: holds task files but "
+                                 f"{run_dir / C.MANIFEST_NAME} is missing; use another --out")
+    if finished and store_format(old) != C.STORE_FORMAT:
+        raise StoreMismatchError(
+            f"{run_dir}: made by glaciar {old.get('glaciar_version', '?')} (store format "
+            f"{store_format(old)}, whose task file names can collide); glaciar {__version__} "
+            f"(format {C.STORE_FORMAT}) does not add to it; use another --out "
+            "(fit and report still read it)")
+    cache = _load_fingerprint_cache(run_dir) if run_dir.is_dir() else {}
+    cache_before = json.dumps(cache, sort_keys=True)
+    survey = Survey.from_config(cfg)
+    inputs = check_inputs(cfg, survey, cache)
+    items = input_files(cfg)
+    manifest = _manifest(cfg, survey, seed)
+    manifest["inputs"] = inputs
+    if old is not None and finished:
+        _check_same_store(run_dir, old, manifest, items, finished)
+        versions = old.get("glaciar_versions") or [old.get("glaciar_version", "?")]
+        if __version__ not in versions:
+            warnings.warn(f"{run_dir}: started with glaciar {', '.join(map(str, versions))}; "
+                          f"glaciar {__version__} adds its tasks", StoreWarning)
+        manifest["glaciar_version"] = old.get("glaciar_version", __version__)
+        manifest["glaciar_versions"] = sorted(set(map(str, versions)) | {__version__})
+        # Inputs of fields no longer listed stay recorded: they are checked if the field returns.
+        manifest["inputs"] = {**(old.get("inputs") or {}), **inputs}
+    elif old is not None:
+        manifest["glaciar_version"] = old.get("glaciar_version", __version__)
+    config_text = yaml.safe_dump(config_to_dict(cfg), sort_keys=False, allow_unicode=True)
+    # ---- everything is checked: from here on the directory is created or modified ----
+    run_dir.mkdir(parents=True, exist_ok=True)
+    lock.acquire()
+    try:
+        if read_manifest(run_dir) != old or finished_task_names(run_dir) - finished:
+            raise StoreMismatchError(f"{run_dir}: changed while this run was starting (another "
+                                     "glaciar run?); run the command again")
+        mpath = run_dir / C.MANIFEST_NAME
+        if not mpath.exists() or mpath.read_text(encoding="utf-8") != manifest_text(manifest):
+            write_manifest(run_dir, manifest)
+        cpath = run_dir / C.RUN_CONFIG_NAME
+        if not cpath.exists() or cpath.read_text(encoding="utf-8") != config_text:
+            atomic_write_text(cpath, config_text)
+        if json.dumps(cache, sort_keys=True) != cache_before:
+            atomic_write_text(run_dir / C.FINGERPRINT_CACHE_NAME,
+                              json.dumps(cache, sort_keys=True, indent=1))
+        # Temporary files of tasks that were in flight when an earlier run was killed:
+        # removed only while holding the lock, so never those of a live run.
+        for stale in (run_dir / C.RESULTS_DIRNAME).glob(".task_*.tmp"):
+            stale.unlink(missing_ok=True)
+    except BaseException:
+        lock.release()
+        raise
+    return manifest, lock
+
+
+def prepare_run_dir(cfg: Config, run_dir: Path, seed: int) -> dict:
+    """Create or validate the run directory and return its manifest.
+
+    A store made with other science settings, another seed, changed input
+    files (by content) or an older store format is refused.  A config that
+    only adds (or drops) fields, grid values or iterations is accepted:
+    finished tasks keep their rows, and the manifest and the stored config are
+    updated to describe the run as now configured.  Nothing is created or
+    modified unless every check passes.
+    """
+    manifest, lock = _open_run(cfg, Path(run_dir), seed)
+    lock.release()
     return manifest
+
+
+# --------------------------------------------------------------------------
+# Worker processes: they die with the parent and leave interrupts to it
+# --------------------------------------------------------------------------
+_PR_SET_PDEATHSIG = 1
+
+
+def _watch_parent(parent_pid: int, period: float = 0.5) -> None:
+    while True:
+        time.sleep(period)
+        if os.getppid() != parent_pid:
+            os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _worker_init(parent_pid: int) -> None:
+    """Initializer of the process pool's workers.
+
+    SIGINT is ignored (the parent handles Ctrl-C and terminates the workers),
+    SIGTERM kills; on Linux the kernel sends SIGKILL when the parent dies
+    (``PR_SET_PDEATHSIG``), and a watchdog thread checking the parent pid
+    does the same elsewhere or if that call fails.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+        except (OSError, AttributeError):  # pragma: no cover - no libc prctl
+            pass
+    if os.getppid() != parent_pid:        # the parent died before prctl took effect
+        os.kill(os.getpid(), signal.SIGKILL)
+    threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True,
+                     name="glaciar-parent-watchdog").start()
+
+
+def _terminate_workers(ex: cf.ProcessPoolExecutor) -> None:
+    """Stop a process pool's workers now (on an interrupt: their tasks are redone on resume)."""
+    stop = getattr(ex, "terminate_workers", None)        # Python >= 3.14
+    if stop is not None:
+        stop()
+        return
+    for p in list((getattr(ex, "_processes", None) or {}).values()):
+        try:
+            p.terminate()
+        except (OSError, ValueError, AttributeError):    # already gone
+            pass
+
+
+def _check_count(name: str, value, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name}: expected an integer >= {minimum}, got {value!r}")
+    return int(value)
 
 
 def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
@@ -439,10 +833,13 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
         Loaded configuration.
     run_dir : path
         Output directory (results store); finished tasks found there are skipped.
+        While the run writes, it holds the directory's lock: a second run into
+        the same directory is refused.
     workers : int
-        Number of worker processes (1: run in this process).
+        Number of worker processes (>= 1; 1: run in this process).  Workers die
+        with this process.
     seed : int, optional
-        Overrides ``simulation.seed``.
+        Overrides ``simulation.seed`` (>= 0).
     executor : concurrent.futures.Executor, optional
         Any executor (e.g. a Dask ``Client.get_executor()``); overrides ``workers``.
     progress : bool
@@ -456,14 +853,37 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
     -------
     dict
         ``n_tasks``, ``n_done_before``, ``n_run``, ``n_sources``, ``cpu_seconds``, ``wall_seconds``.
+
+    Raises
+    ------
+    ValueError
+        Bad arguments or input files (:class:`InputError`), checked before anything is written.
+    StoreMismatchError
+        The run directory holds tasks made differently.
+    glaciar.store.RunLockedError
+        Another run is writing into ``run_dir``.
     """
     from tqdm.auto import tqdm
 
     run_dir = Path(run_dir)
-    seed = int(cfg.simulation.seed if seed is None else seed)
-    prepare_run_dir(cfg, run_dir, seed)
+    seed = _check_count("seed", cfg.simulation.seed if seed is None else seed, 0)
+    workers = _check_count("workers", workers, 1)
+    if mode not in ("windowed", "full"):
+        raise ValueError(f"mode: expected 'windowed' or 'full', got {mode!r}")
+    if max_tasks is not None:
+        max_tasks = _check_count("max_tasks", max_tasks, 0)
+    _, lock = _open_run(cfg, run_dir, seed)
+    try:
+        return _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_tasks,
+                                tqdm)
+    finally:
+        lock.release()
+
+
+def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_tasks, tqdm):
     specs = plan_tasks(cfg)
-    finished = finished_task_names(run_dir)
+    wanted = {spec_filename(s): spec_key(s) for s in specs}
+    finished = verified_task_names(run_dir, wanted)
     pending = [s for s in specs if spec_filename(s) not in finished]
     n_done_before = len(specs) - len(pending)
     if max_tasks is not None:
@@ -488,14 +908,19 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
         if executor is None and n_workers == 1:
             for ch in chunks:
                 account(_run_chunk(cfg_dict, base_dir, cfg_hash, str(run_dir), seed, ch, mode))
-        else:
+        elif chunks:
             own = executor is None
-            ex = executor or cf.ProcessPoolExecutor(max_workers=n_workers)
+            ex = executor or cf.ProcessPoolExecutor(max_workers=n_workers, initializer=_worker_init,
+                                                    initargs=(os.getpid(),))
             try:
                 futs = [ex.submit(_run_chunk, cfg_dict, base_dir, cfg_hash, str(run_dir), seed, ch, mode)
                         for ch in chunks]
                 for fut in cf.as_completed(futs):
                     account(fut.result())
+            except KeyboardInterrupt:
+                if own:
+                    _terminate_workers(ex)
+                raise
             finally:
                 if own:
                     ex.shutdown(wait=True, cancel_futures=True)

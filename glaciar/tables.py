@@ -31,7 +31,7 @@ import pandas as pd
 from astropy.table import Table
 
 from . import constants as C
-from .store import atomic_write_bytes, atomic_write_text
+from .store import atomic_write_bytes, atomic_write_text, task_filename
 
 __all__ = ["summary_table", "write_summaries", "region_file", "STATUS_COLUMNS"]
 
@@ -126,12 +126,18 @@ def region_file(rows: pd.DataFrame, radius_pix: float = 5.0) -> str:
 
 
 def write_regions(rows: pd.DataFrame, out_dir) -> list[Path]:
-    """One DS9 region file per (field, z, mag, iteration) task."""
+    """One DS9 region file per (field, z, mag, iteration) task.
+
+    Named like the task's results file (:func:`glaciar.store.task_filename`), so
+    that two tasks never share a region file (fields ``a b`` / ``a_b``, z values
+    closer than the printed decimals).
+    """
     out_dir = Path(out_dir)
     paths = []
     keys = [C.COL_FIELD, C.COL_Z, C.COL_MAG, C.COL_ITERATION]
     for (f, z, m, it), sub in rows.groupby(keys, sort=True):
-        p = out_dir / f"regions_{f}_z{z:.3f}_m{m:.3f}_i{int(it):04d}.reg"
+        stem = task_filename(str(f), float(z), float(m), int(it))
+        p = out_dir / f"regions_{stem[len('task_'):-len('.parquet')]}.reg"
         atomic_write_text(p, region_file(sub))
         paths.append(p)
     return paths
