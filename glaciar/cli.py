@@ -1,14 +1,18 @@
 """The ``glaciar`` command: demo, init, simulate, report, fit, next.
 
 Every sub-command turns expected failures (bad config, missing file, mismatched
-store) into a one-line message on stderr and exit status 2 (set GLACIAR_DEBUG=1
-to see the traceback instead).
+store, bad option value) into a one-line message on stderr and exit status 2
+(set GLACIAR_DEBUG=1 to see the traceback instead).  SIGINT and SIGTERM stop a
+run cleanly (one line, exit 130 / 143); the same command resumes it.
 """
 from __future__ import annotations
 
 import argparse
+import math
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -40,11 +44,19 @@ def _load(config_path):
     return cfg
 
 
+def _check_out_dir(out: Path, option: str = "--out") -> Path:
+    """Refuse an output path that exists and is not a directory (before anything is written)."""
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{option} {out}: exists and is not a directory")
+    return out
+
+
 def _cmd_simulate(args) -> int:
     from .run import default_workers, simulate
 
-    cfg = _load(args.config)
     out = Path(args.out) if args.out else Path(args.config).resolve().parent / "glaciar-run"
+    _check_out_dir(out)
+    cfg = _load(args.config)
     executor = None
     if args.scheduler:
         from dask.distributed import Client  # optional extra: pip install glaciar[dask]
@@ -61,11 +73,17 @@ def _cmd_simulate(args) -> int:
 
 
 def _report(run_dir: Path, regions: bool = False) -> list[Path]:
+    import warnings
+
     from .plots import plot_summary_maps
-    from .store import read_manifest, read_results
+    from .store import StoreWarning, read_current_results, read_manifest
     from .tables import summary_table, write_regions, write_summaries
 
-    rows = read_results(run_dir)
+    # The rows fit uses too: the tasks the run's configuration lists now.
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", StoreWarning)
+        rows = read_current_results(run_dir)
+    _print_warnings(caught)
     manifest = read_manifest(run_dir) or {}
     out_dir = run_dir / C.SUMMARY_DIRNAME
     meta = {k: manifest[k] for k in ("config_hash", "seed", "detection_band", "selection") if k in manifest}
@@ -152,7 +170,7 @@ def _cmd_demo(args) -> int:
     from .demo import build_demo_survey
     from .run import default_workers, simulate
 
-    out = Path(args.out)
+    out = _check_out_dir(Path(args.out))
     t0 = time.perf_counter()
     cfg_path = build_demo_survey(out / "survey", seed=args.seed)
     print(f"demo survey written: {cfg_path} ({time.perf_counter() - t0:.1f} s)")
@@ -170,36 +188,54 @@ def _cmd_demo(args) -> int:
     return 0
 
 
-def _positive_float(text):
-    import math
+def _finite_positive(text):
+    """argparse type: a finite number > 0."""
     try:
         v = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, not {text!r}") from None
+        v = math.nan
     if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, not {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
     return v
 
 
-def _positive_int(text):
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, not {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, not {text!r}")
-    return v
+def _int_at_least(minimum: int):
+    """argparse type: an integer >= ``minimum``."""
+    def parse(text):
+        try:
+            v = int(text, 10)
+        except ValueError:
+            v = None
+        if v is None or v < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return v
+    parse.__name__ = f"integer >= {minimum}"
+    return parse
+
+
+_positive_int = _int_at_least(1)
+_non_negative_int = _int_at_least(0)
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line: ``glaciar: error: --workers: ...`` (exit 2)."""
+
+    def error(self, message):
+        if message.startswith("argument "):
+            message = message[len("argument "):]
+        message = " ".join(message.split())
+        self.exit(2, f"glaciar: error: {message}\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="glaciar", description=__doc__.splitlines()[0])
+    p = _Parser(prog="glaciar", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"glaciar {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("demo", help="build the embedded demo survey and run simulate → report → fit")
     s.add_argument("--out", default="glaciar-demo")
-    s.add_argument("--workers", type=int, default=None)
-    s.add_argument("--seed", type=int, default=2018)
+    s.add_argument("--workers", type=_positive_int, default=None)
+    s.add_argument("--seed", type=_non_negative_int, default=2018)
     s.add_argument("--no-fit", action="store_true")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_demo)
@@ -212,8 +248,10 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("simulate", help="run (or resume) the injection-recovery simulation")
     s.add_argument("config")
     s.add_argument("--out", default=None, help="run directory (default: glaciar-run beside the config)")
-    s.add_argument("--workers", type=int, default=None, help="worker processes (default: all CPUs)")
-    s.add_argument("--seed", type=int, default=None, help="override simulation.seed")
+    s.add_argument("--workers", type=_positive_int, default=None,
+                   help="worker processes, >= 1 (default: all CPUs)")
+    s.add_argument("--seed", type=_non_negative_int, default=None,
+                   help="override simulation.seed (an integer >= 0)")
     s.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
     s.add_argument("--mode", choices=["windowed", "full"], default="windowed")
     s.add_argument("--quiet", action="store_true")
@@ -233,8 +271,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--depth", default="auto", choices=["auto", "on", "off"],
                    help="depth-aware completeness C(m - local depth, z) (auto: when depth varies)")
     s.add_argument("--per-field", action="store_true")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--area-arcmin2", type=_positive_float, default=None,
+    s.add_argument("--seed", type=_non_negative_int, default=0)
+    s.add_argument("--area-arcmin2", type=_finite_positive, default=None,
                    help="survey area for V_eff (default: the footprint area in the run manifest)")
     s.add_argument("--cosmology", default=None, help="astropy realisation for V_eff (default Planck18)")
     s.add_argument("--quiet", action="store_true")
@@ -242,24 +280,44 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("next", help="(z, m) cells where the fitted selection is least certain")
     s.add_argument("run_dir")
-    s.add_argument("-n", type=int, default=5)
+    s.add_argument("-n", type=_positive_int, default=5, help="number of cells (>= 1)")
     s.add_argument("--field", default=None, help="which field's fit, for per-field files")
     s.set_defaults(func=_cmd_next)
     return p
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that it unwinds like Ctrl-C."""
+
+
+def _raise_terminated(signum, frame):
+    raise _Terminated()
+
+
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:          # --help, --version, or a one-line usage error
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         return int(args.func(args) or 0)
-    except KeyboardInterrupt:
-        print("interrupted; finished tasks are kept, run the same command to resume", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        how, code = ("terminated (SIGTERM)", 128 + signal.SIGTERM) if isinstance(exc, _Terminated) \
+            else ("interrupted", 130)
+        print(f"glaciar {args.command}: {how}; finished tasks are kept, run the same command "
+              "to resume", file=sys.stderr)
+        return code
     except (ValueError, FileNotFoundError, FileExistsError, RuntimeError, OSError, KeyError) as exc:
         if os.environ.get("GLACIAR_DEBUG"):
             raise
         print(f"glaciar {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":  # pragma: no cover
