@@ -30,6 +30,7 @@ STATUS_LABELS = {
 FLAG_SEP_ERROR = 1             #: sep raised (e.g. deblending overflow) for this source's window
 FLAG_WINDOW_AT_LIMIT = 2       #: detection window hit its maximum size before isolating the source
 FLAG_STAMP_CLIPPED = 4         #: stamp partly outside the image
+FLAG_NO_DATA = 8               #: some band has no data under the input position (survey.coverage)
 
 # --------------------------------------------------------------------------
 # Physical constants

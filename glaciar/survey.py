@@ -26,7 +26,7 @@ import numpy as np
 
 from .config import BandConfig, Config
 
-__all__ = ["Survey", "clear_cache", "set_cache_limit"]
+__all__ = ["Survey", "clear_cache", "set_cache_limit", "selection_bands"]
 
 # ---------------------------------------------------------------------------
 # Per-process array cache
@@ -120,6 +120,47 @@ def _read_header(path: Path):
     with fits.open(path, memmap=True) as hdul:
         idx, shape = _image_hdu_index(hdul, path)
         return hdul[idx].header.copy(), shape
+
+
+def selection_bands(cfg: Config) -> tuple[str, ...]:
+    """Bands whose columns the configuration's selection reads, in config order."""
+    from .engine.selection import compile_selection
+
+    if not cfg.selection:
+        return ()
+    columns = compile_selection(cfg.selection).columns
+    return tuple(b.name for b in cfg.survey.bands
+                 if any(c.endswith("_" + b.name.lower()) for c in columns))
+
+
+def _region_mask(path: Path, shape: tuple[int, int], header) -> np.ndarray:
+    """Pixels (centres) inside any region of a DS9 file; sky regions through ``header``'s WCS."""
+    import warnings
+
+    from astropy.wcs import WCS, FITSFixedWarning
+    from regions import PixelRegion, Regions
+
+    try:
+        regs = Regions.read(str(path), format="ds9")
+    except Exception as exc:  # the regions parser raises several types
+        raise ValueError(f"{path}: not a readable DS9 region file ({exc}) (survey.mask)") from None
+    wcs = None
+    out = np.zeros(shape, dtype=bool)
+    for k, reg in enumerate(regs):
+        if not isinstance(reg, PixelRegion):
+            if wcs is None:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", FITSFixedWarning)
+                    wcs = WCS(header, naxis=2)
+                if not wcs.has_celestial:
+                    raise ValueError(f"{path}: region {k + 1} is in sky coordinates but the "
+                                     "detection image has no celestial WCS (survey.mask)")
+            reg = reg.to_pixel(wcs)
+        m = reg.to_mask(mode="center")
+        img = m.to_image(shape)
+        if img is not None:
+            out |= img.astype(bool)
+    return out
 
 
 class Survey:
@@ -261,8 +302,16 @@ class Survey:
             return None
         ntype = self.config.survey.noise_type
 
+        negative = self.config.survey.negative_weights
+
         def build():
             a = _read_array(path)
+            if ntype == "weight" and negative == "error":
+                n_neg = int(np.count_nonzero(a < 0))
+                if n_neg:
+                    raise ValueError(f"{path}: {n_neg} negative weight pixel(s) (survey.noise, "
+                                     f"field {field!r}, band {band!r}); fix the map or set "
+                                     "survey.negative_weights: mask to mask them")
             with np.errstate(divide="ignore", invalid="ignore"):
                 if ntype == "weight":
                     good = np.isfinite(a) & (a > 0)
@@ -277,30 +326,97 @@ class Survey:
 
         return _cached(("rms", ntype) + _file_key(path), build)
 
-    def footprint(self, field: str) -> np.ndarray:
-        """Where the detection band has valid data (bool, read-only, cached).
+    def coverage_bands(self) -> tuple[str, ...]:
+        """Bands whose data define the footprint (``survey.coverage``), detection band first.
 
-        Valid: finite, non-zero science pixel and, with a noise map, a finite
-        positive RMS (weight > 0). Drizzled mosaics mark uncovered pixels with
-        0 science and 0 weight.
+        ``selection_bands``: the detection band and every band the selection
+        reads; ``all_bands``: every band; ``detection_band``: that band only.
         """
+        s = self.config.survey
         det = self.detection_band
-        sci_path = self.science_path(field, det)
-        noise_path = self.noise_path(field, det)
-        key = ("footprint", self.config.survey.noise_type) + _file_key(self._existing(
-            sci_path, "survey.science", field, det))
+        if s.coverage == "detection_band":
+            return (det,)
+        if s.coverage == "all_bands":
+            return (det,) + tuple(b for b in self.bands if b != det)
+        return (det,) + tuple(b for b in selection_bands(self.config) if b != det)
+
+    def band_valid(self, field: str, band: str) -> np.ndarray:
+        """Where ``band`` has data: finite, non-zero science and (with a noise map) finite RMS.
+
+        Drizzled mosaics mark uncovered pixels with 0 science and 0 weight.
+        """
+        sci_path = self._existing(self.science_path(field, band), "survey.science", field, band)
+        noise_path = self.noise_path(field, band)
+        key = ("valid", self.config.survey.noise_type, self.config.survey.negative_weights) + \
+            _file_key(sci_path)
         if noise_path is not None:
-            key += _file_key(self._existing(noise_path, "survey.noise", field, det))
+            key += _file_key(self._existing(noise_path, "survey.noise", field, band))
 
         def build():
-            sci = self.science(field, det)
+            sci = self.science(field, band)
             ok = np.isfinite(sci) & (sci != 0)
-            rms = self.rms(field, det)
+            rms = self.rms(field, band)
             if rms is not None:
                 ok &= np.isfinite(rms)
             return ok
 
         return _cached(key, build)
+
+    def mask_path(self, field: str) -> Path | None:
+        """Path of the field's mask (FITS image or DS9 region file), or None."""
+        self._check(field)
+        s = self.config.survey
+        return None if s.mask is None else s.image_dir / s.mask.format(field=field)
+
+    def mask(self, field: str) -> np.ndarray | None:
+        """Pixels masked by ``survey.mask`` (bool, read-only, cached); None without a mask.
+
+        A FITS mask masks its non-zero (or non-finite) pixels; a DS9 region
+        file masks the pixels whose centres lie inside any of its regions
+        (sky regions through the detection image's WCS).
+        """
+        path = self.mask_path(field)
+        if path is None:
+            return None
+        path = self._existing(path, "survey.mask", field, self.detection_band)
+        shape = self.shape(field)
+
+        def build():
+            if path.suffix.lower() == ".reg":
+                return _region_mask(path, shape, self.header(field, self.detection_band))
+            arr = _read_array(path)
+            if arr.shape != shape:
+                raise ValueError(f"{path}: mask is {arr.shape[0]}x{arr.shape[1]} but field "
+                                 f"{field!r} images are {shape[0]}x{shape[1]} (survey.mask)")
+            return ~np.isfinite(arr) | (arr != 0)
+
+        return _cached(("mask",) + _file_key(path) + shape, build)
+
+    def footprint(self, field: str) -> np.ndarray:
+        """Where sources are placed and area is counted (bool, read-only, cached).
+
+        Every band of :meth:`coverage_bands` has data (:meth:`band_valid`) and
+        the pixel is not masked (:meth:`mask`).
+        """
+        bands = self.coverage_bands()
+        key = ("footprint",) + tuple(bands) + tuple(
+            _file_key(self._existing(self.science_path(field, b), "survey.science", field, b))
+            for b in bands)
+        mpath = self.mask_path(field)
+        if mpath is not None:
+            key += _file_key(self._existing(mpath, "survey.mask", field, self.detection_band))
+
+        def build():
+            ok = np.array(self.band_valid(field, bands[0]))
+            for b in bands[1:]:
+                ok &= self.band_valid(field, b)
+            m = self.mask(field)
+            if m is not None:
+                ok &= ~m
+            return ok
+
+        return _cached(key + (self.config.survey.noise_type,
+                              self.config.survey.negative_weights), build)
 
     def pixel_scale_arcsec(self, field: str) -> float:
         """Pixel scale [arcsec/pixel]: the config value, else the detection image's WCS.

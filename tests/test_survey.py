@@ -18,7 +18,7 @@ def _fresh_cache():
 
 
 def make_survey(tmp_path, *, noise_type="weight", noise=True, pixel_scale=None,
-                bands=("f160w", "f125w"), fields=("a",)):
+                bands=("f160w", "f125w"), fields=("a",), selection=(), **survey_keys):
     (tmp_path / "img").mkdir(exist_ok=True)
     data = {"survey": {"fields": list(fields), "image_dir": "img",
                        "science": "{field}_{band}_sci.fits",
@@ -26,8 +26,9 @@ def make_survey(tmp_path, *, noise_type="weight", noise=True, pixel_scale=None,
                        "noise_type": noise_type, "pixel_scale_arcsec": pixel_scale,
                        "detection_band": "f160w",
                        "bands": {b: {"filter": f"wfc3_ir_{b}", "zeropoint": 25.0,
-                                     "psf": {"profile": "gaussian", "fwhm_arcsec": 0.2}} for b in bands}},
-            "selection": []}
+                                     "psf": {"profile": "gaussian", "fwhm_arcsec": 0.2}} for b in bands},
+                       **survey_keys},
+            "selection": list(selection)}
     return Survey.from_config(config_from_dict(data, tmp_path, "test.yaml"))
 
 
@@ -61,7 +62,7 @@ def test_paths_follow_templates(tmp_path):
 
 
 def test_weight_to_rms_and_footprint(tmp_path):
-    s = make_survey(tmp_path)
+    s = make_survey(tmp_path, negative_weights="mask")
     sci = np.ones((3, 4), dtype=np.float32)
     sci[0, 3] = 0.0          # uncovered (drizzle fills with 0)
     sci[1, 0] = np.nan
@@ -209,3 +210,75 @@ def test_cache_reuse_invalidation_readonly_and_pickle(tmp_path):
     blob = pickle.dumps(s)
     assert len(blob) < 20000                                  # images are not pickled
     assert pickle.loads(blob).science("a", "f160w")[0, 0] == 2.0
+
+
+# --------------------------------------------------------------------------
+# Masks, coverage and negative weights (issue 9, point 3)
+# --------------------------------------------------------------------------
+def _filled(s, field="a", shape=(40, 60), holes=None):
+    for b in s.bands:
+        sci = np.ones(shape, dtype=np.float32)
+        wht = np.ones(shape, dtype=np.float32)
+        if holes and b in holes:
+            sci[holes[b]] = 0.0
+            wht[holes[b]] = 0.0
+        write(s.science_path(field, b), sci, celestial_header(cdelt=(-0.08 / 3600, 0.08 / 3600)))
+        write(s.noise_path(field, b), wht)
+
+
+def test_negative_weights_are_an_error_unless_masked(tmp_path):
+    s = make_survey(tmp_path)
+    _filled(s)
+    wht = np.ones((40, 60), dtype=np.float32)
+    wht[3:5, 7:10] = -1.0
+    write(s.noise_path("a", "f125w"), wht)
+    with pytest.raises(ValueError, match=r"6 negative weight pixel\(s\).*f125w.*negative_weights"):
+        s.rms("a", "f125w")
+    clear_cache()
+    s2 = make_survey(tmp_path, negative_weights="mask", coverage="all_bands")
+    assert s2.footprint("a").sum() == 40 * 60 - 6
+
+
+def test_coverage_follows_the_selection_bands(tmp_path):
+    holes = {"f125w": (slice(0, 40), slice(0, 15)), "f098m": (slice(0, 10), slice(0, 60))}
+    bands = ("f160w", "f125w", "f098m")
+    # The selection reads f125w only: its hole (a quarter) leaves the footprint, f098m's does not.
+    s = make_survey(tmp_path, bands=bands, selection=["sn_f160w > 5", "sn_f125w < 2"])
+    _filled(s, holes=holes)
+    assert s.coverage_bands() == ("f160w", "f125w")
+    assert s.footprint("a").sum() == 40 * 60 * 3 // 4
+    clear_cache()
+    s = make_survey(tmp_path, bands=bands, selection=["sn_f160w > 5"], coverage="all_bands")
+    assert s.footprint("a").sum() == 40 * 45 - 10 * 45
+    clear_cache()
+    s = make_survey(tmp_path, bands=bands, selection=["sn_f125w < 2"], coverage="detection_band")
+    assert s.footprint("a").sum() == 40 * 60
+
+
+def test_fits_and_region_masks(tmp_path):
+    s = make_survey(tmp_path, mask="{field}_mask.fits")
+    _filled(s)
+    m = np.zeros((40, 60), dtype=np.int16)
+    m[:, :20] = 4                                   # a third of the field
+    write(tmp_path / "img" / "a_mask.fits", m)
+    assert s.footprint("a").sum() == 40 * 40
+    clear_cache()
+    # DS9: an image-coordinate box (1-based, centre 30.5,20.5, 10x20 px) and a sky circle.
+    reg = tmp_path / "img" / "a.reg"
+    reg.write_text("# Region file format: DS9\nimage\nbox(30.5,20.5,10,20,0)\n"
+                   "icrs\ncircle(150.0,2.0,0.42\")\n")
+    s = make_survey(tmp_path, mask="{field}.reg")
+    masked = ~s.footprint("a")
+    assert masked[10:30, 25:35].all()        # the box: 0-based centre (29.5, 19.5), 10 x 20 px
+    yy, xx = np.mgrid[:40, :60]
+    # celestial_header: CRPIX (5, 5) -> 0-based (4, 4) is at (150, 2); 0.42" = 5.25 px
+    circle = (xx - 4) ** 2 + (yy - 4) ** 2 < 5.25 ** 2
+    assert masked[circle].all()
+    box = np.zeros((40, 60), bool)
+    box[10:30, 25:35] = True
+    assert masked.sum() == (box | circle).sum()
+    clear_cache()
+    s = make_survey(tmp_path, mask="{field}_nothere.reg")
+    with pytest.raises(FileNotFoundError, match="survey.mask"):
+        s.footprint("a")
+

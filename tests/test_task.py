@@ -93,3 +93,45 @@ def test_task_stream_keyed_by_values_not_grid_position():
     xa, xb, xc, xd = (g.random(3) for g in (a, b, c, d))
     np.testing.assert_array_equal(xa, xb)
     assert not np.array_equal(xa, xc) and not np.array_equal(xa, xd)
+
+
+def test_holes_in_a_band_kept_and_flagged_or_left_out(small_survey, tmp_path):
+    """coverage detection_band: sources on a hole of another band carry FLAG_NO_DATA;
+    the default coverage (selection bands) leaves the hole out of the footprint."""
+    import shutil
+
+    import yaml
+    from astropy.io import fits
+
+    src = small_survey.parent
+    dst = tmp_path / "s"
+    shutil.copytree(src, dst)
+    cfg_data = yaml.safe_load(small_survey.read_text())
+    wht_path = dst / cfg_data["survey"]["image_dir"] / cfg_data["survey"]["noise"].format(
+        field="demo01", band="f606w")
+    with fits.open(wht_path) as h:
+        data = h[0].data.copy()
+        hdr = h[0].header
+    data[:, :160] = 0.0                                    # no f606w data in the left half
+    fits.writeto(wht_path, data, hdr, overwrite=True)
+    flagged = None
+    for coverage in ("detection_band", "selection_bands"):
+        cfg_data["survey"]["coverage"] = coverage
+        cfg_data["simulation"]["n_galaxies"] = 40
+        p = dst / f"{coverage}.yaml"
+        p.write_text(yaml.safe_dump(cfg_data, sort_keys=False))
+        cfg = load_config(p)
+        survey = Survey.from_config(cfg)
+        context = build_field_context(cfg, survey, "demo01")
+        rows = pd.concat([run_task(context, _spec(it=i, mag=27.5), seed=3) for i in range(3)])
+        left = rows[C.COL_X].to_numpy() < 159.5
+        no_data = (rows[C.COL_FLAGS].to_numpy() & C.FLAG_NO_DATA) != 0
+        if coverage == "detection_band":
+            assert left.any() and no_data[left].all() and not no_data[~left].any()
+            flagged = int(no_data.sum())
+        else:
+            # The default J-dropout selection reads f606w: the hole is not in the footprint.
+            assert "f606w" in survey.coverage_bands()
+            assert not survey.footprint("demo01")[:, :160].any()
+            assert not left.any() and not no_data.any()
+    assert flagged > 0

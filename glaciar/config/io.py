@@ -331,6 +331,11 @@ def missing_files(cfg: Config) -> list[str]:
                 p = s.image_dir / tmpl.format(field=f, band=b.name)
                 if not p.is_file():
                     out.append(f"{key} (field {f!r}, band {b.name!r}): {p}")
+    if s.mask is not None:
+        for f in s.fields:
+            p = s.image_dir / s.mask.format(field=f)
+            if not p.is_file():
+                out.append(f"survey.mask (field {f!r}): {p}")
     for b in s.bands:
         if isinstance(b.psf, str) and not Path(b.psf).is_file():
             out.append(f"survey.bands.{b.name}.psf: {b.psf}")

@@ -318,6 +318,17 @@ class SurveyConfig(Section):
                                                                       "| rms")
     pixel_scale_arcsec: Float | None = Field(None, gt=0, description="[arcsec/pixel]; null = from "
                                                                      "the detection image's WCS")
+    mask: str | None = Field(None, description="mask per field inside image_dir ({field} is "
+                                               "filled in): a FITS image (non-zero = masked) or "
+                                               "a DS9 region file (.reg; inside = masked, image "
+                                               "or sky coordinates); null = none")
+    coverage: Choice("selection_bands", "detection_band", "all_bands") = Field(
+        "selection_bands", description="where sources are placed and area is counted: where "
+        "the detection band and every band the selection reads have data (selection_bands), "
+        "or every band (all_bands), or the detection band only (detection_band: sources on "
+        "holes of other bands are kept and flagged)")
+    negative_weights: Choice("error", "mask") = Field(
+        "error", description="weight maps with negative pixels: error, or mask those pixels")
     detection_band: str = Field(description="band in which sources are detected (default: the "
                                             "only band)", json_schema_extra={"example": "f160w"})
     bands: tuple[BandConfig, ...] = Field(
@@ -384,6 +395,11 @@ class SurveyConfig(Section):
         data["science"] = _at(_check_template, data["science"], "drz", loc=("science",))
         if "noise" in data:
             data["noise"] = _at(_check_template, data["noise"], "wht", loc=("noise",))
+        if "mask" in data:
+            data["mask"] = _at(_check_template, data["mask"], "mask", loc=("mask",))
+            if "band" in _template_names(data["mask"]):
+                raise At(f"template {data['mask']!r}: a mask is per field, {{band}} is not "
+                         "allowed", "mask")
 
         bands_raw = data.get("bands")
         if bands_raw is None:
@@ -423,12 +439,12 @@ class SurveyConfig(Section):
                      "detection_band")
         data["detection_band"] = match[0]
 
-        for key in ("science", "noise"):
+        for key in ("science", "noise", "mask"):
             tmpl = data.get(key)
             if tmpl is None:
                 continue
             placeholders = _template_names(tmpl)
-            if len(bands) > 1 and "band" not in placeholders:
+            if len(bands) > 1 and "band" not in placeholders and key != "mask":
                 raise At(f"template {tmpl!r} has no {{band}} but there are {len(bands)} bands",
                          key)
             if len(fields) > 1 and "field" not in placeholders:

@@ -138,9 +138,14 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
         src = SourceDraws(**{k: v[:m] for k, v in src.__dict__.items()})
 
     bands = ctx.bands
+    flags = np.zeros(m, dtype=np.int64)
+    iy = np.clip(np.floor(y + 0.5).astype(np.int64), 0, ctx.shape[0] - 1)
+    ix = np.clip(np.floor(x + 0.5).astype(np.int64), 0, ctx.shape[1] - 1)
+    for band in bands:
+        # Only reachable with survey.coverage narrower than the bands (holes kept and flagged).
+        flags[~np.isfinite(ctx.rms[band][iy, ix])] |= C.FLAG_NO_DATA
     flux_in = np.empty((m, len(bands)))
     mag_stamp = np.empty((m, len(bands)))
-    flags = np.zeros(m, dtype=np.int64)
     stamps = {b: [] for b in bands}
     templates = [None] * m      # each source's own detection-band stamp (status-2 flux test)
     for j, band in enumerate(bands):
