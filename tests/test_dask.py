@@ -184,8 +184,11 @@ def test_workers_read_images_lazily_once_per_process(dask_run, small_survey):
         assert set(p["reads"].values()) == {1}      # ... read once, whatever the task count
 
 
-def test_cli_scheduler_option(cluster, reference_runs, small_survey, tmp_path):
-    """``glaciar simulate --scheduler ADDR`` connects to the cluster and writes the same table."""
+def test_cli_scheduler_option(cluster, reference_runs, dask_run, small_survey, tmp_path):
+    """``glaciar simulate --scheduler ADDR`` connects to the cluster and writes the same table.
+
+    (``dask_run`` first: its probes need workers that have read nothing yet.)
+    """
     lc, _ = cluster
     _, serial, _ = reference_runs
     out = tmp_path / "cli"
