@@ -248,6 +248,36 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
     return CorrelatedNoise.fit(npix, ratio, n)
 
 
+def field_noise_record(cfg: Config, survey: Survey, field: str) -> dict:
+    """How each band's noise of a field is used, for the run's manifest.
+
+    Per band: the WEIGHT_TYPE, the MAP_WEIGHT rescaling factor (1 otherwise),
+    the empty-aperture table r(N) and whether it is applied to the errors.
+    """
+    params = _detection_params(cfg)
+    footprint = survey.footprint(field)
+    det = cfg.survey.detection_band
+    out, pixels = {}, {}
+    for b in cfg.survey.bands:
+        pixels[b.name] = band_pixels(survey, field, b.name, footprint, params,
+                                     cfg.detection.weight_type)
+    base_det, rms_det, _ = pixels[det]
+    reference = reference_extraction(base_det, rms_det, params, float(cfg.survey.band(det).zeropoint),
+                                     mask=~footprint)
+    for b, (base, rms, from_background) in pixels.items():
+        scale = 1.0
+        if cfg.detection.weight_type == "map_weight" and not from_background:
+            raw = survey.rms(field, b)
+            ok = np.isfinite(rms) & np.isfinite(raw) & (raw > 0)
+            scale = float(np.median(rms[ok] / raw[ok])) if ok.any() else float("nan")
+        model = correlated_noise(cfg, field, b, base, rms, reference.segmap)
+        out[b] = {"weight_type": cfg.detection.weight_type or
+                  ("background" if from_background else f"absolute {cfg.survey.noise_type} map"),
+                  "weight_scale": scale, "correlated": model.to_dict(),
+                  "applied": _applies(cfg, model)}
+    return out
+
+
 def _applies(cfg: Config, model: CorrelatedNoise) -> bool:
     mode = cfg.noise.correlated
     return mode == "on" or (mode == "auto" and not model.is_identity(cfg.noise.identity_tolerance))
@@ -649,6 +679,7 @@ def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
         "area_arcmin2": area,
         "area_arcmin2_total": float(sum(area.values())),
         "depth_area": {f: _depth_area(cfg, survey, f) for f in cfg.survey.fields},
+        "noise": {f: field_noise_record(cfg, survey, f) for f in cfg.survey.fields},
     }
 
 

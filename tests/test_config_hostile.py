@@ -116,7 +116,7 @@ def test_non_string_keys(tmp_path):
      "nested"),
     (lambda d: d.update(selection=["-" * 500 + "sn_f160w > 1"]), "selection[0]", "nested"),
     (lambda d: d.update(selection=["sn_f160w > 1"] * 101), "selection", "at most 100"),
-    (lambda d: d.update(selection=["(flags & 18446744073709551616) == 0"]), "selection[0]",
+    (lambda d: d.update(selection=["(source_flags & 18446744073709551616) == 0"]), "selection[0]",
      "outside the 64-bit range"),
     (lambda d: d.update(selection=["__import__('os')"]), "selection[0]", ""),
 ])

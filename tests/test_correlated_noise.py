@@ -18,8 +18,12 @@ _SPEC.loader.exec_module(bench)
 
 
 @pytest.fixture(scope="module")
-def rows(tmp_path_factory):
-    root = tmp_path_factory.mktemp("corrnoise")
+def root(tmp_path_factory):
+    return tmp_path_factory.mktemp("corrnoise")
+
+
+@pytest.fixture(scope="module")
+def rows(root):
     return {r["variant"]: r for r in bench.run(
         n_galaxies=40, n_iterations=2, workers=2, root=root,
         mags=tuple(np.round(np.arange(24.75, 27.01, 0.25), 2)),
@@ -36,3 +40,19 @@ def test_errors_match_the_exact_aperture_noise(rows):
         assert rows[name]["err_ratio"] == pytest.approx(1.0, abs=0.10), name
     # Control: without the correlated-noise model the errors are too small on this field.
     assert rows["true map, no r(N)"]["err_ratio"] < 0.9
+
+
+def test_the_noise_model_is_recorded_in_the_run(rows, root):
+    import json
+
+    manifest = json.loads((root / "run1" / "manifest.json").read_text())   # the MAP_WEIGHT run
+    rec = manifest["noise"]["demo01"]["f160w"]
+    assert rec["weight_type"] == "map_weight" and rec["applied"] is True
+    # The map was made 2.3x too high: MAP_WEIGHT scales it back by ~1/2.3.
+    assert rec["weight_scale"] == pytest.approx(1 / 2.3, rel=0.05)
+    table = rec["correlated"]
+    # r(1): pixel scatter over the rescaled map. sep's sigma-clipped background RMS, which
+    # MAP_WEIGHT matches (as SExtractor does), still holds faint sources: ~5 % high here.
+    assert table["npix"][0] == 1 and table["ratio"][0] == pytest.approx(1.0, abs=0.1)
+    assert table["ratio"][-1] > 1.2            # drizzle-correlated: sums are noisier than the map says
+
