@@ -30,7 +30,8 @@ from .engine.classify import ClassificationParams
 from .engine.depth import depth_area_histogram, local_depth_map
 from .engine.noise import CorrelatedNoise, empty_aperture_scatter, weight_rescale_factor
 from .engine.selection import compile_selection
-from .engine.task import TaskSpec, field_key, run_task
+from .engine.positions import placement_capacity
+from .engine.task import TaskSpec, draw_task_sources, field_key, run_task
 from .galaxy import population
 from .galaxy.filters import get_filter
 from .galaxy.psf import measure_fwhm, prepare_psf
@@ -741,6 +742,10 @@ def _open_run(cfg: Config, run_dir: Path, seed: int) -> tuple[dict, RunLock]:
     survey = Survey.from_config(cfg)
     inputs = check_inputs(cfg, survey, cache)
     items = input_files(cfg)
+    for message in placement_preflight(cfg, survey):
+        if "no source fits" in message:
+            raise ValueError(message)
+        warnings.warn(message, UserWarning)
     manifest = _manifest(cfg, survey, seed)
     manifest["inputs"] = inputs
     if old is not None and finished:
@@ -909,6 +914,49 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
                                 tqdm)
     finally:
         lock.release()
+
+
+def placement_preflight(cfg: Config, survey: Survey) -> list[str]:
+    """Fields where ``n_galaxies`` sources will not fit, one message each (before any task runs).
+
+    Sizes are drawn as a task at the grid's lowest redshift and brightest
+    magnitude would draw them (the largest sources of the run); the count that
+    fits is :func:`glaciar.engine.positions.placement_capacity`'s random fill
+    of that footprint. Tasks then place fewer sources: still an unbiased
+    sample, only fewer per task.
+    """
+    n = cfg.simulation.n_galaxies
+    z, mag = min(cfg.grid.z_values), min(cfg.grid.mag_values)
+    model = population.SourceModel(**cfg.source.model_dump())
+    out = []
+    for field in cfg.survey.fields:
+        pixscale = survey.pixel_scale_arcsec(field)
+        psfs = [_band_psf(cfg, b, pixscale) for b in cfg.survey.bands]
+        bands = tuple(b.name for b in cfg.survey.bands)
+        lite = FieldContext(
+            field=field, bands=bands, detection_band=cfg.survey.detection_band,
+            detection_index=bands.index(cfg.survey.detection_band), shape=survey.shape(field),
+            pixel_scale_arcsec=pixscale, zeropoints={}, gains={},
+            filters=[_resolve_filter(b.filter, cfg.base_dir) for b in cfg.survey.bands],
+            bases={}, rms={}, mask=None, footprint=None, depth=None, reference=None, cache=None,
+            isolation_margin_pix=int(math.ceil(2.0 * max(measure_fwhm(p, 1.0) for p in psfs))),
+            source_model=model, cosmology=population.get_cosmology(model.cosmology),
+            magnitude_type=cfg.grid.magnitude_type, n_galaxies=n, detection_params=None,
+            classification_params=None, selection=None, enclosed_fraction=model.stamp_flux_fraction,
+            isolation_fraction=cfg.simulation.isolation_fraction)
+        src = draw_task_sources(np.random.default_rng(0), n, z, mag, lite)
+        hh, hw = lite.stamp_half_sizes(src.sersic_n, src.r_eff_pix, src.axis_ratio,
+                                       src.position_angle_deg)
+        cap = placement_capacity(survey.footprint(field), hh, hw)
+        if cap.upper_bound == 0:
+            out.append(f"field {field!r}: no source fits in its footprint (no pixel with data in "
+                       f"every band of survey.coverage, outside survey.mask)")
+        elif cap.random_fill < n:
+            out.append(f"field {field!r}: about {cap.random_fill} of simulation.n_galaxies = {n} "
+                       f"sources fit per task at z = {z:g}, mag = {mag:g} (at most "
+                       f"{cap.upper_bound}); tasks will place fewer (lower n_galaxies and raise "
+                       "n_iterations to keep the count)")
+    return out
 
 
 def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_tasks, tqdm):

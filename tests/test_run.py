@@ -172,3 +172,31 @@ def test_refuses_store_of_other_science_settings(serial_run):
     other = _variant(cfg, **{"detection.DETECT_THRESH": 1.5})
     with pytest.raises(StoreMismatchError, match="only fields, grid values and n_iterations"):
         simulate(other, out, workers=1, progress=False)
+
+
+def test_preflight_says_how_many_sources_fit(small_survey, tmp_path):
+    """n_galaxies beyond what the footprint holds: a warning with the number, before any task."""
+    import warnings
+
+    import yaml
+
+    from glaciar.run import placement_preflight
+    from glaciar.survey import Survey
+
+    data = yaml.safe_load(small_survey.read_text())
+    data["simulation"]["n_galaxies"] = 5000
+    p = small_survey.parent / "crowded.yaml"
+    p.write_text(yaml.safe_dump(data, sort_keys=False))
+    cfg = load_config(p)
+    messages = placement_preflight(cfg, Survey.from_config(cfg))
+    assert len(messages) == 1 and "of simulation.n_galaxies = 5000" in messages[0]
+    fits = int(messages[0].split("about ")[1].split()[0])
+    assert 0 < fits < 5000
+    assert placement_preflight(load_config(small_survey), Survey.from_config(load_config(small_survey))) == []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        simulate(cfg, tmp_path / "run", workers=1, progress=False, max_tasks=1)
+    assert any("sources fit per task" in str(w.message) for w in caught)
+    rows = pd.read_parquet(next((tmp_path / "run" / "results").rglob("*.parquet")))
+    # A task places about what the pre-flight estimated (its own draw of sizes and positions).
+    assert 0.5 * fits <= len(rows) <= 1.5 * fits
