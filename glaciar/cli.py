@@ -14,6 +14,7 @@ import signal
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 
 from . import __version__
@@ -73,8 +74,6 @@ def _cmd_simulate(args) -> int:
 
 
 def _report(run_dir: Path, regions: bool = False) -> list[Path]:
-    import warnings
-
     from .plots import plot_summary_maps
     from .store import StoreWarning, read_current_results, read_manifest
     from .tables import summary_table, write_regions, write_summaries
@@ -116,7 +115,6 @@ def _print_warnings(caught) -> None:
 
 def _fit(run_dir, **kwargs) -> Path:
     import json
-    import warnings
 
     from .pipeline import format_summary, run_fit
 
@@ -286,6 +284,11 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings as one line each (``warning: ...``), without the source line."""
+    print(f"warning: {message}", file=file or sys.stderr)
+
+
 class _Terminated(KeyboardInterrupt):
     """SIGTERM, raised in the main thread so that it unwinds like Ctrl-C."""
 
@@ -302,6 +305,8 @@ def main(argv=None) -> int:
     previous = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    show = warnings.showwarning
+    warnings.showwarning = _show_warning
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt as exc:
@@ -316,6 +321,7 @@ def main(argv=None) -> int:
         print(f"glaciar {args.command}: error: {exc}", file=sys.stderr)
         return 2
     finally:
+        warnings.showwarning = show
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
 
