@@ -27,6 +27,7 @@ from .config import Config, check_files, config_from_dict, config_hash, config_t
 from .engine.detect import DetectionParams, builtin_filter, measure_background, read_conv_file
 from .engine.measure import reference_extraction
 from .engine.classify import ClassificationParams
+from .engine.coadd import coadd
 from .engine.depth import depth_area_histogram, local_depth_map
 from .engine.noise import CorrelatedNoise, empty_aperture_scatter, weight_rescale_factor
 from .engine.selection import compile_selection
@@ -84,6 +85,11 @@ class FieldContext:
     isolation_fraction: float
     #: band -> CorrelatedNoise applied to photometric errors (bands where it does not apply absent)
     noise_models: dict = dc_field(default_factory=dict)
+    #: Bands stacked into the detection image (empty: the detection band's image), the
+    #: stack (glaciar.engine.coadd) and its RMS map.
+    coadd_bands: tuple = ()
+    coadd_method: str = "ivw"
+    detection_image_rms: np.ndarray | None = None
     _shape_cache: dict = dc_field(default_factory=dict)
 
     @staticmethod
@@ -301,7 +307,17 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
                                                     cfg.detection.weight_type)
     zps = {b.name: float(b.zeropoint) for b in cfg.survey.bands}
     gains = {b.name: (None if b.gain is None else float(b.gain)) for b in cfg.survey.bands}
-    reference = reference_extraction(bases[det], rms[det], params, zps[det], mask=mask)
+    coadd_bands, coadd_method, det_image_rms = (), "ivw", None
+    if cfg.survey.detection_image is not None:
+        coadd_bands = cfg.survey.detection_image.coadd
+        coadd_method = cfg.survey.detection_image.method
+        det_image, det_image_rms = coadd([bases[b] for b in coadd_bands],
+                                         [rms[b] for b in coadd_bands], coadd_method)
+        det_image_rms = det_image_rms.astype(np.float32)
+        reference = reference_extraction(det_image.astype(np.float32), det_image_rms, params,
+                                         zps[det], mask=mask, photometry=(bases[det], rms[det]))
+    else:
+        reference = reference_extraction(bases[det], rms[det], params, zps[det], mask=mask)
     noise_models = {b: correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap)
                     for b in bands}
     depth, _ = field_depth(rms[det], zps[det], psfs[det])
@@ -321,7 +337,8 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         classification_params=ClassificationParams(**cfg.classification.model_dump()),
         selection=selection, enclosed_fraction=model.stamp_flux_fraction,
         isolation_fraction=cfg.simulation.isolation_fraction,
-        noise_models={b: m for b, m in noise_models.items() if _applies(cfg, m)})
+        noise_models={b: m for b, m in noise_models.items() if _applies(cfg, m)},
+        coadd_bands=coadd_bands, coadd_method=coadd_method, detection_image_rms=det_image_rms)
 
 
 def plan_tasks(cfg: Config) -> list[TaskSpec]:

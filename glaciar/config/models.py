@@ -35,7 +35,7 @@ from ..galaxy.sersic import Q_MIN
 from ._types import At, Choice, Float, Int, show, unknown_key_error
 
 __all__ = ["Section", "PsfProfile", "BandConfig", "SurveyConfig", "AxisSpec", "GridConfig",
-           "SimulationConfig", "SourceConfig", "DetectionConfig", "ClassificationConfig",
+           "SimulationConfig", "SourceConfig", "DetectionImageConfig", "DetectionConfig", "ClassificationConfig",
            "OutputConfig", "NoiseConfig", "Config", "SECTIONS", "MAX_TASKS", "MAX_GRID_VALUES",
            "selection_columns", "read_fields_file", "resolve_path", "looks_like_path"]
 
@@ -299,6 +299,25 @@ def _check_template(value, what: str):
     return value.strip()
 
 
+class DetectionImageConfig(Section):
+    """A coadded detection image instead of the detection band's own image."""
+
+    coadd: tuple[str, ...] = Field(description="bands to stack (names of survey.bands)",
+                                   json_schema_extra={"example": ["f125w", "f140w", "f160w"]})
+    method: Choice("ivw", "chi2") = Field(
+        "ivw", description="ivw: inverse-variance weighted mean; chi2: Szalay et al. (1999) "
+                           "chi-square image, Gaussianised so DETECT_THRESH stays in sigma")
+
+    @field_validator("coadd", mode="before")
+    @classmethod
+    def _bands(cls, value):
+        if isinstance(value, str):
+            value = [value]
+        if not isinstance(value, (list, tuple)) or not value:
+            raise At(f"expected a non-empty list of band names, got {show(value)}")
+        return value
+
+
 class SurveyConfig(Section):
     """Fields, bands and where their images are."""
 
@@ -327,6 +346,10 @@ class SurveyConfig(Section):
         "the detection band and every band the selection reads have data (selection_bands), "
         "or every band (all_bands), or the detection band only (detection_band: sources on "
         "holes of other bands are kept and flagged)")
+    detection_image: DetectionImageConfig | None = Field(
+        None, description="detect on a stack of bands ({coadd: [bands], method: ivw | chi2}); "
+                          "null = on the detection band; S/N, magnitudes and depth stay those "
+                          "of detection_band")
     negative_weights: Choice("error", "mask") = Field(
         "error", description="weight maps with negative pixels: error, or mask those pixels")
     detection_band: str = Field(description="band in which sources are detected (default: the "
@@ -438,6 +461,18 @@ class SurveyConfig(Section):
             raise At(f"{det!r} is not one of the bands ({', '.join(names)}){hint}",
                      "detection_band")
         data["detection_band"] = match[0]
+        if "detection_image" in data:
+            di = _nested(DetectionImageConfig, data["detection_image"], info, "detection_image")
+            lower = {n.lower(): n for n in names}
+            canon = []
+            for i, band in enumerate(di.coadd):
+                if band.lower() not in lower:
+                    raise At(f"{band!r} is not one of the bands ({', '.join(names)})",
+                             "detection_image", "coadd", i)
+                canon.append(lower[band.lower()])
+            if len(set(canon)) != len(canon):
+                raise At("a band is listed twice", "detection_image", "coadd")
+            data["detection_image"] = di.model_copy(update={"coadd": tuple(canon)})
 
         for key in ("science", "noise", "mask"):
             tmpl = data.get(key)

@@ -204,7 +204,7 @@ def _describe_model(model: type[Section]) -> dict:
 
 def schema_yaml() -> str:
     """Every key of the configuration: type, default (or required), constraints, meaning."""
-    from .models import AxisSpec, PsfProfile
+    from .models import AxisSpec, DetectionImageConfig, PsfProfile
 
     doc = {}
     for section, info in SECTIONS.items():
@@ -220,6 +220,7 @@ def schema_yaml() -> str:
     doc["survey"]["keys"]["bands"]["each band"]["psf"]["analytic profile keys"] = \
         _describe_model(PsfProfile)
     doc["grid"]["keys"]["z"]["axis keys"] = _describe_model(AxisSpec)
+    doc["survey"]["keys"]["detection_image"]["keys"] = _describe_model(DetectionImageConfig)
     text = yaml.safe_dump(doc, sort_keys=False, allow_unicode=True, width=100)
     return ("# glaciar configuration schema: every key, its type, default and constraints.\n"
             "# Generated from glaciar/config/models.py by\n"

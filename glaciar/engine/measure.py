@@ -107,7 +107,7 @@ class FieldReference:
 
 
 def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropoint: float,
-                         mask=None) -> FieldReference:
+                         mask=None, photometry=None) -> FieldReference:
     """Extract the original (un-injected) detection image once per field.
 
     Parameters
@@ -121,6 +121,10 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         AB zeropoint of the detection image.
     mask : ndarray of bool, optional
         True where there are no data.
+    photometry : (image, rms), optional
+        The band whose AUTO magnitudes the original sources get when it is not
+        the detection image (a coadded detection image: fluxes in the
+        detection *band*, the band ``zeropoint`` belongs to).
 
     Returns
     -------
@@ -138,6 +142,8 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
     a, b, th = _shape(cat["a"], cat["b"], cat["theta"])
     kr = phot.kron_radius(data, cat["x"], cat["y"], a, b, th, segmap=seg, seg_id=ids, mask=nodata)
     scale = phot.auto_scale(kr, params.phot_autoparams)
+    if photometry is not None:
+        data, err, nodata = sanitize(photometry[0], photometry[1], mask)
     flux, _ = phot.auto_photometry(data, err, cat["x"], cat["y"], a, b, th, scale,
                                    segmap=seg, seg_id=ids, mask=nodata)
     mag, _, _ = phot.magnitudes(flux, np.ones_like(flux), zeropoint)
