@@ -93,6 +93,9 @@ def ppc_cells(z, mag_nominal, mag_covariate, recovered, selected, c_fn, s_fn, de
         q = np.quantile(cm[i], [0.5, 0.16, 0.84], axis=0)
         out[f"{name}_model"], out[f"{name}_model_q16"], out[f"{name}_model_q84"] = q
     for name, k, nn, p in (("rec", kr, n, cm[0]), ("sel", ks, kr, cm[1])):
+        # scipy's binomial pmf overflows (boost ibeta_derivative) for p ~ 1e-26; a
+        # probability clipped at 1e-12 changes no mid-p value at the precision it is used.
+        p = np.clip(p, 1e-12, 1.0 - 1e-12)
         midp = stats.binom.sf(k, nn, p) + 0.5 * stats.binom.pmf(k, nn, p)
         out[f"ppc_p_{name}"] = midp.mean(axis=0)
     rec_ext = (out["ppc_p_rec"] < PPC_EXTREME) | (out["ppc_p_rec"] > 1 - PPC_EXTREME)
