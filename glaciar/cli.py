@@ -98,6 +98,9 @@ def _report(run_dir: Path, regions: bool = False) -> list[Path]:
 
 def _cmd_report(args) -> int:
     paths = _report(Path(args.run_dir), regions=args.regions)
+    if args.html:
+        from .report import write_html_report
+        paths.append(write_html_report(Path(args.run_dir)))
     for p in paths:
         print(p)
     return 0
@@ -258,6 +261,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("report", help="summary tables (ECSV) and plots of a run")
     s.add_argument("run_dir")
     s.add_argument("--regions", action="store_true", help="also write DS9 region files")
+    s.add_argument("--html", action="store_true",
+                   help="also write RUN_DIR/report.html, one self-contained page (glaciar.report)")
     s.set_defaults(func=_cmd_report)
 
     s = sub.add_parser("fit", help="fit C(m, z) and S(z, m) with emcee; write selection_function.fits")
