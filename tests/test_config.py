@@ -95,19 +95,7 @@ def test_template_is_valid_and_documents_defaults(tmp_path):
     assert cfg.selection == DEFAULT_JDROPOUT
 
 
-@pytest.mark.parametrize("name", ["borg_jdropout.yaml", "jwst_example.yaml"])
-def test_shipped_configs_load(name):
-    cfg = load_config(REPO / "configs" / name)
-    assert cfg.warnings == ()
-    assert cfg.survey.detection_band in cfg.survey.band_names
-    assert len(cfg.selection) == 4
-
-
-def test_borg_config_is_the_papers_setup():
-    cfg = load_config(REPO / "configs" / "borg_jdropout.yaml")
-    np.testing.assert_allclose(cfg.grid.z_values, np.linspace(9.6, 12.0, 13), atol=1e-9)
-    assert cfg.selection == DEFAULT_JDROPOUT
-    assert cfg.survey.pixel_scale_arcsec == 0.08
+# The shipped configs/ examples are tested in tests/test_configs.py.
 
 
 # ---------------------------------------------------------------------------
