@@ -604,3 +604,18 @@ def test_out_pointing_to_a_file_is_refused(one_task_run, tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.splitlines() == [f"glaciar simulate: error: --out {f}: exists and is not a directory"]
     assert f.read_text() == "keep me"
+
+
+def test_near_equal_grid_values_get_their_own_random_streams():
+    """z = 9.0 and 9.00004 are different tasks with different files *and* different draws."""
+    from glaciar.engine.task import TaskSpec, task_rng
+
+    a = TaskSpec("f", 0, 0, 0, 0, 9.0, 25.0)
+    b = TaskSpec("f", 0, 1, 0, 0, 9.00004, 25.0)
+    c = TaskSpec("f", 0, 0, 1, 0, 9.0, 25.0 + 1e-12)
+    ra, ia = task_rng(1, a)
+    rb, ib = task_rng(1, b)
+    rc, ic = task_rng(1, c)
+    assert len({ia, ib, ic}) == 3
+    assert len({tuple(r.random(3)) for r in (ra, rb, rc)}) == 3
+    assert task_rng(1, a)[1] == ia                     # and each is reproducible

@@ -4,7 +4,7 @@ A task is (field, z, nominal magnitude, iteration).  Everything random in it
 comes from one stream, ``numpy.random.SeedSequence(seed, spawn_key=(field key,
 z key, mag key, iteration))``, so a task's rows do not depend on which worker
 ran it, in which order, or whether the run was resumed.  The keys are derived
-from the field's name and the z and magnitude values (to 1e-4), not from grid
+from the field's name and the exact z and magnitude values, not from grid
 positions, so adding cells or iterations to a run leaves every finished task's
 stream, and rows, as they were.
 """
@@ -49,8 +49,12 @@ def field_key(field: str) -> int:
 
 
 def grid_key(value: float) -> int:
-    """A non-negative integer for a grid value (z or magnitude, absolute ones included) to 1e-4."""
-    return int(round((float(value) + 1000.0) * 1e4))
+    """A non-negative integer that identifies a grid value exactly (its float64 bits).
+
+    Injective: two values that differ in any bit (z = 9.0 and 9.00004) get different
+    random streams, as their task files differ (a rounded key gave them the same draws).
+    """
+    return int(np.array(float(value) + 0.0, dtype=np.float64).view(np.uint64))
 
 
 def task_rng(seed: int, spec: TaskSpec) -> tuple[np.random.Generator, int]:
@@ -112,7 +116,7 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
 
     Parameters
     ----------
-    ctx : glaciar.run.FieldContext
+    ctx : glaciar.engine.context.FieldContext
         Images, noise, local depth map, reference extraction, template cache and settings
         of the field.
     spec : TaskSpec

@@ -1,0 +1,94 @@
+"""The engine's input: everything a task needs about one field.
+
+A :class:`FieldContext` is built once per field and worker process by
+:func:`glaciar.run.build_field_context` (which reads the images); the engine
+(:func:`glaciar.engine.task.run_task`) only reads it.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field as dc_field
+
+import numpy as np
+
+from ..galaxy import population
+from ..galaxy.sersic import stamp_shape
+from ..galaxy.templates import TemplateCache
+from .classify import ClassificationParams
+from .detect import DetectionParams
+
+__all__ = ["FieldContext", "R_EFF_LOG_STEP"]
+
+
+#: r_e is rounded to a logarithmic grid of this step (0.2 %) so that sources whose sizes
+#: scatter still share cached templates; the rounded value is the one injected and stored.
+R_EFF_LOG_STEP = math.log(1.002)
+
+
+@dataclass
+class FieldContext:
+    """Everything a task needs about one field, built once per worker process."""
+
+    field: str
+    bands: tuple[str, ...]
+    detection_band: str
+    detection_index: int
+    shape: tuple[int, int]
+    pixel_scale_arcsec: float
+    zeropoints: dict
+    gains: dict
+    filters: list
+    bases: dict            #: background-subtracted original images (float32)
+    rms: dict              #: per-pixel RMS maps (inf where no data)
+    mask: np.ndarray       #: True where the detection band has no valid data
+    footprint: np.ndarray
+    depth: np.ndarray      #: local depth of the detection band [AB mag], NaN off the footprint
+    reference: object
+    cache: TemplateCache
+    isolation_margin_pix: int    #: 2 x the widest PSF FWHM [pixels], added to each isolation box
+    source_model: population.SourceModel
+    cosmology: object
+    magnitude_type: str
+    n_galaxies: int
+    detection_params: DetectionParams
+    classification_params: ClassificationParams
+    selection: object
+    enclosed_fraction: float
+    isolation_fraction: float
+    #: band -> CorrelatedNoise applied to photometric errors (bands where it does not apply absent)
+    noise_models: dict = dc_field(default_factory=dict)
+    #: Bands stacked into the detection image (empty: the detection band's image), the
+    #: stack (glaciar.engine.coadd) and its RMS map.
+    coadd_bands: tuple = ()
+    coadd_method: str = "ivw"
+    detection_image_rms: np.ndarray | None = None
+    _shape_cache: dict = dc_field(default_factory=dict)
+
+    @staticmethod
+    def quantise_r_eff(r_eff_pix):
+        """Round r_e [pixels] to the logarithmic grid of step :data:`R_EFF_LOG_STEP`."""
+        r = np.asarray(r_eff_pix, dtype=float)
+        return np.exp(np.round(np.log(r) / R_EFF_LOG_STEP) * R_EFF_LOG_STEP)
+
+    def stamp_half_sizes(self, n, r_eff_pix, axis_ratio, pa_deg):
+        """Half sizes (rows, cols) of each source's isolation box [pixels].
+
+        The box holds ``isolation_fraction`` of the Sersic light, widened by two
+        PSF FWHMs; boxes of two sources never intersect.  A box holding 99.5 % of
+        an n = 4 profile spans ~55 r_e, which would leave room for only a handful
+        of sources per field, while the light beyond the 95 % box is too faint to
+        change a detection: the wings of neighbours may touch, and add.
+        """
+        hh = np.empty(len(n), dtype=np.int64)
+        hw = np.empty(len(n), dtype=np.int64)
+        for i, key in enumerate(zip(np.asarray(n, float), np.asarray(r_eff_pix, float),
+                                    np.asarray(axis_ratio, float), np.asarray(pa_deg, float))):
+            got = self._shape_cache.get(key)
+            if got is None:
+                ny, nx = stamp_shape(key[0], key[1], key[2], key[3],
+                                     enclosed_fraction=self.isolation_fraction)
+                got = ((ny - 1) // 2 + self.isolation_margin_pix,
+                       (nx - 1) // 2 + self.isolation_margin_pix)
+                self._shape_cache[key] = got
+            hh[i], hw[i] = got
+        return hh, hw
