@@ -60,3 +60,202 @@ def plot_summary_maps(summary: pd.DataFrame, out_dir, label: str, mag_label: str
         ax.set_title(f"{title} — {label}")
         out.append(save_png(fig, Path(out_dir) / f"{column}_{label}.png", bbox_inches="tight"))
     return out
+
+
+# --------------------------------------------------------------------------------------
+# Figures of the HTML report (glaciar.report).  Each takes arrays the run already holds
+# (summary tables, the selection-function file's grids and PPC table, fit/summary.json,
+# manifest.json) and returns a matplotlib Figure; nothing here reads or writes files.
+
+#: plotting order and colours of the status codes (GLACiAR's meaning, see README)
+STATUS_COLOURS = {0: "#1b9e77", 1: "#66a61e", 2: "#a6d854", -1: "#e7298a", -2: "#e6ab02",
+                  -3: "#d95f02"}
+
+
+def _figure(figsize):
+    """A matplotlib Figure outside pyplot: no global backend switch, nothing to close."""
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=figsize)
+
+
+def _cmap(name):
+    import matplotlib
+
+    return matplotlib.colormaps[name]
+
+
+def png_bytes(fig, dpi: int = 90) -> bytes:
+    """The figure as PNG bytes."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    return buf.getvalue()
+
+
+def plot_status_fractions(summary: pd.DataFrame, labels: dict, mag_label: str = "m (AB)"):
+    """Stacked fractions of the status codes per magnitude, all redshifts pooled.
+
+    Parameters
+    ----------
+    summary : pandas.DataFrame
+        A summary table (:func:`glaciar.tables.summary_table`): ``mag``, ``n_input`` and
+        ``n_status_*`` columns.
+    labels : dict
+        {status code: (summary column, legend text)}.
+    """
+    g = summary.groupby("mag", sort=True)[["n_input"] + [c for c, _ in labels.values()]].sum()
+    mags = g.index.to_numpy(float)
+    width = 0.8 * (np.min(np.diff(mags)) if mags.size > 1 else 1.0)
+    fig = _figure((7, 3.6))
+    ax = fig.subplots()
+    bottom = np.zeros(mags.size)
+    for code, (col, text) in labels.items():
+        frac = g[col].to_numpy(float) / np.maximum(g["n_input"].to_numpy(float), 1)
+        ax.bar(mags, frac, width, bottom=bottom, color=STATUS_COLOURS.get(code, "grey"),
+               label=f"{code}: {text}")
+        bottom += frac
+    ax.set_xlabel(mag_label)
+    ax.set_ylabel("fraction of injected sources")
+    ax.set_ylim(0, 1)
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    ax.set_title("status per magnitude (all z and fields pooled)", fontsize=9)
+    return fig
+
+
+def plot_quantile_curves(x, curves, *, xlabel: str, ylabel: str, title: str = "", points=None):
+    """Curves with 68 % and 95 % credible bands from stored posterior quantiles.
+
+    Parameters
+    ----------
+    x : array_like
+        Abscissa of the quantiles.
+    curves : list of (label, q)
+        ``q`` has shape (5, len(x)): the quantiles 0.5, 0.16, 0.84, 0.025, 0.975 (the planes
+        of the selection-function file's grids).
+    points : list of (x, y, lo, hi) or None, optional
+        Binned data per curve (same order), drawn with error bars.
+    """
+    fig = _figure((7, 4))
+    ax = fig.subplots()
+    colours = _cmap("viridis")(np.linspace(0, 0.9, max(len(curves), 1)))
+    for i, ((label, q), col) in enumerate(zip(curves, colours)):
+        q = np.asarray(q, float)
+        ax.fill_between(x, q[3], q[4], color=col, alpha=0.15, lw=0)
+        ax.fill_between(x, q[1], q[2], color=col, alpha=0.35, lw=0)
+        ax.plot(x, q[0], color=col, label=label)
+        if points is not None and len(points[i][0]):
+            px, py, lo, hi = (np.asarray(a, float) for a in points[i])
+            ax.errorbar(px, py, yerr=[np.clip(py - lo, 0, None), np.clip(hi - py, 0, None)],
+                        fmt="o", ms=3, color=col, lw=0.8)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+    return fig
+
+
+def plot_grid_map(x, y, grid, *, xlabel: str, ylabel: str, label: str, title: str = "",
+                  vmin=0.0, vmax=1.0, cmap: str = "magma"):
+    """A 2-D map of ``grid`` [len(y), len(x)] on cell centres ``x``, ``y`` (NaN left blank)."""
+    fig = _figure((6, 4))
+    ax = fig.subplots()
+    pcm = ax.pcolormesh(_edges(np.asarray(x, float)), _edges(np.asarray(y, float)),
+                        np.ma.masked_invalid(grid), vmin=vmin, vmax=vmax, cmap=cmap, shading="flat")
+    fig.colorbar(pcm, ax=ax, label=label)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=9)
+    return fig
+
+
+def plot_ppc(ppc):
+    """Posterior-predictive check: binned fractions against the model's cell means.
+
+    ``ppc`` is the PPC table of the selection-function file (columns ``c_binned``,
+    ``c_model`` with ``_q16``/``_q84``, ``s_*`` likewise, ``k_rec``, ``extreme``).
+    Extreme cells are drawn in red.
+    """
+    fig = _figure((9, 4))
+    axes = fig.subplots(1, 2)
+    ext = np.asarray(ppc["extreme"], bool)
+    for ax, name, title, keep in ((axes[0], "c", "C: recovered / injected", np.ones(len(ext), bool)),
+                                  (axes[1], "s", "S: selected / recovered",
+                                   np.asarray(ppc["k_rec"]) > 0)):
+        for sel, colour, lab in ((keep & ~ext, "C0", "cell"), (keep & ext, "red", "extreme cell")):
+            if not sel.any():
+                continue
+            mx = np.asarray(ppc[f"{name}_model"], float)[sel]
+            by = np.asarray(ppc[f"{name}_binned"], float)[sel]
+            col = lambda c: np.asarray(ppc[c], float)[sel]  # noqa: E731
+            ax.errorbar(mx, by,
+                        xerr=np.clip([mx - col(f"{name}_model_q16"), col(f"{name}_model_q84") - mx],
+                                     0, None),
+                        yerr=np.clip([by - col(f"{name}_binned_q16"), col(f"{name}_binned_q84") - by],
+                                     0, None),
+                        fmt="o", ms=3, lw=0.6, color=colour, label=lab)
+        ax.plot([0, 1], [0, 1], color="grey", lw=0.8, ls="--")
+        ax.set_xlim(-0.02, 1.02)
+        ax.set_ylim(-0.02, 1.02)
+        ax.set_xlabel("model (posterior median, 68 %)")
+        ax.set_ylabel("binned (k+1)/(n+2), 68 %")
+        ax.set_title(title, fontsize=9)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def plot_depth_completeness(mags, depth_lo, depth_step, observed, model, *, mag_label: str):
+    """Completeness on a (magnitude, local depth) map: binned fractions and the model.
+
+    ``observed`` and ``model`` have shape (len(depth_lo), len(mags)); NaN where no source.
+    """
+    mags = np.asarray(mags, float)
+    dlo = np.asarray(depth_lo, float)
+    dedges = np.append(dlo, dlo[-1] + depth_step)
+    fig = _figure((10, 4))
+    axes = fig.subplots(1, 2, sharey=True)
+    for ax, grid, title in ((axes[0], observed, "binned k_rec / n"),
+                            (axes[1], model, "model C (posterior median of the cell means)")):
+        pcm = ax.pcolormesh(_edges(mags), dedges, np.ma.masked_invalid(grid), vmin=0, vmax=1,
+                            cmap="viridis", shading="flat")
+        ax.set_xlabel(mag_label)
+        ax.set_title(title, fontsize=9)
+    axes[0].set_ylabel("local depth (5σ, AB)")
+    fig.colorbar(pcm, ax=axes, label="completeness C")
+    return fig
+
+
+def plot_area_by_depth(depth_area: dict):
+    """Each field's footprint area per 0.05 mag bin of local depth (manifest ``depth_area``)."""
+    fig = _figure((7, 3.2))
+    ax = fig.subplots()
+    for field, (edges, area) in sorted(depth_area.items()):
+        e = np.asarray(edges, float)
+        a = np.asarray(area, float)
+        ax.stairs(a, e, label=f"{field} ({a.sum():.3g} arcmin²)")
+    ax.set_xlabel("local depth (5σ, AB)")
+    ax.set_ylabel("area per bin [arcmin²]")
+    ax.set_title("area by local depth", fontsize=9)
+    ax.legend(fontsize=7)
+    return fig
+
+
+def plot_effective_volume(mag, median, lower, upper, *, mag_label: str, title: str = ""):
+    """V_eff(m) [Mpc³] with its credible interval (from ``fit/summary.json``)."""
+    fig = _figure((7, 3.6))
+    ax = fig.subplots()
+    m = np.asarray(mag, float)
+    ax.fill_between(m, np.asarray(lower, float), np.asarray(upper, float), color="C1", alpha=0.35, lw=0,
+                    label="68 % interval")
+    ax.plot(m, np.asarray(median, float), color="C1", label="median")
+    ax.set_xlabel(mag_label)
+    ax.set_ylabel("V_eff [Mpc³]")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+    return fig
+
+
+__all__ += ["png_bytes", "plot_status_fractions", "plot_quantile_curves", "plot_grid_map",
+            "plot_ppc", "plot_depth_completeness", "plot_area_by_depth", "plot_effective_volume",
+            "STATUS_COLOURS"]

@@ -1,0 +1,660 @@
+"""``glaciar report RUN --html``: one self-contained HTML page of a run.
+
+Sections: configuration, run statistics, status breakdown, C and S with credible
+bands, posterior-predictive check (PPC), depth map of completeness, adaptive
+rounds, selection-function summary.
+
+Everything shown is read from files the run already holds; nothing is refitted,
+resampled or recomputed here:
+
+==================================  ==================================================
+``RUN/config.yaml``                 the configuration, verbatim
+``RUN/manifest.json``               grid, fields, areas, area by depth, seed, versions
+``RUN/summary/summary_*.ecsv``      counts per (z, m) cell and status (``glaciar report``)
+``RUN/selection_function.fits``     headers, ``PARAMS``, the ``C_GRID``/``SR_GRID``/
+                                    ``P_GRID`` posterior quantiles, the ``PPC`` table
+``RUN/fit/summary.json``            verdicts, m50(z), C_max, PSIS-LOO, V_eff(m)
+``RUN/adaptive_rounds.json``        the adaptive loop's log, one object per round
+                                    (or the manifest's ``adaptive_rounds``); "none"
+                                    when the run has neither
+==================================  ==================================================
+
+The page is self-contained: figures are PNG (matplotlib) embedded as base64
+``data:`` URIs, the style sheet is inline, and there is no script and no
+external URL.  Every number in a table carries its exact value in a
+``data-value`` attribute (``repr`` of the float), so that tests and scripts
+can read the page back.
+
+:func:`load_report_data` reads (the I/O edge), :func:`render_html` turns that
+into the page, :func:`write_html_report` writes ``RUN/report.html``.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from . import constants as C
+
+__all__ = ["load_report_data", "render_html", "write_html_report", "REPORT_NAME",
+           "ADAPTIVE_ROUNDS_NAME"]
+
+#: file name of the page inside the run directory
+REPORT_NAME = "report.html"
+#: the adaptive loop's log inside the run directory (a JSON list of objects, one per round)
+ADAPTIVE_ROUNDS_NAME = "adaptive_rounds.json"
+#: quantile planes of the file's grids, in the order the figures want them
+_PLANE_ORDER = (0.5, 0.16, 0.84, 0.025, 0.975)
+#: structural FITS keywords left out of the header tables
+_STRUCTURAL = ("XTENSION", "BITPIX", "NAXIS", "PCOUNT", "GCOUNT", "TFIELDS", "TTYPE", "TFORM",
+               "TUNIT", "TDIM", "EXTNAME", "EXTVER", "SIMPLE", "EXTEND", "TNULL", "TDISP")
+
+
+# ------------------------------------------------------------------------------- reading
+def _read_ecsv(path):
+    from astropy.table import Table
+
+    return Table.read(path, format="ascii.ecsv").to_pandas()
+
+
+def _header_dict(header) -> dict:
+    return {k: header[k] for k in header
+            if k and not any(k.startswith(s) for s in _STRUCTURAL)}
+
+
+def _grid_axes(header, shape):
+    n_z, n_m = shape[1], shape[2]
+    m = header["CRVAL1"] + (np.arange(n_m) + 1 - header["CRPIX1"]) * header["CDELT1"]
+    z = header["CRVAL2"] + (np.arange(n_z) + 1 - header["CRPIX2"]) * header["CDELT2"]
+    return z, m
+
+
+def _read_selection_function(path: Path) -> dict:
+    """Headers, parameter table, grids (planes in ``_PLANE_ORDER``), PPC and DEPTH per fit."""
+    from astropy.io import fits
+    from astropy.table import Table
+
+    out = {"path": str(path), "fits": []}
+    with fits.open(path) as h:
+        out["primary"] = _header_dict(h[0].header)
+        names = {(x.name, x.ver) for x in h}
+        n = int(out["primary"].get("NFITS", 1))
+        for i in range(1, n + 1):
+            fit = {"extver": i}
+            d = h["DRAWS", i]
+            fit["draws_header"] = _header_dict(d.header)
+            fit["field"] = str(d.header.get("FIELD", "all"))
+            fit["n_draws"] = int(d.header.get("NAXIS2", len(d.data)))
+            fit["params"] = Table(h["PARAMS", i].data).to_pandas()
+            for ext in ("C_GRID", "SR_GRID", "P_GRID"):
+                if (ext, i) not in names:
+                    continue
+                img = h[ext, i]
+                data = np.asarray(img.data, float)
+                planes = [float(img.header.get(f"QUANT{k + 1}", q)) for k, q in enumerate(_PLANE_ORDER)]
+                order = [int(np.argmin(np.abs(np.asarray(planes) - q))) for q in _PLANE_ORDER]
+                z, m = _grid_axes(img.header, data.shape)
+                fit[ext] = {"q": data[order], "z": z, "m": m}
+            for ext in ("PPC", "DEPTH"):
+                fit[ext] = Table(h[ext, i].data).to_pandas() if (ext, i) in names else None
+            out["fits"].append(fit)
+    return out
+
+
+def _adaptive_rounds(run_dir: Path, manifest: dict) -> list:
+    p = run_dir / ADAPTIVE_ROUNDS_NAME
+    if p.exists():
+        rounds = json.loads(p.read_text(encoding="utf-8"))
+    else:
+        rounds = manifest.get("adaptive_rounds") or []
+    if not isinstance(rounds, list) or not all(isinstance(r, dict) for r in rounds):
+        raise ValueError(f"{p if p.exists() else run_dir / C.MANIFEST_NAME}: adaptive rounds "
+                         "must be a list of objects, one per round")
+    return rounds
+
+
+def load_report_data(run_dir) -> dict:
+    """Everything the page shows, read from the run directory's files.
+
+    Raises
+    ------
+    FileNotFoundError
+        No manifest, or no summary tables (run ``glaciar report RUN`` first, which
+        ``glaciar report RUN --html`` does).
+    """
+    from .store import read_manifest
+
+    run_dir = Path(run_dir)
+    manifest = read_manifest(run_dir)
+    if manifest is None:
+        raise FileNotFoundError(f"{run_dir}: no {C.MANIFEST_NAME}; not a glaciar run directory")
+    sdir = run_dir / C.SUMMARY_DIRNAME
+    if not (sdir / "summary_all.ecsv").exists():
+        raise FileNotFoundError(f"{sdir / 'summary_all.ecsv'}: missing; run `glaciar report "
+                                f"{run_dir}` first")
+    fields = [str(f) for f in manifest.get("fields") or []]
+    summaries = {"all": _read_ecsv(sdir / "summary_all.ecsv")}
+    for f in fields:
+        p = sdir / f"summary_{f}.ecsv"
+        if p.exists():
+            summaries[f] = _read_ecsv(p)
+    cfg_path = run_dir / C.RUN_CONFIG_NAME
+    data = {
+        "run_dir": str(run_dir.resolve()),
+        "manifest": manifest,
+        "config_text": cfg_path.read_text(encoding="utf-8") if cfg_path.exists() else None,
+        "summaries": summaries,
+        "adaptive_rounds": _adaptive_rounds(run_dir, manifest),
+        "selection_function": None,
+        "fit_summary": None,
+    }
+    sf_path = run_dir / C.SELECTION_FUNCTION_NAME
+    if sf_path.exists():
+        data["selection_function"] = _read_selection_function(sf_path)
+    fs = run_dir / "fit" / "summary.json"
+    if fs.exists():
+        data["fit_summary"] = json.loads(fs.read_text(encoding="utf-8"))
+    return data
+
+
+# ------------------------------------------------------------------------------ helpers
+def _e(x) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def _fmt(v, fmt: str) -> str:
+    if v is None:
+        return "—"
+    if isinstance(v, (bool, np.bool_)):
+        return "yes" if v else "no"
+    if isinstance(v, (int, np.integer)):
+        return f"{int(v):d}"
+    if isinstance(v, (float, np.floating)):
+        return "—" if not math.isfinite(float(v)) else format(float(v), fmt)
+    return str(v)
+
+
+def _td(v, fmt: str = ".4g") -> str:
+    """A table cell showing ``v`` formatted, with its exact value in ``data-value``."""
+    if isinstance(v, (bool, np.bool_)):
+        exact = "true" if v else "false"
+    elif isinstance(v, (int, np.integer)):
+        exact = str(int(v))
+    elif isinstance(v, (float, np.floating)):
+        exact = repr(float(v))
+    else:
+        exact = str(v)
+    return f'<td data-value="{_e(exact)}">{_e(_fmt(v, fmt))}</td>'
+
+
+def _table(columns, rows, *, table_id: str | None = None, formats: dict | None = None,
+           headers: dict | None = None) -> str:
+    """An HTML table; ``rows`` are sequences aligned with ``columns``."""
+    formats = formats or {}
+    headers = headers or {}
+    tid = f' id="{_e(table_id)}"' if table_id else ""
+    head = "".join(f'<th data-column="{_e(c)}">{_e(headers.get(c, c))}</th>' for c in columns)
+    body = "".join("<tr>" + "".join(_td(v, formats.get(c, ".4g")) for c, v in zip(columns, r))
+                   + "</tr>" for r in rows)
+    return f"<table{tid}><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def _kv_table(items, table_id: str | None = None) -> str:
+    tid = f' id="{_e(table_id)}"' if table_id else ""
+    body = "".join(f'<tr><th data-key="{_e(k)}">{_e(k)}</th>{_td(v)}</tr>' for k, v in items)
+    return f"<table class=\"kv\"{tid}><tbody>{body}</tbody></table>"
+
+
+def _figure(fig, caption: str, fig_id: str) -> str:
+    from .plots import png_bytes
+
+    b64 = base64.b64encode(png_bytes(fig)).decode("ascii")
+    return (f'<figure id="{_e(fig_id)}"><img alt="{_e(caption)}" src="data:image/png;base64,{b64}">'
+            f"<figcaption>{_e(caption)}</figcaption></figure>")
+
+
+def _note(text: str, cls: str = "note") -> str:
+    return f'<p class="{cls}">{_e(text)}</p>'
+
+
+def _mag_label(manifest: dict) -> str:
+    if manifest.get("magnitude_type") == "absolute":
+        return "M_UV"
+    return f"m ({manifest.get('detection_band', 'detection band')}, AB)"
+
+
+def _beta_interval(k, n):
+    """((k+1)/(n+2), 16 %, 84 %) of binned fractions: Beta(k+1, n-k+1) mean and quantiles."""
+    from scipy import stats
+
+    k = np.asarray(k, float)
+    n = np.asarray(n, float)
+    return (k + 1) / (n + 2), stats.beta.ppf(0.16, k + 1, n - k + 1), stats.beta.ppf(0.84, k + 1, n - k + 1)
+
+
+def _nearest(values, targets, max_n):
+    """Indices into ``values`` nearest each target (unique, at most ``max_n``, spread out)."""
+    values = np.asarray(values, float)
+    targets = np.unique(np.asarray(targets, float))
+    if targets.size == 0:
+        targets = values
+    if targets.size > max_n:
+        targets = targets[np.linspace(0, targets.size - 1, max_n).round().astype(int)]
+    return list(dict.fromkeys(int(np.argmin(np.abs(values - t))) for t in targets))
+
+
+# ----------------------------------------------------------------------------- sections
+def _section(sid: str, title: str, body: str) -> str:
+    return f'<section id="{_e(sid)}"><h2>{_e(title)}</h2>{body}</section>'
+
+
+def _config_section(d: dict) -> str:
+    m = d["manifest"]
+    items = [("detection band", m.get("detection_band")),
+             ("bands", ", ".join(map(str, m.get("bands", [])))),
+             ("fields", ", ".join(map(str, m.get("fields", [])))),
+             ("magnitude type", m.get("magnitude_type")),
+             ("z grid", ", ".join(f"{v:g}" for v in m.get("z_values", []))),
+             ("magnitude grid", ", ".join(f"{v:g}" for v in m.get("mag_values", []))),
+             ("sources per task (n_galaxies)", m.get("n_galaxies")),
+             ("iterations per cell", m.get("n_iterations")),
+             ("seed", m.get("seed")),
+             ("config hash", m.get("config_hash")),
+             ("glaciar version", m.get("glaciar_version")),
+             ("store format", m.get("store_format"))]
+    sel = m.get("selection") or []
+    body = _kv_table([(k, v) for k, v in items if v is not None], "config-facts")
+    body += "<h3>Selection criteria</h3>" + ("<ul>" + "".join(f"<li><code>{_e(s)}</code></li>" for s in sel)
+                                             + "</ul>" if sel else _note("none"))
+    if d["config_text"] is not None:
+        body += (f"<details><summary>{_e(C.RUN_CONFIG_NAME)} (the resolved configuration of the "
+                 f"run)</summary><pre>{_e(d['config_text'])}</pre></details>")
+    else:
+        body += _note(f"no {C.RUN_CONFIG_NAME} in the run directory")
+    return _section("configuration", "Configuration", body)
+
+
+def _depth_range(manifest: dict, field: str):
+    da = (manifest.get("depth_area") or {}).get(field)
+    if not da:
+        return None, None, None
+    e = np.asarray(da["bin_edges_mag"], float)
+    a = np.asarray(da["area_arcmin2"], float)
+    if a.size == 0 or a.sum() <= 0:
+        return None, None, None
+    nz = np.flatnonzero(a > 0)
+    cen = 0.5 * (e[:-1] + e[1:])
+    cw = np.cumsum(a)
+    return float(e[nz[0]]), float(e[nz[-1] + 1]), float(cen[np.searchsorted(cw, 0.5 * cw[-1])])
+
+
+def _statistics_section(d: dict) -> str:
+    m = d["manifest"]
+    s = d["summaries"]["all"]
+    fields = [str(f) for f in m.get("fields", [])]
+    n_tasks = (len(fields) * len(m.get("z_values", [])) * len(m.get("mag_values", []))
+               * int(m.get("n_iterations") or 0))
+    n_in, n_rec, n_sel = (int(s[c].sum()) for c in ("n_input", "n_recovered", "n_selected"))
+    items = [("fields", len(fields)), ("(z, m) cells", len(s)),
+             ("tasks (fields × z × m × iterations)", n_tasks),
+             ("sources injected", n_in), ("recovered (status 0, 1, 2)", n_rec),
+             ("recovered and selected", n_sel),
+             ("recovered fraction", n_rec / n_in if n_in else None),
+             ("selected fraction", n_sel / n_in if n_in else None),
+             ("survey area [arcmin²]", m.get("area_arcmin2_total"))]
+    body = _kv_table(items, "run-statistics")
+    areas = m.get("area_arcmin2") or {}
+    scales = m.get("pixel_scale_arcsec") or {}
+    rows = []
+    for f in fields:
+        sf = d["summaries"].get(f)
+        lo, hi, med = _depth_range(m, f)
+        rows.append((f, areas.get(f), scales.get(f),
+                     int(sf["n_input"].sum()) if sf is not None else None,
+                     int(sf["n_recovered"].sum()) if sf is not None else None,
+                     int(sf["n_selected"].sum()) if sf is not None else None, lo, med, hi))
+    body += "<h3>Fields</h3>" + _table(
+        ["field", "area_arcmin2", "pixel_scale_arcsec", "n_input", "n_recovered", "n_selected",
+         "depth_min", "depth_median", "depth_max"], rows, table_id="fields",
+        formats={"area_arcmin2": ".4g", "pixel_scale_arcsec": ".4g", "depth_min": ".2f",
+                 "depth_median": ".2f", "depth_max": ".2f"},
+        headers={"area_arcmin2": "area [arcmin²]", "pixel_scale_arcsec": "pixel [arcsec]",
+                 "depth_min": "depth min", "depth_median": "depth median (by area)",
+                 "depth_max": "depth max"})
+    fs = d["fit_summary"]
+    if fs:
+        rows = []
+        for name, e in fs.get("fits", {}).items():
+            steps = ", ".join(f"{p}: {b['n_steps']}×{b['n_walkers']}" for p, b in
+                              (e.get("blocks") or {}).items())
+            rows.append((name, e.get("model"), e.get("n_sources"), e.get("n_cells"),
+                         e.get("wall_time_s"), steps))
+        body += "<h3>Fit</h3>" + _table(["fit", "model", "n_sources", "n_cells", "wall_time_s",
+                                         "steps × walkers"], rows, table_id="fit-statistics",
+                                        formats={"wall_time_s": ".1f"},
+                                        headers={"wall_time_s": "wall time [s]"})
+    return _section("statistics", "Run statistics", body)
+
+
+def _status_section(d: dict) -> str:
+    from .plots import plot_status_fractions
+    from .tables import STATUS_COLUMNS
+
+    labels = {code: (STATUS_COLUMNS[code], C.STATUS_LABELS[code]) for code in C.STATUS_CODES}
+    cols = [STATUS_COLUMNS[c] for c in C.STATUS_CODES]
+    rows = []
+    for name, s in d["summaries"].items():
+        n = int(s["n_input"].sum())
+        rows.append([name, n] + [int(s[c].sum()) for c in cols]
+                    + [int(s["n_recovered"].sum()), int(s["n_selected"].sum())])
+    heads = {STATUS_COLUMNS[c]: f"{c}: {C.STATUS_LABELS[c]}" for c in C.STATUS_CODES}
+    body = _note("Counts of injected sources by status (GLACiAR's codes: 0, 1, 2 recovered; "
+                 "−1 blended with a brighter source and failing the overlap or flux test; "
+                 "−2 detected below the S/N threshold; −3 not detected).")
+    body += _table(["field", "n_input"] + cols + ["n_recovered", "n_selected"], rows,
+                   table_id="status-totals", headers=heads)
+    body += _figure(plot_status_fractions(d["summaries"]["all"], labels, _mag_label(d["manifest"])),
+                    "Fraction of injected sources in each status per magnitude", "fig-status")
+    sum_cols = (["z", "mag", "n_input"] + cols + ["n_recovered", "n_selected", "completeness",
+                                                   "selection_total", "selection"])
+    for name, s in d["summaries"].items():
+        src = "summary_all.ecsv" if name == "all" else f"summary_{name}.ecsv"
+        rows = [[r[c] for c in sum_cols] for r in s[sum_cols].to_dict("records")]
+        body += (f"<details><summary>Per (z, m) cell: {_e(name)} ({_e(src)})</summary>"
+                 + _table(sum_cols, rows, table_id=f"summary-{name}",
+                          formats={"completeness": ".4f", "selection_total": ".4f",
+                                   "selection": ".4f", "z": "g", "mag": "g"})
+                 + "</details>")
+    return _section("status", "Status breakdown", body)
+
+
+def _not_fitted(d: dict) -> str:
+    return _note(f"not fitted: no {C.SELECTION_FUNCTION_NAME} in the run directory; run "
+                 f"`glaciar fit {d['run_dir']}` and then `glaciar report {d['run_dir']} --html` again",
+                 "missing")
+
+
+def _points_for(d: dict, field: str):
+    return d["summaries"].get(field, d["summaries"]["all"])
+
+
+def _curves_section(d: dict) -> str:
+    from .plots import plot_grid_map, plot_quantile_curves
+
+    sf = d["selection_function"]
+    if sf is None:
+        return _section("curves", "Completeness C and selection S", _not_fitted(d))
+    m = d["manifest"]
+    mlabel = _mag_label(m)
+    body = _note("Lines: posterior median; bands: 68 % and 95 % credible intervals (the "
+                 "quantile planes of the file's C_GRID and SR_GRID: survey averages, weighted by "
+                 "area over fields and depths). Points: binned fractions of the summary table, "
+                 "(k+1)/(n+2) with Beta(k+1, n−k+1) 68 % intervals (pooled by injections, so fields of "
+                 "unequal depth or area can pull them off the area-weighted curve).")
+    for fit in sf["fits"]:
+        name = fit["field"]
+        pts = _points_for(d, name)
+        if "C_GRID" not in fit:
+            body += _note(f"fit {name}: the file holds no grids")
+            continue
+        g = fit["C_GRID"]
+        curves, points = [], []
+        for iz in _nearest(g["z"], m.get("z_values", []), 6):
+            z = g["z"][iz]
+            curves.append((f"z = {z:.2f}", g["q"][:, iz, :]))
+            sub = pts[np.isclose(pts["z"], z, atol=1e-6)]
+            y, lo, hi = _beta_interval(sub["n_recovered"], sub["n_input"])
+            points.append((sub["mag"].to_numpy(float), y, lo, hi))
+        body += _figure(plot_quantile_curves(g["m"], curves, xlabel=mlabel, ylabel="completeness C(m)",
+                                             title=f"C(m) at the simulated z — fit {name}",
+                                             points=points),
+                        f"Completeness C(m, z) with 68 % and 95 % credible bands (fit {name})",
+                        f"fig-completeness-{name}")
+        g = fit["SR_GRID"]
+        curves, points = [], []
+        for im in _nearest(g["m"], m.get("mag_values", []), 4):
+            mv = g["m"][im]
+            curves.append((f"m = {mv:.2f}", g["q"][:, :, im]))
+            sub = pts[np.isclose(pts["mag"], mv, atol=1e-6)]
+            y, lo, hi = _beta_interval(sub["n_selected"], sub["n_recovered"])
+            points.append((sub["z"].to_numpy(float), y, lo, hi))
+        body += _figure(plot_quantile_curves(g["z"], curves, xlabel="redshift z",
+                                             ylabel="S(z, m) = P(selected | recovered)",
+                                             title=f"S(z) at simulated magnitudes — fit {name}",
+                                             points=points),
+                        f"Selection given recovery S(z, m) with 68 % and 95 % credible bands (fit {name})",
+                        f"fig-selection-{name}")
+        g = fit["P_GRID"]
+        body += _figure(plot_grid_map(g["m"], g["z"], g["q"][0], xlabel=mlabel, ylabel="redshift z",
+                                      label="median P = C·S", title=f"P(z, m) = C·S — fit {name}"),
+                        f"Median selection probability P = C·S (fit {name})", f"fig-p-{name}")
+    return _section("curves", "Completeness C and selection S", body)
+
+
+def _ppc_section(d: dict) -> str:
+    from .plots import plot_ppc
+
+    sf = d["selection_function"]
+    if sf is None:
+        return _section("ppc", "Posterior-predictive check", _not_fitted(d))
+    fits_summary = (d["fit_summary"] or {}).get("fits", {})
+    body = _note("Per simulated (z, m, depth bin) cell: the observed counts against the posterior "
+                 "predictive distribution (mid-p values); a cell is extreme when either mid-p is "
+                 "below 0.01 or above 0.99. The fit is adequate unless more cells are extreme "
+                 "than chance allows (99 % quantile of Binomial(n_cells, 0.04)).")
+    rows = []
+    for fit in sf["fits"]:
+        v = (fits_summary.get(fit["field"]) or {}).get("ppc") or {}
+        ppc = fit["PPC"]
+        n_ext = int(np.sum(ppc["extreme"])) if ppc is not None else v.get("n_extreme")
+        rows.append((fit["field"], len(ppc) if ppc is not None else v.get("n_cells"), n_ext,
+                     v.get("max_allowed"), v.get("adequate", fit["draws_header"].get("ADEQUATE"))))
+    body += _table(["fit", "n_cells", "n_extreme", "max_allowed", "adequate"], rows,
+                   table_id="ppc-verdict")
+    for fit in sf["fits"]:
+        ppc = fit["PPC"]
+        if ppc is None or not len(ppc):
+            body += _note(f"fit {fit['field']}: the file holds no PPC table")
+            continue
+        body += _figure(plot_ppc(ppc), f"Binned fractions against the model per cell (fit {fit['field']})",
+                        f"fig-ppc-{fit['field']}")
+        ext = ppc[ppc["extreme"].astype(bool)]
+        cols = ["z", "mag", "depth_lo", "n", "k_rec", "k_sel", "c_binned", "c_model", "s_binned",
+                "s_model", "ppc_p_rec", "ppc_p_sel"]
+        if len(ext):
+            body += f"<h3>Extreme cells (fit {_e(fit['field'])})</h3>" + _table(
+                cols, ext[cols].itertuples(index=False), table_id=f"ppc-extreme-{fit['field']}",
+                formats={"z": "g", "mag": "g", "depth_lo": ".2f"})
+        else:
+            body += _note(f"fit {fit['field']}: no extreme cells")
+    return _section("ppc", "Posterior-predictive check", body)
+
+
+def _depth_section(d: dict) -> str:
+    from .plots import plot_area_by_depth, plot_depth_completeness
+
+    m = d["manifest"]
+    body = ""
+    da = {f: (v["bin_edges_mag"], v["area_arcmin2"]) for f, v in (m.get("depth_area") or {}).items()
+          if len(v.get("area_arcmin2", [])) and len(v["bin_edges_mag"]) == len(v["area_arcmin2"]) + 1}
+    if da:
+        body += _figure(plot_area_by_depth(da), "Footprint area per local-depth bin (manifest depth_area)",
+                        "fig-area-by-depth")
+    else:
+        body += _note("the manifest holds no area-by-depth distribution")
+    sf = d["selection_function"]
+    if sf is None:
+        return _section("depth", "Depth map of completeness", body + _not_fitted(d))
+    depth_aware = bool(sf["primary"].get("DEPTHAW", False))
+    body = _note("Completeness against magnitude and the local depth under each source "
+                 "(5σ limit in a 1-FWHM aperture), from the file's PPC table: counts summed over "
+                 "redshift per (m, 0.25 mag depth bin) cell; the model map is the posterior median "
+                 "of the cell means, averaged over redshift with the cells' source counts as "
+                 "weights. " + ("The fit is depth-aware: C(m, z | d) = C(m − (d − d_ref), z)."
+                                if depth_aware else "The fit is not depth-aware.")) + body
+    for fit in sf["fits"]:
+        ppc = fit["PPC"]
+        if ppc is None or not len(ppc) or not np.isfinite(ppc["depth_lo"].to_numpy(float)).any():
+            body += _note(f"fit {fit['field']}: no local depths in the PPC table")
+            continue
+        p = ppc[np.isfinite(ppc["depth_lo"].to_numpy(float))].copy()
+        p["c_model_n"] = p["c_model"] * p["n"]
+        g = p.groupby(["depth_lo", "mag"], sort=True)[["n", "k_rec", "c_model_n"]].sum()
+        dl = np.unique(p["depth_lo"].to_numpy(float))
+        mags = np.unique(p["mag"].to_numpy(float))
+        obs = np.full((dl.size, mags.size), np.nan)
+        mod = np.full_like(obs, np.nan)
+        idl = np.searchsorted(dl, g.index.get_level_values(0).to_numpy(float))
+        im = np.searchsorted(mags, g.index.get_level_values(1).to_numpy(float))
+        n = g["n"].to_numpy(float)
+        obs[idl, im] = g["k_rec"].to_numpy(float) / n
+        mod[idl, im] = g["c_model_n"].to_numpy(float) / n
+        step = float(np.min(np.diff(dl))) if dl.size > 1 else 0.25
+        body += _figure(plot_depth_completeness(mags, dl, step, obs, mod, mag_label=_mag_label(m)),
+                        f"Completeness by magnitude and local depth, all z (fit {fit['field']})",
+                        f"fig-depth-{fit['field']}")
+    return _section("depth", "Depth map of completeness", body)
+
+
+def _adaptive_section(d: dict) -> str:
+    rounds = d["adaptive_rounds"]
+    if not rounds:
+        body = '<p id="adaptive-none">none — this run has no adaptive rounds.</p>'
+    else:
+        cols = list(dict.fromkeys(k for r in rounds for k in r))
+        rows = [[r.get(c) if not isinstance(r.get(c), (list, dict)) else json.dumps(r.get(c))
+                 for c in cols] for r in rounds]
+        body = _table(cols, rows, table_id="adaptive-rounds")
+    return _section("adaptive", "Adaptive rounds", body)
+
+
+def _sf_section(d: dict) -> str:
+    sf = d["selection_function"]
+    if sf is None:
+        return _section("selection-function", "Selection-function summary", _not_fitted(d))
+    from .plots import plot_effective_volume
+
+    m = d["manifest"]
+    fs = d["fit_summary"] or {}
+    mlabel = "M_UV" if m.get("magnitude_type") == "absolute" else "m"
+    body = _note(f"{sf['path']}: read it with glaciar.SelectionFunction.read(path), or without "
+                 "glaciar as docs/selection-function-file.md describes.")
+    body += _kv_table(sorted(sf["primary"].items()), "sf-primary")
+    # Is the file current?  (It describes the rows that were fitted.)
+    n_now = int(d["summaries"]["all"]["n_input"].sum())
+    if sf["primary"].get("CONFHASH") and m.get("config_hash") and \
+            sf["primary"]["CONFHASH"] != m["config_hash"]:
+        body += _note("the file was fitted to another configuration than the run's: fit again",
+                      "warning")
+    fsum = fs.get("fits", {})
+    for fit in sf["fits"]:
+        name = fit["field"]
+        e = fsum.get(name) or {}
+        dh = fit["draws_header"]
+        body += f"<h3>Fit {_e(name)}</h3>"
+        if name == "all" and dh.get("NSOURCES") is not None and int(dh["NSOURCES"]) != n_now:
+            body += _note(f"the fit used {int(dh['NSOURCES'])} sources, the run's summary tables now "
+                          f"hold {n_now}: run `glaciar fit` again", "warning")
+        facts = [("model", dh.get("MODEL")), ("posterior draws", fit["n_draws"]),
+                 ("sources", dh.get("NSOURCES")), ("cells", dh.get("NCELLS")),
+                 ("converged (every chain ≥ 50 τ)", dh.get("CONVERGE")),
+                 ("adequate (PPC)", dh.get("ADEQUATE")), ("max τ", dh.get("TAUMAX")),
+                 ("min ESS", dh.get("ESSMIN")), ("max split R-hat", dh.get("RHATMAX")),
+                 ("depth reference d_ref", dh.get("DEPTHREF")),
+                 ("simulated z", f"{dh.get('ZMIN')} – {dh.get('ZMAX')}"),
+                 ("simulated m", f"{dh.get('MMIN')} – {dh.get('MMAX')}")]
+        body += _kv_table(facts, f"sf-fit-{name}")
+        if e.get("m50"):
+            body += f"<h4>{_e(mlabel)} at C = 0.5</h4>" + _table(
+                ["z", "m50", "lower_68", "upper_68"],
+                [(r["z"], r["m50"], r["ci68"][0], r["ci68"][1]) for r in e["m50"]],
+                table_id=f"m50-{name}", formats={"z": "g", "m50": ".3f", "lower_68": ".3f",
+                                                 "upper_68": ".3f"})
+        if e.get("c_max"):
+            cm = e["c_max"]
+            body += _kv_table([(f"C_max(z = {cm['z']:g}) median", cm["median"]),
+                               ("C_max 68 % lower", cm["ci68"][0]), ("C_max 68 % upper", cm["ci68"][1])],
+                              f"cmax-{name}")
+        if e.get("model_comparison"):
+            body += "<h4>PSIS-LOO comparison of completeness steps</h4>" + _table(
+                ["model", "delta_elpd", "se_delta"],
+                [(r["model"], r["delta_elpd"], r["se_delta"]) for r in e["model_comparison"]],
+                table_id=f"loo-{name}", formats={"delta_elpd": "+.2f", "se_delta": ".2f"})
+        ve = e.get("effective_volume")
+        if ve:
+            q = ve["quoted"]
+            what = (f"{ve['area_arcmin2']:.4g} arcmin², z {ve['z_range'][0]:g}–{ve['z_range'][1]:g}, "
+                    f"{ve.get('cosmology')}")
+            body += f"<h4>Effective volume ({_e(what)})</h4>"
+            body += _table(["mag", "median_mpc3", "lower_mpc3", "upper_mpc3"],
+                           zip(q["mag"], q["median_mpc3"], q["lower_mpc3"], q["upper_mpc3"]),
+                           table_id=f"veff-{name}", formats={"mag": ".2f"},
+                           headers={"median_mpc3": "V_eff median [Mpc³]", "lower_mpc3": "68 % lower",
+                                    "upper_mpc3": "68 % upper"})
+            body += _figure(plot_effective_volume(ve["mag"], ve["median_mpc3"], ve["lower_mpc3"],
+                                                  ve["upper_mpc3"], mag_label=_mag_label(m),
+                                                  title=f"V_eff(m), fit {name}"),
+                            f"Effective volume V_eff(m) with its 68 % interval (fit {name})",
+                            f"fig-veff-{name}")
+        elif e.get("effective_volume_note"):
+            body += _note(f"V_eff: not computed ({e['effective_volume_note']})")
+        p = fit["params"]
+        cols = [c for c in ("name", "median", "q16", "q84", "prior_mean", "prior_sd", "tau", "ess", "rhat")
+                if c in p.columns]
+        body += (f"<details><summary>Parameters (PARAMS, fit {_e(name)})</summary>"
+                 + _table(cols, p[cols].itertuples(index=False), table_id=f"params-{name}") + "</details>")
+    return _section("selection-function", "Selection-function summary", body)
+
+
+_STYLE = """
+body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0 auto;max-width:1100px;
+padding:0 1.2em 3em;color:#222;line-height:1.4}
+h1{margin-bottom:0.2em}h2{border-bottom:2px solid #ccc;padding-bottom:0.2em;margin-top:1.8em}
+nav a{margin-right:0.9em}table{border-collapse:collapse;margin:0.6em 0;font-size:0.85em}
+th,td{border:1px solid #ddd;padding:0.15em 0.5em;text-align:right}th{background:#f4f4f4}
+table.kv th{text-align:left}td:first-child{text-align:left}
+figure{margin:1em 0}figure img{max-width:100%;height:auto;border:1px solid #eee}
+figcaption{font-size:0.85em;color:#555}pre{background:#f8f8f8;padding:0.8em;overflow:auto;font-size:0.8em}
+.note{color:#444;font-size:0.9em}.missing{color:#8a5a00;font-weight:600}.warning{color:#b00020;font-weight:600}
+details{margin:0.5em 0}summary{cursor:pointer}
+"""
+
+_SECTIONS = (("configuration", "Configuration", _config_section),
+             ("statistics", "Run statistics", _statistics_section),
+             ("status", "Status breakdown", _status_section),
+             ("curves", "C and S", _curves_section),
+             ("ppc", "PPC", _ppc_section),
+             ("depth", "Depth map", _depth_section),
+             ("adaptive", "Adaptive rounds", _adaptive_section),
+             ("selection-function", "Selection function", _sf_section))
+
+
+def render_html(data: dict) -> str:
+    """The page for :func:`load_report_data`'s output (a complete HTML document)."""
+    from . import __version__
+
+    title = f"glaciar report — {Path(data['run_dir']).name}"
+    nav = "".join(f'<a href="#{sid}">{_e(label)}</a>' for sid, label, _ in _SECTIONS)
+    body = "".join(fn(data) for _, _, fn in _SECTIONS)
+    return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
+            '<link rel="icon" href="data:,">'
+            f"<title>{_e(title)}</title><style>{_STYLE}</style></head><body>"
+            f"<header><h1>{_e(title)}</h1><p class=\"note\">{_e(data['run_dir'])} · written by "
+            f"glaciar {_e(__version__)}</p><nav>{nav}</nav></header>"
+            f"<main>{body}</main></body></html>\n")
+
+
+def write_html_report(run_dir, path=None) -> Path:
+    """Write the run's HTML report (default ``RUN/report.html``, atomically); return its path."""
+    from .store import atomic_write_text
+
+    run_dir = Path(run_dir)
+    page = render_html(load_report_data(run_dir))
+    out = Path(path) if path is not None else run_dir / REPORT_NAME
+    atomic_write_text(out, page)
+    return out

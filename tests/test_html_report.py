@@ -1,0 +1,368 @@
+"""``glaciar report RUN --html``: one self-contained page, read back and opened in Chromium.
+
+The run is the session's ``deep_corner_run`` (one field whose corner is 1.3 mag deeper),
+copied, reported before a fit, fitted (logistic step), and reported again.  The page is
+parsed back: its numbers must equal those of the run's summary tables, the selection-
+function file and ``fit/summary.json``; every image must decode; nothing may point outside
+the page.  Headless Chromium (Debian package ``chromium``; ``.ci/run`` installs it) then
+loads the page over the DevTools protocol (a pipe, no network port) and must report no
+console error and every figure decoded and laid out.  Without Chromium that test skips.
+"""
+import base64
+import io
+import json
+import math
+import os
+import re
+import select
+import shutil
+import subprocess
+import tempfile
+import time
+import warnings
+from html.parser import HTMLParser
+
+import numpy as np
+import pytest
+from astropy.io import fits
+from astropy.table import Table
+
+from glaciar import constants as C
+from glaciar.cli import main
+from glaciar.report import ADAPTIVE_ROUNDS_NAME, REPORT_NAME, load_report_data
+
+#: every figure a fitted single-fit report shows (ids of <figure> elements)
+FITTED_FIGURES = ("fig-status", "fig-completeness-all", "fig-selection-all", "fig-p-all",
+                  "fig-ppc-all", "fig-area-by-depth", "fig-depth-all", "fig-veff-all")
+SECTIONS = ("configuration", "statistics", "status", "curves", "ppc", "depth", "adaptive",
+            "selection-function")
+
+
+class _Page(HTMLParser):
+    """Tables (by id: column names and rows of (exact value, shown text)), images, sections."""
+
+    def __init__(self, text):
+        super().__init__()
+        self.tables, self.images, self.ids, self.attrs_all = {}, [], [], []
+        self._table = self._row = self._cell = None
+        self.feed(text)
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        self.attrs_all.append((tag, a))
+        if "id" in a:
+            self.ids.append(a["id"])
+        if tag == "table":
+            self._table = {"columns": [], "rows": [], "keys": []}
+            self.tables[a.get("id")] = self._table
+        elif tag == "tr" and self._table is not None:
+            self._row = []
+        elif tag == "th" and self._table is not None:
+            if "data-column" in a:
+                self._table["columns"].append(a["data-column"])
+            if "data-key" in a:
+                self._table["keys"].append(a["data-key"])
+        elif tag == "td" and self._row is not None:
+            self._cell = [a.get("data-value"), ""]
+        elif tag == "img":
+            self.images.append(a)
+
+    def handle_data(self, data):
+        if self._cell is not None:
+            self._cell[1] += data
+
+    def handle_endtag(self, tag):
+        if tag == "td" and self._cell is not None:
+            self._row.append(tuple(self._cell))
+            self._cell = None
+        elif tag == "tr" and self._row is not None:
+            if self._row:
+                self._table["rows"].append(self._row)
+            self._row = None
+        elif tag == "table":
+            self._table = None
+
+    def column(self, table_id, name):
+        t = self.tables[table_id]
+        j = t["columns"].index(name)
+        return [r[j] for r in t["rows"]]
+
+    def kv(self, table_id):
+        t = self.tables[table_id]
+        return {k: r[0] for k, r in zip(t["keys"], t["rows"])}
+
+
+def _exact(cells):
+    """The exact values of table cells as floats (ints, 'nan', 'true'/'false' included)."""
+    return np.array([{"true": 1.0, "false": 0.0}.get(v, None) if v in ("true", "false")
+                     else float(v) for v, _ in cells])
+
+
+@pytest.fixture(scope="module")
+def reported(deep_corner_run, tmp_path_factory):
+    """(run dir, page before the fit, page after the fit).
+
+    The fit is capped at 400 steps per chain (~9 s CPU instead of ~26 s): the page shows
+    what the files hold, converged or not.
+    """
+    from glaciar.pipeline import run_fit
+
+    _, src = deep_corner_run
+    run = tmp_path_factory.mktemp("html_report") / "run"
+    shutil.copytree(src, run, ignore=shutil.ignore_patterns(
+        "fit", C.SELECTION_FUNCTION_NAME, C.SUMMARY_DIRNAME, REPORT_NAME, C.LOCK_NAME))
+    assert main(["report", str(run), "--html"]) == 0
+    before = (run / REPORT_NAME).read_text(encoding="utf-8")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        run_fit(run, model="logistic", max_draws=400, max_steps=400)
+    assert main(["report", str(run), "--html"]) == 0
+    return run, before, (run / REPORT_NAME).read_text(encoding="utf-8")
+
+
+def test_page_has_every_section_and_figure(reported):
+    run, before, after = reported
+    page = _Page(after)
+    for sid in SECTIONS:
+        assert sid in page.ids, sid
+    for fid in FITTED_FIGURES:
+        assert fid in page.ids, fid
+    assert len(page.images) == len(FITTED_FIGURES)
+    # The adaptive loop does not exist yet: the section says so.
+    assert "adaptive-none" in page.ids
+    assert re.search(r'id="adaptive-none">none\b', after)
+
+
+def test_numbers_equal_the_summary_tables(reported):
+    run, _, html_text = reported
+    page = _Page(html_text)
+    for name in ("all", "corner"):
+        t = Table.read(run / C.SUMMARY_DIRNAME / f"summary_{name}.ecsv").to_pandas()
+        assert page.tables[f"summary-{name}"]["columns"][:2] == ["z", "mag"]
+        for col in page.tables[f"summary-{name}"]["columns"]:
+            got = _exact(page.column(f"summary-{name}", col))
+            np.testing.assert_array_equal(got, t[col].to_numpy(float), err_msg=f"{name}: {col}")
+        # what is shown is the exact value, rounded
+        shown = [s for _, s in page.column(f"summary-{name}", "completeness")]
+        assert shown == [f"{v:.4f}" for v in t["completeness"]]
+        # status totals: one row per table, sums of the cells
+        row = [r for r in page.tables["status-totals"]["rows"] if r[0][0] == name][0]
+        cols = page.tables["status-totals"]["columns"][1:]
+        assert [int(v) for v, _ in row[1:]] == [int(t[c].sum()) for c in cols]
+    t = Table.read(run / C.SUMMARY_DIRNAME / "summary_all.ecsv")
+    stats = page.kv("run-statistics")
+    assert int(stats["sources injected"][0]) == int(t["n_input"].sum()) > 0
+    assert int(stats["recovered and selected"][0]) == int(t["n_selected"].sum())
+
+
+def test_fit_numbers_equal_the_fit_outputs(reported):
+    run, _, html_text = reported
+    page = _Page(html_text)
+    summary = json.loads((run / "fit" / "summary.json").read_text())["fits"]["all"]
+    np.testing.assert_array_equal(_exact(page.column("m50-all", "m50")),
+                                  [r["m50"] for r in summary["m50"]])
+    np.testing.assert_array_equal(_exact(page.column("m50-all", "lower_68")),
+                                  [r["ci68"][0] for r in summary["m50"]])
+    np.testing.assert_array_equal(_exact(page.column("veff-all", "median_mpc3")),
+                                  summary["effective_volume"]["quoted"]["median_mpc3"])
+    with fits.open(run / C.SELECTION_FUNCTION_NAME) as h:
+        ppc = Table(h["PPC", 1].data)
+        hd = h["DRAWS", 1].header
+        params = Table(h["PARAMS", 1].data)
+    verdict = page.tables["ppc-verdict"]["rows"][0]
+    assert int(verdict[1][0]) == len(ppc) and int(verdict[2][0]) == int(np.sum(ppc["extreme"]))
+    facts = page.kv("sf-fit-all")
+    assert int(facts["sources"][0]) == hd["NSOURCES"]
+    assert facts["adequate (PPC)"][0] == ("true" if hd["ADEQUATE"] else "false")
+    np.testing.assert_array_equal(_exact(page.column("params-all", "median")), params["median"])
+
+
+def test_every_image_is_an_embedded_png_that_decodes(reported):
+    import matplotlib.image as mpimg
+
+    _, before, after = reported
+    for text in (before, after):
+        for img in _Page(text).images:
+            src = img["src"]
+            assert src.startswith("data:image/png;base64,")
+            data = base64.b64decode(src.split(",", 1)[1], validate=True)
+            a = mpimg.imread(io.BytesIO(data), format="png")
+            assert a.ndim == 3 and a.shape[0] > 100 and a.shape[1] > 100
+            assert float(a[..., :3].std()) > 0.02          # not a blank canvas
+            assert img.get("alt")
+
+
+def test_page_is_self_contained(reported):
+    _, before, after = reported
+    for text in (before, after):
+        page = _Page(text)
+        assert not re.search(r"(?i)\b(https?:|ftp:)//|\bwww\.", text)
+        assert "<script" not in text.lower()
+        for tag, a in page.attrs_all:
+            for key in ("src", "href"):
+                if key in a:
+                    assert a[key].startswith(("data:", "#")), (tag, a[key][:60])
+            assert not (tag == "link" and a.get("rel") == "stylesheet")
+
+
+def test_report_of_an_unfitted_run_says_so(reported):
+    _, before, _ = reported
+    page = _Page(before)
+    for sid in SECTIONS:
+        assert sid in page.ids
+    assert before.count("not fitted") >= 3
+    assert {"fig-status", "fig-area-by-depth"} <= set(page.ids)
+    assert not {"fig-completeness-all", "fig-ppc-all", "fig-veff-all"} & set(page.ids)
+    assert len(page.images) == 2
+
+
+def test_adaptive_rounds_are_shown_when_the_run_has_them(reported):
+    from glaciar import report
+
+    run, _, _ = reported
+    path = run / ADAPTIVE_ROUNDS_NAME
+    rounds = [{"round": 1, "cells": 5, "sources": 500, "max_sd": 0.081, "cpu_seconds": 12.5},
+              {"round": 2, "cells": 4, "sources": 400, "max_sd": 0.043, "cpu_seconds": 10.0}]
+    try:
+        path.write_text(json.dumps(rounds))
+        data = load_report_data(run)
+        page = _Page(report._adaptive_section(data))
+        assert "adaptive-none" not in page.ids
+        np.testing.assert_array_equal(_exact(page.column("adaptive-rounds", "max_sd")), [0.081, 0.043])
+        path.write_text(json.dumps({"round": 1}))
+        with pytest.raises(ValueError, match="one per round"):
+            load_report_data(run)
+    finally:
+        path.unlink()
+
+
+# ------------------------------------------------------------------- headless Chromium
+def _chromium():
+    for name in (os.environ.get("GLACIAR_CHROMIUM"), "chromium", "chromium-browser",
+                 "google-chrome", "google-chrome-stable"):
+        if name and shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+class _DevTools:
+    """Chromium over the DevTools protocol on a pipe (``--remote-debugging-pipe``)."""
+
+    def __init__(self, exe, timeout=90.0):
+        import fcntl
+
+        self.timeout = timeout
+        r_cmd, self._w_cmd = os.pipe()          # Chromium reads commands on fd 3
+        self._r_evt, w_evt = os.pipe()          # and writes replies and events on fd 4
+        # fds >= 10 for the child, mapped to 3 and 4 by bash before exec
+        r_c, w_e = (fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 10) for fd in (r_cmd, w_evt))
+        os.close(r_cmd)
+        os.close(w_evt)
+        self._profile = tempfile.mkdtemp(prefix="glaciar-chromium-")
+        args = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
+                "--no-default-browser-check", "--disable-extensions", "--remote-debugging-pipe",
+                f"--user-data-dir={self._profile}", "about:blank"]
+        self.proc = subprocess.Popen(
+            ["bash", "-c", f'exec "$@" 3<&{r_c} 4>&{w_e} {r_c}<&- {w_e}>&-', "chromium", *args],
+            pass_fds=(r_c, w_e), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL)
+        os.close(r_c)
+        os.close(w_e)
+        self._buf, self._id, self.events = b"", 0, []
+
+    def send(self, method, params=None, session=None):
+        self._id += 1
+        msg = {"id": self._id, "method": method, "params": params or {}}
+        if session:
+            msg["sessionId"] = session
+        os.write(self._w_cmd, json.dumps(msg).encode() + b"\0")
+        return self._id
+
+    def wait(self, pred):
+        end = time.monotonic() + self.timeout
+        while True:
+            while b"\0" in self._buf:
+                raw, self._buf = self._buf.split(b"\0", 1)
+                msg = json.loads(raw)
+                self.events.append(msg)
+                if pred(msg):
+                    return msg
+            ready, _, _ = select.select([self._r_evt], [], [], max(0.0, end - time.monotonic()))
+            if not ready:
+                raise TimeoutError("Chromium did not answer in time")
+            chunk = os.read(self._r_evt, 1 << 16)
+            if not chunk:
+                raise EOFError("Chromium closed the DevTools pipe")
+            self._buf += chunk
+
+    def call(self, method, params=None, session=None):
+        i = self.send(method, params, session)
+        reply = self.wait(lambda m: m.get("id") == i)
+        assert "error" not in reply, reply
+        return reply["result"]
+
+    def close(self):
+        try:
+            self.send("Browser.close")
+            self.proc.wait(20)
+        except Exception:
+            self.proc.kill()
+            self.proc.wait(20)
+        finally:
+            os.close(self._w_cmd)
+            os.close(self._r_evt)
+            shutil.rmtree(self._profile, ignore_errors=True)
+
+
+_IMAGES_JS = """JSON.stringify({
+  title: document.title,
+  figures: document.querySelectorAll("figure").length,
+  sections: Array.from(document.querySelectorAll("section")).map(s => s.id),
+  images: Array.from(document.images).map(i => ({
+    id: i.closest("figure") ? i.closest("figure").id : null, complete: i.complete,
+    width: i.naturalWidth, height: i.naturalHeight,
+    shown: i.getBoundingClientRect().width}))})"""
+
+
+def test_chromium_loads_the_page_without_console_errors_and_shows_its_figures(reported):
+    exe = _chromium()
+    if exe is None:
+        pytest.skip("headless Chromium not found (Debian: apt-get install chromium; .ci/run "
+                    "installs it where apt is available; or set GLACIAR_CHROMIUM)")
+    import matplotlib.image as mpimg
+
+    run, _, html_text = reported
+    browser = _DevTools(exe)
+    try:
+        target = browser.call("Target.createTarget", {"url": "about:blank"})["targetId"]
+        sid = browser.call("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
+        for domain in ("Runtime", "Log", "Page"):
+            browser.call(f"{domain}.enable", session=sid)
+        browser.call("Page.navigate", {"url": (run / REPORT_NAME).resolve().as_uri()}, session=sid)
+        browser.wait(lambda m: m.get("method") == "Page.loadEventFired" and m.get("sessionId") == sid)
+        res = browser.call("Runtime.evaluate", {"expression": _IMAGES_JS, "returnByValue": True},
+                           session=sid)
+        info = json.loads(res["result"]["value"])
+    finally:
+        browser.close()
+    errors = [m["params"] for m in browser.events
+              if m.get("method") == "Runtime.exceptionThrown"
+              or (m.get("method") == "Runtime.consoleAPICalled"
+                  and m["params"].get("type") in ("error", "assert"))
+              or (m.get("method") == "Log.entryAdded"
+                  and m["params"]["entry"].get("level") == "error")]
+    assert errors == [], errors
+    assert info["title"].startswith("glaciar report")
+    assert info["sections"] == list(SECTIONS)
+    assert info["figures"] == len(info["images"]) == len(FITTED_FIGURES)
+    assert sorted(i["id"] for i in info["images"]) == sorted(FITTED_FIGURES)
+    # every figure decoded by the browser, at the PNG's own size, and laid out on the page
+    sizes = []
+    for img in _Page(html_text).images:
+        a = mpimg.imread(io.BytesIO(base64.b64decode(img["src"].split(",", 1)[1])), format="png")
+        sizes.append((a.shape[1], a.shape[0]))
+    for i in info["images"]:
+        assert i["complete"] and i["width"] > 100 and i["height"] > 100, i
+        assert i["shown"] > 100, i
+    assert sorted((i["width"], i["height"]) for i in info["images"]) == sorted(sizes)
+    assert math.isfinite(sum(i["shown"] for i in info["images"]))
