@@ -49,6 +49,8 @@ REPORT_NAME = "report.html"
 ADAPTIVE_ROUNDS_NAME = "adaptive_rounds.json"
 #: quantile planes of the file's grids, in the order the figures want them
 _PLANE_ORDER = (0.5, 0.16, 0.84, 0.025, 0.975)
+#: per-field per-cell tables are shown up to this many fields (the pooled one always)
+_MAX_FIELD_TABLES = 20
 #: structural FITS keywords left out of the header tables
 _STRUCTURAL = ("XTENSION", "BITPIX", "NAXIS", "PCOUNT", "GCOUNT", "TFIELDS", "TTYPE", "TFORM",
                "TUNIT", "TDIM", "EXTNAME", "EXTVER", "SIMPLE", "EXTEND", "TNULL", "TDISP")
@@ -63,7 +65,7 @@ def _read_ecsv(path):
 
 def _header_dict(header) -> dict:
     return {k: header[k] for k in header
-            if k and not any(k.startswith(s) for s in _STRUCTURAL)}
+            if k and k not in ("COMMENT", "HISTORY") and not any(k.startswith(s) for s in _STRUCTURAL)}
 
 
 def _grid_axes(header, shape):
@@ -361,7 +363,12 @@ def _status_section(d: dict) -> str:
                     "Fraction of injected sources in each status per magnitude", "fig-status")
     sum_cols = (["z", "mag", "n_input"] + cols + ["n_recovered", "n_selected", "completeness",
                                                    "selection_total", "selection"])
-    for name, s in d["summaries"].items():
+    shown = d["summaries"] if len(d["summaries"]) <= _MAX_FIELD_TABLES + 1 else \
+        {"all": d["summaries"]["all"]}
+    if len(shown) < len(d["summaries"]):
+        body += _note(f"{len(d['summaries']) - 1} fields: their per-cell tables are in "
+                      f"{C.SUMMARY_DIRNAME}/summary_<field>.ecsv")
+    for name, s in shown.items():
         src = "summary_all.ecsv" if name == "all" else f"summary_{name}.ecsv"
         rows = [[r[c] for c in sum_cols] for r in s[sum_cols].to_dict("records")]
         body += (f"<details><summary>Per (z, m) cell: {_e(name)} ({_e(src)})</summary>"
@@ -505,15 +512,17 @@ def _depth_section(d: dict) -> str:
         p["c_model_n"] = p["c_model"] * p["n"]
         g = p.groupby(["depth_lo", "mag"], sort=True)[["n", "k_rec", "c_model_n"]].sum()
         dl = np.unique(p["depth_lo"].to_numpy(float))
+        step = float(np.min(np.diff(dl))) if dl.size > 1 else 0.25
+        # every depth bin from the shallowest to the deepest (empty ones blank)
+        dl = dl[0] + step * np.arange(int(round((dl[-1] - dl[0]) / step)) + 1)
         mags = np.unique(p["mag"].to_numpy(float))
         obs = np.full((dl.size, mags.size), np.nan)
         mod = np.full_like(obs, np.nan)
-        idl = np.searchsorted(dl, g.index.get_level_values(0).to_numpy(float))
+        idl = np.rint((g.index.get_level_values(0).to_numpy(float) - dl[0]) / step).astype(int)
         im = np.searchsorted(mags, g.index.get_level_values(1).to_numpy(float))
         n = g["n"].to_numpy(float)
         obs[idl, im] = g["k_rec"].to_numpy(float) / n
         mod[idl, im] = g["c_model_n"].to_numpy(float) / n
-        step = float(np.min(np.diff(dl))) if dl.size > 1 else 0.25
         body += _figure(plot_depth_completeness(mags, dl, step, obs, mod, mag_label=_mag_label(m)),
                         f"Completeness by magnitude and local depth, all z (fit {fit['field']})",
                         f"fig-depth-{fit['field']}")
