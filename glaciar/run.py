@@ -546,6 +546,9 @@ def store_settings(cfg: Config) -> dict:
     """
     d = config_to_dict(cfg)
     d.pop("output", None)
+    # Definitions that change rows without a config key: a store made under another
+    # definition is another store.
+    d["classification"]["flux_test"] = "auto_vs_template"
     sv = d["survey"]
     sv.pop("fields", None)
     sv.pop("image_dir", None)

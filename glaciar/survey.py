@@ -122,6 +122,15 @@ def _read_header(path: Path):
         return hdul[idx].header.copy(), shape
 
 
+def _gz_alternative(path: Path) -> Path:
+    """``path``, or the same name with ``.gz`` added or removed when only that exists."""
+    if path.exists():
+        return path
+    alt = path.with_name(path.name[:-3]) if path.name.endswith(".gz") else \
+        path.with_name(path.name + ".gz")
+    return alt if alt.exists() else path
+
+
 def selection_bands(cfg: Config) -> tuple[str, ...]:
     """Bands whose columns the configuration's selection reads, in config order."""
     from .engine.selection import compile_selection
@@ -216,10 +225,14 @@ class Survey:
         return self.config.survey.band(band)
 
     def science_path(self, field: str, band: str) -> Path:
-        """Absolute path of the science image of ``field`` in ``band``."""
+        """Absolute path of the science image of ``field`` in ``band``.
+
+        When the templated file does not exist but the same name with ``.gz``
+        added or removed does, that one (mixed ``.fits`` / ``.fits.gz`` layouts).
+        """
         self._check(field, band)
         s = self.config.survey
-        return s.image_dir / s.science.format(field=field, band=band)
+        return _gz_alternative(s.image_dir / s.science.format(field=field, band=band))
 
     def noise_path(self, field: str, band: str) -> Path | None:
         """Absolute path of the weight or RMS map, or None if the config has none."""
@@ -227,7 +240,7 @@ class Survey:
         s = self.config.survey
         if s.noise is None:
             return None
-        return s.image_dir / s.noise.format(field=field, band=band)
+        return _gz_alternative(s.image_dir / s.noise.format(field=field, band=band))
 
     def _existing(self, path: Path, key: str, field: str, band: str) -> Path:
         if not path.is_file():

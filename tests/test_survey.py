@@ -282,3 +282,19 @@ def test_fits_and_region_masks(tmp_path):
     with pytest.raises(FileNotFoundError, match="survey.mask"):
         s.footprint("a")
 
+
+
+def test_gzipped_and_plain_images_mix(tmp_path):
+    """A layout where some images are .fits.gz and the template says .fits (or back) still runs."""
+    import gzip
+    import shutil
+
+    s = make_survey(tmp_path)
+    _filled(s)
+    plain = s.science_path("a", "f125w")
+    with open(plain, "rb") as src, gzip.open(str(plain) + ".gz", "wb") as dst:
+        shutil.copyfileobj(src, dst)
+    plain.unlink()
+    assert s.science_path("a", "f125w").name.endswith(".fits.gz")
+    np.testing.assert_array_equal(s.science("a", "f125w"), np.ones((40, 60), np.float32))
+    assert s.science_path("a", "f160w").name.endswith("_sci.fits")

@@ -834,7 +834,9 @@ class ClassificationConfig(Section):
                                         description="blended with a brighter source: recovered "
                                                     "if overlap < this ...")
     flux_tolerance: Float = Field(_cls("flux_tolerance"), gt=0, description="... and "
-                                  "|F_rec - F_in| / F_in < this")
+                                  "|F_AUTO - T_AUTO| / T_AUTO <= this (T_AUTO: the injected "
+                                  "template's flux through the detection's Kron ellipse; the "
+                                  "same whatever sn_definition)")
 
     @field_validator("search_box")
     @classmethod
