@@ -868,8 +868,8 @@ def placement_preflight(cfg: Config, survey: Survey) -> list[str]:
     Sizes are drawn as a task at the grid's lowest redshift and brightest
     magnitude would draw them (the largest sources of the run); the count that
     fits is :func:`glaciar.engine.positions.placement_capacity`'s random fill
-    of that footprint. Tasks then place fewer sources: still an unbiased
-    sample, only fewer per task.
+    of that footprint. Tasks then place fewer sources; those that fit lean
+    slightly toward small sizes when a crowded field ends the sequence early.
     """
     n = cfg.simulation.n_galaxies
     z, mag = min(cfg.grid.z_values), min(cfg.grid.mag_values)
