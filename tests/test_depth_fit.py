@@ -19,7 +19,8 @@ from astropy.cosmology import Planck18
 from scipy import stats
 
 from glaciar import constants as C
-from glaciar.inference import SelectionFunction, run_fit
+from glaciar.inference import SelectionFunction
+from glaciar.pipeline import run_fit
 from glaciar.store import read_manifest, read_results
 
 

@@ -8,9 +8,10 @@ import pandas as pd
 import pytest
 from scipy import special, stats
 
-from glaciar.inference import SelectionFunction, SurfaceModel, aggregate_cells, run_fit
+from glaciar.inference import SelectionFunction, SurfaceModel, aggregate_cells
 from glaciar.inference.diagnostics import compare_models, edge_report, psis_loo
-from glaciar.inference.fit import split_rhat
+from glaciar.inference.sampling import split_rhat
+from glaciar.pipeline import run_fit
 from glaciar.store import write_task_table
 
 

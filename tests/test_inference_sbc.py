@@ -55,7 +55,10 @@ the test stricter on mixing than the chains `glaciar fit` runs.
 ``GLACIAR_SBC_PILOT=full`` runs the production pilot (200 sets: coverage
 0.660 / 0.946 for C, 0.681 / 0.952 for S).  About 0.34 s of CPU per data set
 (measured: 74 s for the 220 sets), so ~11 s wall for the small test and ~40 s
-for the full one on 2 free cores.
+for the full one on 2 free cores.  Those figures are of glaciar's former private
+override of emcee's red-blue moves and autocorrelation time; emcee's stock moves
+and ``emcee.autocorr`` give the same chains (the same coverages) for ~20 % more
+CPU on data sets this small (220 sets: 92 s against 76 s; ``benchmarks/fit.py``).
 """
 import multiprocessing
 import os
@@ -68,7 +71,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-import glaciar.inference.fit as fit_module
+import glaciar.inference.sampling as sampling
 from glaciar.inference import SurfaceModel, aggregate_cells, fit_surfaces
 from glaciar.inference.fit import ConvergenceWarning
 
@@ -119,8 +122,8 @@ def one_set(k):
                             None, depth_ref=DEPTH_REF)
     # The fitted model is the one the pipeline would build from these cells.
     assert SurfaceModel.for_data(cells.z, cells.mag, depth_ref=DEPTH_REF) == mdl
-    stages = fit_module.PILOT_STAGES if PILOT == "full" else fit_module.PILOT_STAGES[:2]
-    with warnings.catch_warnings(), mock.patch.object(fit_module, "PILOT_STAGES", stages):
+    stages = sampling.PILOT_STAGES if PILOT == "full" else sampling.PILOT_STAGES[:2]
+    with warnings.catch_warnings(), mock.patch.object(sampling, "PILOT_STAGES", stages):
         warnings.simplefilter("ignore", ConvergenceWarning)
         res = fit_surfaces(cells, mdl, seed=[SEED, k], max_steps=STEPS, n_walkers=WALKERS)
     d = res.draws()

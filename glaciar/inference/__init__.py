@@ -1,13 +1,20 @@
-"""Bayesian completeness and selection surfaces: models, fit, diagnostics, proposals, export.
+"""Bayesian completeness and selection surfaces: models, fit, sampling, diagnostics, proposals.
 
-Everything here takes arrays (or tables) and returns results; reading a run
-directory and writing files is :mod:`glaciar.pipeline`'s job
-(:func:`run_fit` is re-exported from there for convenience).
+Arrays in, results out; no file I/O.  Reading a run directory, writing the
+selection-function file, the chains, tables and figures is
+:mod:`glaciar.pipeline`'s job (``glaciar fit`` is :func:`glaciar.pipeline.run_fit`).
+
+- :mod:`~glaciar.inference.models` -- the surfaces C(m, z) and S(z, m), priors, likelihood;
+- :mod:`~glaciar.inference.fit` -- aggregation into cells, MAP, :func:`fit_surfaces`,
+  :func:`fit_and_choose` (completeness step by PSIS-LOO);
+- :mod:`~glaciar.inference.sampling` -- emcee per parameter block, convergence;
+- :mod:`~glaciar.inference.diagnostics` -- PPC, PSIS-LOO, redshift-edge check;
+- :mod:`~glaciar.inference.selection_function` -- the fitted selection function, V_eff;
+- :mod:`~glaciar.inference.adaptive` -- where to simulate next.
 """
 from .adaptive import propose_cells
 from .fit import (ConvergenceWarning, FitResult, aggregate_cells, find_map, fit_and_choose,
-                  fit_surfaces,
-                  laplace_covariance)
+                  fit_surfaces, laplace_covariance)
 from .models import COMPLETENESS_SHAPES, Cells, SurfaceModel
 from .selection_function import EffectiveVolume, SelectionFunction
 
@@ -17,7 +24,8 @@ __all__ = ["propose_cells", "ConvergenceWarning", "FitResult", "aggregate_cells"
 
 
 def __getattr__(name):
-    # run_fit lives at the I/O edge (glaciar.pipeline), which imports this package.
+    # Kept for old imports: run_fit lives at the I/O edge (glaciar.pipeline), which
+    # imports this package, so it is looked up only when asked for.
     if name == "run_fit":
         from ..pipeline import run_fit
         return run_fit

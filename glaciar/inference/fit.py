@@ -1,38 +1,8 @@
-"""Fit the surfaces: aggregate the flags, find the MAP, sample with emcee.
+"""Fit the surfaces: aggregate the flags, find the MAP, sample, choose the step.
 
-Sampler design
---------------
-The posterior is sampled with :class:`emcee.EnsembleSampler` (vectorised
-log-probability) using a mixture of three Metropolis-Hastings moves that all
-leave the posterior invariant:
-
-- an *independence* move (30 %) whose proposal is a multivariate Student t
-  (5 degrees of freedom), started from the MAP and the Laplace covariance
-  (the inverse Hessian of the log posterior) and re-fitted to the stages of
-  a discarded pilot run until it is stable (:data:`PILOT_STAGES`).  With
-  thousands of sources the posterior is close to Gaussian, acceptance is
-  high and the integrated autocorrelation time tau is a few steps;
-- emcee's differential-evolution move (30 %) and stretch move (40 %), which
-  keep the ensemble mixing where the posterior is far from Gaussian (small
-  data sets, parameters bounded by the data on one side only, such as a
-  selection edge outside the simulated z range).  Against the earlier
-  60/20/20 weights they cut tau of such an edge from ~290 to ~70 steps, at
-  the price of tau ~7 instead of ~3 steps where the posterior is Gaussian.
-
-Convergence: the chain is extended in blocks until it is at least 50 tau long
-(tau the largest per-parameter integrated autocorrelation time, estimated as
-:func:`emcee.autocorr.integrated_time` does, vectorised in :func:`_tau`) and
-that largest tau changed by less than 10 % since the previous block, or until
-``max_steps``; a :class:`ConvergenceWarning` is issued otherwise.  Burn-in is
-2 tau, thinning tau / 2.
-
-Cost per step: the log posterior of a block is :class:`BlockPosterior`
-(terms shared by cells evaluated once, one log1p and one log per cell), and
-emcee's red-blue moves run with a vectorised accept step (bit-identical
-chains).  More weight on the independence move (80 %) lowers tau at 1e6
-sources, but lets walkers stick in a heavy tail (logit
-S_max of a sharp, nearly complete selection: tau 75 instead of 11 steps on
-the 2800-source test data).
+Arrays in, results out: per-source flags (a table) or aggregated :class:`Cells`
+in, a :class:`FitResult` out; nothing here reads or writes files (that is
+:mod:`glaciar.pipeline`).  The sampler itself is :mod:`glaciar.inference.sampling`.
 
 Aggregation (exact, or with a stated resolution)
 ------------------------------------------------
@@ -49,35 +19,23 @@ exact per-source likelihood).
 """
 from __future__ import annotations
 
-import math
 import time
 import warnings
-from dataclasses import dataclass, field
 
-import emcee
 import numpy as np
 import pandas as pd
 from scipy import optimize
 
 from ..constants import COL_DEPTH, COL_MAG_INPUT, COL_RECOVERED, COL_SELECTED, COL_Z
 from .models import Cells, SurfaceModel
+from .sampling import (DEFAULT_MAX_STEPS, BlockChain, ConvergenceWarning, FitResult,
+                       sample_block, split_rhat)
 
 __all__ = ["ConvergenceWarning", "aggregate_cells", "find_map", "laplace_covariance",
-           "FitResult", "fit_surfaces", "DEFAULT_MAG_RESOLUTION"]
+           "BlockChain", "FitResult", "fit_surfaces", "fit_and_choose", "split_rhat",
+           "DEFAULT_MAG_RESOLUTION", "DEFAULT_MAX_STEPS"]
 
 DEFAULT_MAG_RESOLUTION = 0.01    #: [mag] grouping resolution for continuous mag_input
-_T_DOF = 5.0                      # Student-t proposal degrees of freedom
-_MOVE_WEIGHTS = (0.3, 0.3, 0.4)   # independence, differential evolution, stretch
-#: Stages of the discarded pilot run that sets the independence proposal [steps];
-#: it stops after the second stage once the proposal is stable.  A single 50-step
-#: pilot left tau underestimated by 30-50 % where an edge lies outside the data.
-PILOT_STAGES = (50, 150, 400, 1000, 2500)
-#: Default cap on each block's chain length per call [steps].
-DEFAULT_MAX_STEPS = 20000
-
-
-class ConvergenceWarning(UserWarning):
-    """The chain stopped at ``max_steps`` before reaching 50 autocorrelation times."""
 
 
 # --------------------------------------------------------------------------
@@ -299,381 +257,16 @@ def _hessian(lp_fn, x, h):
     return H
 
 
-# --------------------------------------------------------------------------
-# Sampler
-# --------------------------------------------------------------------------
-class _StudentT:
-    """Multivariate Student t proposal: draws and log density (up to a constant)."""
-
-    def __init__(self, mean, cov, dof=_T_DOF):
-        self.mean = np.asarray(mean, float)
-        self.cov = np.asarray(cov, float)
-        self.L = np.linalg.cholesky(cov)
-        self.Linv = np.linalg.inv(self.L)
-        self.dof = dof
-
-    def draw(self, n, rng):
-        P = len(self.mean)
-        g = rng.standard_normal((n, P)) @ self.L.T
-        chi2 = rng.chisquare(self.dof, size=n)
-        return self.mean + g * np.sqrt(self.dof / chi2)[:, None]
-
-    def logpdf(self, x):
-        d = (np.asarray(x) - self.mean) @ self.Linv.T
-        return -0.5 * (self.dof + len(self.mean)) * np.log1p(np.sum(d * d, axis=-1) / self.dof)
-
-    def proposal(self, coords, rng):
-        new = self.draw(len(coords), rng)
-        return new, self.logpdf(coords) - self.logpdf(new)
-
-
-class _VectorisedRedBlue:
-    """Mixin: emcee's red-blue ``propose`` with the accept/reject loop vectorised.
-
-    emcee draws one uniform per walker in a Python loop; ``random.rand(n)``
-    draws the same numbers from the same stream in the same order, so the
-    chains are bit-identical to emcee's own move (tested), at a fraction of
-    the per-step cost when the log-probability is cheap.
-    """
-
-    def propose(self, model, state):
-        nwalkers, ndim = state.coords.shape
-        if nwalkers < 2 * ndim and not self.live_dangerously:
-            raise RuntimeError("a red-blue move needs at least twice as many walkers as dimensions")
-        self.setup(state.coords)
-        accepted = np.zeros(nwalkers, dtype=bool)
-        inds = np.arange(nwalkers) % self.nsplits
-        if self.randomize_split:
-            model.random.shuffle(inds)
-        for split in range(self.nsplits):
-            S1 = inds == split
-            sets = [state.coords[inds == j] for j in range(self.nsplits)]
-            q, factors = self.get_proposal(sets[split], sets[:split] + sets[split + 1:], model.random)
-            new_log_probs, new_blobs = model.compute_log_prob_fn(q)
-            lnpdiff = factors + new_log_probs - state.log_prob[S1]
-            accepted[S1] = lnpdiff > np.log(model.random.rand(len(lnpdiff)))
-            state = self.update(state, emcee.State(q, log_prob=new_log_probs, blobs=new_blobs),
-                                accepted, S1)
-        return state, accepted
-
-
-class _DEMove(_VectorisedRedBlue, emcee.moves.DEMove):
-    pass
-
-
-class _StretchMove(_VectorisedRedBlue, emcee.moves.StretchMove):
-    pass
-
-
-@dataclass
-class BlockChain:
-    """The emcee chain of one parameter block ("c": completeness, "s": selection).
-
-    Attributes
-    ----------
-    part : str
-    index : ndarray of int
-        Positions of the block's parameters in the full parameter vector.
-    chain : ndarray (n_steps, n_walkers, n_block)
-    log_prob : ndarray (n_steps, n_walkers)
-    n_accepted : ndarray (n_walkers,)
-        Accepted proposals per walker over the whole chain.
-    tau : ndarray (n_block,)
-        Integrated autocorrelation time per parameter [steps].
-    burn, thin : int
-    converged : bool
-    random_state : tuple
-        State of the block sampler's random generator at the end (for resuming).
-    laplace_cov : ndarray (n_block, n_block)
-        Covariance of the independence proposal (Laplace, re-estimated by the pilot).
-    proposal_mean : ndarray (n_block,)
-        Centre of the independence proposal.
-    """
-
-    part: str
-    index: np.ndarray
-    chain: np.ndarray
-    log_prob: np.ndarray
-    n_accepted: np.ndarray
-    tau: np.ndarray
-    burn: int
-    thin: int
-    converged: bool
-    random_state: tuple
-    laplace_cov: np.ndarray
-    proposal_mean: np.ndarray
-
-    @property
-    def n_steps(self) -> int:
-        return self.chain.shape[0]
-
-    @property
-    def acceptance_fraction(self) -> np.ndarray:
-        return self.n_accepted / max(self.n_steps, 1)
-
-    def flat(self) -> np.ndarray:
-        return self.chain[self.burn::self.thin].reshape(-1, self.chain.shape[-1])
-
-    @property
-    def ess(self) -> np.ndarray:
-        """Effective sample size per parameter: walkers x (steps - burn-in) / tau."""
-        return self.chain.shape[1] * (self.n_steps - self.burn) / np.maximum(self.tau, 1.0)
-
-    @property
-    def split_rhat(self) -> np.ndarray:
-        """Split R-hat per parameter (Gelman et al. 2013), each walker's post-burn-in
-        chain split in halves and treated as a chain; ~1 when the walkers agree."""
-        return split_rhat(self.chain[self.burn:])
-
-
-@dataclass
-class FitResult:
-    """The outcome of :func:`fit_surfaces`.
-
-    The posterior factorises into the completeness parameters (recovered
-    flags) and the selection parameters (selected-given-recovered flags), so
-    each block is sampled by its own ensemble; a joint draw pairs the i-th
-    draws of the two blocks, which are independent.
-
-    Attributes
-    ----------
-    model : SurfaceModel
-    theta_map : ndarray (P,)
-    blocks : list of BlockChain
-    wall_time : float
-        Seconds spent in this call (MAP + sampling).
-    info : dict
-    """
-
-    model: SurfaceModel
-    theta_map: np.ndarray
-    blocks: list
-    wall_time: float = 0.0
-    info: dict = field(default_factory=dict)
-
-    def _per_param(self, attr):
-        out = np.empty(self.model.n_params)
-        for b in self.blocks:
-            out[b.index] = getattr(b, attr) if np.ndim(getattr(b, attr)) else getattr(b, attr)
-        return out
-
-    @property
-    def tau(self) -> np.ndarray:
-        """Integrated autocorrelation time per parameter [steps of its block's chain]."""
-        return self._per_param("tau")
-
-    @property
-    def converged(self) -> bool:
-        return all(b.converged for b in self.blocks)
-
-    @property
-    def ess(self) -> np.ndarray:
-        """Effective sample size per parameter (see :attr:`BlockChain.ess`)."""
-        return self._per_param("ess")
-
-    @property
-    def split_rhat(self) -> np.ndarray:
-        """Split R-hat per parameter (see :func:`split_rhat`)."""
-        return self._per_param("split_rhat")
-
-    @property
-    def acceptance_fraction(self) -> np.ndarray:
-        """Mean acceptance fraction of each block's walkers, per parameter."""
-        out = np.empty(self.model.n_params)
-        for b in self.blocks:
-            out[b.index] = np.mean(b.acceptance_fraction)
-        return out
-
-    @property
-    def n_steps(self) -> np.ndarray:
-        return self._per_param("n_steps")
-
-    def draws(self, max_draws: int | None = 4000) -> np.ndarray:
-        """Joint posterior draws (after burn-in and thinning), shape (n, P).
-
-        ``n`` is the smaller of the blocks' draw counts and ``max_draws``;
-        each block's draws are taken evenly spaced along its thinned chain.
-        """
-        flats = [b.flat() for b in self.blocks]
-        n = min(len(f) for f in flats)
-        if max_draws is not None:
-            n = min(n, int(max_draws))
-        out = np.empty((n, self.model.n_params))
-        for b, f in zip(self.blocks, flats):
-            out[:, b.index] = f[np.linspace(0, len(f) - 1, n).round().astype(int)]
-        return out
-
-
-def _tau(chain, c: float = 5.0) -> np.ndarray:
-    """Integrated autocorrelation time per parameter of an ensemble chain [steps].
-
-    The estimator of :func:`emcee.autocorr.integrated_time` (tol=0): the
-    normalised autocorrelation function of each walker, averaged over the
-    walkers, summed up to Sokal's window M >= c tau.  Vectorised over walkers
-    (one FFT per parameter instead of one per walker and parameter); equal to
-    emcee's to rounding (tested to 1e-10).
-
-    Parameters
-    ----------
-    chain : ndarray (n_steps, n_walkers, n_params)
-
-    Returns
-    -------
-    ndarray (n_params,)
-    """
-    x = np.asarray(chain, float)
-    n = x.shape[0]
-    nfft = 2 * (1 << max(0, int(n - 1).bit_length()))          # emcee: 2 * next power of two
-    out = np.empty(x.shape[2])
-    steps = np.arange(n)
-    for d in range(x.shape[2]):
-        y = x[:, :, d]
-        f = np.fft.rfft(y - y.mean(axis=0), n=nfft, axis=0)
-        acf = np.fft.irfft(f.real ** 2 + f.imag ** 2, n=nfft, axis=0)[:n]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rho = np.mean(acf / acf[0], axis=1)
-        taus = 2.0 * np.cumsum(rho) - 1.0
-        m = steps < c * taus
-        out[d] = taus[int(np.argmin(m)) if np.any(m) else n - 1]
-    return out
-
-
-def split_rhat(chain) -> np.ndarray:
-    """Split R-hat of an ensemble chain (n_steps, n_walkers, n_params), per parameter.
-
-    Every walker's chain is split in two halves; with m = 2 W chains of n
-    steps, R-hat = sqrt(((n - 1)/n W_within + B/n) / W_within) (Gelman et al.
-    2013, BDA3 eq. 11.4 with split chains).
-    """
-    x = np.asarray(chain, float)
-    n = x.shape[0] // 2
-    if n < 2:
-        return np.full(x.shape[-1], np.nan)
-    halves = np.concatenate([x[:n], x[-n:]], axis=1)          # (n, 2W, P)
-    means = halves.mean(axis=0)
-    within = halves.var(axis=0, ddof=1).mean(axis=0)
-    between = n * means.var(axis=0, ddof=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.sqrt(((n - 1) / n * within + between / n) / within)
-
-
-def _sample_block(model, cells, part, theta_map, cov, seed, n_walkers, max_steps, min_steps,
-                  block, callback, resume: BlockChain | None):
-    idx = model.block_indices(part)
-    P = len(idx)
-    base = np.asarray(theta_map, float)
-
-    log_prob = model.block_log_posterior(cells, part)
-
-    if n_walkers is None:
-        n_walkers = max(32, 2 * P + 2)
-    n_walkers = int(n_walkers) + int(n_walkers) % 2
-    if n_walkers < 2 * P:
-        raise ValueError(f"n_walkers={n_walkers} must be at least 2 * n_params = {2 * P}")
-    if resume is not None:
-        cov = resume.laplace_cov
-        n_walkers = resume.chain.shape[1]
-    prop = _StudentT(base[idx], cov) if resume is None else _StudentT(resume.proposal_mean, cov)
-    moves = [(mv, w) for mv, w in zip((emcee.moves.MHMove(prop.proposal), _DEMove(),
-                                       _StretchMove()), _MOVE_WEIGHTS) if w > 0]
-    # emcee converts the returned log-probabilities one walker at a time; a list of
-    # Python floats makes that loop several times cheaper than an ndarray.
-    sampler = emcee.EnsembleSampler(n_walkers, P, lambda x: log_prob(x).tolist(), moves=moves,
-                                    vectorize=True)
-    if resume is None:
-        rs = np.random.RandomState(seed.generate_state(8))
-        # Walkers start from the (over-dispersed) t proposal: near stationarity already.
-        p0 = prop.draw(n_walkers, rs)
-        lp0 = log_prob(p0)
-        for _ in range(100):
-            bad = ~np.isfinite(lp0)
-            if not bad.any():
-                break
-            p0[bad] = prop.draw(int(bad.sum()), rs)
-            lp0[bad] = log_prob(p0[bad])
-        if not np.all(np.isfinite(lp0)):
-            raise RuntimeError("could not place walkers where the posterior is finite")
-        state = emcee.State(p0, log_prob=lp0, random_state=rs.get_state())
-        # Pilot run, discarded: re-centre and re-scale the independence proposal on
-        # the pilot's second half, which follows skewed posteriors (a C_max or S_max
-        # near 1, an edge outside the data) far better than the Laplace approximation.
-        # Stages of growing length, each re-fitting the proposal to the second half of
-        # its chain, until the proposal's centre and spread stop changing: a posterior
-        # bounded on one side only (an edge outside the simulated range, an edge
-        # between two simulated redshifts) is explored by the differential-evolution
-        # and stretch moves, and the proposal widens to it.  The chain proper then
-        # runs with a fixed proposal (no adaptation), so it is a valid MCMC.
-        for stage in PILOT_STAGES:
-            sampler.reset()
-            state = sampler.run_mcmc(state, stage, progress=False, skip_initial_state_check=True)
-            pil = sampler.get_chain()[stage // 2:].reshape(-1, P)
-            pcov = np.cov(pil, rowvar=False)
-            old_mean, old_sd = prop.mean.copy(), np.sqrt(np.diag(prop.cov))
-            try:
-                prop.__init__(pil.mean(axis=0),
-                              0.5 * (pcov + pcov.T) + 1e-12 * np.diag(np.diag(cov)))
-                cov = prop.cov
-            except np.linalg.LinAlgError:
-                continue
-            sd = np.sqrt(np.diag(prop.cov))
-            if (stage >= PILOT_STAGES[1] and np.all(np.abs(prop.mean - old_mean) < 0.2 * sd)
-                    and np.all(np.abs(np.log(sd / old_sd)) < 0.2)):
-                break
-        sampler.reset()
-        chains, lps, n_acc = [], [], np.zeros(n_walkers)
-    else:
-        state = emcee.State(resume.chain[-1].copy(), log_prob=resume.log_prob[-1].copy(),
-                            random_state=resume.random_state)
-        chains, lps, n_acc = [resume.chain], [resume.log_prob], resume.n_accepted.copy()
-
-    done = sum(c.shape[0] for c in chains)
-    # max_steps counts the steps of this call, so a re-run continues past an earlier cap.
-    limit = done + int(max_steps)
-    tau_prev, tau = None, None
-    converged = False
-    while True:
-        if done >= min_steps:
-            tau = _tau(np.concatenate(chains))
-            # The 50-tau rule is on the largest tau; its stability is judged on the same
-            # number (per-parameter estimates of short chains scatter by ~10 % each).
-            tmax_now = float(np.max(tau))
-            converged = (done >= 50 * tmax_now and tau_prev is not None
-                         and abs(tmax_now - float(np.max(tau_prev))) < 0.1 * tmax_now)
-            tau_prev = tau
-            if converged or done >= limit:
-                break
-        nb = min(block, limit - done)
-        if nb <= 0:
-            break
-        sampler.reset()
-        state = sampler.run_mcmc(state, nb, progress=False, skip_initial_state_check=True)
-        chains.append(sampler.get_chain())
-        lps.append(sampler.get_log_prob())
-        n_acc = n_acc + sampler.backend.accepted
-        done += nb
-        if callback is not None:
-            callback(nb)
-    chain = np.concatenate(chains)
-    if tau is None:
-        tau = _tau(chain)
-    tmax = float(np.max(tau))
-    if not converged:
-        warnings.warn(f"emcee chain ({part} block) of {done} steps is shorter than 50 "
-                      f"autocorrelation times (tau = {tmax:.1f} steps) or tau is still changing; "
-                      f"raise max_steps (this call ran {max_steps}) or re-run the fit to extend it",
-                      ConvergenceWarning, stacklevel=3)
-    return BlockChain(part=part, index=idx, chain=chain, log_prob=np.concatenate(lps),
-                      n_accepted=n_acc, tau=tau, burn=min(int(math.ceil(2 * tmax)), done // 2),
-                      thin=max(1, int(0.5 * float(np.min(tau)))), converged=bool(converged),
-                      random_state=state.random_state, laplace_cov=cov,
-                      proposal_mean=prop.mean)
-
-
 def fit_surfaces(cells: Cells, model: SurfaceModel, *, seed=0, n_walkers: int | None = None,
                  max_steps: int = DEFAULT_MAX_STEPS, min_steps: int = 100, block: int = 100,
                  callback=None, resume: FitResult | None = None,
                  theta_map=None) -> FitResult:
-    """MAP start, then emcee until 50 autocorrelation times or ``max_steps``.
+    """MAP start, then emcee per block until 50 autocorrelation times or ``max_steps``.
+
+    Each block (completeness, selection) is sampled by
+    :func:`glaciar.inference.sampling.sample_block` on its own log posterior
+    (:meth:`SurfaceModel.block_log_posterior`), from the MAP and the Laplace
+    covariance of the block.
 
     Parameters
     ----------
@@ -714,13 +307,14 @@ def fit_surfaces(cells: Cells, model: SurfaceModel, *, seed=0, n_walkers: int | 
     for i, part in enumerate(("c", "s")):
         prev = None if resume is None else resume.blocks[i]
         cov = None if prev is not None else laplace_covariance(model, cells, theta_map, part)
-        blocks.append(_sample_block(model, cells, part, theta_map, cov, seeds[i], n_walkers,
-                                    max_steps, min_steps, block, callback, prev))
+        log_prob = model.block_log_posterior(cells, part)
+        blocks.append(sample_block(log_prob, log_prob.index, np.asarray(theta_map, float)[log_prob.index],
+                                   cov, seeds[i], part=part, n_walkers=n_walkers,
+                                   max_steps=max_steps, min_steps=min_steps, block=block,
+                                   callback=callback, resume=prev))
     return FitResult(model=model, theta_map=np.asarray(theta_map, float), blocks=blocks,
                      wall_time=time.perf_counter() - t0,
                      info={"n_cells": len(cells), "n_sources": cells.n_sources})
-
-
 
 
 def fit_and_choose(cells: Cells, shapes=None, *, depth_ref=None, seed=0, n_walkers=None,

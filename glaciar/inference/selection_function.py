@@ -1,4 +1,4 @@
-"""The exported selection function: evaluate, sample, effective volume; FITS I/O.
+"""The exported selection function: evaluate, sample, effective volume.
 
 Three quantities, each with one name (so that nothing is multiplied twice):
 
@@ -12,13 +12,13 @@ fields' area-by-depth distributions (the one the file's grids tabulate):
 C̄ = Σ_j A_j C(m | d_j) / Σ A_j, P̄ likewise, and S̄ = P̄ / C̄, so that C̄ S̄ = P̄
 draw by draw.  With ``depth`` they are the surfaces at that local depth.
 
-The file layout is documented in ``docs/selection-function-file.md`` so that
-it can be read without glaciar.
+No file I/O here: the file (layout in ``docs/selection-function-file.md``, so
+that it can be read without glaciar) is written and read by
+:mod:`glaciar.pipeline.selection_file`; ``SelectionFunction.read`` and
+``write`` forward to it.
 """
 from __future__ import annotations
 
-import io
-import json
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,10 +26,10 @@ import numpy as np
 from .models import SurfaceModel
 
 __all__ = ["SelectionFunction", "EffectiveVolume", "MagnitudeAt", "GRID_QUANTILES",
-           "FILE_FORMAT", "MAX_DEPTH_NODES"]
+           "MAX_DEPTH_NODES"]
 
-GRID_QUANTILES = (0.5, 0.16, 0.84, 0.025, 0.975)   #: planes of the C/SR/P grid cubes
-FILE_FORMAT = "glaciar-selection-function-2"
+#: Posterior quantiles tabulated per grid point (and per parameter) in the file.
+GRID_QUANTILES = (0.5, 0.16, 0.84, 0.025, 0.975)
 #: The area-by-depth histogram (0.05 mag bins) is merged into at most this many
 #: depth nodes, each at the area-weighted mean depth of its bins: the surfaces
 #: are smooth in depth on the scale of w (~0.3 mag), so the error of the mixture
@@ -498,175 +498,30 @@ class SelectionFunction:
             raise ValueError(f"which must be 'C', 'S' or 'P', not {which!r}")
         return np.quantile(self.grid_draws(z_grid, m_grid, field)[which], quantiles, axis=0)
 
-    # --------------------------------------------------------------------- I/O
-    def _hdus(self, extver: int):
-        from astropy.io import fits
-        from astropy.table import Table
-
-        mdl = self.model
-        hdus = []
-        h = fits.table_to_hdu(Table(self.draws, names=mdl.param_names))
-        h.name, h.ver = "DRAWS", extver
-        h.header["FIELD"] = (self.field, "field of this fit; all = pooled")
-        h.header["MODEL"] = (mdl.shape, "completeness step shape")
-        for k, v in mdl.to_header_dict().items():
-            h.header[k] = v if not (isinstance(v, float) and np.isnan(v)) else "NONE"
-        for key, (lo, hi) in self.domain.items():
-            tag = {"z": "Z", "mag": "M", "depth": "D"}[key]
-            h.header[f"{tag}MIN"] = (lo, f"simulated {key} range, lower end")
-            h.header[f"{tag}MAX"] = (hi, f"simulated {key} range, upper end")
-        for k, v in self.fit_info.items():
-            if np.isscalar(v) and k.upper()[:8] not in h.header:
-                h.header[k.upper()[:8]] = v
-        hdus.append(h)
-        q = np.quantile(self.draws, [0.5, 0.16, 0.84, 0.025, 0.975], axis=0)
-        cols = {"name": mdl.param_names, "prior_mean": mdl.prior_mean, "prior_sd": mdl.prior_sd,
-                "median": q[0], "q16": q[1], "q84": q[2], "q025": q[3], "q975": q[4]}
-        for k in ("tau", "ess", "rhat"):
-            if k in self.diagnostics:
-                cols[k] = np.asarray(self.diagnostics[k], float)
-        h = fits.table_to_hdu(Table(cols))
-        h.name, h.ver = "PARAMS", extver
-        h.header["FIELD"] = self.field
-        hdus.append(h)
-        if self.z_grid is not None and self.m_grid is not None:
-            zg, mg = self.z_grid, self.m_grid
-            gd = self.grid_draws()
-            for which, ext in (("C", "C_GRID"), ("S", "SR_GRID"), ("P", "P_GRID")):
-                img = fits.ImageHDU(np.quantile(gd[which], GRID_QUANTILES, axis=0).astype(np.float32),
-                                    name=ext, ver=extver)
-                hh = img.header
-                hh["FIELD"] = self.field
-                hh["CTYPE1"], hh["CRPIX1"], hh["CRVAL1"] = "MAG", 1.0, float(mg[0])
-                hh["CDELT1"] = float(mg[1] - mg[0]) if len(mg) > 1 else 1.0
-                hh["CUNIT1"] = "mag"
-                hh["CTYPE2"], hh["CRPIX2"], hh["CRVAL2"] = "REDSHIFT", 1.0, float(zg[0])
-                hh["CDELT2"] = float(zg[1] - zg[0]) if len(zg) > 1 else 1.0
-                hh["CTYPE3"] = "QUANTILE"
-                for k, qv in enumerate(GRID_QUANTILES):
-                    hh[f"QUANT{k + 1}"] = (qv, f"posterior quantile of plane {k + 1}")
-                hh["QUANTITY"] = {"C": "completeness C(m,z), area-weighted over depth",
-                                  "S": "selected given recovered = P/C",
-                                  "P": "selection probability P(rec and sel|z,m)"}[which]
-                hdus.append(img)
-        if self.ppc is not None and len(self.ppc):
-            h = fits.table_to_hdu(Table(self.ppc))
-            h.name, h.ver = "PPC", extver
-            h.header["FIELD"] = self.field
-            hdus.append(h)
-        if self.depth_area:
-            rows = [(f, lo, hi, a) for f, (e, aa) in sorted(self.depth_area.items())
-                    for lo, hi, a in zip(e[:-1], e[1:], aa)]
-            t = Table(rows=rows, names=("field", "depth_lo", "depth_hi", "area_arcmin2"))
-            h = fits.table_to_hdu(t)
-            h.name, h.ver = "DEPTH", extver
-            h.header["FIELD"] = self.field
-            hdus.append(h)
-        return hdus
-
+    # ------------------------------------------------------------------ the file
+    # The FITS layout is written and read at the edge, glaciar.pipeline.selection_file
+    # (docs/selection-function-file.md); these forward to it, because
+    # ``glaciar.SelectionFunction.read(path)`` is how a luminosity-function code reads it.
     @staticmethod
     def to_bytes(fits_list: list["SelectionFunction"], meta: dict | None = None) -> bytes:
-        """Serialise one or more fits (e.g. one per field) into one FITS file."""
-        from astropy.io import fits
-        from astropy.table import Table
-
-        from .. import __version__
-
-        if not fits_list:
-            raise ValueError("to_bytes: nothing to write")
-        meta = dict(meta if meta is not None else fits_list[0].meta)
-        ph = fits.PrimaryHDU()
-        ph.header["FORMAT"] = (FILE_FORMAT, "see docs/selection-function-file.md")
-        ph.header["GLACVER"] = (__version__, "glaciar version that wrote the file")
-        ph.header["MODEL"] = (fits_list[0].model.shape, "completeness step shape")
-        ph.header["MAGTYPE"] = (str(meta.get("magnitude_type", "apparent")),
-                                "m: apparent (AB) or absolute (M_UV)")
-        ph.header["DEPTHAW"] = (bool(fits_list[0].model.depth_aware), "depth-aware model")
-        ph.header["NFITS"] = (len(fits_list), "number of fits (EXTVER 1..NFITS)")
-        for i, sf in enumerate(fits_list):
-            ph.header[f"FIELD{i + 1}"] = sf.field
-        total = SelectionFunction(fits_list[0].model, fits_list[0].draws[:1], meta=meta).area_arcmin2()
-        if total is None:
-            areas = [sf.area_arcmin2() for sf in fits_list]
-            if all(a is not None for a in areas):
-                total = areas[0] if fits_list[0].field == "all" else sum(areas)
-        if total is not None:
-            ph.header["AREA"] = (total, "survey area, all fields [arcmin2]")
-        if meta.get("detection_band"):
-            ph.header["DETBAND"] = str(meta["detection_band"])
-        if meta.get("config_hash"):
-            ph.header["CONFHASH"] = str(meta["config_hash"])
-        keys = sorted(meta)
-        mt = Table({"key": keys, "value": [json.dumps(meta[k], default=str) for k in keys]})
-        mh = fits.table_to_hdu(mt)
-        mh.name = "META"
-        hdus = [ph, mh]
-        for i, sf in enumerate(fits_list):
-            hdus += sf._hdus(i + 1)
-        buf = io.BytesIO()
-        fits.HDUList(hdus).writeto(buf)
-        return buf.getvalue()
+        """One or more fits as the bytes of one file (:func:`glaciar.pipeline.selection_file.to_bytes`)."""
+        from ..pipeline import selection_file
+        return selection_file.to_bytes(fits_list, meta)
 
     def write(self, path) -> None:
-        """Write this fit alone to ``path`` (atomically)."""
-        from ..store import atomic_write_bytes
-        atomic_write_bytes(path, SelectionFunction.to_bytes([self]))
+        """This fit alone, to ``path`` (:func:`glaciar.pipeline.selection_file.write`)."""
+        from ..pipeline import selection_file
+        selection_file.write([self], path)
 
     @classmethod
     def read_all(cls, path) -> dict[str, "SelectionFunction"]:
-        """All fits in the file, keyed by field name."""
-        from astropy.io import fits
-
-        out = {}
-        with fits.open(path, memmap=False) as hdul:
-            if hdul[0].header.get("FORMAT") != FILE_FORMAT:
-                raise ValueError(f"{path}: not a glaciar selection-function file of this version "
-                                 f"(FORMAT={hdul[0].header.get('FORMAT')!r}, expected {FILE_FORMAT!r})")
-            meta = {}
-            if "META" in hdul:
-                t = _native(hdul["META"].data)
-                for k, v in zip(t["key"], t["value"]):
-                    meta[str(k)] = json.loads(str(v))
-            nfits = int(hdul[0].header["NFITS"])
-            for v in range(1, nfits + 1):
-                dh = hdul["DRAWS", v]
-                hdr = dict(dh.header)
-                if hdr.get("DEPTHREF") == "NONE":
-                    hdr["DEPTHREF"] = float("nan")
-                model = SurfaceModel.from_header_dict(hdr)
-                t = _native(dh.data)
-                draws = np.column_stack([np.asarray(t[n], float) for n in model.param_names])
-                domain = {}
-                for key, tag in (("z", "Z"), ("mag", "M"), ("depth", "D")):
-                    if f"{tag}MIN" in hdr:
-                        domain[key] = (float(hdr[f"{tag}MIN"]), float(hdr[f"{tag}MAX"]))
-                zg = mg = None
-                if ("C_GRID", v) in hdul:
-                    gh = hdul["C_GRID", v].header
-                    n_m, n_z = gh["NAXIS1"], gh["NAXIS2"]
-                    mg = gh["CRVAL1"] + (np.arange(n_m) + 1 - gh["CRPIX1"]) * gh["CDELT1"]
-                    zg = gh["CRVAL2"] + (np.arange(n_z) + 1 - gh["CRPIX2"]) * gh["CDELT2"]
-                ppc = _native(hdul["PPC", v].data) if ("PPC", v) in hdul else None
-                depth_area = {}
-                if ("DEPTH", v) in hdul:
-                    d = _native(hdul["DEPTH", v].data)
-                    for f in np.unique(d["field"]):
-                        r = d[d["field"] == f]
-                        depth_area[str(f)] = (np.append(r["depth_lo"], r["depth_hi"][-1]),
-                                              np.asarray(r["area_arcmin2"], float))
-                diag = {}
-                p = _native(hdul["PARAMS", v].data)
-                for k in ("tau", "ess", "rhat"):
-                    if k in p.dtype.names:
-                        diag[k] = np.asarray(p[k], float)
-                field = str(hdr.get("FIELD", "all"))
-                out[field] = cls(model, draws, zg, mg, meta, field, ppc, depth_area=depth_area,
-                                 domain=domain, diagnostics=diag)
-        return out
+        """All fits in a file, keyed by field (:func:`glaciar.pipeline.selection_file.read_all`)."""
+        from ..pipeline import selection_file
+        return selection_file.read_all(path)
 
     @classmethod
     def read(cls, path, field: str | None = None) -> "SelectionFunction":
-        """Read a selection-function file.
+        """One fit of a file (:func:`glaciar.pipeline.selection_file.read`).
 
         Parameters
         ----------
@@ -678,36 +533,10 @@ class SelectionFunction:
         ------
         FileNotFoundError, ValueError
         """
-        from pathlib import Path
-        if not Path(path).exists():
-            raise FileNotFoundError(f"{path}: no such selection-function file")
-        fits_ = cls.read_all(path)
-        if field is None:
-            if len(fits_) == 1:
-                return next(iter(fits_.values()))
-            raise ValueError(f"{path} holds fits for fields {sorted(fits_)}; pass field=")
-        if field not in fits_:
-            raise ValueError(f"{path}: no fit for field {field!r} (have {sorted(fits_)})")
-        return fits_[field]
+        from ..pipeline import selection_file
+        return selection_file.read(path, field)
 
     def __repr__(self):
         return (f"SelectionFunction(model={self.model.shape!r}, field={self.field!r}, "
                 f"depth_aware={self.model.depth_aware}, n_draws={self.n_draws})")
 
-
-def _native(data) -> np.ndarray:
-    """A FITS table as a structured array in native byte order (strings as str, logicals as bool)."""
-    from astropy.table import Table
-    arr = Table(data).as_array()
-    def native(dt):
-        if dt.kind in "SU":
-            return np.dtype(f"U{max(dt.itemsize // (4 if dt.kind == 'U' else 1), 1)}")
-        return dt.newbyteorder("=") if dt.kind in "iufb" else dt
-
-    dt = [(n, native(arr.dtype[n])) for n in arr.dtype.names]
-    out = np.empty(len(arr), dtype=dt)
-    for n in arr.dtype.names:
-        col = arr[n]
-        out[n] = np.char.strip(np.char.decode(col) if col.dtype.kind == "S" else col) \
-            if col.dtype.kind in "SU" else col
-    return out

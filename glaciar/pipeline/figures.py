@@ -1,11 +1,23 @@
-"""Plots of the fitted surfaces with credible bands over the binned (k+1)/(n+2) points."""
+"""Figures of a fitted selection function: C and S with credible bands over binned points.
+
+Each function takes a :class:`~glaciar.inference.SelectionFunction` and
+returns a matplotlib Figure; :func:`glaciar.pipeline.fit.run_fit` saves them
+(:func:`glaciar.plots.save_png`) under ``RUN_DIR/fit/``.
+"""
 from __future__ import annotations
 
 import numpy as np
 
-from ..plots import save_png
+__all__ = ["completeness_figure", "selection_figure", "FIGURE_DPI"]
 
-__all__ = ["plot_completeness", "plot_selection"]
+FIGURE_DPI = 110    #: resolution of the saved PNGs [dots per inch]
+
+
+def _pyplot():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
 
 
 def _credible_band(ax, x, draws, color, label):
@@ -40,18 +52,21 @@ def _binned(ppc, mask, k, n):
             stats.beta.ppf(0.84, kk + 1, nn - kk + 1))
 
 
-def plot_completeness(sf, path):
+def completeness_figure(sf):
     """C(m) at the simulated redshifts: median, 68 % and 95 % bands, binned points.
+
+    Points are the binned (k_rec+1)/(n+2) of the posterior-predictive table
+    with 68 % Beta intervals; cells the check flags are marked.
 
     Parameters
     ----------
     sf : SelectionFunction
-    path : path-like
-        PNG file to write.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     zs = _zs_to_show(sf)
     m = np.linspace(sf.m_grid[0], sf.m_grid[-1], 200)
@@ -76,22 +91,23 @@ def plot_completeness(sf, path):
                  fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    save_png(fig, path, dpi=110)
+    return fig
 
 
-def plot_selection(sf, path, n_mags=4):
+def selection_figure(sf, n_mags: int = 4):
     """S(z) at a few magnitudes (bands, binned (k_sel+1)/(k_rec+2)) and the median P = C S map.
 
     Parameters
     ----------
     sf : SelectionFunction
-    path : path-like
     n_mags : int
         Magnitudes shown in the left panel.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     z = np.linspace(sf.z_grid[0], sf.z_grid[-1], 200)
     if sf.ppc is not None and len(sf.ppc):
@@ -122,4 +138,4 @@ def plot_selection(sf, path, n_mags=4):
     ax2.set_ylabel("redshift z")
     fig.suptitle(f"selection (field {sf.field})")
     fig.tight_layout()
-    save_png(fig, path, dpi=110)
+    return fig

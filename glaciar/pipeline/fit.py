@@ -1,0 +1,358 @@
+"""``glaciar fit``: read a run, fit, check, write the selection-function file.
+
+:func:`run_fit` reads only the columns the fit needs from the run's store,
+decides the model (depth-aware whenever the local depth varies;
+``model="auto"`` picks the completeness step by PSIS-LOO), samples with
+:func:`glaciar.inference.fit_and_choose`, runs the posterior-predictive check
+and the redshift-edge check (:mod:`glaciar.inference.diagnostics`), and
+writes every output only after all of that succeeded (each file atomically):
+
+``RUN_DIR/selection_function.fits``
+    :mod:`glaciar.pipeline.selection_file`.
+``RUN_DIR/fit/``
+    ``summary.json`` and ``summary.txt`` (:mod:`glaciar.pipeline.summary`),
+    ``parameters_<field>.ecsv``, ``ppc_<field>.ecsv``, the saved chains
+    (:mod:`glaciar.pipeline.chains`) and the PNG figures
+    (:mod:`glaciar.pipeline.figures`).
+"""
+from __future__ import annotations
+
+import io
+import json
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from .. import constants as C
+from ..inference.diagnostics import edge_report, ppc_cells, ppc_verdict
+from ..inference.fit import DEFAULT_MAG_RESOLUTION, aggregate_cells, fit_and_choose, fit_surfaces
+from ..inference.models import COMPLETENESS_SHAPES
+from ..inference.sampling import DEFAULT_MAX_STEPS
+from ..inference.selection_function import SelectionFunction
+from .chains import chains_key, file_tag, load_chains, save_chains
+from .inputs import depth_area as _depth_area
+from .inputs import manifest_areas, read_columns
+from .summary import (cmax_summary, format_summary, json_default, m50_summary, param_summary,
+                      param_table, veff_summary)
+
+__all__ = ["run_fit", "FitWarning", "MODEL_CHOICES"]
+
+MODEL_CHOICES = COMPLETENESS_SHAPES + ("auto",)
+#: Posterior draws used for the PPC, the model comparison and the summary's V_eff.
+_DIAG_DRAWS = 400
+#: Draws of the extrapolated surface in the redshift-edge check.
+_EDGE_DRAWS = 100
+#: Step of the file's z and magnitude grids [z, mag] (at most 81 points each).
+_GRID_STEP = 0.05
+
+
+class FitWarning(UserWarning):
+    """The fit is not adequate (PPC), or the simulated box misses part of the selection."""
+
+
+def _check_positive(name, value):
+    if value is None:
+        return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a positive finite number, not {value!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{name} must be a positive finite number, not {value!r}")
+    return v
+
+
+def _weighted_median(values, weights):
+    o = np.argsort(values)
+    cw = np.cumsum(np.asarray(weights, float)[o])
+    return float(np.asarray(values)[o][np.searchsorted(cw, 0.5 * cw[-1])])
+
+
+def _grid(lo, hi, step, max_n=81):
+    """A uniform grid over [lo, hi]; a single value when lo == hi (no zero step)."""
+    if not hi > lo:
+        return np.array([lo])
+    n = int(min(max_n, max(2, round((hi - lo) / step) + 1)))
+    return np.linspace(lo, hi, n)
+
+
+def _one_fit(cells, mdl, fit_dir, tag, seed, n_walkers, max_steps, resume, progress):
+    """fit_surfaces, continuing saved chains of the same data and settings, with a progress bar."""
+    from tqdm.auto import tqdm
+
+    key = chains_key(cells, mdl, seed, n_walkers)
+    prev = load_chains(fit_dir, tag, mdl, key) if resume else None
+    bar = tqdm(desc=f"fit {tag}", unit="step", disable=not progress, leave=False)
+    try:
+        res = fit_surfaces(cells, mdl, seed=seed, n_walkers=n_walkers, max_steps=max_steps,
+                           callback=bar.update, resume=prev)
+    finally:
+        bar.close()
+    return res, key
+
+
+def _warn_checks(name, chosen, verdict, edges):
+    if not verdict["adequate"]:
+        warnings.warn(f"fit {name!r} ({chosen}): {verdict['n_extreme']} of {verdict['n_cells']} "
+                      f"cells are extreme in the posterior-predictive check (chance allows "
+                      f"{verdict['max_allowed']}); the model does not describe the data there "
+                      f"(cells flagged 'extreme' in fit/ppc_{file_tag(name)}.ecsv)", FitWarning)
+    for e in edges:
+        side = "above" if e["end"] == "high" else "below"
+        how = (f"the fitted surface extrapolates to ~0 about {e['extend_dz']:.2g} {side} it: "
+               f"extend the z grid to z = {e['z'] + (1 if side == 'above' else -1) * e['extend_dz']:.4g}"
+               if np.isfinite(e["extend_dz"]) else
+               f"it has hardly started to fall there: extend the z grid {side} {e['z']:g} "
+               "until it has")
+        warnings.warn(f"fit {name!r}: C*S has not fallen to ~0 at z = {e['z']:g} (still "
+                      f"{e['ratio']:.0%} of its peak at m = {e['mag']:.2f}), so V_eff misses "
+                      f"the volume {side} it; {how}", FitWarning)
+
+
+def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
+            n_walkers: int | None = None, max_steps: int = DEFAULT_MAX_STEPS,
+            progress: bool = False, cosmology=None, area_arcmin2: float | None = None,
+            mag_resolution: float | None = DEFAULT_MAG_RESOLUTION, resume: bool = True,
+            max_draws: int = 1000, plots: bool = True, depth: str = "auto"):
+    """Fit C and S to a run's per-source flags and write the selection-function file.
+
+    Parameters
+    ----------
+    run_dir : path-like
+        Run directory of ``glaciar simulate`` (``results/*.parquet``, ``manifest.json``).
+    model : {"auto", "logistic", "erf", "fleming", "sas"}
+        Completeness step shape; "auto" fits all four and keeps the simplest
+        one whose PSIS-LOO elpd is within 2 s.e. of the best.
+    per_field : bool
+        Fit every field separately (one fit per field in the file) instead of pooled.
+    seed : int
+        Sampler seed; the same seed and data give identical files.
+    n_walkers : int, optional
+        emcee walkers per parameter block.
+    max_steps : int
+        Cap on the steps each chain runs in this call; a re-run extends
+        unconverged saved chains by up to this many steps.
+    progress : bool
+        One progress bar per fit.
+    cosmology : astropy Cosmology, optional
+        Cosmology of the V_eff entries (default Planck18).
+    area_arcmin2 : float, optional
+        Survey area [arcmin^2]; rescales the fields' area-by-depth distributions
+        to this total (default: the footprint areas in the run manifest).
+    mag_resolution : float or None
+        Grouping resolution of the magnitude covariate [mag] (:func:`aggregate_cells`).
+    resume : bool
+        Continue the chains saved under ``RUN_DIR/fit/`` when model, data, seed
+        and walkers match.
+    max_draws : int
+        Posterior draws stored in the file.
+    plots : bool
+        Write PNG plots under ``RUN_DIR/fit/``.
+    depth : {"auto", "on", "off"}
+        Depth-aware model: "auto" whenever the local depth varies by more than
+        one 0.05 mag bin.
+
+    Returns
+    -------
+    pathlib.Path
+        ``RUN_DIR/selection_function.fits``.  The summary (also in
+        ``fit/summary.json``) is :func:`format_summary`'s input.
+
+    Raises
+    ------
+    ValueError
+        Bad arguments (checked before anything is read or sampled), a bad
+        per-source table or manifest.
+    """
+    from ..store import atomic_write_bytes, atomic_write_text, read_manifest
+    from .selection_file import to_bytes
+
+    # Arguments first: nothing is read, sampled or written on bad input.
+    if model not in MODEL_CHOICES:
+        raise ValueError(f"--model {model!r}: expected one of {MODEL_CHOICES}")
+    if depth not in ("auto", "on", "off"):
+        raise ValueError(f"depth must be 'auto', 'on' or 'off', not {depth!r}")
+    area_arcmin2 = _check_positive("--area-arcmin2", area_arcmin2)
+    max_steps = DEFAULT_MAX_STEPS if max_steps is None else max_steps
+    if int(max_steps) < 1 or int(max_draws) < 1:
+        raise ValueError(f"--max-steps ({max_steps}) and max_draws ({max_draws}) must be >= 1")
+    run_dir = Path(run_dir)
+    manifest = read_manifest(run_dir) or {}
+    magnitude_type = str(manifest.get("magnitude_type", "apparent"))
+    mag_col = C.COL_M_UV if magnitude_type == "absolute" else C.COL_MAG_INPUT
+    want = [C.COL_FIELD, C.COL_Z, C.COL_MAG, mag_col, C.COL_RECOVERED, C.COL_SELECTED, C.COL_DEPTH]
+    df = read_columns(run_dir, want)
+    if C.COL_FIELD not in df.columns:
+        df[C.COL_FIELD] = "all"
+    fields = sorted(map(str, df[C.COL_FIELD].unique()))
+    # Only the fields the manifest lists now count: rows of removed fields are ignored.
+    listed = manifest.get("fields")
+    if listed:
+        dropped = sorted(set(fields) - set(map(str, listed)))
+        if dropped:
+            warnings.warn(f"{run_dir}: ignoring rows of field(s) {dropped}, which the run's "
+                          "configuration no longer lists", FitWarning)
+            df = df[df[C.COL_FIELD].astype(str).isin(list(map(str, listed)))]
+            fields = sorted(map(str, df[C.COL_FIELD].unique()))
+    field_area = manifest_areas(manifest, run_dir)
+    depth_area = _depth_area(manifest, fields)
+
+    # Depth-aware?
+    has_depth = C.COL_DEPTH in df.columns and np.isfinite(df[C.COL_DEPTH].to_numpy(float)).all()
+    if depth == "on" and not has_depth:
+        raise ValueError(f"{run_dir}: the per-source table has no finite {C.COL_DEPTH!r} "
+                         "column; the depth-aware model needs a run made with local depths")
+    spread = float(np.ptp(df[C.COL_DEPTH].to_numpy(float))) if has_depth else 0.0
+    depth_aware = has_depth and (depth == "on" or (depth == "auto" and spread > C.DEPTH_BIN_MAG))
+    if not has_depth and depth == "auto":
+        warnings.warn(f"{run_dir}: no local depths in the per-source table (a run made before "
+                      f"glaciar recorded {C.COL_DEPTH!r}); fitting without "
+                      "depth, so fields are pooled by injections and V_eff assumes each field's "
+                      "completeness is the same everywhere in it", FitWarning)
+    depth_ref = None
+    if depth_aware:
+        if depth_area:
+            cen = np.concatenate([0.5 * (e[:-1] + e[1:]) for e, _ in depth_area.values()])
+            wts = np.concatenate([a for _, a in depth_area.values()])
+            depth_ref = round(_weighted_median(cen, wts), 2)
+        else:
+            depth_ref = round(float(np.median(df[C.COL_DEPTH])), 2)
+    if area_arcmin2 is not None:
+        # Rescale the fields' areas (and depth distributions) to the given total.
+        tot = sum(np.sum(a) for _, a in depth_area.values()) if depth_area else sum(
+            field_area.get(f, 0.0) for f in fields)
+        if depth_area and tot > 0:
+            depth_area = {f: (e, a * area_arcmin2 / tot) for f, (e, a) in depth_area.items()}
+        field_area = ({f: field_area[f] * area_arcmin2 / tot for f in fields if f in field_area}
+                      if tot > 0 else {})
+        if not field_area and not depth_area:
+            field_area = {f: area_arcmin2 / len(fields) for f in fields}
+
+    meta = {k: manifest[k] for k in ("bands", "detection_band", "selection", "config_hash")
+            if k in manifest}
+    meta.update(fields=fields, magnitude_type=magnitude_type, mag_resolution=mag_resolution,
+                pooled=not per_field, depth_aware=bool(depth_aware), depth_ref=depth_ref,
+                likelihood="recovered ~ Bernoulli(C); selected | recovered ~ Bernoulli(S)",
+                magnitude_column=mag_col)
+    # Per-field areas: the depth histograms' when known, else the manifest's footprints.
+    per_field_area = ({f: float(np.sum(a)) for f, (_, a) in depth_area.items()} if depth_area
+                      else {f: field_area[f] for f in fields if f in field_area})
+    if per_field_area:
+        meta["area_arcmin2_field"] = per_field_area
+        meta["area_arcmin2"] = float(sum(per_field_area.values()))
+
+    fit_dir = run_dir / "fit"
+    fit_dir.mkdir(exist_ok=True)
+    cells_all = aggregate_cells(df, mag_resolution, depth_ref, mag_col)
+    zall = df[C.COL_Z].to_numpy(float)
+    mall = df[mag_col].to_numpy(float)
+    domain = {"z": (float(zall.min()), float(zall.max())), "mag": (float(mall.min()), float(mall.max()))}
+    if depth_aware:
+        dall = df[C.COL_DEPTH].to_numpy(float)
+        domain["depth"] = (float(dall.min()), float(dall.max()))
+    zg = _grid(*domain["z"], _GRID_STEP)
+    mg = _grid(*domain["mag"], _GRID_STEP)
+    groups = ([(f, df[df[C.COL_FIELD].astype(str) == f]) for f in fields] if per_field
+              else [("all", df)])
+    shapes = list(COMPLETENESS_SHAPES) if model == "auto" else [model]
+
+    outputs = []
+    summary = {"model": model, "seed": seed, "magnitude_type": magnitude_type,
+               "depth_aware": bool(depth_aware), "depth_ref": depth_ref, "fits": {}}
+    for i, (name, d) in enumerate(groups):
+        cells = cells_all if not per_field else aggregate_cells(d, mag_resolution, depth_ref, mag_col)
+        fseed = [int(seed), i] if per_field else int(seed)
+        keys = {}
+
+        def fit(c, mdl, name=name, fseed=fseed, keys=keys):
+            tag = file_tag(f"{name}_{mdl.shape}")
+            res, keys[mdl.shape] = _one_fit(c, mdl, fit_dir, tag, fseed, n_walkers, max_steps,
+                                            resume, progress)
+            return res
+
+        chosen, results, comparison = fit_and_choose(cells, shapes, depth_ref=depth_ref,
+                                                     loo_draws=_DIAG_DRAWS, fit=fit)
+        res, key, tag = results[chosen], keys[chosen], file_tag(f"{name}_{chosen}")
+        mdl = res.model
+        draws = res.draws(max_draws)
+        # This fit's areas: its field's depth distribution (per field) or all of them.
+        own_depth = {name: depth_area[name]} if per_field and name in depth_area else (
+            {} if per_field else depth_area)
+        own_depth = own_depth if depth_aware else {}
+        fmeta = (dict(meta, area_arcmin2_field={name: field_area[name]})
+                 if not depth_aware and per_field and name in field_area else meta)
+        # Posterior-predictive check on a subset of draws.
+        sub = SelectionFunction(mdl, res.draws(_DIAG_DRAWS), meta=fmeta, field=name,
+                                depth_area=own_depth, domain=domain)
+        zz = d[C.COL_Z].to_numpy(float)
+        mm = d[mag_col].to_numpy(float)
+        dd = d[C.COL_DEPTH].to_numpy(float) if depth_aware else None
+        mnom = d[C.COL_MAG].to_numpy(float) if C.COL_MAG in d.columns else np.round(mm / 0.25) * 0.25
+
+        def c_fn(idx, zz=zz, mm=mm, dd=dd, sub=sub):
+            return sub.model.completeness(sub.draws, mm[idx], zz[idx], None if dd is None else dd[idx])
+
+        def s_fn(idx, zz=zz, mm=mm, dd=dd, sub=sub):
+            return sub.model.selection_given_recovered(sub.draws, zz[idx], mm[idx],
+                                                       None if dd is None else dd[idx])
+
+        # Cells are split by depth whenever depths are known, also for a fit without
+        # depth: that is where such a fit fails.
+        ppc = ppc_cells(zz, mnom, mdl.relative_magnitude(mm, dd), d[C.COL_RECOVERED].to_numpy(bool),
+                        d[C.COL_SELECTED].to_numpy(bool), c_fn, s_fn,
+                        depth=d[C.COL_DEPTH].to_numpy(float) if has_depth else None)
+        verdict = ppc_verdict(ppc)
+        fit_info = {"nsources": cells.n_sources, "ncells": len(cells), "converge": res.converged,
+                    "taumax": float(np.max(res.tau)), "essmin": float(np.min(res.ess)),
+                    "rhatmax": float(np.nanmax(res.split_rhat)),
+                    "adequate": verdict["adequate"], "ppcext": verdict["fraction_extreme"]}
+        sf = SelectionFunction(mdl, draws, zg, mg, fmeta, name, ppc=ppc, fit_info=fit_info,
+                               depth_area=own_depth, domain=domain,
+                               diagnostics={"tau": res.tau, "ess": res.ess, "rhat": res.split_rhat})
+        gd = sub.grid_draws(zg, mg)
+        few = SelectionFunction(mdl, sub.draws[:_EDGE_DRAWS], meta=fmeta, depth_area=own_depth)
+        edges = edge_report(gd["P"], zg, mg, extrapolate=lambda z, few=few: few.grid_draws(z, mg)["P"]) \
+            if len(zg) > 1 else []
+        entry = {
+            "n_sources": cells.n_sources, "n_cells": len(cells), "model": chosen,
+            "converged": res.converged, "adequate": verdict["adequate"], "ppc": verdict,
+            "wall_time_s": res.wall_time, "model_comparison": comparison,
+            "blocks": {b.part: {"n_steps": b.n_steps, "n_walkers": b.chain.shape[1],
+                                "burn": b.burn, "thin": b.thin, "tau": b.tau.tolist(),
+                                "acceptance_fraction": float(np.mean(b.acceptance_fraction)),
+                                "converged": b.converged} for b in res.blocks},
+            "parameters": param_summary(res, draws), "z_edges": edges,
+            "m50": m50_summary(sub, zg),
+            "c_max": cmax_summary(sub, zg),
+        }
+        _warn_checks(name, chosen, verdict, edges)
+        try:
+            entry["effective_volume"] = veff_summary(sub, mg, zg, cosmology)
+        except ValueError as exc:         # no area, or a single redshift
+            entry["effective_volume"] = None
+            entry["effective_volume_note"] = str(exc)
+        summary["fits"][name] = entry
+        outputs.append((name, tag, res, key, draws, sf))
+
+    # Everything sampled and checked: now write.
+    from astropy.table import Table
+    for name, tag, res, key, draws, sf in outputs:
+        save_chains(fit_dir, tag, res, key)
+        for kind, tab in (("parameters", Table(param_table(res, draws))), ("ppc", Table(sf.ppc))):
+            buf = io.StringIO()
+            tab.write(buf, format="ascii.ecsv")
+            atomic_write_text(fit_dir / f"{kind}_{file_tag(name)}.ecsv", buf.getvalue())
+        if plots:
+            from ..plots import save_png
+            from .figures import FIGURE_DPI, completeness_figure, selection_figure
+            save_png(completeness_figure(sf), fit_dir / f"completeness_{file_tag(name)}.png",
+                     dpi=FIGURE_DPI)
+            save_png(selection_figure(sf), fit_dir / f"selection_{file_tag(name)}.png",
+                     dpi=FIGURE_DPI)
+    atomic_write_text(fit_dir / "summary.json", json.dumps(summary, indent=2, default=json_default))
+    atomic_write_text(fit_dir / "summary.txt", format_summary(summary))
+    out = run_dir / C.SELECTION_FUNCTION_NAME
+    atomic_write_bytes(out, to_bytes([sf for *_, sf in outputs], meta))
+    return out
