@@ -608,7 +608,7 @@ def _grid_values(values) -> list[float]:
 
 def build_demo_survey(out_dir, *, shape: tuple[int, int] = (1000, 1000), seed: int = 2018,
                       n_galaxies: int = 50, n_iterations: int = 2,
-                      z_values=tuple(np.round(np.arange(7.8, 12.6 + 1e-9, 0.4), 6)),
+                      z_values=tuple(np.round(np.arange(7.8, 12.6 + 1e-9, 0.4), 6)) + (12.9,),
                       mag_values=tuple(np.round(np.arange(24.5, 28.5 + 1e-9, 0.5), 6)),
                       source_density_arcmin2: float = 250.0, n_stars: int = 6,
                       field: str = DEMO_FIELD, noise_scale=1.0) -> Path:
@@ -635,9 +635,10 @@ def build_demo_survey(out_dir, *, shape: tuple[int, int] = (1000, 1000), seed: i
         Iterations per (field, z, mag) (config ``simulation.n_iterations``).
     z_values, mag_values : sequence of float
         Redshift grid and apparent F160W magnitude grid [AB] of the config.
-        Defaults 7.8-12.6 step 0.4 (the J125-dropout's lower edge inside; F160W, the
-        detection band, receives no flux from z ~ 13, where Lyman-alpha leaves it) and
-        24.5-28.5 step 0.5: 234 tasks, about a minute on 2 cores.
+        Defaults 7.8-12.6 step 0.4 and 12.9 (the J125-dropout's lower edge inside; F160W,
+        the detection band, receives no flux from z = 12.99, where Lyman-alpha leaves it,
+        so the selection ends there) and 24.5-28.5 step 0.5: 252 tasks, about a minute
+        on 2 cores.
     source_density_arcmin2, n_stars, noise_scale : see :func:`make_demo_images`.
     field : str
         Field name, used in the file names and the config (default ``demo01``).

@@ -597,6 +597,43 @@ def _settings_diff(old: dict, new: dict, limit: int = 3) -> str:
     return "; ".join(diffs[:limit]) + more
 
 
+def detection_z_limit(cfg: Config, z_max: float = 30.0) -> float | None:
+    """Lowest z (to 0.005) where the detection band receives no flux (apparent-magnitude grids).
+
+    Beyond it no source of an apparent detection-band magnitude exists, so the
+    selection function is 0 there (:func:`glaciar.galaxy.sed.band_magnitudes`
+    refuses such tasks). None for absolute-magnitude grids or below ``z_max``.
+    """
+    if cfg.grid.magnitude_type != "apparent":
+        return None
+    from .galaxy import sed
+
+    det = cfg.survey.detection_band
+    filters = [_resolve_filter(cfg.survey.band(det).filter, cfg.base_dir)]
+    beta = np.array([cfg.source.beta_mean])
+
+    def ok(z):
+        try:
+            sed.band_magnitudes(z, beta, filters, mag=np.array([26.0]), detection_index=0,
+                                igm=cfg.source.igm)
+            return True
+        except ValueError:
+            return False
+
+    lo = max(cfg.grid.z_values)
+    if not ok(lo):
+        return float(lo)
+    hi = lo
+    while ok(hi):
+        lo, hi = hi, hi + 0.25
+        if hi > z_max:
+            return None
+    while hi - lo > 0.005:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+    return round(hi, 3)
+
+
 def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
     area = {}
     pixscale = {}
@@ -627,6 +664,7 @@ def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
         "area_arcmin2_total": float(sum(area.values())),
         "depth_area": {f: _depth_area(cfg, survey, f) for f in cfg.survey.fields},
         "noise": {f: field_noise_record(cfg, survey, f) for f in cfg.survey.fields},
+        "detection_z_limit": detection_z_limit(cfg),
     }
 
 

@@ -301,7 +301,7 @@ def test_config_follows_schema_and_references_existing_files(survey):
         for template in (sv["science"], sv["noise"]):
             assert (base / sv["image_dir"] / template.format(field=DEMO_FIELD, band=b)).is_file()
         assert (base / bcfg["psf"]).is_file()
-    assert cfg["grid"]["z"]["values"] == pytest.approx(list(np.arange(7.8, 12.61, 0.4)))
+    assert cfg["grid"]["z"]["values"] == pytest.approx(list(np.arange(7.8, 12.61, 0.4)) + [12.9])
     assert cfg["grid"]["mag"]["values"] == pytest.approx(list(np.arange(24.5, 28.51, 0.5)))
     assert cfg["simulation"] == {"n_galaxies": 20, "n_iterations": 3, "seed": 5}
     assert cfg["classification"]["min_sn"] == 8.0

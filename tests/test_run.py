@@ -200,3 +200,24 @@ def test_preflight_says_how_many_sources_fit(small_survey, tmp_path):
     rows = pd.read_parquet(next((tmp_path / "run" / "results").rglob("*.parquet")))
     # A task places about what the pre-flight estimated (its own draw of sizes and positions).
     assert 0.5 * fits <= len(rows) <= 1.5 * fits
+
+
+def test_detection_band_flux_limit_and_edges(small_survey):
+    """The z where F160W stops receiving flux: Lyman-alpha at the filter's red end."""
+    from glaciar.galaxy.filters import get_filter
+    from glaciar.pipeline.fit import _physical_edges
+    from glaciar.run import detection_z_limit
+
+    cfg = load_config(small_survey)
+    z_lim = detection_z_limit(cfg)
+    f = get_filter("wfc3_ir_f160w")
+    wave, thr = np.asarray(f.wave_angstrom), np.asarray(f.throughput)
+    red_end = wave[thr > 1e-3 * thr.max()].max()
+    # IGM absorbs blueward of Lyman-alpha: the band loses its flux as Ly-a crosses its red end
+    assert abs(z_lim - (red_end / 1215.67 - 1.0)) < 0.08, (z_lim, red_end)
+    high = {"end": "high", "z": 12.6, "ratio": 1.0, "mag": 26.0, "extend_dz": 1.8}
+    low = {"end": "low", "z": 7.8, "ratio": 0.5, "mag": 26.0, "extend_dz": 0.5}
+    assert _physical_edges([high, low], None) == [high, low]
+    out = _physical_edges([high, low], 12.99)
+    assert out[1] == low and out[0]["z_limit"] == 12.99 and out[0]["extend_dz"] == pytest.approx(0.34)
+    assert _physical_edges([{**high, "z": 12.9}], 12.99) == []        # within 0.1: nothing lost

@@ -93,6 +93,28 @@ def _one_fit(cells, mdl, fit_dir, tag, seed, n_walkers, max_steps, resume, progr
     return res, key
 
 
+def _physical_edges(edges, z_limit):
+    """Drop or redirect high-z edges that stop at the detection band's flux limit.
+
+    With an apparent-magnitude grid no source exists where the detection band
+    receives no flux (``manifest["detection_z_limit"]``): C*S is 0 beyond it,
+    whatever the fitted surface extrapolates. An edge within 0.1 of that limit
+    loses nothing worth a warning; farther, the grid can only be extended up to it.
+    """
+    if z_limit is None:
+        return edges
+    out = []
+    for e in edges:
+        if e["end"] == "high":
+            if e["z"] >= z_limit - 0.1:
+                continue
+            target = e["z"] + e["extend_dz"] if np.isfinite(e["extend_dz"]) else np.inf
+            if target > z_limit:
+                e = {**e, "extend_dz": float(z_limit - 0.05 - e["z"]), "z_limit": float(z_limit)}
+        out.append(e)
+    return out
+
+
 def _warn_checks(name, chosen, verdict, edges):
     if not verdict["adequate"]:
         warnings.warn(f"fit {name!r} ({chosen}): {verdict['n_extreme']} of {verdict['n_cells']} "
@@ -101,7 +123,9 @@ def _warn_checks(name, chosen, verdict, edges):
                       f"(cells flagged 'extreme' in fit/ppc_{file_tag(name)}.ecsv)", FitWarning)
     for e in edges:
         side = "above" if e["end"] == "high" else "below"
-        how = (f"the fitted surface extrapolates to ~0 about {e['extend_dz']:.2g} {side} it: "
+        how = (f"the detection band receives no flux from z = {e['z_limit']:.3g}: extend the z "
+               f"grid up to z = {e['z'] + e['extend_dz']:.4g}" if "z_limit" in e else
+               f"the fitted surface extrapolates to ~0 about {e['extend_dz']:.2g} {side} it: "
                f"extend the z grid to z = {e['z'] + (1 if side == 'above' else -1) * e['extend_dz']:.4g}"
                if np.isfinite(e["extend_dz"]) else
                f"it has hardly started to fall there: extend the z grid {side} {e['z']:g} "
@@ -315,6 +339,7 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         few = SelectionFunction(mdl, sub.draws[:_EDGE_DRAWS], meta=fmeta, depth_area=own_depth)
         edges = edge_report(gd["P"], zg, mg, extrapolate=lambda z, few=few: few.grid_draws(z, mg)["P"]) \
             if len(zg) > 1 else []
+        edges = _physical_edges(edges, manifest.get("detection_z_limit"))
         entry = {
             "n_sources": cells.n_sources, "n_cells": len(cells), "model": chosen,
             "converged": res.converged, "adequate": verdict["adequate"], "ppc": verdict,
