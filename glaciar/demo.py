@@ -450,7 +450,9 @@ def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
         r_eff_arcsec, r_eff_pix, sersic_n, axis_ratio, position_angle_deg,
         is_star, sed_type), galaxies first, then stars.
     """
-    from .galaxy.psf import convolve_fft, moffat_psf
+    from scipy.signal import fftconvolve
+
+    from .galaxy.psf import moffat_psf
 
     ny, nx = (int(v) for v in shape)
     if ny < 64 or nx < 64:
@@ -500,7 +502,7 @@ def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
         rng_poisson = np.random.default_rng(streams[2 + 2 * k])
         psf_image = moffat_psf(spec.psf_fwhm_arcsec, pixel_scale_arcsec, beta=DEMO_MOFFAT_BETA,
                                size=_RENDER_PSF_SIZE)
-        model = convolve_fft(intrinsic[b], psf_image, mode="same")
+        model = fftconvolve(intrinsic[b], psf_image, mode="same")
         kernel_1d = _drizzle_kernel_1d(spec.native_pixel_arcsec, spec.pixfrac, pixel_scale_arcsec)
         kernel = np.outer(kernel_1d, kernel_1d)
         rms_nominal = _pixel_rms_for_depth(spec, psf_image, kernel, pixel_scale_arcsec)

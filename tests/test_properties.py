@@ -274,7 +274,7 @@ def test_template_reports_the_light_it_holds(n, r, q, pa, frac, x, y, fwhm, m):
         placed = cache.stamp("b", n, q, pa, r, x, y)
         injected = flux * placed.data
     assert np.all(np.isfinite(placed.data))
-    # FFT round-off only (convolve_fft: ~1e-15 of the peak)
+    # FFT round-off only (scipy.signal.fftconvolve: ~1e-15 of the peak)
     assert placed.data.min() >= -1e-13 * placed.data.max()
     assert placed.in_stamp_fraction == pytest.approx(placed.data.sum(), rel=1e-12)
     ny, nx = stamp_shape(n, r, q, pa, enclosed_fraction=frac)

@@ -4,10 +4,10 @@ import math
 import numpy as np
 import pytest
 from astropy.io import fits
-from scipy import integrate, signal
+from scipy import integrate
 from scipy.special import erf, j1
 
-from glaciar.galaxy.psf import (airy_psf, convolve_fft, gaussian_psf, measure_fwhm, moffat_psf,
+from glaciar.galaxy.psf import (airy_psf, gaussian_psf, measure_fwhm, moffat_psf,
                                 prepare_psf, read_psf, resample_psf, shift_psf)
 
 SIG_PER_FWHM = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
@@ -246,48 +246,3 @@ def test_prepare_psf_errors(tmp_path):
         prepare_psf("nope.fits", 0.08, base_dir=tmp_path)
 
 
-# ---------------------------------------------------------------- convolution
-def test_convolve_delta_is_identity():
-    rng = np.random.default_rng(1)
-    img = rng.normal(size=(17, 23))
-    delta = np.zeros((5, 5))
-    delta[2, 2] = 1.0
-    np.testing.assert_allclose(convolve_fft(img, delta, mode="same"), img, rtol=0, atol=1e-14)
-    full = convolve_fft(img, delta)
-    assert full.shape == (21, 27)
-    np.testing.assert_allclose(full[2:-2, 2:-2], img, rtol=0, atol=1e-14)
-
-
-@pytest.mark.parametrize("mode", ["full", "same"])
-def test_convolve_matches_direct(mode):
-    rng = np.random.default_rng(2)
-    img = rng.random((31, 40))
-    ker = rng.random((9, 7))
-    ref = signal.convolve(img, ker, mode=mode, method="direct")
-    out = convolve_fft(img, ker, mode=mode)
-    assert out.shape == ref.shape
-    assert np.abs(out - ref).max() < 1e-12 * np.abs(ref).max()
-
-
-def test_convolve_gaussians_add_variances_and_conserve_flux():
-    a = erf_gaussian(3.0, 41)
-    b = erf_gaussian(4.0, 41)
-    out = convolve_fft(a, b)
-    assert out.sum() == pytest.approx(1.0, abs=1e-12)
-    # Each pixel-integrated Gaussian has variance sigma^2 + 1/12 per axis;
-    # variances add under convolution (exactly, for the discrete arrays).
-    def var(x):
-        yy, xx = np.indices(x.shape)
-        cx = (x * xx).sum()
-        return (x * (xx - cx) ** 2).sum()
-    expected = var(a) + var(b)
-    assert var(out) == pytest.approx(expected, rel=1e-10)
-    sa, sb = 3.0 * SIG_PER_FWHM, 4.0 * SIG_PER_FWHM
-    assert var(out) == pytest.approx(sa ** 2 + sb ** 2 + 2 / 12, rel=1e-6)
-
-
-def test_convolve_errors():
-    with pytest.raises(ValueError, match="mode"):
-        convolve_fft(np.ones((3, 3)), np.ones((3, 3)), mode="valid")
-    with pytest.raises(ValueError, match="dimensions"):
-        convolve_fft(np.ones((3, 3)), np.ones(3))

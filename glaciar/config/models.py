@@ -31,6 +31,7 @@ from ..engine import noise as _noise
 from ..engine.detect import DetectionParams, builtin_filter_names
 from ..galaxy import psf as _psf
 from ..galaxy.population import SourceModel
+from ..galaxy.filters import FILE_SUFFIXES as FILTER_FILE_SUFFIXES, looks_like_path
 from ..galaxy.sersic import Q_MIN
 from ._types import At, Choice, Float, Int, show, unknown_key_error
 
@@ -44,8 +45,6 @@ __all__ = ["Section", "PsfProfile", "BandConfig", "SurveyConfig", "AxisSpec", "G
 MAX_TASKS = 10_000_000
 #: Largest number of values of one grid axis.
 MAX_GRID_VALUES = 10_000
-#: File suffixes that mark a filter name as a throughput-curve file.
-FILTER_FILE_SUFFIXES = (".tab", ".dat", ".par", ".fits", ".fit", ".txt", ".csv", ".ecsv")
 
 
 def _default(cls, name: str):
@@ -66,11 +65,6 @@ def resolve_path(base_dir, value: str) -> str:
     """``value`` (``~`` expanded) made absolute against ``base_dir``."""
     p = Path(os.path.expanduser(value))
     return str(p if p.is_absolute() else (Path(base_dir) / p).resolve())
-
-
-def looks_like_path(value: str, suffixes=()) -> bool:
-    """True for a string that names a file rather than a built-in (a separator or a suffix)."""
-    return "/" in value or "\\" in value or value.lower().endswith(tuple(suffixes))
 
 
 def _base_dir(info: ValidationInfo) -> Path:

@@ -55,7 +55,9 @@ BUILTIN_FILTERS: dict[str, str | None] = {
     "nircam_f444w": "jwst_f444w.par",
 }
 
-_FILE_SUFFIXES = (".tab", ".dat", ".txt", ".par", ".csv", ".fits", ".fit", ".fts", ".fits.gz")
+#: Suffixes that mark a filter name as a throughput-curve file (text or FITS table).
+FILE_SUFFIXES = (".tab", ".dat", ".txt", ".par", ".csv", ".ecsv", ".fits", ".fit", ".fts",
+                 ".fits.gz")
 
 
 @dataclass(frozen=True, eq=False)
@@ -169,8 +171,9 @@ def _stat_key(path: Path) -> tuple[int, int]:
     return st.st_mtime_ns, st.st_size
 
 
-def _looks_like_path(s: str) -> bool:
-    return (os.sep in s or "/" in s or s.lower().endswith(_FILE_SUFFIXES))
+def looks_like_path(value: str, suffixes=FILE_SUFFIXES) -> bool:
+    """True for a string that names a file rather than a built-in (a separator or a suffix)."""
+    return os.sep in value or "/" in value or "\\" in value or value.lower().endswith(tuple(suffixes))
 
 
 def get_filter(name_or_path) -> Filter:
@@ -202,11 +205,11 @@ def get_filter(name_or_path) -> Filter:
         return read_filter_file(name_or_path)
     if not isinstance(name_or_path, str):
         raise TypeError(f"filter must be a name, a path or a Filter, got {type(name_or_path).__name__}")
-    if not _looks_like_path(name_or_path):
+    if not looks_like_path(name_or_path):
         canonical = _resolve_builtin(name_or_path)
         if canonical is not None:
             return _load_builtin(canonical)
-    if os.path.isfile(name_or_path) or _looks_like_path(name_or_path):
+    if os.path.isfile(name_or_path) or looks_like_path(name_or_path):
         return read_filter_file(name_or_path)
     raise ValueError(f"unknown filter {name_or_path!r}: not a built-in name ("
                      f"{', '.join(BUILTIN_FILTERS)}) nor an existing file")
@@ -251,7 +254,7 @@ def read_filter_file(path) -> Filter:
 def _read_filter_file(path: str, _mtime_ns: int, _size: int) -> Filter:
     lower = path.lower()
     name = Path(path).name
-    for suffix in sorted(_FILE_SUFFIXES, key=len, reverse=True):
+    for suffix in sorted(FILE_SUFFIXES, key=len, reverse=True):
         if lower.endswith(suffix):
             name = name[: -len(suffix)]
             break

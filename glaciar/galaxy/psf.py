@@ -21,7 +21,6 @@ Accuracy (each number is held by a test in ``tests/test_psf.py``):
   Moffats >= 2 px; an undersampled Moffat (beta = 2.5, 1.4 px) comes out
   ~6 % broader (its cusp-like core is not recoverable from the samples).
   Centroid on the central pixel to < 0.01 px.
-* :func:`convolve_fft`: float64 round-off (~1e-15 of the peak).
 """
 from __future__ import annotations
 
@@ -30,7 +29,6 @@ import os
 from collections.abc import Callable, Mapping
 
 import numpy as np
-import scipy.fft
 from scipy.interpolate import CubicSpline
 from scipy.special import j1
 
@@ -43,7 +41,6 @@ __all__ = [
     "resample_psf",
     "measure_fwhm",
     "prepare_psf",
-    "convolve_fft",
     "normalize_psf",
     "shift_psf",
 ]
@@ -635,51 +632,3 @@ def prepare_psf(spec, pixel_scale_arcsec: float, base_dir=None,
     if profile == "moffat":
         return moffat_psf(pixel_scale_arcsec=scale, **kwargs)
     return airy_psf(pixel_scale_arcsec=scale, **kwargs)
-
-
-# --------------------------------------------------------------------------
-# Convolution
-# --------------------------------------------------------------------------
-def convolve_fft(image, kernel, mode: str = "full") -> np.ndarray:
-    """Linear (zero-padded) convolution of two real arrays via FFT.
-
-    Transforms are padded to fast sizes (``scipy.fft.next_fast_len``) beyond
-    the full output, so there is no wrap-around: the result equals direct
-    convolution to float64 round-off (~1e-15 of the peak).
-
-    Parameters
-    ----------
-    image, kernel : array_like, real, same number of dimensions
-    mode : {"full", "same"}
-        ``"full"``: shape ``image.shape + kernel.shape - 1``, all flux kept.
-        ``"same"``: the central part with ``image.shape`` (as
-        :func:`scipy.signal.convolve`), aligned so an odd kernel's central
-        pixel is the origin.
-
-    Returns
-    -------
-    ndarray, float64
-    """
-    a = np.asarray(image)
-    b = np.asarray(kernel)
-    if np.iscomplexobj(a) or np.iscomplexobj(b):
-        raise TypeError("convolve_fft handles real arrays only")
-    a = a.astype(np.float64, copy=False)
-    b = b.astype(np.float64, copy=False)
-    if a.ndim != b.ndim:
-        raise ValueError(f"image and kernel must have the same number of dimensions, "
-                         f"got {a.ndim} and {b.ndim}")
-    if a.size == 0 or b.size == 0:
-        raise ValueError("image and kernel must be non-empty")
-    if mode not in ("full", "same"):
-        raise ValueError(f"mode must be 'full' or 'same', got {mode!r}")
-    full = [n + k - 1 for n, k in zip(a.shape, b.shape)]
-    fast = [scipy.fft.next_fast_len(n, real=True) for n in full]
-    axes = tuple(range(a.ndim))
-    spec = scipy.fft.rfftn(a, fast, axes=axes) * scipy.fft.rfftn(b, fast, axes=axes)
-    out = scipy.fft.irfftn(spec, fast, axes=axes)
-    out = out[tuple(slice(0, n) for n in full)]
-    if mode == "same":
-        start = [(f - n) // 2 for f, n in zip(full, a.shape)]
-        out = out[tuple(slice(s, s + n) for s, n in zip(start, a.shape))]
-    return np.ascontiguousarray(out)

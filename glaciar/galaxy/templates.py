@@ -38,7 +38,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .psf import convolve_fft, normalize_psf, shift_psf
+from scipy.signal import fftconvolve
+
+from .psf import normalize_psf, shift_psf
 from .sersic import sersic_stamp, stamp_shape
 
 __all__ = ["PlacedStamp", "CacheStats", "TemplateCache"]
@@ -231,7 +233,7 @@ class TemplateCache:
     def _convolve(self, raw: np.ndarray, psf: np.ndarray) -> np.ndarray:
         self._counts["convolutions"] += 1
         # "full": the stamp grows by the PSF so no convolved light is lost.
-        return _readonly(convolve_fft(raw, psf, mode="full"))
+        return _readonly(fftconvolve(raw, psf, mode="full"))
 
     # ------------------------------------------------------------------
     def render(self, band: str, n: float, axis_ratio: float, position_angle: float,
