@@ -16,7 +16,9 @@ Sizes and costs (measured on a shared 2-core machine):
   ``deep_corner_run`` takes ~10 s wall with 2 workers (~14 s on a shared machine).
 
 The ``*_run`` fixtures simulate once per session (into a temporary run directory) so
-that every test reading those results shares one run.
+that every test reading those results shares one run; ``small_run`` is ``small_survey``
+simulated serially (8 tasks, 96 sources: ~2 s of CPU), read by the run, CLI and Dask
+tests.  Tests never write into a shared run: they copy it first (without its lock file).
 """
 import numpy as np
 import pytest
@@ -106,6 +108,22 @@ def _simulated(config_path, run_dir):
     cfg = load_config(config_path)
     simulate(cfg, run_dir, workers=2, progress=False)
     return cfg, run_dir
+
+
+@pytest.fixture(scope="session")
+def small_run(small_survey, tmp_path_factory):
+    """``small_survey`` simulated once, serially (workers=1): (Config, run directory).
+
+    Shared by the session: read it, or write into a copy
+    (``shutil.copytree(run, dst, ignore=shutil.ignore_patterns(C.LOCK_NAME))``).
+    """
+    from glaciar.config import load_config
+    from glaciar.run import simulate
+
+    cfg = load_config(small_survey)
+    out = tmp_path_factory.mktemp("small_run")
+    simulate(cfg, out, workers=1, progress=False)
+    return cfg, out
 
 
 @pytest.fixture(scope="session")
