@@ -15,10 +15,9 @@ def _sorted(df):
 
 
 @pytest.fixture(scope="module")
-def serial_run(small_survey, tmp_path_factory):
-    cfg = load_config(small_survey)
-    out = tmp_path_factory.mktemp("serial")
-    simulate(cfg, out, workers=1, progress=False)
+def serial_run(small_run):
+    """``small_survey`` simulated serially (the session's shared ``small_run``)."""
+    cfg, out = small_run
     return cfg, out, _sorted(read_results(out))
 
 
