@@ -113,12 +113,11 @@ def cluster():
 
 
 @pytest.fixture(scope="module")
-def reference_runs(small_survey, tmp_path_factory):
-    """The serial run's table and a 2-process pool's, of ``small_survey``."""
-    cfg = load_config(small_survey)
-    serial = tmp_path_factory.mktemp("dask_serial")
+def reference_runs(small_run, tmp_path_factory):
+    """The serial run's table (the session's shared ``small_run``) and a 2-process pool's,
+    of ``small_survey``."""
+    cfg, serial = small_run
     pool = tmp_path_factory.mktemp("dask_pool")
-    simulate(cfg, serial, workers=1, progress=False)
     simulate(cfg, pool, workers=2, progress=False)
     return cfg, _sorted(read_results(serial)), _sorted(read_results(pool))
 
