@@ -63,12 +63,15 @@ def test_simulate_and_report(small_survey, tmp_path, capsys):
     assert len(regs) == len(t) * cfg.simulation.n_iterations
 
 
-def test_fit_and_next_on_a_run(small_survey, tmp_path, capsys):
-    """`glaciar fit` writes a loadable selection function; `next` proposes cells inside the grid."""
+def test_fit_and_next_on_a_run(small_survey, small_run, tmp_path, capsys):
+    """`glaciar fit` writes a loadable selection function; `next` proposes cells inside the grid.
+
+    The run is a copy of the session's ``small_run`` (``small_survey`` simulated serially,
+    as `glaciar simulate --workers 1` does; test_simulate_and_report runs that command).
+    """
     from glaciar import SelectionFunction
 
-    out = tmp_path / "run"
-    assert main(["simulate", str(small_survey), "--out", str(out), "--workers", "1", "--quiet"]) == 0
+    out = shutil.copytree(small_run[1], tmp_path / "run", ignore=shutil.ignore_patterns(C.LOCK_NAME))
     assert main(["fit", str(out), "--quiet", "--area-arcmin2", "2.0"]) == 0
     sf = SelectionFunction.read(out / C.SELECTION_FUNCTION_NAME)
     assert sf.area_arcmin2() == 2.0
