@@ -33,6 +33,13 @@ runs; the ratio is from one run of this script.  A small data set (300
 sources, the size of the SBC test's data sets, where the log posterior is
 cheapest and per-step overhead matters most) is always included.
 
+Table 3 (the cost of the convergence checks of a long chain): every check
+estimates tau on the whole chain so far, so checking every 100 steps costs
+O(length^2); the sampler now checks every 100 steps up to 2000 and every ~10 %
+of the chain beyond (``glaciar.inference.sampling.CHECK_FRACTION``), which
+leaves every chain of <= 2000 steps (all of Table 2) as it was.  CPU of all
+checks along a 10000-step chain that never converges, both estimators.
+
     python benchmarks/fit.py [--repeats R] [N ...]
 """
 from __future__ import annotations
@@ -211,6 +218,40 @@ def moves_table(sizes, repeats):
               f"{'yes' if same else 'NO':>11}", flush=True)
 
 
+def _schedule(n_steps, block, growing):
+    """Chain lengths at which sample_block checks convergence, up to ``n_steps``."""
+    out, done = [], block
+    while done <= n_steps:
+        out.append(done)
+        step = max(block, int(sampling.CHECK_FRACTION * done) // block * block) if growing else block
+        done += step
+    return out
+
+
+def checks_table(n_steps=10_000, walkers=32, n_params=9, block=100):
+    """CPU of all convergence checks along a chain that runs to max_steps without converging."""
+    rng = np.random.default_rng(1)
+    phi = 0.96                                   # AR(1): tau = (1 + phi) / (1 - phi) = 49
+    x = np.empty((n_steps, walkers, n_params))
+    x[0] = rng.standard_normal((walkers, n_params))
+    for i in range(1, n_steps):
+        x[i] = phi * x[i - 1] + np.sqrt(1 - phi ** 2) * rng.standard_normal((walkers, n_params))
+    print(f"\nConvergence checks along a {n_steps}-step chain that never converges ({walkers} "
+          f"walkers, {n_params} parameters, tau {(1 + phi) / (1 - phi):.0f}): CPU s of all checks")
+    print(f"{'schedule':>28} {'checks':>6} {'emcee.autocorr s':>16} {'vectorised s':>12} {'ratio':>6}")
+    for label, growing in ((f"every {block} steps (before)", False),
+                           (f"every {block}, then ~{sampling.CHECK_FRACTION:.0%} (now)", True)):
+        sched = _schedule(n_steps, block, growing)
+        cpu = {}
+        for name, fn in (("stock", sampling.autocorr_time), ("vectorised", _tau_vectorised)):
+            t = time.process_time()
+            for n in sched:
+                fn(x[:n])
+            cpu[name] = time.process_time() - t
+        print(f"{label:>28} {len(sched):>6d} {cpu['stock']:>16.2f} {cpu['vectorised']:>12.2f} "
+              f"{cpu['stock'] / cpu['vectorised']:>6.2f}", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sizes", nargs="*", type=lambda a: int(float(a)),
@@ -219,6 +260,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     fit_table(args.sizes)
     moves_table([SMALL_N] + [n for n in args.sizes if n != SMALL_N], args.repeats)
+    checks_table()
 
 
 if __name__ == "__main__":

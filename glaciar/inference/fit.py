@@ -283,7 +283,8 @@ def fit_surfaces(cells: Cells, model: SurfaceModel, *, seed=0, n_walkers: int | 
     min_steps : int
         Shortest chain considered for convergence [steps].
     block : int
-        Steps between convergence checks.
+        Steps between convergence checks (a multiple of it for chains longer
+        than 20 blocks, see :data:`glaciar.inference.sampling.CHECK_FRACTION`).
     callback : callable, optional
         Called with the number of steps just run (for a progress bar at the edge).
     resume : FitResult, optional

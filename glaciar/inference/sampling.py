@@ -30,9 +30,11 @@ which leave the posterior invariant:
 Convergence: the chain is extended in blocks until it is at least 50 tau long
 (tau the largest per-parameter integrated autocorrelation time,
 :func:`emcee.autocorr.integrated_time` with Sokal's window c = 5) and that
-largest tau changed by less than 10 % since the previous block, or until
-``max_steps``; a :class:`ConvergenceWarning` is issued otherwise.  Burn-in is
-2 tau, thinning tau / 2.
+largest tau changed by less than 10 % since the previous check, or until
+``max_steps``; a :class:`ConvergenceWarning` is issued otherwise.  Checks
+come every ``block`` (100) steps, and every ~10 % of the chain beyond 2000
+steps (:data:`CHECK_FRACTION`), so that the checks of a long chain cost in
+proportion to its length.  Burn-in is 2 tau, thinning tau / 2.
 
 Speed: the per-step cost is the log posterior (:class:`BlockPosterior`).  The
 private override glaciar used before -- emcee's red-blue ``propose`` with a
@@ -52,11 +54,14 @@ import numpy as np
 
 __all__ = ["ConvergenceWarning", "BlockChain", "FitResult", "StudentT", "autocorr_time",
            "split_rhat", "sample_block", "PILOT_STAGES", "MOVE_WEIGHTS", "T_DOF", "SOKAL_C",
-           "DEFAULT_MAX_STEPS"]
+           "CHECK_FRACTION", "DEFAULT_MAX_STEPS"]
 
 T_DOF = 5.0                       #: Student-t proposal degrees of freedom
 MOVE_WEIGHTS = (0.3, 0.3, 0.4)    #: independence, differential evolution, stretch
 SOKAL_C = 5.0                     #: Sokal's window: tau summed up to M >= SOKAL_C tau
+#: Convergence is checked every ``block`` steps, or every this fraction of the
+#: chain once that is longer (rounded down to a multiple of ``block``).
+CHECK_FRACTION = 0.1
 #: Stages of the discarded pilot run that sets the independence proposal [steps];
 #: it stops after the second stage once the proposal is stable.  A single 50-step
 #: pilot left tau underestimated by 30-50 % where an edge lies outside the data.
@@ -373,7 +378,8 @@ def sample_block(log_prob, index, start, cov, seed, *, part: str = "c",
     min_steps : int
         Shortest chain considered for convergence [steps].
     block : int
-        Steps between convergence checks.
+        Steps between convergence checks, or a multiple of it: every
+        :data:`CHECK_FRACTION` of the chain once that is longer [steps].
     callback : callable, optional
         Called with the number of steps just run.
     resume : BlockChain, optional
@@ -433,7 +439,10 @@ def sample_block(log_prob, index, start, cov, seed, *, part: str = "c",
             tau_prev = tau
             if converged or done >= limit:
                 break
-        nb = min(block, limit - done)
+        # Every `block` steps, then every ~CHECK_FRACTION of the chain (a multiple of
+        # `block`): a check costs in proportion to the chain's length, so the checks of
+        # a long chain cost O(length) in all instead of O(length^2 / block).
+        nb = min(max(block, int(CHECK_FRACTION * done) // block * block), limit - done)
         if nb <= 0:
             break
         sampler.reset()
