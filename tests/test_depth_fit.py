@@ -110,13 +110,6 @@ def test_two_fields_per_field_volumes_add_up_to_the_survey(two_depth):
     assert per_area[0][-1] < 0.5 * per_area[1][-1]
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "measured this session: the depth-aware fit of the deep-corner survey converges (60 000 "
-    "steps) but 17 of 181 PPC cells are extreme (9.4 %; 7 of 182 in the previous release). "
-    "The extreme cells are bright (m 23.5-25) sources at z = 8 in depth bins along the image "
-    "and quadrant edges (26.7-26.9, 28.1-28.3 mag), many not detected with clipped stamps "
-    "(FLAG_STAMP_CLIPPED). Which of this session's engine changes (placement, task keys, "
-    "status-2 definition, coverage) moved them is not yet found; see the issue 9 note."))
 def test_deep_corner_adequate_and_per_depth_completeness(deep_corner_run):
     cfg, run = deep_corner_run
     # Two redshifts leave S's high-z edge to its prior: its chain mixes slowly (tau ~ 500
