@@ -12,8 +12,8 @@ the time, and checks them against the full test's tolerances (5 points at 68 %,
     python benchmarks/sbc.py [N_SETS [WORKERS]]     (default 220, 2)
 
 Data set k is seeded by k, as in the test, so the test's sets are the first N
-here.  ``GLACIAR_SBC_PILOT=full`` runs the production pilot.  Cost: ~0.34 s of
-CPU per data set (220 sets: ~40 s on 2 free cores).
+here.  ``GLACIAR_SBC_PILOT=full`` runs the production pilot.  Cost: ~0.37 s of
+CPU per data set (220 sets: 82 s of CPU, ~45 s on 2 free cores).
 """
 from __future__ import annotations
 
