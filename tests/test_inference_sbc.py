@@ -53,12 +53,12 @@ proposal; the chain proper is a valid MCMC with any proposal, and a less
 adapted one only raises tau, so the short pilot, like the short chains, makes
 the test stricter on mixing than the chains `glaciar fit` runs.
 ``GLACIAR_SBC_PILOT=full`` runs the production pilot (200 sets: coverage
-0.660 / 0.946 for C, 0.681 / 0.952 for S).  About 0.37 s of CPU per data set
-(measured: 23 s for the 64 sets, 82 s for the 220), so ~12 s wall for the small test
-and ~45 s for the full one on 2 free cores.  Those figures are of glaciar's former private
-override of emcee's red-blue moves and autocorrelation time; emcee's stock moves
-and ``emcee.autocorr`` give the same chains (the same coverages) for ~20 % more
-CPU on data sets this small (220 sets: 92 s against 76 s; ``benchmarks/fit.py``).
+0.660 / 0.946 for C, 0.681 / 0.952 for S).  About 0.37 s of CPU per data set with
+emcee's stock moves and ``emcee.autocorr`` (measured: 23 s for the 64 sets, 82 s for
+the 220), so ~12 s wall for the small test and ~45 s for the full one on 2 free cores.
+glaciar's former private override of emcee's red-blue moves and autocorrelation time
+gave the same chains (the same coverages) for ~20 % less CPU on data sets this small
+(220 sets: 76 s against 92 s; ``benchmarks/fit.py``).
 """
 import multiprocessing
 import os
