@@ -17,7 +17,7 @@ Sizes and costs (measured on a shared 2-core machine):
 
 The ``*_run`` fixtures simulate once per session (into a temporary run directory) so
 that every test reading those results shares one run; ``small_run`` is ``small_survey``
-simulated serially (8 tasks, 96 sources: ~2 s of CPU), read by the run, CLI and Dask
+simulated serially (8 tasks, 96 sources: 0.5-2 s of CPU), read by the run, CLI and Dask
 tests.  Tests never write into a shared run: they copy it first (without its lock file).
 """
 import numpy as np
