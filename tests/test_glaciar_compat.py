@@ -40,19 +40,23 @@ de_Vacouleur: No
 """
 
 
-def test_glaciar_parameters_file_runs(tmp_path, capsys):
+def _write_glaciar_images(tmp_path, suffix):
+    """A 200^2 demo field in GLACiAR's naming: <image_name><field>_<band><suffix>, _rms<suffix>."""
     imgs = make_demo_images((200, 200), seed=5)
     (tmp_path / "images").mkdir()
+    hdr = fits.Header({"CTYPE1": "RA---TAN", "CTYPE2": "DEC--TAN", "CD1_1": -0.08 / 3600,
+                       "CD2_2": 0.08 / 3600, "CD1_2": 0.0, "CD2_1": 0.0, "CRPIX1": 100.0,
+                       "CRPIX2": 100.0, "CRVAL1": 150.0, "CRVAL2": 2.0})
     for band in DEMO_BANDS:
-        sci = imgs["science"][band]
         w = imgs["weight"][band]
         rms = np.where(w > 0, 1 / np.sqrt(np.where(w > 0, w, 1)), 0).astype(np.float32)
-        hdr = fits.Header({"CTYPE1": "RA---TAN", "CTYPE2": "DEC--TAN", "CD1_1": -0.08 / 3600,
-                           "CD2_2": 0.08 / 3600, "CD1_2": 0.0, "CD2_1": 0.0, "CRPIX1": 100.0,
-                           "CRPIX2": 100.0, "CRVAL1": 150.0, "CRVAL2": 2.0})
-        # GLACiAR's naming: <path_to_images><image_name><field>_<band>.fits and _rms.fits
-        fits.PrimaryHDU(sci, hdr).writeto(tmp_path / "images" / f"borg_0440-5244_{band}.fits")
-        fits.PrimaryHDU(rms, hdr).writeto(tmp_path / "images" / f"borg_0440-5244_{band}_rms.fits")
+        stem = tmp_path / "images" / f"borg_0440-5244_{band}"
+        fits.PrimaryHDU(imgs["science"][band], hdr).writeto(f"{stem}{suffix}")
+        fits.PrimaryHDU(rms, hdr).writeto(f"{stem}_rms{suffix}")
+
+
+def test_glaciar_parameters_file_runs(tmp_path, capsys):
+    _write_glaciar_images(tmp_path, ".fits")
     (tmp_path / "fields.txt").write_text("0440-5244  some comment\n")
     (tmp_path / "parameters.yaml").write_text(PARAMS)
     out = tmp_path / "run"
@@ -79,19 +83,10 @@ def test_glaciar_gzipped_layout_with_headerless_psfs_runs(tmp_path, capsys):
     from glaciar.run import R_EFF_LOG_STEP
     from glaciar.store import read_results
 
-    imgs = make_demo_images((200, 200), seed=5)
-    (tmp_path / "images").mkdir()
+    _write_glaciar_images(tmp_path, ".fits.gz")
     (tmp_path / "Files").mkdir()
     yy, xx = np.mgrid[-8:9, -8:9]
     for band in DEMO_BANDS:
-        sci = imgs["science"][band]
-        w = imgs["weight"][band]
-        rms = np.where(w > 0, 1 / np.sqrt(np.where(w > 0, w, 1)), 0).astype(np.float32)
-        hdr = fits.Header({"CTYPE1": "RA---TAN", "CTYPE2": "DEC--TAN", "CD1_1": -0.08 / 3600,
-                           "CD2_2": 0.08 / 3600, "CD1_2": 0.0, "CD2_1": 0.0, "CRPIX1": 100.0,
-                           "CRPIX2": 100.0, "CRVAL1": 150.0, "CRVAL2": 2.0})
-        fits.PrimaryHDU(sci, hdr).writeto(tmp_path / "images" / f"borg_0440-5244_{band}.fits.gz")
-        fits.PrimaryHDU(rms, hdr).writeto(tmp_path / "images" / f"borg_0440-5244_{band}_rms.fits.gz")
         # A PSF at the image scale with a bare header (no PIXSCALE, no WCS), as GLACiAR ships.
         psf = np.exp(-(xx ** 2 + yy ** 2) / (2 * 0.95 ** 2)).astype(np.float32)
         fits.PrimaryHDU(psf).writeto(tmp_path / "Files" / f"psf_{band}.fits")

@@ -5,7 +5,7 @@ line glaciar prints (``file: key.path: what was expected, got what``) and
 adds the few types YAML users need: numbers that may arrive as strings
 (PyYAML reads ``1e-3`` as a string), integers that refuse booleans, choices
 matched case-insensitively with a "did you mean" hint, and lists that accept
-a single value.
+a single value (lists: ``models._float_list``).
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from typing import Annotated, Literal
 
 from pydantic import BeforeValidator, ValidationError
 
-__all__ = ["ConfigError", "At", "Int", "Float", "Choice", "FloatList", "show",
+__all__ = ["ConfigError", "At", "Int", "Float", "Choice", "show",
            "format_validation_error", "unknown_key_error"]
 
 
@@ -97,16 +97,6 @@ def _integer(value):
 Int = Annotated[int, BeforeValidator(_integer)]
 #: A finite float; numeric strings are accepted (YAML 1.1 reads ``1e-3`` as a string).
 Float = Annotated[float, BeforeValidator(_finite_number)]
-
-
-def _as_list(value):
-    if isinstance(value, (int, float, str)) and not isinstance(value, bool):
-        return [value]
-    return value
-
-
-#: A list of finite floats; a single number is read as a one-element list.
-FloatList = Annotated[tuple[Float, ...], BeforeValidator(_as_list)]
 
 
 def Choice(*values: str, aliases: dict[str, str] | None = None):
