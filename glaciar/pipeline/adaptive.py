@@ -217,7 +217,6 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
     """
     from ..run import simulate
     from ..store import read_manifest
-    from ..inference import SelectionFunction
     from .fit import run_fit
 
     run_dir = Path(run_dir)
@@ -233,13 +232,12 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
             _write_rounds(run_dir, rounds)
         n_sources = _sources_in_store(run_dir)
         fit_kwargs = {"max_steps": settings.max_steps} if settings.max_steps else {}
-        # Each round's fit warns about the same things; only the final fit's warnings
-        # are shown (they describe the selection function the run ends with).
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            run_fit(run_dir, model=ROUND_MODEL, seed=0, progress=False, resume=False,
-                    plots=False, **fit_kwargs)
-        sf = SelectionFunction.read(run_dir / C.SELECTION_FUNCTION_NAME)
+        # Rounds fit in memory (no file, no summaries); the round that stops the loop is
+        # fitted again with the same seed (the same draws) and written in full.
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            sf = run_fit(run_dir, model=ROUND_MODEL, seed=0, progress=False, resume=False,
+                         plots=False, write=False, **fit_kwargs)[0]
         manifest = read_manifest(run_dir) or {}
         remaining = settings.budget - n_sources
         per_task = cfg.simulation.n_galaxies * len(cfg.survey.fields)
@@ -265,7 +263,10 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
              + (f"; stop ({entry['stop']})" if "stop" in entry else
                 f"; adding {len(cells)} cell-iteration(s)"))
         if "stop" in entry:
-            for w in caught:
-                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+            # Each round's fit warns about the same things: only the final fit's
+            # warnings are shown (they describe the selection function the run ends with).
+            # (No PNG plots: `glaciar fit RUN` draws them, and `glaciar report` reads the file.)
+            run_fit(run_dir, model=ROUND_MODEL, seed=0, progress=False, resume=False,
+                    plots=False, **fit_kwargs)
             return rounds
         cfg = with_cells(cfg, cells)
