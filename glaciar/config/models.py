@@ -86,17 +86,27 @@ def _float_list(*, min_length=1, max_length=None, **bounds):
                      Field(min_length=min_length, max_length=max_length)]
 
 
-def _bool(value):
-    # GLACiAR and SExtractor files use YAML 1.1 / SExtractor words (yes, No, Y, N).
+#: Words read as true / false: YAML 1.1 and SExtractor spell them yes, No, Y, N.
+TRUE_WORDS = frozenset(("yes", "y", "true", "t", "on", "1"))
+FALSE_WORDS = frozenset(("no", "n", "false", "f", "off", "0"))
+
+
+def parse_bool(value) -> bool | None:
+    """``value`` as a bool (bool, 0/1 or one of the words above), or None if it is none."""
     if isinstance(value, bool):
         return value
     if isinstance(value, int) and value in (0, 1):
         return bool(value)
-    if isinstance(value, str) and value.strip().lower() in ("yes", "y", "true", "t", "on", "1"):
-        return True
-    if isinstance(value, str) and value.strip().lower() in ("no", "n", "false", "f", "off", "0"):
-        return False
-    raise At(f"expected true/false, got {show(value)}")
+    if isinstance(value, str) and value.strip().lower() in TRUE_WORDS | FALSE_WORDS:
+        return value.strip().lower() in TRUE_WORDS
+    return None
+
+
+def _bool(value):
+    parsed = parse_bool(value)
+    if parsed is None:
+        raise At(f"expected true/false, got {show(value)}")
+    return parsed
 
 
 Bool = Annotated[bool, BeforeValidator(_bool)]
