@@ -52,7 +52,7 @@ def test_band_without_flux_maps_to_infinity():
     # injections'), and the band is not used; the spline stops at the last finite node.
     k = kcorrection([7.0, 13.0], [-2.0], "wfc3_ir_f098m", dz=None)
     assert np.isfinite(k[0, 0]) and k[1, 0] == np.inf
-    zf = np.linspace(7.0, 14.0, 200)
+    zf = np.linspace(11.0, 14.0, 100)
     spl = kcorrection(zf, [-2.0], "wfc3_ir_f098m")[:, 0]
     assert np.all(np.isfinite(spl[zf < 12.0])) and np.all(np.isinf(spl[zf >= 13.0]))
 
