@@ -103,3 +103,34 @@ def test_file_round_trip_is_exact(tmp_path):
     assert (one.z_lo, one.z_hi) == (7.5, 8.5)
     with pytest.raises(ValueError, match="outside the slices"):
         SelectionFunction.read(path).transfer(9.0)
+
+
+def test_glaciar_fit_products_from_a_run(small_run):
+    """add_lf_products on a simulated run: counts against an independent histogram of its rows."""
+    import json
+
+    from glaciar import constants as C
+    from glaciar.store import read_current_results
+
+    cfg, run = small_run
+    manifest = json.loads((run / C.MANIFEST_NAME).read_text())
+    rows = read_current_results(run)
+    mdl = SurfaceModel.for_data(rows[C.COL_Z], rows[C.COL_MAG_INPUT])
+    sf = SelectionFunction(mdl, mdl.sample_prior(4, np.random.default_rng(0)),
+                           meta={"area_arcmin2": 1.0}, field="all",
+                           domain={"z": (8.0, 10.4), "mag": (24.0, 27.5)})
+    selection_file.add_lf_products(run, manifest, [sf], seed=3)
+    assert sf.sed.beta_mean == cfg.source.beta_mean and sf.sed.igm == cfg.source.igm
+    assert sf.sed.detection_filter.name.endswith(cfg.survey.detection_band.lower())
+    tm = sf.transfer_matrix
+    det = C.band_column("mag", cfg.survey.detection_band)
+    for k, flag in enumerate((C.COL_RECOVERED, C.COL_SELECTED)):
+        for i, zi in enumerate(sorted(rows[C.COL_Z].unique())):
+            for j, mj in enumerate(sorted(rows[C.COL_MAG_INPUT].round(6).unique())):
+                cell = rows[(rows[C.COL_Z] == zi) & (rows[C.COL_MAG_INPUT].round(6) == mj)]
+                hit = cell[cell[flag].astype(bool)]
+                mobs = hit[det].fillna(np.inf).to_numpy(float)
+                want = np.histogram(mobs, bins=tm.m_obs_edges)[0]
+                want[-1] += np.sum(mobs == np.inf)        # histogram leaves out +inf itself
+                assert tm.counts[k, i, j, 0] == len(cell) - len(hit)
+                np.testing.assert_array_equal(tm.counts[k, i, j, 1:], want)
