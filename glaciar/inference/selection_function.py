@@ -777,8 +777,8 @@ class SelectionFunction:
                 out_ext[i:i + 256] = simpson(np.where(ext[None], p, 0.0) * dvdz[None, :, None],
                                              x=zz, axis=1)
         if outside == "nan" and ext.any():
-            with np.errstate(invalid="ignore", divide="ignore"):
-                frac = np.median(out_ext, axis=0) / np.median(out, axis=0)
+            tot, part = np.median(out, axis=0), np.median(out_ext, axis=0)
+            frac = np.where(tot > 0, part / np.where(tot > 0, tot, 1.0), 0.0)   # 0 of 0: nothing extrapolated matters
             out[:, ~(frac <= EXTRAPOLATION_TOLERANCE) & ext.any(axis=0)] = np.nan
         out = out.reshape((self.n_draws,) + M.shape)
         lo_q, hi_q = 0.5 - 0.5 * interval, 0.5 + 0.5 * interval
@@ -788,10 +788,13 @@ class SelectionFunction:
                                draws=out * unit)
 
     def muv_grid(self, step: float = 0.1, sed=None, cosmology=None):
-        """M_UV grid [AB mag] whose central-beta magnitudes stay in the simulated range at every z.
+        """M_UV grid [AB mag] covering the simulated magnitude range at the z where it maps brightest.
 
-        For an absolute-magnitude fit, the simulated range itself.  Used by
-        ``glaciar fit`` for the file's ``VEFF_MUV`` table.
+        Every M_UV of the grid maps (at the central beta) into the simulated range
+        or fainter at every z; where the fainter images matter,
+        :meth:`effective_volume_muv` gives NaN.  For an absolute-magnitude fit, the
+        simulated range itself.  Used by ``glaciar fit`` for the file's ``VEFF_MUV``
+        table.
         """
         from ..galaxy.population import get_cosmology
 
@@ -809,8 +812,11 @@ class SelectionFunction:
             k = k[np.isfinite(k)]
             if not k.size:
                 raise ValueError("muv_grid: the detection band receives no flux in the z range")
-            # 1e-3 mag inside, so that no z between these nodes maps outside the range.
-            lo, hi = lo - k.min() + 1e-3, hi - k.max() - 1e-3
+            # From the M_UV whose brightest image (smallest K) is the bright end of the
+            # range, 1e-3 mag inside so that no z between these nodes maps outside it, to
+            # the M_UV whose brightest image is the faint end: fainter images at other z
+            # are extrapolations that effective_volume_muv blanks when they matter.
+            lo, hi = lo - k.min() + 1e-3, hi - k.min()
         if not hi > lo:
             return np.array([])
         n = int(np.floor((hi - lo) / step + 1e-9)) + 1
