@@ -1,4 +1,4 @@
-"""The photometric transfer function p(m_obs | m_in, z) (glaciar.tables.transfer_matrix) and its file round trip."""
+"""The photometric transfer function p(m_obs | m_in, z): glaciar.tables.transfer_matrix, the file."""
 import numpy as np
 import pytest
 

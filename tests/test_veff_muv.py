@@ -26,7 +26,10 @@ def _step_sf(sed=None, magnitude_type="apparent", domain_mag=(25.0, 30.0), n_dra
 
 
 def _flat_fnu_mag(M, z, cosmo):
-    """Independent K-correction of a flat-f_nu source (beta = -2): m = M + 5 log10(D_L / 10 pc) - 2.5 log10(1 + z)."""
+    """Independent K-correction of a flat-f_nu source (beta = -2).
+
+    m = M + 5 log10(D_L / 10 pc) - 2.5 log10(1 + z).
+    """
     dl_pc = cosmo.luminosity_distance(z).to_value(u.pc)
     return M + 5 * np.log10(dl_pc / 10.0) - 2.5 * np.log10(1 + z)
 

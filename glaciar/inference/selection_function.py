@@ -12,6 +12,12 @@ fields' area-by-depth distributions (the one the file's grids tabulate):
 C̄ = Σ_j A_j C(m | d_j) / Σ A_j, P̄ likewise, and S̄ = P̄ / C̄, so that C̄ S̄ = P̄
 draw by draw.  With ``depth`` they are the surfaces at that local depth.
 
+For luminosity-function codes also V_eff as a function of M_UV
+(:meth:`SelectionFunction.effective_volume_muv`, mapping M_UV to the detection band with
+the injections' spectra, :class:`InjectionSED` and :func:`kcorrection`) and the
+photometric transfer function p(m_obs | m_in, z) (:meth:`SelectionFunction.transfer`,
+counted by :func:`glaciar.tables.transfer_matrix`).
+
 No file I/O here: the file (layout in ``docs/selection-function-file.md``, so
 that it can be read without glaciar) is written and read by
 :mod:`glaciar.pipeline.selection_file`; ``SelectionFunction.read`` and
@@ -778,7 +784,8 @@ class SelectionFunction:
                                              x=zz, axis=1)
         if outside == "nan" and ext.any():
             tot, part = np.median(out, axis=0), np.median(out_ext, axis=0)
-            frac = np.where(tot > 0, part / np.where(tot > 0, tot, 1.0), 0.0)   # 0 of 0: nothing extrapolated matters
+            # 0 of 0 (no volume at all): nothing extrapolated matters.
+            frac = np.where(tot > 0, part / np.where(tot > 0, tot, 1.0), 0.0)
             out[:, ~(frac <= EXTRAPOLATION_TOLERANCE) & ext.any(axis=0)] = np.nan
         out = out.reshape((self.n_draws,) + M.shape)
         lo_q, hi_q = 0.5 - 0.5 * interval, 0.5 + 0.5 * interval

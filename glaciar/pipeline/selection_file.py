@@ -439,10 +439,9 @@ def add_lf_products(run_dir, manifest: dict, fits_list: list[SelectionFunction],
                 few = SelectionFunction(sf.model, sf.draws[:VEFF_MUV_DRAWS], meta=sf.meta,
                                         field=sf.field, depth_area=sf.depth_area,
                                         domain=sf.domain, sed=sed)
-                field = None
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")     # the fit already warns about z edges
-                    vol = few.effective_volume_muv(grid, cosmology=cosmo, field=field,
+                    vol = few.effective_volume_muv(grid, cosmology=cosmo,
                                                    n_z=VEFF_MUV_NZ, n_beta=VEFF_MUV_NBETA,
                                                    interval=VEFF_MUV_INTERVAL)
                 sf.veff_muv = VeffTable(M_uv=grid, volume=vol, interval=VEFF_MUV_INTERVAL,
