@@ -372,6 +372,10 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
 
     if not write:
         return [sf for *_, sf in outputs]
+    # V_eff(M_UV) and the transfer matrices (issue 8.4), also before anything is written.
+    from .selection_file import add_lf_products
+    add_lf_products(run_dir, manifest, [sf for *_, sf in outputs], cosmology=cosmology, seed=seed)
+
     # Everything sampled and checked: now write.
     from astropy.table import Table
     for name, tag, res, key, draws, sf in outputs:
