@@ -5,42 +5,54 @@ Windowed detection
 Each injected source is detected in a cut-out *window* of the injected
 detection image.  Windows of many sources are tiled into one *canvas*,
 separated by masked blank gaps wider than the filter kernel, and extracted with
-one ``sep.extract`` call.  A window is grown (and the source re-done in the
-next round) until every connected above-threshold region that matters lies at
-least ``filter half-width + 1`` pixels inside the window edge (sides on the
-image edge excepted, where the full frame has the same edge):
+one ``sep.extract`` call (CLEAN off).  A window is grown (and the source re-done
+in the next round) until every connected above-threshold region that matters
+lies at least ``filter half-width + 1`` pixels inside the window edge (sides on
+the image edge excepted, where the full frame has the same edge):
 
 * regions with a pixel in the search box;
 * regions touching the bounding boxes of the Kron-radius ellipse (6 a, 6 b),
   the AUTO ellipse and the largest circular aperture (they decide which pixels
-  are masked as neighbours).
+  are masked as neighbours);
+* the regions of every object whose pixels CLEAN hands to an object in the
+  search box (below).
 
-Then every pixel of those regions has the same filtered value and threshold as
-in the full frame, so the regions are identical.
+"Regions" are the 8-connected components of sep's above-threshold mask,
+recomputed exactly (:func:`glaciar.engine.clean.detection_mask`), *all* of
+them: a region that the window cuts below DETECT_MINAREA has no segment in the
+window, yet the full frame detects it, so checking only the segmentation
+would miss it (the "minarea gap").  Every pixel of a region inside its
+window's exact zone has the full frame's filtered value and threshold, so the
+region is the full frame's.
 
-Two sep behaviours would still make a cut-out differ from the full frame, and
-both are made window-independent here, identically in ``mode="full"``:
+Two sep behaviours would still make a cut-out differ from the full frame; both
+are made window-independent, identically in ``mode="full"``:
 
 1. *Deblending is random.*  sep (like SExtractor) hands the faint pixels of a
    split region to its children by drawing random numbers from one stream per
    ``sep.extract`` call, so a deblended footprint depends on every region
-   processed before it anywhere in the image.  A region with more than one
-   segment that contains (part of) a source's search box is therefore
-   re-extracted *alone* (same pixels; the RMS set to infinity outside the
-   region so nothing else is detected), which makes its deblending
-   deterministic.
-2. *CLEAN compares objects across the whole image* (within 10 (a1 + a2)), so a
-   cut-out changes which spurious objects are removed.  The tiled extraction
-   runs with CLEAN off, and CLEAN is applied inside each re-extracted region:
-   i.e. CLEAN acts between the deblended children of one region, not between
-   separate regions.  Regions with a single segment are unaffected by CLEAN
-   in sep (it only removes objects).
+   processed before it anywhere in the image.  Every split region glaciar
+   uses (in a search box, or holding objects CLEAN relabels, or near a stamp)
+   is therefore re-extracted *alone* (same pixels; the RMS set to infinity
+   outside the region), which makes its deblending a function of its own
+   pixels (:func:`glaciar.engine.segmentation.isolate_region`).
+2. *CLEAN runs through the whole image's object list.*  glaciar applies it
+   itself (:mod:`glaciar.engine.clean`; ``DetectionParams.clean_style``:
+   SExtractor's or sep's, bit for bit) once per task on the injected image's
+   complete pre-CLEAN object list, made of the original image's objects that
+   no stamp comes near and one extraction of the stamps' influence boxes
+   (:mod:`glaciar.engine.localclean`), and each window relabels the objects of
+   its search box with the outcome.
 
-With ``filter_type="matched"`` the noise enters the filter and point 1 is only
-approximately window-independent.
+With ``filter_type="matched"`` the noise enters the filter and the detection
+mask is recomputed only approximately.
 
-The reference (original-image) extraction is a plain full-frame sep run with
-CLEAN as configured; it is done once per field and shared by both modes.
+The reference (original-image) extraction is glaciar's segmentation product of
+the original image (:func:`glaciar.engine.segmentation.sep_segmentation`:
+canonical deblending, the same CLEAN); it is done once per field and shared by
+both modes.  ``mode="source-extractor"`` runs the SExtractor binary on the
+full injected image instead (:mod:`glaciar.engine.sextractor_backend`) and
+classifies on its segmentation with the same code.
 
 Speed without changing answers
 ------------------------------
@@ -52,7 +64,7 @@ Each shortcut below only decides *how much* is computed, never a result
   window edge grows by half the window, other sides just enough;
 * canvases are built by :meth:`Scene.paste_windows` (one overlap search per
   canvas, stamps added where windows read them);
-* a region's box is the union of its segments' boxes from sep's catalogue;
+* CLEAN's outcome is computed once per task and read by every window;
 * a re-extracted (deblended) region is cached by its image position and
   pixels for the whole call, so a later round or an overlapping window reuses
   it (the extraction depends on nothing else);
@@ -70,10 +82,13 @@ from scipy import ndimage
 
 from glaciar.constants import (COL_FLAGS, FLAG_SEP_ERROR, FLAG_WINDOW_AT_LIMIT,
                                STATUS_NOT_DETECTED, band_column)
+from glaciar.engine import clean as _clean
+from glaciar.engine import localclean as _lc
 from glaciar.engine import photometry as phot
+from glaciar.engine.segmentation import isolate_region, sep_segmentation
 from glaciar.engine.classify import ClassificationParams, classify, footprint_overlap, input_pixel, \
     select_detection
-from glaciar.engine.detect import DetectionError, DetectionParams, _sep_extract, sanitize
+from glaciar.engine.detect import DetectionError, DetectionParams, _sep_extract, detection_rms, sanitize
 from glaciar.engine.scene import Scene
 
 __all__ = ["FieldReference", "reference_extraction", "measure_injected", "output_columns"]
@@ -98,16 +113,23 @@ class FieldReference:
         AUTO magnitude per original id (detection zeropoint); NaN for flux <= 0.
     catalog : structured ndarray or None
         sep's catalogue (row id - 1).
+    product : Segmentation or None
+        The original image's segmentation product
+        (:func:`glaciar.engine.segmentation.sep_segmentation`), pre-CLEAN
+        objects included: CLEAN of an injected image takes the objects the
+        injection leaves untouched from it.  None (hand-made references):
+        CLEAN then sees only the objects near the task's stamps.
     """
 
     segmap: np.ndarray
     flux: np.ndarray
     mag: np.ndarray
     catalog: np.ndarray | None = None
+    product: object = None
 
 
 def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropoint: float,
-                         mask=None, photometry=None) -> FieldReference:
+                         mask=None, photometry=None, backend: str = "sep") -> FieldReference:
     """Extract the original (un-injected) detection image once per field.
 
     Parameters
@@ -125,6 +147,11 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         The band whose AUTO magnitudes the original sources get when it is not
         the detection image (a coadded detection image: fluxes in the
         detection *band*, the band ``zeropoint`` belongs to).
+    backend : {"sep", "source-extractor"}
+        Who segments the original image: glaciar's sep product
+        (:func:`~glaciar.engine.segmentation.sep_segmentation`; needed by the
+        sep modes, whose CLEAN takes unchanged objects from it) or the
+        SExtractor binary (for ``mode="source-extractor"``).
 
     Returns
     -------
@@ -134,20 +161,29 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         ``params.phot_autoparams``; neighbours masked).
     """
     data, err, nodata = sanitize(det_image_sub, det_rms, mask)
-    cat, seg = _sep_extract(data, err, nodata, params, params.clean)
-    n = len(cat)
+    if backend == "sep":
+        prod = sep_segmentation(data, err, params, mask=nodata)
+        cat = prod.cat[np.flatnonzero(prod.owner == np.arange(len(prod.owner)))] if len(prod.cat) else prod.cat
+    elif backend == "source-extractor":
+        from glaciar.engine.sextractor_backend import sextractor_segmentation
+        prod = sextractor_segmentation(data, err, params, mask=nodata)
+        cat = None
+    else:
+        raise ValueError(f"backend must be 'sep' or 'source-extractor', got {backend!r}")
+    seg = prod.seg
+    n = len(prod)
     if n == 0:
-        return FieldReference(seg, np.zeros(0), np.zeros(0), cat)
+        return FieldReference(seg, np.zeros(0), np.zeros(0), cat, prod)
     ids = np.arange(1, n + 1, dtype=np.int32)
-    a, b, th = _shape(cat["a"], cat["b"], cat["theta"])
-    kr = phot.kron_radius(data, cat["x"], cat["y"], a, b, th, segmap=seg, seg_id=ids, mask=nodata)
+    a, b, th = _shape(prod.a, prod.b, prod.theta)
+    kr = phot.kron_radius(data, prod.x, prod.y, a, b, th, segmap=seg, seg_id=ids, mask=nodata)
     scale = phot.auto_scale(kr, params.phot_autoparams)
     if photometry is not None:
         data, err, nodata = sanitize(photometry[0], photometry[1], mask)
-    flux, _ = phot.auto_photometry(data, err, cat["x"], cat["y"], a, b, th, scale,
+    flux, _ = phot.auto_photometry(data, err, prod.x, prod.y, a, b, th, scale,
                                    segmap=seg, seg_id=ids, mask=nodata)
     mag, _, _ = phot.magnitudes(flux, np.ones_like(flux), zeropoint)
-    return FieldReference(seg, flux, mag, cat)
+    return FieldReference(seg, flux, mag, cat, prod)
 
 
 def _shape(a, b, theta):
@@ -214,12 +250,14 @@ class _Canvas:
         det = np.zeros(self.shape)
         err = np.ones(self.shape, dtype=np.float32)
         nodata = np.ones(self.shape, dtype=bool)
+        gap = np.ones(self.shape, dtype=bool)
         ref = np.zeros(self.shape, dtype=np.int32)
         ctx.det_scene.paste_windows(det, rects, self.oy, self.ox)
         for k, (y0, y1, x0, x1) in enumerate(rects.tolist()):
             sl = self.slice(k)
             err[sl] = ctx.det_rms[y0:y1, x0:x1]
             nodata[sl] = False if ctx.mask is None else ctx.mask[y0:y1, x0:x1]
+            gap[sl] = False
             ref[sl] = ctx.ref_segmap[y0:y1, x0:x1]
         with np.errstate(invalid="ignore"):
             nodata |= ~np.isfinite(det) | ~(np.isfinite(err) & (err > 0))
@@ -229,7 +267,20 @@ class _Canvas:
         self.det32 = det.astype(np.float32)
         self.err = err
         self.nodata = nodata
+        # the RMS the threshold multiplies; gaps between windows count as outside the image
+        self.derr = detection_rms(err, nodata & ~gap, ctx.params, outside=gap)
         self.ref = ref
+
+    def detection(self):
+        """sep's above-threshold mask of the canvas, its filtered image and threshold (cached).
+
+        Every connected region of the mask, whatever its size, is a region
+        sep sees (:func:`glaciar.engine.clean.detection_mask`); the exactness
+        checks use these, not the segmentation, so a region a window cuts
+        below DETECT_MINAREA is not missed."""
+        if getattr(self, "_detection", None) is None:
+            self._detection = _clean.detection_mask(self.det32, self.derr, self.nodata, self.ctx.params)
+        return self._detection
 
     def slice(self, k):
         y0, y1, x0, x1 = self.rects[k]
@@ -348,8 +399,8 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         undetected sources; ``detection_id`` is the label of the detection in
         this call's extraction (0 = none; not comparable between modes).
     """
-    if mode not in ("windowed", "full"):
-        raise ValueError(f"mode must be 'windowed' or 'full', got {mode!r}")
+    if mode not in ("windowed", "full", "source-extractor"):
+        raise ValueError(f"mode must be 'windowed', 'full' or 'source-extractor', got {mode!r}")
     bands = list(band_scenes)
     if detection_band not in band_scenes:
         raise ValueError(f"detection band {detection_band!r} missing from band_scenes ({', '.join(bands)})")
@@ -394,6 +445,26 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
     ctx.out = out
     ctx.at_max = np.zeros(n, dtype=bool)
     ctx.isolated = {}
+    ny, nx = ctx.shape
+    if mode == "source-extractor":
+        from glaciar.engine.sextractor_backend import sextractor_segmentation
+        prod = sextractor_segmentation(det_scene.full(), det_rms, params, mask=mask,
+                                       gain=gains.get(detection_band), zeropoint=zeropoints[detection_band])
+        _measure_product(ctx, prod)
+        if diagnostics is not None:
+            diagnostics.update(window=np.repeat(np.array([[0, ny, 0, nx]]), n, axis=0), rounds=1)
+        return out
+    rp = reference.product
+    ctx.ref_prod = rp if (rp is not None and getattr(rp, "objects", None) is not None) else None
+    ctx.tclean = None
+    if params.clean:
+        try:
+            ctx.tclean = _lc.task_clean(det_scene, det_rms, params, ctx.ref_prod, mask, ctx.isolated)
+        except DetectionError:
+            out[COL_FLAGS] |= FLAG_SEP_ERROR
+            if diagnostics is not None:
+                diagnostics.update(window=np.zeros((n, 4), dtype=np.int64), rounds=0)
+            return out
 
     ny, nx = ctx.shape
     if mode == "full":
@@ -424,11 +495,49 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
     return out
 
 
+def _measure_product(ctx, prod):
+    """Classification and photometry of every source on a full-frame segmentation product.
+
+    The same selection, Kron/AUTO, photometry and classification code as the
+    sep modes (:func:`_finish`), on another backend's segmentation
+    (:class:`~glaciar.engine.segmentation.Segmentation`): its labels and
+    geometry are taken as they are.
+    """
+    ny, nx = ctx.shape
+    n = ctx.x.size
+    rects = np.array([[0, ny, 0, nx]], dtype=np.int64)
+    cv = _Canvas(ctx, rects, full=True)
+    src = np.arange(n)
+    src_win = np.zeros(n, dtype=np.int64)
+    pseg = np.asarray(prod.seg, dtype=np.int64)
+    tab = {f: np.r_[np.nan, np.asarray(getattr(prod, f), dtype=np.float64)]
+           for f in ("x", "y", "a", "b", "theta")}
+    pix = np.flatnonzero(pseg)
+    lab_pix = pseg.ravel()[pix]
+    seg_flux = np.bincount(lab_pix, weights=cv.det.ravel()[pix], minlength=len(prod) + 1)
+    bounds = np.tile(np.array([0, ny, 0, nx], dtype=np.int64), (n, 1))
+    label = select_detection(pseg, ctx.x, ctx.y, seg_flux, ctx.cls.search_box, bounds=bounds)
+    det = label > 0
+    xs, ys = tab["x"][label], tab["y"][label]
+    a, b, th = _shape(tab["a"][label], tab["b"][label], tab["theta"][label])
+    pseg32 = pseg.astype(np.int32)
+    kr = np.full(n, np.nan)
+    ii = np.flatnonzero(det)
+    if ii.size:
+        kr[ii] = phot.kron_radius(cv.det, xs[ii], ys[ii], a[ii], b[ii], th[ii], segmap=pseg32,
+                                  seg_id=label[ii], mask=cv.nodata)
+    scale = phot.auto_scale(kr, ctx.params.phot_autoparams)
+    zeros = np.zeros(n, dtype=np.int64)
+    _finish(ctx, cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win, np.ones(n, dtype=bool),
+            rects[src_win], zeros, zeros, np.zeros(n, dtype=bool), np.zeros((n, 4), dtype=np.int64), bounds,
+            pix, lab_pix)
+
+
 def _run_canvas(ctx, src, rects, src_win, full, all_rects=None):
     """Extract one canvas; finish what is exact, return sources whose window must grow."""
     try:
         canvas = _Canvas(ctx, rects, full=full)
-        cat, seg = _sep_extract(canvas.det32, canvas.err, canvas.nodata, ctx.params, clean=False)
+        cat, seg = _sep_extract(canvas.det32, canvas.derr, canvas.nodata, ctx.params, clean=False)
     except DetectionError:
         if len(rects) > 1:   # isolate the failing window(s)
             grow = [_run_canvas(ctx, src[i:i + 1], rects[src_win[i]][None], np.zeros(1, dtype=np.int64),
@@ -444,26 +553,20 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     m = ctx.margin
     ny, nx = ctx.shape
     full = cv.full
-    # ---- regions (8-connected components of detected pixels) and their boxes
-    comp, ncomp = ndimage.label(seg > 0, structure=_EIGHT)
+    # ---- regions: 8-connected components of sep's above-threshold mask, *every* one,
+    # those below DETECT_MINAREA included: a region a window truncates below
+    # DETECT_MINAREA has no segment in the window, yet it is a detection in the full
+    # frame, so the exactness checks must see it.
+    dmask = cv.detection()[0] | (seg > 0)
+    comp, ncomp = ndimage.label(dmask, structure=_EIGHT)
     nseg = len(cat)
     seg2comp = np.zeros(nseg + 1, dtype=np.int64)
     nzpix = np.flatnonzero(seg)
     seg2comp[seg.ravel()[nzpix]] = comp.ravel()[nzpix]
     segs_per_comp = np.bincount(seg2comp[1:], minlength=ncomp + 1)
-    # A region's box is the union of its segments' boxes, which sep's catalogue
-    # gives (x/ymin, x/ymax: the extremes of each object's pixels, the same pixels
-    # it writes to the segmentation map; no CLEAN here): no scan of the canvas.
     cb = np.zeros((ncomp + 1, 4), dtype=np.int64)
-    if ncomp:
-        cb[1:, 0] = cb[1:, 2] = np.iinfo(np.int64).max // 4
-        cb[1:, 1] = cb[1:, 3] = -(np.iinfo(np.int64).max // 4)
-        c = seg2comp[1:]
-        np.minimum.at(cb[:, 0], c, np.asarray(cat["ymin"], dtype=np.int64))
-        np.maximum.at(cb[:, 1], c, np.asarray(cat["ymax"], dtype=np.int64) + 1)
-        np.minimum.at(cb[:, 2], c, np.asarray(cat["xmin"], dtype=np.int64))
-        np.maximum.at(cb[:, 3], c, np.asarray(cat["xmax"], dtype=np.int64) + 1)
-        cb[0] = 0
+    for c, sl in enumerate(ndimage.find_objects(comp), start=1):
+        cb[c] = (sl[0].start, sl[0].stop, sl[1].start, sl[1].stop)
 
     # ---- per-source window geometry on the canvas
     k = src_win
@@ -579,6 +682,13 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
             except DetectionError:
                 done_comps[c] = None
                 sep_failed[i] = True
+    # ---- CLEAN: glaciar's (sep's test and order, exact in any window; see localclean)
+    if params.clean:
+        zone = np.stack([lo_y, hi_y, lo_x, hi_x], axis=1)
+        pseg, next_label = _clean_stage(ctx, cv, comp, cb, seg2comp, segs_per_comp, cat, pseg, tab, next_label,
+                                        src, rect, wy0, wx0, bounds, zone, icx, icy, grow, sep_failed, fail,
+                                        need_l)
+    tab.pop("iso")
     tab = {f: np.concatenate(v) for f, v in tab.items()}
 
     # ---- choose the detection
@@ -667,23 +777,115 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     return np.array(regrow, dtype=np.int64)
 
 
+def _clean_stage(ctx, cv, comp, cb, seg2comp, segs_per_comp, cat, pseg, tab, next_label, src, rect, wy0, wx0,
+                 bounds, zone, icx, icy, grow, sep_failed, fail, need_l):
+    """Relabel what each source's search box shows as the full frame's CLEAN leaves it.
+
+    Every object with a pixel in a source's search box takes the label of the
+    object that owns it after CLEAN (:class:`glaciar.engine.localclean.TaskClean`:
+    itself, its absorber when the clean style hands removed pixels over, or
+    none), and every object absorbed by such an owner takes it too, so the
+    owner's segment is complete.
+    The window must hold the regions of all of them (exact, canonically
+    deblended); otherwise the source must grow (``fail``; ``need_l`` updated).
+
+    Returns the relabelled ``pseg`` and the next free label.
+    """
+    tc = ctx.tclean
+    ny, nx = ctx.shape
+    ncomp = cb.shape[0] - 1
+    comp_seg = np.zeros(ncomp + 1, dtype=np.int64)           # region -> its first segment label
+    comp_seg[seg2comp[1:][::-1]] = np.arange(len(cat), 0, -1)
+    h = ctx.cls.search_box // 2
+    relabel = {}
+    state = {"next": next_label}
+
+    for i in np.flatnonzero(~grow & ~sep_failed).tolist():
+        oy, ox = int(rect[i, 0] - wy0[i]), int(rect[i, 2] - wx0[i])      # canvas -> image
+        wb = bounds[i].tolist()
+        lo_y, hi_y, lo_x, hi_x = zone[i].tolist()
+
+        def canvas_label(ident):
+            """Canvas label of an object, or None when its region is not exact in this window."""
+            b = tc.region_box(ident)
+            bcv = (b[0] - oy, b[1] - oy, b[2] - ox, b[3] - ox)
+            if not (bcv[0] >= max(lo_y, wb[0]) and bcv[1] <= min(hi_y, wb[1])
+                    and bcv[2] >= max(lo_x, wb[2]) and bcv[3] <= min(hi_x, wb[3])):
+                return None
+            y, x = tc.pixel_of(ident, ctx.shape)
+            cy, cx = y - oy, x - ox
+            c = int(comp[cy, cx])
+            if segs_per_comp[c] >= 2 and c not in tab["iso"]:
+                state["next"] = _isolate(cv, comp, c, cb[c], bounds[i], pseg, tab, state["next"], ctx, (oy, ox))
+            return int(pseg[cy, cx])
+
+        by0, by1 = max(int(icy[i]) - h, wb[0]), min(int(icy[i]) + h + 1, wb[1])
+        bx0, bx1 = max(int(icx[i]) - h, wb[2]), min(int(icx[i]) + h + 1, wb[3])
+        box = pseg[by0:by1, bx0:bx1]
+        need = []
+        moves = {}
+        for lab in np.unique(box[box > 0]).tolist():
+            yy, xx = np.nonzero(box == lab)
+            y, x = int(yy[0]) + by0 + oy, int(xx[0]) + bx0 + ox
+            ident = tc.at_pixel(y * nx + x)
+            if ident is None and tc.ref is not None:
+                r = int(tc.ref.pre_seg[y, x]) - 1
+                ident = r if r >= 0 else None
+            if ident is None:          # no CLEAN information (hand-made reference)
+                continue
+            w = tc.owner(ident)
+            if w is None:
+                moves[lab] = 0
+                continue
+            lw = canvas_label(w)
+            group = tc.absorbed(w)
+            labels = [canvas_label(m) for m in group]
+            miss = [m for m, lm in zip(group + [w], labels + [lw]) if lm is None]
+            if miss:
+                need.extend(tc.region_box(m) for m in miss)
+                continue
+            for lm in labels:
+                moves[lm] = lw
+        if need:
+            fail(i)
+            _need_union(need_l[i], need, oy, ox)
+            if grow[i]:
+                continue
+        relabel.update(moves)
+    lut = np.arange(max(state["next"], int(pseg.max(initial=0)) + 1), dtype=np.int64)
+    for lm, lw in relabel.items():
+        lut[lm] = lw
+    return lut[pseg], state["next"]
+
+
+def _need_union(nd, boxes, oy, ox):
+    """Grow a source's required canvas box ``nd`` to hold image boxes ``boxes``."""
+    for b in boxes:
+        nd[0], nd[1] = min(nd[0], b[0] - oy), max(nd[1], b[1] - oy)
+        nd[2], nd[3] = min(nd[2], b[2] - ox), max(nd[3], b[3] - ox)
+
+
 def _segment_table(cat):
-    """Label-indexed geometry (index 0 = no detection), as lists of arrays to concatenate."""
+    """Label-indexed geometry (index 0 = no detection), as lists of arrays to concatenate;
+    ``"iso"``: region -> (first label, count, sep rows) of its isolated extraction."""
     tab = {}
     for f in ("x", "y", "a", "b", "theta"):
         tab[f] = [np.array([np.nan]), np.asarray(cat[f], dtype=np.float64)]
+    tab["iso"] = {}
     return tab
 
 
 def _isolate(cv, comp, c, box, win, pseg, tab, next_label, ctx, offset):
-    """Re-extract region ``c`` alone (fresh deblending RNG, CLEAN within the region).
+    """Re-extract region ``c`` alone (fresh deblending RNG; CLEAN is applied later, by glaciar).
 
     The cut-out is the region's box plus the filter half-width + 1, clipped to
     the window ``win`` (y0, y1, x0, x1), so it is the same array in a window
     and in the full frame.  ``offset`` (dy, dx) turns canvas into image
     coordinates: the same region (same image position, same pixels) met again
     in another window or a later round reuses the first result, which is
-    exact because the extraction depends only on the cut-out.
+    exact because the extraction depends only on the cut-out.  The region's
+    children get labels ``next_label ...``; ``tab["iso"][c]`` records
+    (first label, count, their sep rows in canvas coordinates).
     """
     params = ctx.params
     pad = params.filter_halfwidth + 1
@@ -695,26 +897,27 @@ def _isolate(cv, comp, c, box, win, pseg, tab, next_label, ctx, offset):
     if hit is None:
         raise DetectionError("sep failed on this region before")
     if hit is False:
-        data = np.ascontiguousarray(cv.det32[y0:y1, x0:x1])
-        err = np.array(cv.err[y0:y1, x0:x1], dtype=np.float32, order="C")
-        err[~inside] = _BIG_RMS   # nothing outside the region can pass the threshold
-        nod = np.ascontiguousarray(cv.nodata[y0:y1, x0:x1])
         try:
-            cat, seg = _sep_extract(data, err, nod, params, params.clean)
+            cat, seg = isolate_region(cv.det32[y0:y1, x0:x1], cv.derr[y0:y1, x0:x1], cv.nodata[y0:y1, x0:x1],
+                                      inside, params)
         except DetectionError:
             ctx.isolated[key] = None
             raise
-        hit = (seg, {f: np.asarray(cat[f], dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}, len(cat))
+        hit = (np.where(inside, seg, 0), cat, len(cat))
         ctx.isolated[key] = hit
-    seg, geo, k = hit
+    seg, cat, k = hit
     region = pseg[y0:y1, x0:x1]
     region[inside] = 0
     new = seg > 0
     region[new] = seg[new] + (next_label - 1)
-    tab["x"].append(geo["x"] + x0)
-    tab["y"].append(geo["y"] + y0)
+    rows = np.array(cat, copy=True)
+    rows["x"] = rows["x"] + x0      # cut-out -> canvas
+    rows["y"] = rows["y"] + y0
+    tab["x"].append(rows["x"].astype(np.float64))
+    tab["y"].append(rows["y"].astype(np.float64))
     for f in ("a", "b", "theta"):
-        tab[f].append(geo[f])
+        tab[f].append(np.asarray(cat[f], dtype=np.float64))
+    tab["iso"][c] = (next_label, k, rows)
     return next_label + k
 
 
