@@ -161,6 +161,12 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         ``params.phot_autoparams``; neighbours masked).
     """
     data, err, nodata = sanitize(det_image_sub, det_rms, mask)
+    if backend == "sep" and params.clean_style == "region":
+        # CLEAN within regions: the reference is a plain full-frame sep run with
+        # CLEAN as configured (no pre-CLEAN object list: no task-wide CLEAN needs it)
+        cat, seg = _sep_extract(data, detection_rms(err, nodata, params), nodata, params, params.clean)
+        geo = {f: np.asarray(cat[f], dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}
+        return _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, photometry, cat, None)
     if backend == "sep":
         prod = sep_segmentation(data, err, params, mask=nodata)
         cat = prod.cat[np.flatnonzero(prod.owner == np.arange(len(prod.owner)))] if len(prod.cat) else prod.cat
@@ -170,17 +176,22 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         cat = None
     else:
         raise ValueError(f"backend must be 'sep' or 'source-extractor', got {backend!r}")
-    seg = prod.seg
-    n = len(prod)
+    geo = {f: np.asarray(getattr(prod, f), dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}
+    return _reference_photometry(data, err, nodata, prod.seg, geo, params, zeropoint, mask, photometry, cat, prod)
+
+
+def _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, photometry, cat, prod):
+    """AUTO flux and magnitude of every object of an original image's segmentation."""
+    n = geo["x"].size
     if n == 0:
         return FieldReference(seg, np.zeros(0), np.zeros(0), cat, prod)
     ids = np.arange(1, n + 1, dtype=np.int32)
-    a, b, th = _shape(prod.a, prod.b, prod.theta)
-    kr = phot.kron_radius(data, prod.x, prod.y, a, b, th, segmap=seg, seg_id=ids, mask=nodata)
+    a, b, th = _shape(geo["a"], geo["b"], geo["theta"])
+    kr = phot.kron_radius(data, geo["x"], geo["y"], a, b, th, segmap=seg, seg_id=ids, mask=nodata)
     scale = phot.auto_scale(kr, params.phot_autoparams)
     if photometry is not None:
         data, err, nodata = sanitize(photometry[0], photometry[1], mask)
-    flux, _ = phot.auto_photometry(data, err, prod.x, prod.y, a, b, th, scale,
+    flux, _ = phot.auto_photometry(data, err, geo["x"], geo["y"], a, b, th, scale,
                                    segmap=seg, seg_id=ids, mask=nodata)
     mag, _, _ = phot.magnitudes(flux, np.ones_like(flux), zeropoint)
     return FieldReference(seg, flux, mag, cat, prod)
@@ -457,7 +468,7 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
     rp = reference.product
     ctx.ref_prod = rp if (rp is not None and getattr(rp, "objects", None) is not None) else None
     ctx.tclean = None
-    if params.clean:
+    if params.clean and params.clean_style != "region":
         try:
             ctx.tclean = _lc.task_clean(det_scene, det_rms, params, ctx.ref_prod, mask, ctx.isolated)
         except DetectionError:
@@ -683,7 +694,7 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
                 done_comps[c] = None
                 sep_failed[i] = True
     # ---- CLEAN: glaciar's (sep's test and order, exact in any window; see localclean)
-    if params.clean:
+    if ctx.tclean is not None:
         zone = np.stack([lo_y, hi_y, lo_x, hi_x], axis=1)
         pseg, next_label = _clean_stage(ctx, cv, comp, cb, seg2comp, segs_per_comp, cat, pseg, tab, next_label,
                                         src, rect, wy0, wx0, bounds, zone, icx, icy, grow, sep_failed, fail,
@@ -899,7 +910,7 @@ def _isolate(cv, comp, c, box, win, pseg, tab, next_label, ctx, offset):
     if hit is False:
         try:
             cat, seg = isolate_region(cv.det32[y0:y1, x0:x1], cv.derr[y0:y1, x0:x1], cv.nodata[y0:y1, x0:x1],
-                                      inside, params)
+                                      inside, params, clean=params.clean and params.clean_style == "region")
         except DetectionError:
             ctx.isolated[key] = None
             raise

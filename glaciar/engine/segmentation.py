@@ -126,8 +126,8 @@ class Segmentation:
 # --------------------------------------------------------------------------
 # One region
 # --------------------------------------------------------------------------
-def isolate_region(data32, err32, nodata, inside, params: DetectionParams):
-    """sep on one region alone (CLEAN off): canonical deblending.
+def isolate_region(data32, err32, nodata, inside, params: DetectionParams, clean: bool = False):
+    """sep on one region alone: canonical deblending (CLEAN off unless ``clean``).
 
     Parameters
     ----------
@@ -139,6 +139,9 @@ def isolate_region(data32, err32, nodata, inside, params: DetectionParams):
         The region's pixels; the RMS is set to 1e30 elsewhere, so nothing else
         is detected while the filtered values of the region stay exact.
     params : DetectionParams
+    clean : bool
+        Run sep's CLEAN inside the region (``clean_style="region"``: CLEAN
+        acts between the deblended children of one region only).
 
     Returns
     -------
@@ -151,7 +154,7 @@ def isolate_region(data32, err32, nodata, inside, params: DetectionParams):
     err = np.array(err32, dtype=np.float32, order="C")
     err[~inside] = _BIG_RMS
     return _sep_extract(np.ascontiguousarray(data32, dtype=np.float32), err,
-                        np.ascontiguousarray(nodata), params, False)
+                        np.ascontiguousarray(nodata), params, bool(clean))
 
 
 def region_objects(inside, cat, seg, data32, filt, thr, params: DetectionParams, lutz=None):
