@@ -27,13 +27,15 @@ import sep
 __all__ = [
     "DetectionError", "DetectionParams", "builtin_filter", "builtin_filter_names",
     "read_conv_file", "measure_background", "extract", "sanitize", "detection_rms",
-    "CLEAN_STYLES", "THRESHOLD_RMS",
+    "CLEAN_STYLES", "THRESHOLD_RMS", "BACKENDS",
 ]
 
 #: CLEAN styles (``DetectionParams.clean_style``; config ``detection.CLEAN_STYLE``), default first
 CLEAN_STYLES = ("region", "sextractor", "sep", "sep-merge")
 #: what DETECT_THRESH multiplies (``DetectionParams.threshold_rms``), default first
 THRESHOLD_RMS = ("pixel", "filtered")
+#: who segments the detection image (``DetectionParams.backend``), default first
+BACKENDS = ("sep", "source-extractor")
 
 #: sep's object flag for "deblended from a larger region" (SExtractor flag 2 is
 #: BLENDED; sep's SEP_OBJ_MERGED is bit 1).
@@ -223,6 +225,12 @@ class DetectionParams:
         Largest window side before giving up (FLAG_WINDOW_AT_LIMIT) [pixels].
     sub_object_limit : int
         sep's deblending sub-object limit (``sep.set_sub_object_limit``).
+    backend : {"sep", "source-extractor"}
+        Who segments the detection images: glaciar with sep (windowed or
+        full frame, exact) or the SExtractor binary on the full injected
+        image in dual-image mode (:mod:`glaciar.engine.sextractor_backend`;
+        a reference, ~3x slower than the full frame); classification and
+        photometry are glaciar's in both.
     filter_name : str
         Provenance of the kernel (built-in name or path).
     """
@@ -244,6 +252,7 @@ class DetectionParams:
     initial_window: int = 41
     max_window: int = 1025
     sub_object_limit: int = 1024
+    backend: str = "sep"
     filter_name: str = "gauss_2.0_5x5"
 
     def __post_init__(self):
@@ -270,6 +279,8 @@ class DetectionParams:
             bad("clean_style", "one of " + ", ".join(repr(v) for v in CLEAN_STYLES), self.clean_style)
         if not isinstance(self.clean_param, num) or not self.clean_param > 0:
             bad("clean_param", "a positive number", self.clean_param)
+        if self.backend not in BACKENDS:
+            bad("backend", "one of " + ", ".join(repr(v) for v in BACKENDS), self.backend)
         if self.threshold_rms not in THRESHOLD_RMS:
             bad("threshold_rms", "one of " + ", ".join(repr(v) for v in THRESHOLD_RMS), self.threshold_rms)
         if self.filter_type not in ("conv", "matched"):

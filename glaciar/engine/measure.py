@@ -129,7 +129,7 @@ class FieldReference:
 
 
 def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropoint: float,
-                         mask=None, photometry=None, backend: str = "sep") -> FieldReference:
+                         mask=None, photometry=None, backend: str | None = None) -> FieldReference:
     """Extract the original (un-injected) detection image once per field.
 
     Parameters
@@ -147,8 +147,8 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         The band whose AUTO magnitudes the original sources get when it is not
         the detection image (a coadded detection image: fluxes in the
         detection *band*, the band ``zeropoint`` belongs to).
-    backend : {"sep", "source-extractor"}
-        Who segments the original image: glaciar's sep product
+    backend : {"sep", "source-extractor"}, optional
+        Default ``params.backend``.  Who segments the original image: glaciar's sep product
         (:func:`~glaciar.engine.segmentation.sep_segmentation`; needed by the
         sep modes, whose CLEAN takes unchanged objects from it) or the
         SExtractor binary (for ``mode="source-extractor"``).
@@ -160,6 +160,7 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         (MAG_AUTO as SExtractor: Kron factor and minimum radius from
         ``params.phot_autoparams``; neighbours masked).
     """
+    backend = params.backend if backend is None else backend
     data, err, nodata = sanitize(det_image_sub, det_rms, mask)
     if backend == "sep" and params.clean_style == "region":
         # CLEAN within regions: the reference is a plain full-frame sep run with
@@ -384,8 +385,10 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
     detection_band : str
     mask : ndarray of bool, optional
         True where there are no data (all bands).
-    mode : {"windowed", "full"}
-        ``full`` extracts the whole injected image once (validation).
+    mode : {"windowed", "full", "source-extractor"}
+        ``full`` extracts the whole injected image once (validation);
+        ``source-extractor`` (or ``params.backend="source-extractor"``, which
+        takes precedence) segments it with the SExtractor binary.
     diagnostics : dict, optional
         If given, filled with ``"window"``: (N, 4) int array, the last
         window of each source (y0, y1, x0, x1, image pixels; the whole image
@@ -457,7 +460,7 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
     ctx.at_max = np.zeros(n, dtype=bool)
     ctx.isolated = {}
     ny, nx = ctx.shape
-    if mode == "source-extractor":
+    if mode == "source-extractor" or params.backend == "source-extractor":
         from glaciar.engine.sextractor_backend import sextractor_segmentation
         prod = sextractor_segmentation(det_scene.full(), det_rms, params, mask=mask,
                                        gain=gains.get(detection_band), zeropoint=zeropoints[detection_band])
