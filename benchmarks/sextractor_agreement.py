@@ -87,7 +87,7 @@ def main(argv=None):
     ap.add_argument("--threshold-rms", choices=["pixel", "filtered"], default="filtered",
                     help="glaciar's threshold_rms (default filtered: SExtractor's threshold with a filter "
                          "and a weight map)")
-    ap.add_argument("--styles", nargs="+", default=["sextractor", "sep-merge", "sep"],
+    ap.add_argument("--styles", nargs="+", default=["region", "sextractor", "sep-merge", "sep"],
                     help="glaciar clean_style values to compare with CLEAN on")
     args = ap.parse_args(argv)
     exe = find_sextractor()

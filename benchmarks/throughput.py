@@ -36,7 +36,8 @@ import sep
 import glaciar.engine.task as task_module
 from glaciar.config import load_config
 from glaciar.demo import build_demo_survey
-from glaciar.engine.measure import _pack, measure_injected
+from glaciar.engine.measure import measure_injected
+from glaciar.engine.windows import pack_windows
 from glaciar.run import build_field_context, plan_tasks
 from glaciar.survey import Survey
 
@@ -88,7 +89,7 @@ def floor_and_full(a, windows):
     x, y = np.asarray(a["x"], float), np.asarray(a["y"], float)
     win = _windows_at_least(windows, x, y, det.shape, MIN_WINDOW)
     gap = max(params.filter_halfwidth + 1, 2)
-    oy, ox, shape = _pack(win[:, 1] - win[:, 0], win[:, 3] - win[:, 2], gap)
+    oy, ox, shape = pack_windows(win[:, 1] - win[:, 0], win[:, 3] - win[:, 2], gap)
     sl = [(slice(oy[k], oy[k] + y1 - y0), slice(ox[k], ox[k] + x1 - x0), slice(y0, y1), slice(x0, x1))
           for k, (y0, y1, x0, x1) in enumerate(win.tolist())]
     cx, cy = x - win[:, 2] + ox, y - win[:, 0] + oy

@@ -31,6 +31,7 @@ import numpy as np
 
 from glaciar.engine import clean as cl
 from glaciar.engine.detect import DetectionParams, _sep_extract, detection_rms, sanitize
+from glaciar.engine.windows import pack_windows
 
 __all__ = ["TaskClean", "task_clean", "influence_boxes", "stamp_boxes"]
 
@@ -304,27 +305,6 @@ class TaskClean:
         return list(self._absorbed.get(ident, []))
 
 
-def _pack(heights, widths, gap):
-    """Shelf-pack rectangles; returns (y offsets, x offsets, canvas shape)."""
-    order = np.argsort(-np.asarray(heights), kind="stable")
-    area = float(np.sum((np.asarray(heights) + gap) * (np.asarray(widths) + gap)))
-    width = int(max(np.max(widths) + 2 * gap, np.sqrt(area) * 1.1))
-    oy = np.zeros(len(heights), dtype=np.int64)
-    ox = np.zeros(len(heights), dtype=np.int64)
-    y = x = gap
-    shelf = 0
-    for i in order.tolist():
-        hh, ww = int(heights[i]), int(widths[i])
-        if x + ww + gap > width and x > gap:
-            y += shelf + gap
-            x = gap
-            shelf = 0
-        oy[i], ox[i] = y, x
-        x += ww + gap
-        shelf = max(shelf, hh)
-    return oy, ox, (int(y + shelf + gap), int(width))
-
-
 def task_clean(det_scene, det_rms, params: DetectionParams, ref=None, mask=None, isolated=None) -> TaskClean:
     """Pre-CLEAN objects of an injected image that differ from the original's.
 
@@ -346,7 +326,7 @@ def task_clean(det_scene, det_rms, params: DetectionParams, ref=None, mask=None,
         True where there are no data.
     isolated : dict, optional
         Cache of isolated extractions keyed by (image box of the cut-out,
-        region pixels), shared with :func:`glaciar.engine.measure._isolate`.
+        region pixels), shared with :func:`glaciar.engine.windows._isolate`.
 
     Returns
     -------
@@ -375,7 +355,7 @@ def task_clean(det_scene, det_rms, params: DetectionParams, ref=None, mask=None,
                       np.maximum(clusters[:, 2] - m, 0), np.minimum(clusters[:, 3] + m, nx)], axis=1)
     hh, ww = rects[:, 1] - rects[:, 0], rects[:, 3] - rects[:, 2]
     gap = max(m, 2)
-    oy, ox, cshape = _pack(hh, ww, gap)
+    oy, ox, cshape = pack_windows(hh, ww, gap)
     det = np.zeros(cshape)
     err = np.ones(cshape, dtype=np.float32)
     nod = np.ones(cshape, dtype=bool)
