@@ -72,6 +72,17 @@ def _compare(tg, ts, det):
                 dflux_n=int(both.sum()), rg=rg, rs=rs, sg=sg, ss=ss)
 
 
+def _m50(mags, rec):
+    """Magnitude where the recovered fraction per input magnitude first falls through 0.5
+    (linear interpolation between grid magnitudes; NaN if it never does)."""
+    ms = np.array(sorted(set(np.round(mags, 4))))
+    f = np.array([rec[np.isclose(mags, m)].mean() for m in ms])
+    for k in range(1, ms.size):
+        if f[k - 1] >= 0.5 > f[k]:
+            return float(ms[k - 1] + (f[k - 1] - 0.5) / (f[k - 1] - f[k]) * (ms[k] - ms[k - 1]))
+    return float("nan")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", help="survey directory (default: a temporary one)")
@@ -124,7 +135,7 @@ def main(argv=None):
     _tasks(ctx0, specs, args.seed, "windowed")
     header = (f"{'CLEAN':>5} {'glaciar clean_style':>24} {'N':>5} {'recovered =':>11} {'status =':>9} "
               f"{'glaciar only':>12} {'SExtr. only':>11} {'med |dISO|/ISO':>14} {'t glaciar/t SExtr':>17}")
-    lines, curves = [], {}
+    lines, curves, per_style = [], {}, {}
     se_cache = {}
     for clean_name, style in settings:
         params = dataclasses.replace(ctx0.detection_params, clean=(clean_name == "on"), clean_style=style)
@@ -142,6 +153,7 @@ def main(argv=None):
                      f"{r['g_only']:12d} {r['s_only']:11d} {100 * r['dflux']:13.3f}% {time_g / time_s:17.2f}")
         mags = np.concatenate([t[C.COL_MAG].to_numpy() for t in tg])
         curves[(clean_name, what)] = (mags, r["rg"], r["rs"])
+        per_style[(clean_name, what)] = tg
     if tmp:
         import shutil
         shutil.rmtree(tmp, ignore_errors=True)
@@ -156,6 +168,21 @@ def main(argv=None):
             sel = np.isclose(mags, m)
             cells.append(f"{rg[sel].mean():.3f}/{rs[sel].mean():.3f}")
         print(f"{clean_name:>5} {what:>24} " + " ".join(f"{c:>13}" for c in cells))
+    print("\nm50 (recovered fraction 0.5, interpolated) glaciar / SExtractor [mag]")
+    for (clean_name, what), (mags, rg, rs) in curves.items():
+        print(f"{clean_name:>5} {what:>24}  {_m50(mags, rg):7.3f} / {_m50(mags, rs):7.3f}")
+    if ("on", "sep") in per_style:
+        # glaciar's CLEAN styles against plain sep's CLEAN (clean_style "sep" reproduces a
+        # full-frame sep.extract: tests/test_sep_crosscheck.py)
+        print("\nagainst clean_style 'sep' (plain sep's CLEAN on the full frame), CLEAN on")
+        for (clean_name, what), tg in per_style.items():
+            if clean_name != "on" or what == "sep":
+                continue
+            r = _compare(tg, per_style[("on", "sep")], det)
+            mags = curves[(clean_name, what)][0]
+            print(f"{what:>24}: recovered flags equal {100 * r['rec']:.2f} % ({r['g_only']} only {what}, "
+                  f"{r['s_only']} only sep), median |dISO|/ISO {100 * r['dflux']:.3f} %, m50 "
+                  f"{_m50(mags, r['rg']):.3f} vs {_m50(mags, r['rs']):.3f}")
 
 
 if __name__ == "__main__":

@@ -138,6 +138,8 @@ def main(argv=None):
     ap.add_argument("--mag", type=float, default=26.0, help="F160W magnitude [AB] (default 26)")
     ap.add_argument("--seed", type=int, default=3, help="seed of the demo images (default 3)")
     ap.add_argument("--profile", action="store_true", help="also print a cProfile of the timed tasks")
+    ap.add_argument("--clean-style", default=None,
+                    help="DetectionParams.clean_style (default: the configuration's, i.e. glaciar's default)")
     opt = ap.parse_args(argv)
 
     with tempfile.TemporaryDirectory(prefix="glaciar-throughput-") as tmp:
@@ -147,6 +149,13 @@ def main(argv=None):
         t_build = time.perf_counter() - t0
         cfg = load_config(path)
         t0 = time.process_time()
+        if opt.clean_style is not None:
+            import yaml
+            raw = yaml.safe_load(open(path))
+            raw.setdefault("detection", {})["CLEAN_STYLE"] = opt.clean_style
+            with open(path, "w") as fh:
+                yaml.safe_dump(raw, fh)
+            cfg = load_config(path)
         ctx = build_field_context(cfg, Survey.from_config(cfg), cfg.survey.fields[0])
         t_ctx = time.process_time() - t0
         specs = plan_tasks(cfg)
