@@ -280,3 +280,36 @@ def test_fast_pixel_order_is_the_scans():
         pix, yd, xd = cl.lutz_regions(one, 1)[0]
         fast = cl.lutz_one(one)
         assert np.array_equal(pix, fast[0]) and (yd, xd) == fast[1:]
+
+
+# --------------------------------------------------------------------------
+# The default CLEAN style, "region": CLEAN only between the children of one region
+# --------------------------------------------------------------------------
+@pytest.mark.parametrize("minarea", [5, 60])
+def test_region_clean_never_acts_across_regions(field, minarea):
+    """clean_style="region" (the default) without deblending: every region is one object and
+    CLEAN only acts between the deblended children of a region, so every source's flags and
+    FLUX_ISO are plain sep's with CLEAN *off* (the minarea gap closed as with the other styles);
+    the same field shows plain sep's CLEAN on removing some of them
+    (test_clean_removes_across_regions), so the test can fail."""
+    params = DetectionParams(detect_thresh=1.5, detect_minarea=minarea, filter_kernel=builtin_filter("gauss_2.0_5x5"),
+                             deblend_mincont=1.0, clean=True, clean_param=1.0, threshold_rms="pixel",
+                             phot_apertures=(4.0,), initial_window=15)
+    assert params.clean_style == "region"
+    img, rms, bright = field
+    x, y, flux = _sources(np.random.default_rng(11), bright)
+    scene = Scene(img, _stamps(x, y, flux))
+    injected = scene.full()
+    ref = reference_extraction(img, rms, params, 25.0)
+    # the reference is plain sep with CLEAN as configured, label for label
+    _, seg_ref = _plain_sep(img, rms, params, True)
+    assert np.array_equal(ref.segmap, seg_ref)
+    out = measure_injected(scene, rms, {"h": scene}, {"h": rms}, x, y, flux, 25 - 2.5 * np.log10(flux), ref,
+                           params, ClassificationParams(min_sn=MIN_SN), {"h": 25.0}, {"h": None}, "h")
+    st_g = np.where(out["status"] >= -1, 0, out["status"])
+    _, seg_off = _plain_sep(injected, rms, params, False)
+    st_s, f_s, _ = _reference_status(injected, rms, seg_off, x, y)
+    f_g = out["flux_iso_h"]
+    same_flux = (np.isnan(f_g) & np.isnan(f_s)) | (np.abs(f_g - f_s) <= 1e-9 * np.abs(f_s))
+    bad = np.flatnonzero((st_g != st_s) | ~same_flux)
+    assert bad.size == 0, (bad, st_g[bad], st_s[bad])
