@@ -144,6 +144,7 @@ def _detection_params(cfg: Config) -> DetectionParams:
         detect_thresh=d.detect_thresh, detect_minarea=d.detect_minarea, filter_kernel=kernel,
         filter_type=d.filter_type, deblend_nthresh=d.deblend_nthresh,
         deblend_mincont=d.deblend_mincont, clean=d.clean, clean_param=d.clean_param,
+        clean_style=d.clean_style, threshold_rms=d.threshold_rms, backend=d.backend,
         back_size=d.back_size, back_filtersize=d.back_filtersize,
         phot_apertures=d.phot_apertures, phot_autoparams=d.phot_autoparams, filter_name=name)
 

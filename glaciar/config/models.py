@@ -28,7 +28,7 @@ from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, ValidationE
 from .. import constants
 from ..engine.classify import ClassificationParams
 from ..engine import noise as _noise
-from ..engine.detect import DetectionParams, builtin_filter_names
+from ..engine.detect import BACKENDS, CLEAN_STYLES, THRESHOLD_RMS, DetectionParams, builtin_filter_names
 from ..galaxy import psf as _psf
 from ..galaxy.population import SourceModel
 from ..galaxy.filters import FILE_SUFFIXES as FILTER_FILE_SUFFIXES, looks_like_path
@@ -803,6 +803,24 @@ class DetectionConfig(Section):
     clean: Bool = Field(_det("clean"), alias="CLEAN", description="clean spurious detections")
     clean_param: Float = Field(_det("clean_param"), gt=0, alias="CLEAN_PARAM",
                                description="cleaning efficiency")
+    clean_style: Choice(*CLEAN_STYLES) = Field(
+        _det("clean_style"), alias="CLEAN_STYLE",
+        description="glaciar's key (not SExtractor's; a .sex file's CLEAN and CLEAN_PARAM "
+                    "set CLEAN and CLEAN_PARAM): region = sep's CLEAN inside each "
+                    "deblended region only (fast); sextractor = SExtractor 2.x's CLEAN on "
+                    "the whole injected image, cleaned pixels handed to the absorbing "
+                    "object; sep = plain sep's CLEAN on the whole image; sep-merge = sep's "
+                    "decisions with SExtractor's hand-over")
+    threshold_rms: Choice(*THRESHOLD_RMS) = Field(
+        _det("threshold_rms"), alias="THRESHOLD_RMS",
+        description="glaciar's key: the RMS DETECT_THRESH multiplies (THRESH_TYPE RELATIVE): "
+                    "pixel = each pixel's RMS (sep); filtered = the RMS of the filtered "
+                    "image (SExtractor with a weight map)")
+    backend: Choice(*BACKENDS) = Field(
+        _det("backend"), alias="BACKEND",
+        description="glaciar's key: who segments the detection image: sep (glaciar's "
+                    "windowed extraction, exact) or source-extractor (the SExtractor "
+                    "binary on the full injected image, dual-image mode; slower, a reference)")
     back_size: SquareInt = Field(_det("back_size"), ge=1, alias="BACK_SIZE",
                                  description="background mesh [pixels]")
     back_filtersize: SquareInt = Field(_det("back_filtersize"), ge=1, alias="BACK_FILTERSIZE",
