@@ -655,18 +655,26 @@ def clean_objects(cat, orders, data_flat, filt_flat, thr_flat, minarea: int) -> 
     tpix = (np.asarray(filt_flat, dtype=np.float32)[allpix] - thr_all).astype(np.float32)
     bounds = np.r_[0, np.cumsum(lens)]
     mth = np.array([heap_mthresh(tpix[bounds[i]:bounds[i + 1]], minarea) for i in range(n)], dtype=np.float32)
-    darea = area2 - np.asarray(cat["tnpix"], dtype=np.float64)
-    t1t2 = th.astype(np.float64) / thresh2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ab = (np.where(darea < 0.0, darea, -1.0)
-              / (2 * math.pi * np.log(np.where(t1t2 < 1.0, t1t2, 0.99)) * a.astype(np.float64) * b.astype(np.float64)))
-    ab = ab.astype(np.float32)
-    ab = np.where(t1t2 > 0.0, np.where(ab > 1.0, np.float32(1.0), ab), np.float32(1.0)).astype(np.float32)
+    ab = _abcor(th, thresh2, area2, cat["tnpix"], a, b)
     return CleanObjects(x=np.asarray(cat["x"], dtype=np.float64), y=np.asarray(cat["y"], dtype=np.float64),
                         a=a, b=b, cxx=np.asarray(cat["cxx"], dtype=np.float32),
                         cyy=np.asarray(cat["cyy"], dtype=np.float32), cxy=np.asarray(cat["cxy"], dtype=np.float32),
                         fdflux=np.asarray(cat["cflux"], dtype=np.float32), thresh=th,
                         npix=np.asarray(cat["npix"], dtype=np.int64), abcor=ab, mthresh=mth, tmin=tmin)
+
+
+def _abcor(th, thresh2, area2, tnpix, a, b) -> np.ndarray:
+    """sep's/SExtractor's CLEAN profile correction ``abcor`` (float32), from the area
+    above half-way between threshold and peak: the one copy both input builders use."""
+    darea = area2 - np.asarray(tnpix, dtype=np.float64)
+    t1t2 = th.astype(np.float64) / thresh2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ab = (np.where(darea < 0.0, darea, -1.0)
+              / (2 * math.pi * np.log(np.where(t1t2 < 1.0, t1t2, 0.99)) * a.astype(np.float64)
+                 * b.astype(np.float64)))
+    ab = ab.astype(np.float32)
+    return np.where(t1t2 > 0.0, np.where(ab > 1.0, np.float32(1.0), ab),
+                    np.float32(1.0)).astype(np.float32)
 
 
 def light_objects(cat, lseg, data, filt, thr):
@@ -708,13 +716,7 @@ def light_objects(cat, lseg, data, filt, thr):
     thresh2 = (th.astype(np.float64) + peak.astype(np.float64)) / 2.0
     val = np.asarray(data, dtype=np.float32).ravel()[pix].astype(np.float64)
     area2 = np.bincount(li, weights=(val > thresh2[li]).astype(np.float64), minlength=n)
-    darea = area2 - np.asarray(cat["tnpix"], dtype=np.float64)
-    t1t2 = th.astype(np.float64) / thresh2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ab = (np.where(darea < 0.0, darea, -1.0)
-              / (2 * math.pi * np.log(np.where(t1t2 < 1.0, t1t2, 0.99)) * a.astype(np.float64) * b.astype(np.float64)))
-    ab = ab.astype(np.float32)
-    ab = np.where(t1t2 > 0.0, np.where(ab > 1.0, np.float32(1.0), ab), np.float32(1.0)).astype(np.float32)
+    ab = _abcor(th, thresh2, area2, cat["tnpix"], a, b)
     objs = CleanObjects(x=np.asarray(cat["x"], dtype=np.float64), y=np.asarray(cat["y"], dtype=np.float64),
                         a=a, b=b, cxx=np.asarray(cat["cxx"], dtype=np.float32),
                         cyy=np.asarray(cat["cyy"], dtype=np.float32), cxy=np.asarray(cat["cxy"], dtype=np.float32),
