@@ -145,7 +145,9 @@ def _detection_params(cfg: Config) -> DetectionParams:
         filter_type=d.filter_type, deblend_nthresh=d.deblend_nthresh,
         deblend_mincont=d.deblend_mincont, clean=d.clean, clean_param=d.clean_param,
         back_size=d.back_size, back_filtersize=d.back_filtersize,
-        phot_apertures=d.phot_apertures, phot_autoparams=d.phot_autoparams, filter_name=name)
+        phot_apertures=d.phot_apertures, phot_autoparams=d.phot_autoparams, filter_name=name,
+        backphoto_type=d.backphoto_type, backphoto_thick=d.backphoto_thick, mask_type=d.mask_type,
+        satur_level=d.satur_level)
 
 
 def _band_psf(cfg: Config, band, pixscale: float) -> np.ndarray:
