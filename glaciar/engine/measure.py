@@ -412,6 +412,9 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
 
     ix, iy = input_pixel(x, y)
     r = params.initial_window // 2
+    if params.backphoto_type == "local":
+        # the local-background annulus must fit too: start from a window that holds it
+        r = max(r, params.backphoto_thick + 16)
     rects = np.stack([np.clip(iy - r, 0, ny), np.clip(iy + r + 1, 0, ny),
                       np.clip(ix - r, 0, nx), np.clip(ix + r + 1, 0, nx)], axis=1)
     pending = np.arange(n)
