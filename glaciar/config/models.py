@@ -769,7 +769,8 @@ class DetectionConfig(Section):
     satur_level: Float = Field(_det("satur_level"), gt=0, alias="SATUR_LEVEL",
                                description="pixel value (background included) of the detection "
                                            "band from which a detection is flagged saturated "
-                                           "(source_flags bit 16) [image units: ADU, e-/s, ...]")
+                                           f"(source_flags bit {constants.FLAG_SATURATED}) "
+                                           "[image units: ADU, e-/s, ...]")
 
     @classmethod
     def _normalise_keys(cls, data: dict) -> dict:
