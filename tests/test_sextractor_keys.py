@@ -351,3 +351,43 @@ def test_against_sextractor(tmp_path):
         cat, _ = _run_sextractor(tmp_path, img, SATUR_LEVEL=level)
         ours = phot.saturated(img, pix, seg.ravel()[pix], np.r_[np.inf, np.full(len(cat), level)], len(cat) + 1)
         assert ((cat[:, 9].astype(int) & 4) > 0).tolist() == ours[cat[:, 0].astype(int)].tolist()
+
+
+# ---------------------------------------------------------------------------
+# Windowed detection stays exact with the new keys
+# ---------------------------------------------------------------------------
+@pytest.mark.parametrize("keys", [dict(backphoto_type="local", mask_type="correct"),
+                                  dict(backphoto_type="local", backphoto_thick=8, mask_type="blank",
+                                       satur_level=5.0)])
+def test_windowed_equals_full_frame_with_the_keys(keys):
+    """100 sources on test_windowed's field: every column identical in both modes.
+
+    The windows must hold each annulus and every region touching it (LOCAL), and the
+    mirrored pixels (CORRECT), as the full frame sees them.
+    """
+    from test_windowed import _field, _stamps
+
+    from glaciar.engine.detect import measure_background
+
+    img = _field(seed=2, ngal=120)
+    params = dataclasses.replace(DetectionParams(), **keys)
+    back, rms = measure_background(img, None, params)
+    sub = img - back
+    ref = reference_extraction(sub, rms, params, 25.0)
+    xs, ys, flux, st = _stamps(np.random.default_rng(8))
+    det = Scene(sub, st)
+    bands = {"h": det, "j": Scene(0.7 * sub, [(a, b, 0.5 * d) for a, b, d in st])}
+    kw = dict(det_rms=rms, band_scenes=bands, band_rms={"h": rms, "j": 1.3 * rms}, x=xs, y=ys,
+              input_flux_det=flux, input_mag_det=25.0 - 2.5 * np.log10(flux), reference=ref, params=params,
+              classification=ClassificationParams(), zeropoints={"h": 25.0, "j": 26.0},
+              gains={"h": None, "j": 2.0}, detection_band="h", det_background=back)
+    w = measure_injected(det, mode="windowed", **kw)
+    f = measure_injected(det, mode="full", **kw)
+    assert (w["detection_id"] > 0).sum() > 50
+    for c in w:
+        if c == "detection_id":
+            continue
+        np.testing.assert_allclose(np.asarray(w[c], float), np.asarray(f[c], float), rtol=1e-9, atol=1e-12,
+                                   err_msg=c)
+    if "satur_level" in keys:
+        assert 0 < int(((w["source_flags"] & FLAG_SATURATED) > 0).sum()) < (w["detection_id"] > 0).sum()
