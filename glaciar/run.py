@@ -149,6 +149,7 @@ def _detection_params(cfg: Config) -> DetectionParams:
         detect_thresh=d.detect_thresh, detect_minarea=d.detect_minarea, filter_kernel=kernel,
         filter_type=d.filter_type, deblend_nthresh=d.deblend_nthresh,
         deblend_mincont=d.deblend_mincont, clean=d.clean, clean_param=d.clean_param,
+        clean_style=d.clean_style, threshold_rms=d.threshold_rms, backend=d.backend,
         back_size=d.back_size, back_filtersize=d.back_filtersize,
         phot_apertures=d.phot_apertures, phot_autoparams=d.phot_autoparams, filter_name=name,
         backphoto_type=d.backphoto_type, backphoto_thick=d.backphoto_thick, mask_type=d.mask_type,
@@ -277,16 +278,50 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         detection_background=backgrounds[det])
 
 
+def task_cells(cfg: Config) -> dict[tuple[str, float, float], int]:
+    """Every simulated cell of a run: ``{(field, z, mag): n_iterations}``.
+
+    The Cartesian grid (``simulation.n_iterations`` each) united with
+    ``grid.cells``; a cell given twice (or also on the grid) runs the largest
+    of its iteration counts, so re-applying a proposal adds nothing.
+    """
+    n_it = cfg.simulation.n_iterations
+    cells: dict[tuple[str, float, float], int] = {}
+    for f in cfg.survey.fields:
+        for z in cfg.grid.z_values:
+            for m in cfg.grid.mag_values:
+                cells[(f, float(z), float(m))] = n_it
+    for cell in cfg.grid.cells:
+        for f in cell.fields or cfg.survey.fields:
+            key = (f, float(cell.z), float(cell.mag))
+            cells[key] = max(cells.get(key, 0), cell.n_iterations or n_it)
+    return cells
+
+
 def plan_tasks(cfg: Config) -> list[TaskSpec]:
-    """All tasks of a run, ordered field → z → mag → iteration (so per-process caches stay warm)."""
+    """All tasks of a run, ordered field → z → mag → iteration (so per-process caches stay warm).
+
+    Tasks are keyed by exact values (field name, z, mag, iteration); the
+    indices are positions in the sorted values the run simulates.
+    """
+    cells = task_cells(cfg)
+    field_index = {f: i for i, f in enumerate(cfg.survey.fields)}
+    zs = sorted({z for _, z, _ in cells})
+    ms = sorted({m for _, _, m in cells})
+    zi, mi = {z: i for i, z in enumerate(zs)}, {m: i for i, m in enumerate(ms)}
     out = []
-    for fi, f in enumerate(cfg.survey.fields):
-        for zi, z in enumerate(cfg.grid.z_values):
-            for mi, m in enumerate(cfg.grid.mag_values):
-                for it in range(cfg.simulation.n_iterations):
-                    out.append(TaskSpec(field=f, field_index=fi, z_index=zi, mag_index=mi,
-                                        iteration=it, z=float(z), mag=float(m)))
+    for (f, z, m), n in sorted(cells.items(), key=lambda kv: (field_index[kv[0][0]],) + kv[0][1:]):
+        for it in range(n):
+            out.append(TaskSpec(field=f, field_index=field_index[f], z_index=zi[z],
+                                mag_index=mi[m], iteration=it, z=z, mag=m))
     return out
+
+
+def manifest_cells(cfg: Config) -> list[dict]:
+    """``grid.cells`` as the manifest records them (plain JSON; fields resolved)."""
+    return [{"z": float(c.z), "mag": float(c.mag),
+             "n_iterations": int(c.n_iterations or cfg.simulation.n_iterations),
+             "fields": list(c.fields or cfg.survey.fields)} for c in cfg.grid.cells]
 
 
 def spec_filename(spec: TaskSpec) -> str:
@@ -572,6 +607,7 @@ def store_settings(cfg: Config) -> dict:
             b["filter"] = _FILE
     d["grid"].pop("z", None)
     d["grid"].pop("mag", None)
+    d["grid"].pop("cells", None)
     d["simulation"].pop("n_iterations", None)
     d["simulation"].pop("seed", None)
     det = d.get("detection") or {}
@@ -630,7 +666,7 @@ def detection_z_limit(cfg: Config, z_max: float = 30.0) -> float | None:
         except ValueError:
             return False
 
-    lo = max(cfg.grid.z_values)
+    lo = max(z for _, z, _ in task_cells(cfg))
     if not ok(lo):
         return float(lo)
     hi = lo
@@ -669,6 +705,7 @@ def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
         "magnitude_type": cfg.grid.magnitude_type,
         "n_galaxies": cfg.simulation.n_galaxies,
         "n_iterations": cfg.simulation.n_iterations,
+        "cells": manifest_cells(cfg),
         "pixel_scale_arcsec": pixscale,
         "area_arcmin2": area,
         "area_arcmin2_total": float(sum(area.values())),
@@ -920,7 +957,8 @@ def placement_preflight(cfg: Config, survey: Survey) -> list[str]:
     slightly toward small sizes when a crowded field ends the sequence early.
     """
     n = cfg.simulation.n_galaxies
-    z, mag = min(cfg.grid.z_values), min(cfg.grid.mag_values)
+    cells = task_cells(cfg)
+    z, mag = min(z for _, z, _ in cells), min(m for _, _, m in cells)
     model = population.SourceModel(**cfg.source.model_dump())
     out = []
     for field in cfg.survey.fields:
