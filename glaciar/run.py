@@ -633,12 +633,41 @@ def _flatten(d, prefix=""):
     return {prefix[:-1]: d}
 
 
-def _settings_diff(old: dict, new: dict, limit: int = 3) -> str:
+def _flat_defaults() -> dict:
+    """Every default of the sections that have one for each key, flattened like the settings."""
+    from .config.models import SECTIONS
+
+    out = {}
+    for name, field in SECTIONS.items():
+        try:
+            section = field.annotation()
+        except Exception:  # noqa: BLE001 - sections with required keys (survey) or no model
+            continue
+        out.update(_flatten(json.loads(json.dumps(section.model_dump(mode="json", by_alias=True))),
+                            f"{name}."))
+    return out
+
+
+def _settings_differences(old: dict, new: dict) -> list[str]:
+    """What differs between two stores' settings, one ``key: old -> new`` string each.
+
+    A key the older store does not record (added to glaciar since) counts as the
+    same when its value now is its default: a new key's default keeps the rows
+    glaciar made before the key existed, so the older store stays extendable.
+    """
     a, b = _flatten(old), _flatten(new)
+    defaults = _flat_defaults()
     diffs = []
     for k in sorted(set(a) | set(b)):
+        if k not in a and k in defaults and b[k] == defaults[k]:
+            continue
         if a.get(k, "<unset>") != b.get(k, "<unset>"):
             diffs.append(f"{k}: {str(a.get(k, '<unset>'))[:40]} -> {str(b.get(k, '<unset>'))[:40]}")
+    return diffs
+
+
+def _settings_diff(old: dict, new: dict, limit: int = 3) -> str:
+    diffs = _settings_differences(old, new)
     more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
     return "; ".join(diffs[:limit]) + more
 
@@ -721,7 +750,8 @@ def _check_same_store(run_dir: Path, old: dict, manifest: dict, items: list[Inpu
     what = []
     if old.get("seed") != manifest["seed"]:
         what.append(f"seed: {old.get('seed')} -> {manifest['seed']}")
-    if old.get("store_hash") != manifest["store_hash"]:
+    if old.get("store_hash") != manifest["store_hash"] and _settings_differences(
+            old.get("store_settings") or {}, manifest["store_settings"]):
         what.append(_settings_diff(old.get("store_settings") or {}, manifest["store_settings"]))
     if what:
         raise StoreMismatchError(
