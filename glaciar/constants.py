@@ -31,6 +31,9 @@ FLAG_SEP_ERROR = 1             #: sep raised (e.g. deblending overflow) for this
 FLAG_WINDOW_AT_LIMIT = 2       #: detection window hit its maximum size before isolating the source
 FLAG_STAMP_CLIPPED = 4         #: stamp partly outside the image
 FLAG_NO_DATA = 8               #: some band has no data under the input position (survey.coverage)
+#: the detection has a pixel at or above SATUR_LEVEL in the detection band (SExtractor's FLAGS
+#: value 4, OBJ_SATUR; glaciar's value 4 was already FLAG_STAMP_CLIPPED, so the bit differs)
+FLAG_SATURATED = 16
 
 # --------------------------------------------------------------------------
 # Physical constants

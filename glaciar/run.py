@@ -56,7 +56,7 @@ def _resolve_filter(spec: str, base_dir: Path):
 
 
 def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
-                params: DetectionParams, weight_type: str | None = None
+                params: DetectionParams, weight_type: str | None = None, background: dict | None = None
                 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """Background-subtracted image and noise map of one band of a field.
 
@@ -74,6 +74,9 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
         by one factor to the pixel noise measured on the image
         (:func:`glaciar.engine.noise.weight_rescale_factor`); ``background``
         ignores it for the noise (it still marks pixels without data).
+    background : dict, optional
+        If given, ``background[band]`` is set to the subtracted sep background
+        map (float32, image units; SATUR_LEVEL compares pixels with it added back).
 
     Returns
     -------
@@ -92,6 +95,8 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
         valid &= np.isfinite(noise) & (noise > 0)
     bkg, bkg_rms = measure_background(img, ~valid, params)
     base = np.where(valid, img - bkg, 0.0).astype(np.float32)
+    if background is not None:
+        background[band] = np.asarray(bkg, dtype=np.float32)
     from_background = noise is None or weight_type == "background"
     if from_background:
         r = bkg_rms
@@ -146,7 +151,9 @@ def _detection_params(cfg: Config) -> DetectionParams:
         deblend_mincont=d.deblend_mincont, clean=d.clean, clean_param=d.clean_param,
         clean_style=d.clean_style, threshold_rms=d.threshold_rms, backend=d.backend,
         back_size=d.back_size, back_filtersize=d.back_filtersize,
-        phot_apertures=d.phot_apertures, phot_autoparams=d.phot_autoparams, filter_name=name)
+        phot_apertures=d.phot_apertures, phot_autoparams=d.phot_autoparams, filter_name=name,
+        backphoto_type=d.backphoto_type, backphoto_thick=d.backphoto_thick, mask_type=d.mask_type,
+        satur_level=d.satur_level)
 
 
 def _band_psf(cfg: Config, band, pixscale: float) -> np.ndarray:
@@ -228,10 +235,12 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
     mask = ~footprint
     bases, rms = {}, {}
     psfs = {}
+    backgrounds = {}
     for b in cfg.survey.bands:
         psfs[b.name] = _band_psf(cfg, b, pixscale)
         bases[b.name], rms[b.name], _ = band_pixels(survey, field, b.name, footprint, params,
-                                                    cfg.detection.weight_type)
+                                                    cfg.detection.weight_type,
+                                                    background=backgrounds if b.name == det else None)
     zps = {b.name: float(b.zeropoint) for b in cfg.survey.bands}
     gains = {b.name: (None if b.gain is None else float(b.gain)) for b in cfg.survey.bands}
     coadd_bands, coadd_method, det_image_rms = (), "ivw", None
@@ -265,7 +274,8 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         selection=selection, enclosed_fraction=model.stamp_flux_fraction,
         isolation_fraction=cfg.simulation.isolation_fraction,
         noise_models={b: m for b, m in noise_models.items() if _applies(cfg, m)},
-        coadd_bands=coadd_bands, coadd_method=coadd_method, detection_image_rms=det_image_rms)
+        coadd_bands=coadd_bands, coadd_method=coadd_method, detection_image_rms=det_image_rms,
+        detection_background=backgrounds[det])
 
 
 def task_cells(cfg: Config) -> dict[tuple[str, float, float], int]:

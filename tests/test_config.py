@@ -750,9 +750,7 @@ def test_sextractor_default_file_is_accepted(tmp_path):
 
 
 @pytest.mark.parametrize("line, needle", [
-    ("BACKPHOTO_TYPE LOCAL", "BACKPHOTO_TYPE LOCAL: not supported"),
     ("BACK_TYPE MANUAL", "BACK_TYPE MANUAL: not supported"),
-    ("MASK_TYPE BLANK", "MASK_TYPE BLANK: not supported"),
     ("GAIN 2.5", "GAIN 2.5: not supported"),
     ("INTERP_TYPE ALL", "INTERP_TYPE ALL: not supported"),
     ("DETECT_TYPE PHOTO", "DETECT_TYPE PHOTO"),

@@ -841,6 +841,25 @@ class DetectionConfig(Section):
     weight_gain: Bool = Field(False, alias="WEIGHT_GAIN",
                               description="Y (gain scaled by the weights) only without band "
                                           "gains: the gain is per band (survey.bands.<band>.gain)")
+    backphoto_type: Choice("global", "local") = Field(
+        _det("backphoto_type"), alias="BACKPHOTO_TYPE",
+        description="GLOBAL = fluxes above the background map; LOCAL = minus a background "
+                    "re-estimated per object and band (SExtractor's mode of the pixels of no "
+                    "object in a rectangular annulus around its isophotal box)")
+    backphoto_thick: Int = Field(_det("backphoto_thick"), ge=1, alias="BACKPHOTO_THICK",
+                                 description="thickness of the LOCAL background annulus [pixels]")
+    mask_type: Choice("none", "blank", "correct") | None = Field(
+        _det("mask_type"), alias="MASK_TYPE",
+        description="neighbours' pixels in aperture and AUTO fluxes, as SExtractor: NONE = "
+                    "kept; BLANK = set to 0; CORRECT = replaced by the pixels symmetric about "
+                    "the object's centre (0 if those are a neighbour's or without data); null = "
+                    "sep's masking (apertures: none; AUTO: excluded and the sum scaled by the "
+                    "total/unmasked area)")
+    satur_level: Float = Field(_det("satur_level"), gt=0, alias="SATUR_LEVEL",
+                               description="pixel value (background included) of the detection "
+                                           "band from which a detection is flagged saturated "
+                                           f"(source_flags bit {constants.FLAG_SATURATED}) "
+                                           "[image units: ADU, e-/s, ...]")
 
     @classmethod
     def _normalise_keys(cls, data: dict) -> dict:

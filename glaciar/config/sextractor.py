@@ -7,7 +7,7 @@ keys given explicitly in the YAML win. No key is ignored silently: a key
 either is honoured, has no effect on what glaciar measures
 (:data:`NO_EFFECT_KEYS`: catalogue output, memory, ...), is accepted at the
 one value glaciar reproduces (:data:`DEFAULT_ONLY_KEYS`, e.g. ``THRESH_TYPE
-RELATIVE``, ``BACKPHOTO_TYPE GLOBAL``), or is refused with a one-line error
+RELATIVE``), or is refused with a one-line error
 naming it.
 """
 from __future__ import annotations
@@ -26,7 +26,7 @@ __all__ = ["read_sex_file", "detection_keys_from_sex", "HONOURED_KEYS", "NO_EFFE
 HONOURED_KEYS = ("DETECT_THRESH", "DETECT_MINAREA", "FILTER", "FILTER_NAME", "FILTER_TYPE",
                  "DEBLEND_NTHRESH", "DEBLEND_MINCONT", "CLEAN", "CLEAN_PARAM", "BACK_SIZE",
                  "BACK_FILTERSIZE", "PHOT_APERTURES", "PHOT_AUTOPARAMS", "WEIGHT_TYPE",
-                 "WEIGHT_GAIN")
+                 "WEIGHT_GAIN", "BACKPHOTO_TYPE", "BACKPHOTO_THICK", "MASK_TYPE", "SATUR_LEVEL")
 #: detection keys glaciar has and SExtractor does not (which CLEAN, which RMS the
 #: RELATIVE threshold multiplies, which program segments): YAML only, never in a .sex file
 GLACIAR_ONLY_KEYS = ("CLEAN_STYLE", "THRESHOLD_RMS", "BACKEND")
@@ -54,21 +54,17 @@ NO_EFFECT_KEYS = {
     "ASSOC_PARAMS": "catalogue association", "ASSOC_RADIUS": "catalogue association",
     "ASSOC_TYPE": "catalogue association", "ASSOCSELEC_TYPE": "catalogue association",
     "ASSOCCOORD_TYPE": "catalogue association",
-    "SATUR_LEVEL": "the FLAGS saturation bit, which glaciar's statuses do not use (mask "
-                   "saturated stars instead)",
-    "SATUR_KEY": "the FLAGS saturation bit", "GAIN_KEY": "survey.bands.<band>.gain is used",
+    "SATUR_KEY": "SATUR_LEVEL is used (glaciar reads no saturation keyword from headers)",
+    "GAIN_KEY": "survey.bands.<band>.gain is used",
     "BACK_VALUE": "BACK_TYPE MANUAL only",
 }
 #: Keys accepted at the value that reproduces what glaciar does (SExtractor's
 #: default, compared case-insensitively); any other value is refused.
 DEFAULT_ONLY_KEYS = {
     "THRESH_TYPE": ("RELATIVE",), "BACK_TYPE": ("AUTO",), "DETECT_TYPE": ("CCD",),
-    "BACKPHOTO_TYPE": ("GLOBAL",), "BACK_FILTTHRESH": ("0", "0.0"),
+    "BACK_FILTTHRESH": ("0", "0.0"),
     "PHOT_AUTOAPERS": ("0.0,0.0", "0,0", "0.0", "0"), "GAIN": ("0", "0.0"),
     "INTERP_TYPE": ("NONE",), "WEIGHT_THRESH": ("",),
-    # sep excludes neighbours' pixels from AUTO/aperture sums and rescales by the
-    # unmasked area: SExtractor's CORRECT in expectation.
-    "MASK_TYPE": ("CORRECT",),
 }
 
 

@@ -62,6 +62,8 @@ class FieldContext:
     coadd_bands: tuple = ()
     coadd_method: str = "ivw"
     detection_image_rms: np.ndarray | None = None
+    #: sep background map subtracted from the detection band (SATUR_LEVEL flag); None = 0
+    detection_background: np.ndarray | None = None
     _shape_cache: dict = dc_field(default_factory=dict)
 
     @staticmethod

@@ -233,6 +233,19 @@ class DetectionParams:
         photometry are glaciar's in both.
     filter_name : str
         Provenance of the kernel (built-in name or path).
+    backphoto_type : {"global", "local"}
+        [BACKPHOTO_TYPE]: ``local`` subtracts from every flux a background
+        re-estimated around each object (``photometry.local_background``).
+    backphoto_thick : int
+        [BACKPHOTO_THICK] thickness of the local-background annulus [pixels].
+    mask_type : {None, "none", "blank", "correct"}
+        [MASK_TYPE] neighbours in aperture and AUTO photometry, as SExtractor
+        (``photometry.masked_cutout``); None = sep's masking (apertures: no
+        neighbour mask; AUTO: neighbours excluded, sum scaled by the
+        total/unmasked area; pixels without data likewise).
+    satur_level : float
+        [SATUR_LEVEL] pixel value (background included) from which a
+        detection is flagged saturated [image units, ADU for SExtractor].
     """
 
     detect_thresh: float = 0.7
@@ -254,6 +267,10 @@ class DetectionParams:
     sub_object_limit: int = 1024
     backend: str = "sep"
     filter_name: str = "gauss_2.0_5x5"
+    backphoto_type: str = "global"
+    backphoto_thick: int = 24
+    mask_type: str | None = None
+    satur_level: float = 50000.0
 
     def __post_init__(self):
         def bad(name, expected, value):
@@ -279,6 +296,16 @@ class DetectionParams:
             bad("clean_style", "one of " + ", ".join(repr(v) for v in CLEAN_STYLES), self.clean_style)
         if not isinstance(self.clean_param, num) or not self.clean_param > 0:
             bad("clean_param", "a positive number", self.clean_param)
+        if self.backphoto_type not in ("global", "local"):
+            bad("backphoto_type", "'global' or 'local'", self.backphoto_type)
+        if isinstance(self.backphoto_thick, bool) or not isinstance(self.backphoto_thick, (int, np.integer)) \
+                or self.backphoto_thick < 1:
+            bad("backphoto_thick", "an integer >= 1", self.backphoto_thick)
+        if self.mask_type not in (None, "none", "blank", "correct"):
+            bad("mask_type", "None, 'none', 'blank' or 'correct'", self.mask_type)
+        if not isinstance(self.satur_level, num) or isinstance(self.satur_level, bool) \
+                or not self.satur_level > 0:
+            bad("satur_level", "a positive number", self.satur_level)
         if self.backend not in BACKENDS:
             bad("backend", "one of " + ", ".join(repr(v) for v in BACKENDS), self.backend)
         if self.threshold_rms not in THRESHOLD_RMS:

@@ -22,7 +22,7 @@ from typing import Mapping
 
 import numpy as np
 
-from glaciar.constants import COL_FLAGS, FLAG_SEP_ERROR, STATUS_NOT_DETECTED, band_column
+from glaciar.constants import COL_FLAGS, FLAG_SATURATED, FLAG_SEP_ERROR, STATUS_NOT_DETECTED, band_column
 from glaciar.engine import localclean as _lc
 from glaciar.engine import photometry as phot
 from glaciar.engine.classify import ClassificationParams, classify, footprint_overlap, select_detection
@@ -155,7 +155,8 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
                      gains: Mapping[str, float | None], detection_band: str,
                      mask: np.ndarray | None = None, mode: str = "windowed",
                      diagnostics: dict | None = None, input_templates=None,
-                     noise_models: Mapping | None = None) -> dict[str, np.ndarray]:
+                     noise_models: Mapping | None = None,
+                     det_background: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Detect, classify and measure N injected sources.
 
     Parameters
@@ -199,6 +200,11 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
     noise_models : mapping band -> glaciar.engine.noise.CorrelatedNoise, optional
         Correlated-noise models: the background variance of every ISO,
         aperture and AUTO error in that band is scaled by ``r(N)^2``.
+    det_background : ndarray, optional
+        Background map of the detection band [image units] (what was
+        subtracted from its image): a detection is flagged
+        ``FLAG_SATURATED`` when its peak plus the background at its centre
+        reaches ``params.satur_level`` (SExtractor's rule); None = 0.
 
     Returns
     -------
@@ -262,7 +268,8 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         x=x, y=y, input_flux=np.asarray(input_flux_det, dtype=np.float64).ravel(),
         input_mag=np.asarray(input_mag_det, dtype=np.float64).ravel(),
         templates=_input_templates(det_scene, input_templates, n),
-        out=out, at_max=np.zeros(n, dtype=bool), isolated=isolated, tclean=tclean)
+        out=out, at_max=np.zeros(n, dtype=bool), isolated=isolated, tclean=tclean,
+        det_background=det_background)
     if sextractor:
         from glaciar.engine.sextractor_backend import sextractor_segmentation
         prod = sextractor_segmentation(det_scene.full(), det_rms, params, mask=mask,
@@ -393,15 +400,39 @@ def _finish(ctx: MeasureContext, batch: SegmentedBatch):
         feau = fau.copy()
         pos = np.full(label.size, -1, dtype=np.int64)
         pos[idx] = np.arange(idx.size)          # canvas source index -> row of this finish
-        for j, sl in window_groups(cv, idx[di], edge, src_win):
-            oy, ox = sl[0].start, sl[1].start
-            r = pos[j]
-            fa[:, r], fea[:, r] = phot.aperture_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy,
-                                                           params.phot_apertures, gain=gain, mask=bad[sl],
-                                                           noise=noise)
-            fau[r], feau[r] = phot.auto_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy, a[j], b[j], th[j],
-                                                   scale[j], gain=gain, segmap=pseg32[sl], seg_id=lab[r],
-                                                   mask=bad[sl], noise=noise)
+        jd = idx[di]
+        dbkg = None
+        if params.backphoto_type == "local" and jd.size:
+            # BACKPHOTO_TYPE LOCAL: per band, from the annulus around each segment's box
+            sbox = phot.segment_boxes(pix, lab_all, cv.shape[1], int(lab.max()) + 1)[lab[di]]
+            dbkg = phot.local_background(data, pseg32, bad, sbox, params.backphoto_thick,
+                                         shape=ctx.shape, bounds=bounds[jd])
+            npix = np.bincount(lab_all, minlength=int(lab.max()) + 1)[lab[di]]
+            fi[di] = fi[di] - npix * dbkg
+        if params.mask_type is not None and jd.size:
+            r = pos[jd]
+            fa[:, r], fea[:, r], fau[r], feau[r] = phot.sextractor_photometry(
+                data, rms, pseg32, lab[r], bad, xs[jd], ys[jd], a[jd], b[jd], th[jd], scale[jd],
+                params.phot_apertures, params.mask_type, gain=gain, dbkg=dbkg, bounds=bounds[jd],
+                noise=noise)
+        else:
+            for j, sl in window_groups(cv, jd, edge, src_win):
+                oy, ox = sl[0].start, sl[1].start
+                r = pos[j]
+                fa[:, r], fea[:, r] = phot.aperture_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy,
+                                                               params.phot_apertures, gain=gain, mask=bad[sl],
+                                                               noise=noise)
+                fau[r], feau[r] = phot.auto_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy, a[j], b[j],
+                                                       th[j], scale[j], gain=gain, segmap=pseg32[sl],
+                                                       seg_id=lab[r], mask=bad[sl], noise=noise)
+            if dbkg is not None:
+                # sep's sums stand for the whole aperture inside the image (masked pixels are
+                # scaled up), so the area to subtract is the aperture's area inside the image
+                r = pos[jd]
+                ca, ea = phot.aperture_area(cv.shape, xs[jd], ys[jd], params.phot_apertures, a[jd], b[jd],
+                                            th[jd], scale[jd], bounds=bounds[jd])
+                fa[:, r] -= ca * dbkg
+                fau[r] -= ea * dbkg
         if cls.sn_definition == "iso":
             f, fe = fi, fei
         elif cls.sn_definition == "auto":
@@ -426,6 +457,9 @@ def _finish(ctx: MeasureContext, batch: SegmentedBatch):
         out[col("maglim")][s] = phot.limiting_magnitude(f, fe, zp)
         if band == ctx.det_band:
             flux_sn, err_sn = f, fe
+            if jd.size:
+                _flag_saturated(ctx, data, pix, lab_all, lab, di, s, xs[jd] - wx0[jd] + rect[jd, 2],
+                                ys[jd] - wy0[jd] + rect[jd, 0])
             # The status-2 flux test: AUTO flux vs the injected template through the same ellipse.
             auto_det = fau
             tpl_det = _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scale,
@@ -446,6 +480,22 @@ def _finish(ctx: MeasureContext, batch: SegmentedBatch):
     j = idx
     out["x_det"][s] = np.where(det, xs[j] - wx0[j] + rect[j, 2], np.nan)
     out["y_det"][s] = np.where(det, ys[j] - wy0[j] + rect[j, 0], np.nan)
+
+
+def _flag_saturated(ctx, data, pix, lab_all, lab, di, s, x_img, y_img):
+    """FLAG_SATURATED where a detection's peak in the detection band plus the background at
+    its centre reaches SATUR_LEVEL (SExtractor's FLAGS bit 4)."""
+    thr = np.full(di.size, float(ctx.params.satur_level))
+    if ctx.det_background is not None:
+        ny, nx = ctx.shape
+        iy = np.clip((y_img + 0.5).astype(np.int64), 0, ny - 1)
+        ix = np.clip((x_img + 0.5).astype(np.int64), 0, nx - 1)
+        thr -= np.asarray(ctx.det_background, dtype=np.float64)[iy, ix]
+    n = int(max(lab_all.max(initial=0), lab.max(initial=0))) + 1
+    t = np.full(n, np.inf)
+    t[lab[di]] = thr
+    sat = phot.saturated(data, pix, lab_all, t, n)[lab[di]]
+    ctx.out[COL_FLAGS][s[di][sat]] |= FLAG_SATURATED
 
 
 def _input_templates(det_scene, templates, n):
@@ -493,6 +543,15 @@ def _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scal
             cy, cx = y0 - ry0 + wy0[j], x0 - rx0 + wx0[j]
             box = (slice(cy, cy + y1 - y0), slice(cx, cx + x1 - x0))
             tcv[box] = data[y0 - ty0:y1 - ty0, x0 - tx0:x1 - tx0] * flux
+            if ctx.params.mask_type is not None:
+                f = phot.sextractor_photometry(tcv, rms, pseg32, lab[r:r + 1], bad, xs[j:j + 1], ys[j:j + 1],
+                                               a[j:j + 1], b[j:j + 1], th[j:j + 1], scale[j:j + 1],
+                                               ctx.params.phot_apertures, ctx.params.mask_type,
+                                               bounds=np.array([[wy0[j], wy0[j] + ry1 - ry0, wx0[j],
+                                                                 wx0[j] + rx1 - rx0]]))[2]
+                out[r] = f[0]
+                tcv[box] = 0.0
+                continue
             f, _ = phot.auto_photometry(tcv[sl], rms[sl], xs[j:j + 1] - ox, ys[j:j + 1] - oy, a[j:j + 1],
                                         b[j:j + 1], th[j:j + 1], scale[j:j + 1], segmap=pseg32[sl],
                                         seg_id=lab[r:r + 1], mask=bad[sl])

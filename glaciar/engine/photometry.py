@@ -217,3 +217,408 @@ def limiting_magnitude(flux, fluxerr, zeropoint):
     f = np.fmax(np.asarray(flux, dtype=np.float64), np.asarray(fluxerr, dtype=np.float64))
     pos = f > 0
     return np.where(pos, zeropoint - 2.5 * np.log10(np.where(pos, f, 1.0)), np.nan)
+
+
+# --------------------------------------------------------------------------
+# SExtractor's BACKPHOTO_TYPE LOCAL, MASK_TYPE and SATUR_LEVEL
+# --------------------------------------------------------------------------
+def sextractor_background_mode(values):
+    """SExtractor's background estimate of a pixel sample (``backstat`` + ``backguess``).
+
+    The sample is clipped once to mean +- 2 sigma, then iteratively to
+    median +- 3 sigma until sigma converges; the estimate is the mode
+    ``2.5 median - 1.5 mean`` when ``|mean - median| < 0.3 sigma``, else the
+    median (the mean when sigma is 0).  SExtractor computes the median from a
+    histogram of quantised values; here it is the exact median of the
+    clipped sample.
+
+    Parameters
+    ----------
+    values : array
+        Pixel values [image units]; non-finite values are ignored.
+
+    Returns
+    -------
+    float
+        Background level [image units]; 0 for an empty sample.
+    """
+    v = np.asarray(values, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return 0.0
+    m, s = v.mean(), v.std()
+    v = v[(v >= m - 2.0 * s) & (v <= m + 2.0 * s)]
+    if v.size == 0:
+        return float(m)
+    lo, hi, sig1 = -np.inf, np.inf, None
+    mea, sig, med = v.mean(), v.std(), np.median(v)
+    for _ in range(100):
+        w = v[(v >= lo) & (v <= hi)]
+        if w.size == 0:
+            break
+        mea, sig, med = w.mean(), w.std(), np.median(w)
+        if sig == 0.0 or (sig1 is not None and abs(sig / sig1 - 1.0) <= 1e-4):
+            break
+        sig1 = sig
+        lo, hi = med - 3.0 * sig, med + 3.0 * sig
+    if sig == 0.0:
+        return float(mea)
+    return float(2.5 * med - 1.5 * mea if abs(mea - med) / sig < 0.3 else med)
+
+
+def segment_boxes(pixels, labels, width, n):
+    """Bounding boxes of segments from their flat pixel indices.
+
+    Parameters
+    ----------
+    pixels, labels : array of int
+        Flat (row-major) indices of segment pixels and their labels.
+    width : int
+        Row length of the array the indices refer to [pixels].
+    n : int
+        Number of labels (boxes are returned for labels 0 .. n-1).
+
+    Returns
+    -------
+    ndarray of int, shape (n, 4)
+        ``ymin, ymax, xmin, xmax`` (inclusive, SExtractor's X/YMIN, X/YMAX);
+        labels without pixels get ``ymin > ymax``.
+    """
+    big = np.iinfo(np.int64).max // 4
+    out = np.empty((n, 4), dtype=np.int64)
+    out[:, 0] = out[:, 2] = big
+    out[:, 1] = out[:, 3] = -big
+    rows, cols = np.divmod(np.asarray(pixels, dtype=np.int64), int(width))
+    lab = np.asarray(labels, dtype=np.int64)
+    np.minimum.at(out[:, 0], lab, rows)
+    np.maximum.at(out[:, 1], lab, rows)
+    np.minimum.at(out[:, 2], lab, cols)
+    np.maximum.at(out[:, 3], lab, cols)
+    return out
+
+
+def local_background_boxes(boxes, thick, shape):
+    """SExtractor's rectangular annulus of each object (BACKPHOTO_TYPE LOCAL).
+
+    The inner rectangle is the object's isophotal box widened by a quarter of
+    its size on each side (``(size)//4``, or ``(image size - size)//4`` for an
+    object larger than half the image); the outer one is the inner one
+    widened by ``thick`` pixels.
+
+    Parameters
+    ----------
+    boxes : ndarray of int, shape (K, 4)
+        ``ymin, ymax, xmin, xmax`` (inclusive) of each object's pixels, in
+        the coordinates of the image of size ``shape``.
+    thick : int
+        BACKPHOTO_THICK [pixels].
+    shape : (int, int)
+        Image size (rows, columns) [pixels].
+
+    Returns
+    -------
+    inner, outer : ndarray of int, shape (K, 4)
+        ``y0, y1, x0, x1`` with exclusive upper ends.
+    """
+    b = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
+    h, w = int(shape[0]), int(shape[1])
+    oy = b[:, 1] - b[:, 0] + 1
+    ox = b[:, 3] - b[:, 2] + 1
+    ny = np.where(oy < h // 2, oy // 4, (h - oy) // 4)
+    nx = np.where(ox < w // 2, ox // 4, (w - ox) // 4)
+    inner = np.stack([b[:, 0] - ny, b[:, 1] + 1 + ny, b[:, 2] - nx, b[:, 3] + 1 + nx], axis=1)
+    t = int(thick)
+    outer = inner + np.array([-t, t, -t, t], dtype=np.int64)
+    return inner, outer
+
+
+def local_background(image, segmap, nodata, boxes, thick, shape=None, bounds=None):
+    """Local background of each object (SExtractor's BACKPHOTO_TYPE LOCAL).
+
+    Estimated with :func:`sextractor_background_mode` from the pixels of the
+    rectangular annulus (:func:`local_background_boxes`) that belong to no
+    object (``segmap == 0``) and have data; 0 when the annulus leaves the
+    image (as SExtractor: its outer rectangle must lie inside, the upper
+    sides at least one pixel inside) or holds no such pixel.
+
+    Parameters
+    ----------
+    image : ndarray
+        Background-subtracted band image [image units].
+    segmap : ndarray of int
+        Segmentation (0 = no object).
+    nodata : ndarray of bool or None
+        Pixels without data.
+    boxes : ndarray of int, shape (K, 4)
+        Object boxes ``ymin, ymax, xmin, xmax`` (inclusive, array coordinates).
+    thick : int
+        BACKPHOTO_THICK [pixels].
+    shape : (int, int), optional
+        Size of the whole image when ``image`` is a cut-out or a canvas of
+        windows (it sets the quarter-size widening rule); default
+        ``image.shape``.
+    bounds : ndarray of int, shape (K, 4), optional
+        ``y0, y1, x0, x1`` (array coordinates) of the part of the array that
+        stands for each object's image; default the whole array.
+
+    Returns
+    -------
+    ndarray, shape (K,)
+        Background level to subtract per pixel [image units].
+    """
+    boxes = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
+    k = boxes.shape[0]
+    out = np.zeros(k)
+    if k == 0:
+        return out
+    img = np.asarray(image)
+    if shape is None:
+        shape = img.shape
+    if bounds is None:
+        bounds = np.tile(np.array([0, img.shape[0], 0, img.shape[1]], dtype=np.int64), (k, 1))
+    bounds = np.asarray(bounds, dtype=np.int64).reshape(-1, 4)
+    inner, outer = local_background_boxes(boxes, thick, shape)
+    inside = ((outer[:, 0] >= bounds[:, 0]) & (outer[:, 1] < bounds[:, 1])
+              & (outer[:, 2] >= bounds[:, 2]) & (outer[:, 3] < bounds[:, 3])
+              & (boxes[:, 0] <= boxes[:, 1]))
+    for i in np.flatnonzero(inside).tolist():
+        y0, y1, x0, x1 = outer[i].tolist()
+        iy0, iy1, ix0, ix1 = inner[i].tolist()
+        ok = np.asarray(segmap[y0:y1, x0:x1]) == 0
+        if nodata is not None:
+            ok &= ~np.asarray(nodata[y0:y1, x0:x1], dtype=bool)
+        ok[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0] = False
+        if ok.any():
+            out[i] = sextractor_background_mode(img[y0:y1, x0:x1][ok])
+    return out
+
+
+def masked_cutout(image, rms, segmap, seg_id, nodata, x, y, box, mask_type, bounds=None):
+    """A cut-out of a band with the neighbours treated as SExtractor's MASK_TYPE.
+
+    SExtractor gives pixels of other objects and pixels without data no
+    value; before aperture and AUTO photometry they become
+
+    * ``none``: neighbours kept; pixels without data 0;
+    * ``blank``: 0 (with no variance);
+    * ``correct``: the pixel symmetric about the object's centre,
+      ``(int(2 x + 0.49999 - i), int(2 y + 0.49999 - j))``, with its variance,
+      when that pixel is inside the image and neither a neighbour's nor
+      without data; else 0 (no variance).
+
+    Parameters
+    ----------
+    image, rms : ndarray
+        Band image and RMS [image units].
+    segmap : ndarray of int
+        Segmentation; pixels != 0 and != ``seg_id`` are neighbours.
+    seg_id : int
+        The object's label.
+    nodata : ndarray of bool or None
+    x, y : float
+        Object centre (0-based pixels, x along axis 1).
+    box : (int, int, int, int)
+        ``y0, y1, x0, x1`` of the cut-out (array coordinates, clipped to bounds).
+    mask_type : {"none", "blank", "correct"}
+    bounds : (int, int, int, int), optional
+        ``y0, y1, x0, x1`` of the part of the array standing for the image
+        (mirrored pixels outside it do not exist); default the whole array.
+
+    Returns
+    -------
+    data, err : ndarray
+        Cut-outs [image units] to sum without a mask.
+    origin : (int, int)
+        Row and column of the cut-out's first pixel in the array.
+    """
+    if bounds is None:
+        bounds = (0, image.shape[0], 0, image.shape[1])
+    by0, by1, bx0, bx1 = (int(v) for v in bounds)
+    y0, y1, x0, x1 = (int(v) for v in box)
+    y0, y1, x0, x1 = max(y0, by0), min(y1, by1), max(x0, bx0), min(x1, bx1)
+    y1, x1 = max(y1, y0), max(x1, x0)
+    data = np.array(image[y0:y1, x0:x1], dtype=np.float64)
+    err = np.array(rms[y0:y1, x0:x1], dtype=np.float64)
+
+    def invalid(ys, xs):
+        bad = np.zeros(np.shape(ys), dtype=bool)
+        if nodata is not None:
+            bad |= np.asarray(nodata, dtype=bool)[ys, xs]
+        if mask_type != "none":
+            s = np.asarray(segmap)[ys, xs]
+            bad |= (s != 0) & (s != seg_id)
+        return bad
+
+    jj, ii = np.nonzero(np.ones((y1 - y0, x1 - x0), dtype=bool))
+    ys, xs = jj + y0, ii + x0
+    bad = invalid(ys, xs)
+    if not bad.any():
+        return data, err, (y0, x0)
+    jb, ib = jj[bad], ii[bad]
+    if mask_type == "correct":
+        # C's (int) truncates toward zero
+        x2 = np.trunc(2.0 * x + 0.49999 - (ib + x0)).astype(np.int64)
+        y2 = np.trunc(2.0 * y + 0.49999 - (jb + y0)).astype(np.int64)
+        ok = (x2 >= bx0) & (x2 < bx1) & (y2 >= by0) & (y2 < by1)
+        ok[ok] = ~invalid(y2[ok], x2[ok])
+        data[jb, ib] = 0.0
+        err[jb, ib] = 0.0
+        data[jb[ok], ib[ok]] = np.asarray(image)[y2[ok], x2[ok]]
+        err[jb[ok], ib[ok]] = np.asarray(rms)[y2[ok], x2[ok]]
+    else:
+        data[jb, ib] = 0.0
+        err[jb, ib] = 0.0
+    return data, err, (y0, x0)
+
+
+def sextractor_photometry(image, rms, segmap, labels, nodata, x, y, a, b, theta, scale,
+                          diameters, mask_type, gain=None, dbkg=None, bounds=None, noise=None):
+    """Aperture and AUTO fluxes with neighbours treated by SExtractor's MASK_TYPE.
+
+    Each object is measured on its own cut-out from :func:`masked_cutout`
+    (the box holding its largest aperture and its AUTO ellipse), summed with
+    the exact pixel/aperture overlap (sep, ``subpix=0``) and no further
+    mask.  With a local background ``dbkg`` (BACKPHOTO_TYPE LOCAL) the
+    flux of each aperture loses ``dbkg`` times its area inside the image,
+    as SExtractor subtracts it.
+
+    Parameters
+    ----------
+    image, rms : ndarray
+        Band image and RMS [image units].
+    segmap : ndarray of int
+    labels : array of int, shape (K,)
+        Each object's label in ``segmap``.
+    nodata : ndarray of bool or None
+    x, y, a, b, theta, scale : array, shape (K,)
+        Centres [pixels], isophotal shape and AUTO scale (see
+        :func:`auto_photometry`).
+    diameters : sequence of float
+        PHOT_APERTURES [pixels].
+    mask_type : {"none", "blank", "correct"}
+    gain : float or None
+    dbkg : array, shape (K,), optional
+        Local background per pixel [image units].
+    bounds : ndarray of int, shape (K, 4), optional
+        Part of the array standing for each object's image (y0, y1, x0, x1).
+    noise : glaciar.engine.noise.CorrelatedNoise, optional
+
+    Returns
+    -------
+    flux_aper, fluxerr_aper : ndarray, shape (len(diameters), K)
+    flux_auto, fluxerr_auto : ndarray, shape (K,)
+    """
+    x = np.atleast_1d(np.asarray(x, dtype=np.float64))
+    y = np.atleast_1d(np.asarray(y, dtype=np.float64))
+    k = x.size
+    a, b, theta, scale = (np.broadcast_to(np.asarray(v, dtype=np.float64), (k,))
+                          for v in (a, b, theta, scale))
+    labels = np.broadcast_to(np.asarray(labels, dtype=np.int64), (k,))
+    dbkg = np.zeros(k) if dbkg is None else np.broadcast_to(np.asarray(dbkg, float), (k,))
+    if bounds is None:
+        bounds = np.tile(np.array([0, image.shape[0], 0, image.shape[1]]), (k, 1))
+    bounds = np.asarray(bounds, dtype=np.int64).reshape(-1, 4)
+    nd = len(diameters)
+    fa = np.full((nd, k), np.nan)
+    fea = fa.copy()
+    fau = np.full(k, np.nan)
+    feau = fau.copy()
+    rap = 0.5 * max(float(d) for d in diameters)
+    dya, dxa = _half_extent(a, b, theta, scale)
+    for i in range(k):
+        hy, hx = max(dya[i], rap), max(dxa[i], rap)
+        box = (int(np.floor(y[i] - hy)) - 1, int(np.ceil(y[i] + hy)) + 2,
+               int(np.floor(x[i] - hx)) - 1, int(np.ceil(x[i] + hx)) + 2)
+        d, e, (oy, ox) = masked_cutout(image, rms, segmap, int(labels[i]), nodata, x[i], y[i], box,
+                                       mask_type, bounds=bounds[i])
+        if d.size == 0:
+            continue
+        one = np.ones_like(d)
+        cx, cy = np.array([x[i] - ox]), np.array([y[i] - oy])
+        for j, dia in enumerate(diameters):
+            r = 0.5 * float(dia)
+            f, fe, _ = sep.sum_circle(d, cx, cy, r, err=e, gain=gain, subpix=0)
+            if noise is not None:
+                fb = fe if gain is None else sep.sum_circle(d, cx, cy, r, err=e, subpix=0)[1]
+                fe = _scaled_error(fb, fe, noise.variance_factor(np.pi * r * r))
+            if dbkg[i] != 0.0:
+                f = f - dbkg[i] * sep.sum_circle(one, cx, cy, r, subpix=0)[0]
+            fa[j, i], fea[j, i] = f[0], fe[0]
+        args = (cx, cy, a[i:i + 1], b[i:i + 1], theta[i:i + 1], scale[i:i + 1])
+        f, fe, _ = sep.sum_ellipse(d, *args, err=e, gain=gain, subpix=0)
+        fe = np.asarray(fe, dtype=np.float64)
+        if noise is not None:
+            fb = fe if gain is None else np.asarray(sep.sum_ellipse(d, *args, err=e, subpix=0)[1])
+            area = np.pi * a[i] * b[i] * scale[i] ** 2
+            fe = _scaled_error(fb, fe, noise.variance_factor(area))
+        if dbkg[i] != 0.0:
+            f = f - dbkg[i] * sep.sum_ellipse(one, *args, subpix=0)[0]
+        fau[i], feau[i] = f[0], fe[0]
+    return fa, fea, fau, feau
+
+
+def _half_extent(a, b, theta, r):
+    c, s = np.cos(theta), np.sin(theta)
+    return r * np.sqrt((a * s) ** 2 + (b * c) ** 2), r * np.sqrt((a * c) ** 2 + (b * s) ** 2)
+
+
+def aperture_area(shape, x, y, diameters, a=None, b=None, theta=None, scale=None, bounds=None):
+    """Area of each circular (and, with a/b/theta/scale, AUTO) aperture inside the image [pixels].
+
+    The pixel/aperture overlap summed over the pixels of the array (or of
+    ``bounds``, y0, y1, x0, x1 per object): the area times which SExtractor
+    subtracts a local background from an aperture flux.
+
+    Returns
+    -------
+    circle : ndarray, shape (len(diameters), K)
+    ellipse : ndarray, shape (K,) or None
+    """
+    x = np.atleast_1d(np.asarray(x, dtype=np.float64))
+    y = np.atleast_1d(np.asarray(y, dtype=np.float64))
+    k = x.size
+    if bounds is None:
+        bounds = np.tile(np.array([0, shape[0], 0, shape[1]]), (k, 1))
+    bounds = np.asarray(bounds, dtype=np.int64).reshape(-1, 4)
+    circ = np.zeros((len(diameters), k))
+    ell = None if a is None else np.zeros(k)
+    for i in range(k):
+        y0, y1, x0, x1 = bounds[i].tolist()
+        one = np.ones((y1 - y0, x1 - x0))
+        cx, cy = np.array([x[i] - x0]), np.array([y[i] - y0])
+        for j, d in enumerate(diameters):
+            circ[j, i] = sep.sum_circle(one, cx, cy, 0.5 * float(d), subpix=0)[0][0]
+        if ell is not None:
+            ell[i] = sep.sum_ellipse(one, cx, cy, np.atleast_1d(a)[i:i + 1], np.atleast_1d(b)[i:i + 1],
+                                     np.atleast_1d(theta)[i:i + 1], np.atleast_1d(scale)[i:i + 1],
+                                     subpix=0)[0][0]
+    return circ, ell
+
+
+def saturated(image, pixels, labels, threshold, n):
+    """SExtractor's FLAGS saturation bit (value 4): the object has a pixel at SATUR_LEVEL.
+
+    SExtractor flags an object when its peak (the largest background-
+    subtracted value over its isophotal pixels in the measurement image)
+    plus the background at its centre reaches SATUR_LEVEL.
+
+    Parameters
+    ----------
+    image : ndarray
+        Background-subtracted measurement image [image units].
+    pixels, labels : array of int
+        Flat indices of the segment pixels and their labels.
+    threshold : array, shape (n,)
+        Per label: SATUR_LEVEL minus the background at the object's centre
+        [image units].
+    n : int
+        Number of labels.
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+    """
+    peak = np.full(n, -np.inf)
+    np.maximum.at(peak, np.asarray(labels, dtype=np.int64),
+                  np.asarray(image, dtype=np.float64).ravel()[pixels])
+    return peak >= np.asarray(threshold, dtype=np.float64)

@@ -187,7 +187,8 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
                             flux_in[:, jd], src.mag_in[:, jd], ctx.reference, ctx.detection_params,
                             ctx.classification_params, ctx.zeropoints, ctx.gains, det,
                             mask=ctx.mask, mode=mode, input_templates=templates,
-                            noise_models=getattr(ctx, "noise_models", None))
+                            noise_models=getattr(ctx, "noise_models", None),
+                            det_background=getattr(ctx, "detection_background", None))
 
     cols: dict[str, np.ndarray] = {
         C.COL_FIELD: np.full(m, spec.field, dtype=object),

@@ -137,6 +137,9 @@ class MeasureContext:
     tclean : TaskClean or None
         Task-wide CLEAN outcome (:mod:`glaciar.engine.localclean`), None for
         ``clean_style="region"`` or CLEAN off.
+    det_background : ndarray or None
+        Background map subtracted from the detection band [image units]
+        (SATUR_LEVEL flag: pixel + background); None = 0.
     """
 
     det_scene: Scene
@@ -165,6 +168,7 @@ class MeasureContext:
     at_max: np.ndarray
     isolated: dict
     tclean: object = None
+    det_background: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -250,6 +254,9 @@ def segment_windowed(ctx: MeasureContext, finish: Callable[[MeasureContext, Segm
     n = ctx.x.size
     ix, iy = input_pixel(ctx.x, ctx.y)
     r = ctx.params.initial_window // 2
+    if ctx.params.backphoto_type == "local":
+        # the local-background annulus must fit too: start from a window that holds it
+        r = max(r, ctx.params.backphoto_thick + 16)
     rects = np.stack([np.clip(iy - r, 0, ny), np.clip(iy + r + 1, 0, ny),
                       np.clip(ix - r, 0, nx), np.clip(ix + r + 1, 0, nx)], axis=1)
     pending = np.arange(n)
@@ -599,12 +606,25 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
         dya, dxa = _ellipse_half_extent(a, b, th, scale)
         rap = 0.5 * max(params.phot_apertures)
         dya, dxa = np.maximum(dya, rap), np.maximum(dxa, rap)
+        # MASK_TYPE CORRECT reads pixels mirrored about the centre: up to 2 more pixels out
+        grow_px = 2 if params.mask_type is not None else 0
+        if params.backphoto_type == "local":
+            sbox = phot.segment_boxes(pix, lab_pix, W_cv, nl)
+            _, annulus = phot.local_background_boxes(sbox[label], params.backphoto_thick, ctx.shape)
         for i in np.flatnonzero(det):
-            bb = (int(np.floor(ys[i] - dya[i])) - 1, int(np.ceil(ys[i] + dya[i])) + 2,
-                  int(np.floor(xs[i] - dxa[i])) - 1, int(np.ceil(xs[i] + dxa[i])) + 2)
+            bb = (int(np.floor(ys[i] - dya[i])) - 1 - grow_px, int(np.ceil(ys[i] + dya[i])) + 2 + grow_px,
+                  int(np.floor(xs[i] - dxa[i])) - 1 - grow_px, int(np.ceil(xs[i] + dxa[i])) + 2 + grow_px)
             if not check(i, *bb):
                 fail(i)
             room(i, *bb)
+            if params.backphoto_type == "local":
+                # BACKPHOTO_TYPE LOCAL: the annulus pixels and which of them belong to objects
+                # must be those of the full frame (upper sides: one pixel more, SExtractor's test)
+                ab = annulus[i].tolist()
+                ab = (ab[0], ab[1] + 1, ab[2], ab[3] + 1)
+                if not check(i, *ab):
+                    fail(i)
+                bb = (min(bb[0], ab[0]), max(bb[1], ab[1]), min(bb[2], ab[2]), max(bb[3], ab[3]))
             phot_box[i] = bb
 
     # ---- windows that must grow: new rects (or, at max_window, one last round unchecked)
