@@ -42,7 +42,7 @@ __all__ = ["atomic_write_bytes", "atomic_write_text", "task_key", "task_filename
            "field_file_prefix", "write_task_table", "finished_task_names", "verified_task_names",
            "read_results", "read_current_results", "read_manifest", "write_manifest",
            "file_fingerprint", "RunLock", "StoreMismatchError", "RunLockedError", "StoreWarning",
-           "task_counts", "read_current_counts", "store_columns", "compact", "COMPACT_EVERY",
+           "task_counts", "read_current_counts", "store_columns", "write_part", "compact", "COMPACT_EVERY",
            "COUNTS_MAG_RESOLUTION", "COUNT_COLUMNS"]
 
 #: Key-value metadata of every task file: the exact task key and the number of rows.
@@ -259,13 +259,24 @@ def task_counts(rows: pd.DataFrame, mag_column: str) -> pd.DataFrame:
     g[COUNT_DEPTH_MIN] = dep
     g[COUNT_DEPTH_MAX] = dep
     keys = ids + [COUNT_MAG_KEY, COUNT_DEPTH_KEY]
-    agg = {c: "sum" for c in [COUNT_N, COUNT_K_REC, COUNT_K_SEL, *_status_columns().values()]}
-    # min_count=1: an all-NaN group (unknown depth) keeps NaN sums, not 0.
-    out = g.groupby(keys, sort=True, dropna=False).agg(
-        {**agg, COUNT_SUM_MAG: lambda v: v.sum(min_count=1), COUNT_MAG_MIN: "min",
-         COUNT_MAG_MAX: "max", COUNT_SUM_DEPTH: lambda v: v.sum(min_count=1),
-         COUNT_DEPTH_MIN: "min", COUNT_DEPTH_MAX: "max"}).reset_index()
-    return out
+    return _group_sums(g, keys)
+
+
+def _group_sums(g: pd.DataFrame, keys: list) -> pd.DataFrame:
+    """Counts summed per ``keys``: ints and sums added, extremes kept; an all-NaN sum stays NaN."""
+    import numpy as np
+
+    grouped = g.groupby(keys, sort=True, dropna=False)
+    sums = [c for c in g.columns if c not in keys and (c == COUNT_N or c.startswith(
+        ("k_", "n_status_", "sum_")))]
+    out = grouped[sums].sum()
+    for c, lo, hi in ((COUNT_SUM_MAG, COUNT_MAG_MIN, COUNT_MAG_MAX),
+                      (COUNT_SUM_DEPTH, COUNT_DEPTH_MIN, COUNT_DEPTH_MAX)):
+        out[lo] = grouped[lo].min()
+        out[hi] = grouped[hi].max()
+        # Unknown depth (NaN) in every source of a group: the sum stays NaN, not 0.
+        out[c] = np.where(np.isnan(out[lo].to_numpy(float)), np.nan, out[c].to_numpy(float))
+    return out.reset_index()
 
 
 #: Counts columns in the order :func:`task_counts` writes them (after the identity columns).
@@ -587,12 +598,7 @@ def _merge_counts(df: pd.DataFrame) -> pd.DataFrame:
     """Counts summed over iterations: one row per (field, z, mag, mag key, depth key)."""
     keys = [c for c in (COL_FIELD, COL_Z, COL_MAG) if c in df.columns] + [COUNT_MAG_KEY,
                                                                           COUNT_DEPTH_KEY]
-    agg = {c: "sum" for c in df.columns if c == COUNT_N or c.startswith(("k_", "n_status_"))}
-    for c in (COUNT_SUM_MAG, COUNT_SUM_DEPTH):
-        agg[c] = lambda v: v.sum(min_count=1)
-    agg.update({COUNT_MAG_MIN: "min", COUNT_DEPTH_MIN: "min", COUNT_MAG_MAX: "max",
-                COUNT_DEPTH_MAX: "max"})
-    return df.groupby(keys, sort=True, dropna=False).agg(agg).reset_index()
+    return _group_sums(df.drop(columns=[COL_ITERATION], errors="ignore"), keys)
 
 
 def read_current_counts(run_dir: str | os.PathLike, merge_iterations: bool = True):
@@ -684,6 +690,39 @@ def _partition_dir(run_dir: Path, field: str, z: float) -> Path:
             f"{_short_hash(str(field), 8)}" / f"z={float(z)!r}")
 
 
+def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.DataFrame | None,
+               mag_column: str | None, extra_meta: dict | None = None) -> Path:
+    """Write one compacted part of (field, z) atomically; return its path.
+
+    Parameters
+    ----------
+    table : pyarrow.Table
+        The tasks' per-source rows.
+    tasks : list of [name, key, n_rows]
+        The task files it replaces (name, :func:`task_key`, row count).
+    counts : pandas.DataFrame or None
+        The tasks' :func:`task_counts` (None: a part without counts).
+    mag_column : str or None
+        The covariate the counts are keyed on.
+    """
+    import io
+
+    import pyarrow.parquet as pq
+
+    meta = {**(extra_meta or {}),
+            _META_PART_TASKS: json.dumps(tasks, ensure_ascii=False).encode("utf-8"),
+            _META_ROWS: str(table.num_rows).encode()}
+    if counts is not None:
+        meta[_META_COUNTS] = _ipc_bytes(counts)
+        meta[_META_COUNTS_MAG] = mag_column.encode("utf-8")
+    buf = io.BytesIO()
+    pq.write_table(table.replace_schema_metadata(meta), buf)
+    name = "part-" + _short_hash("\n".join(sorted(str(t[1]) for t in tasks)), 16) + ".parquet"
+    path = _partition_dir(Path(run_dir), field, float(z)) / name
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
 def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
     """Merge loose task files into one part per (field, z); return the tasks compacted.
 
@@ -695,8 +734,6 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
     that a valid part already lists (a kill after a rename) are deleted;
     task files that fail the footer check are left for resume to redo.
     """
-    import io
-
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -735,17 +772,10 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
                 counts.append(_ipc_table(meta[_META_COUNTS]))
                 mags.add(meta.get(_META_COUNTS_MAG))
         table = pa.concat_tables(tables, promote_options="permissive")
-        pmeta = {_META_PART_TASKS: json.dumps(tasks, ensure_ascii=False).encode("utf-8"),
-                 _META_ROWS: str(table.num_rows).encode()}
-        if counts and len(counts) == len(items) and len(mags) == 1:
-            pmeta[_META_COUNTS] = _ipc_bytes(
-                pa.concat_tables(counts, promote_options="permissive").to_pandas())
-            pmeta[_META_COUNTS_MAG] = mags.pop()
-        table = table.replace_schema_metadata({**pandas_meta, **pmeta})
-        buf = io.BytesIO()
-        pq.write_table(table, buf)
-        name = "part-" + _short_hash("\n".join(sorted(k for _, k, _ in tasks)), 16) + ".parquet"
-        atomic_write_bytes(_partition_dir(run_dir, field, float(z)) / name, buf.getvalue())
+        cnt = (pa.concat_tables(counts, promote_options="permissive").to_pandas()
+               if counts and len(counts) == len(items) and len(mags) == 1 else None)
+        write_part(run_dir, field, float(z), table, tasks, cnt,
+                   mags.pop().decode("utf-8") if cnt is not None else None, pandas_meta)
         for f, _, _ in items:                # only after the part is in place
             f.unlink(missing_ok=True)
         n_done += len(items)
