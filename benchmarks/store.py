@@ -159,6 +159,46 @@ def write_rows_store(run_dir: Path, n_tasks: int, with_counts: bool, seed: int =
                                "magnitude_type": "apparent"})
 
 
+def depth_effect(n: int = 200_000, seed: int = 0) -> None:
+    """The depth-aware approximation of counts, measured on the fit (benchmarks/fit.py's data).
+
+    Per-source flags from benchmarks/fit.py's known depth-aware surfaces (continuous
+    mag_input, two depths with 0.1 mag scatter); cells from the rows
+    (:func:`aggregate_cells`, per-source relative magnitude) against cells from the counts
+    (:func:`glaciar.store.task_counts` grouped as stored, placed by group mean); both fitted
+    with the same seed; the shift of each parameter's posterior median in posterior sds.
+    """
+    sys.path.insert(0, str(Path(__file__).parent))
+    from fit import make
+
+    from glaciar.inference import SurfaceModel, aggregate_cells, fit_surfaces
+    from glaciar.pipeline.inputs import cells_from_counts
+
+    df = make(n, np.random.default_rng(seed))
+    df[C.COL_FIELD] = np.where(df[C.COL_DEPTH] < 28.7, "shallow", "deep")
+    df[C.COL_MAG] = np.round(df[C.COL_MAG_INPUT] / 0.25) * 0.25
+    df[C.COL_ITERATION] = 0
+    df[C.COL_STATUS] = np.where(df[C.COL_RECOVERED], 0, -3)
+    ref = round(float(np.median(df[C.COL_DEPTH])), 2)
+    a = aggregate_cells(df, 0.01, ref)
+    g = S._merge_counts(S.task_counts(df, C.COL_MAG_INPUT))
+    b = cells_from_counts(g[C.COL_Z], g[S.COUNT_SUM_MAG] / g[S.COUNT_N],
+                          g[S.COUNT_SUM_DEPTH] / g[S.COUNT_N], g[S.COUNT_N], g[S.COUNT_K_REC],
+                          g[S.COUNT_K_SEL], 0.01, ref)
+    out = []
+    for cells in (a, b):
+        mdl = SurfaceModel.for_data(a.z, a.mag, depth_ref=ref)
+        res = fit_surfaces(cells, mdl, seed=0)
+        d = res.draws(2000)
+        out.append((np.median(d, axis=0), np.std(d, axis=0), mdl.param_names))
+    shift = (out[1][0] - out[0][0]) / out[0][1]
+    print(f"depth-aware approximation: {n} sources, {len(a)} cells from rows, {len(b)} from "
+          f"counts ({len(g)} count groups)")
+    for name, sh in zip(out[0][2], shift):
+        print(f"  {name:16s} median shift {sh:+.3f} posterior sd")
+    print(f"  largest |shift| {np.max(np.abs(shift)):.3f} sd")
+
+
 def _measure(code: str) -> dict:
     """Run ``code`` in a fresh interpreter; it sets ``out`` (a dict); add wall s and peak RSS."""
     prog = textwrap.dedent(f"""
@@ -184,7 +224,12 @@ def main(argv=None):
     ap.add_argument("--today-tasks", type=int, default=300)
     ap.add_argument("--report-tasks", type=int, default=10_000)
     ap.add_argument("--max-steps", type=int, default=None)
+    ap.add_argument("--depth-effect", action="store_true",
+                    help="only measure the depth-aware approximation of counts on the fit")
     args = ap.parse_args(argv)
+    if args.depth_effect:
+        depth_effect()
+        return
     root = Path(tempfile.mkdtemp(prefix="glaciar-store-bench-"))
     paper_tasks = args.fields * len(Z_VALUES) * len(MAG_VALUES) * args.iterations
 

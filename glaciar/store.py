@@ -342,12 +342,13 @@ def _part_tasks(path: Path):
 def _store_units(run_dir, warn: bool = True):
     """Valid parts and the loose task files that no valid part holds.
 
-    Returns ``(parts, loose)``: ``parts`` a list of ``(path, tasks, footer)``,
-    ``loose`` a list of paths.  A task file whose name a valid part lists is
-    left out (the window between a part's rename and the deletion of its task
-    files: counted once).  An invalid part is left out with a
-    :class:`StoreWarning` naming it (``warn``).
+    Returns ``(parts, loose)``, two lists of paths.  A task file whose name a
+    valid part lists is left out (the window between a part's rename and the
+    deletion of its task files: counted once).  An invalid part is left out
+    with a :class:`StoreWarning` naming it (``warn``).  Footers are parsed
+    one at a time and not kept (memory bounded by one part's footer).
     """
+    loose_all = _loose_files(run_dir)
     parts, in_parts = [], set()
     for p in _part_files(run_dir):
         tasks, meta = _part_tasks(p)
@@ -356,9 +357,10 @@ def _store_units(run_dir, warn: bool = True):
                 warnings.warn(f"{p}: {meta}; its tasks are not counted and will be run again",
                               StoreWarning, stacklevel=3)
             continue
-        parts.append((p, tasks, meta))
-        in_parts.update(n for n, _, _ in tasks)
-    loose = [f for f in _loose_files(run_dir) if f.name not in in_parts]
+        parts.append(p)
+        if loose_all:
+            in_parts.update(n for n, _, _ in tasks)
+    loose = [f for f in loose_all if f.name not in in_parts]
     return parts, loose
 
 
@@ -368,7 +370,11 @@ def finished_task_names(run_dir: str | os.PathLike) -> set[str]:
     Temporary files excluded; loose files not validated (:func:`verified_task_names` does).
     """
     parts, loose = _store_units(run_dir, warn=False)
-    return {f.name for f in loose} | {n for _, tasks, _ in parts for n, _, _ in tasks}
+    names = {f.name for f in loose}
+    for p in parts:
+        tasks, _ = _part_tasks(p)
+        names.update(n for n, _, _ in tasks or ())
+    return names
 
 
 def _task_file_problem(path: Path, key: str) -> str | None:
@@ -466,7 +472,7 @@ def store_columns(run_dir: str | os.PathLike) -> set[str]:
     import pyarrow.parquet as pq
 
     parts, loose = _store_units(run_dir, warn=False)
-    first = parts[0][0] if parts else (loose[0] if loose else None)
+    first = parts[0] if parts else (loose[0] if loose else None)
     if first is None:
         return set()
     try:
@@ -493,7 +499,7 @@ def read_results(run_dir: str | os.PathLike, columns: list[str] | None = None) -
     """
     d = Path(run_dir) / RESULTS_DIRNAME
     parts, loose = _store_units(run_dir)
-    files = [p for p, _, _ in parts] + loose
+    files = parts + loose
     if not files:
         raise FileNotFoundError(f"{d}: no finished task files (task_*.parquet); "
                                 "run `glaciar simulate` first")
@@ -585,10 +591,7 @@ def _unit_counts(run_dir):
     Yields ``None`` for a unit without counts (a task file written before them).
     """
     parts, loose = _store_units(run_dir)
-    for _, _, meta in parts:
-        yield (_ipc_table(meta[_META_COUNTS]), meta.get(_META_COUNTS_MAG)) \
-            if _META_COUNTS in meta else None
-    for f in loose:
+    for f in parts + loose:
         meta, _ = _footer(f)
         yield (_ipc_table(meta[_META_COUNTS]), meta.get(_META_COUNTS_MAG)) \
             if meta is not None and _META_COUNTS in meta else None
@@ -742,10 +745,8 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
     for stale in (run_dir / RESULTS_DIRNAME / COMPACT_DIRNAME).glob("field=*/z=*/.part-*.tmp"):
         stale.unlink(missing_ok=True)
     parts, loose = _store_units(run_dir, warn=False)
-    listed = {n for _, tasks, _ in parts for n, _, _ in tasks}
-    for f in _loose_files(run_dir):
-        if f.name in listed:                 # already in a renamed part: a kill left it behind
-            f.unlink(missing_ok=True)
+    for f in set(_loose_files(run_dir)) - set(loose):
+        f.unlink(missing_ok=True)            # already in a renamed part: a kill left it behind
     if len(loose) < max(1, int(min_tasks)):
         return 0
     groups: dict = {}
