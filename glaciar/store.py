@@ -290,7 +290,9 @@ def _ipc_bytes(df: pd.DataFrame) -> bytes:
 
     t = pa.Table.from_pandas(df, preserve_index=False).replace_schema_metadata(None)
     sink = pa.BufferOutputStream()
-    with pa.ipc.new_stream(sink, t.schema) as w:
+    # zstd: counts repeat their keys and are mostly small integers (~10x smaller footers).
+    opts = pa.ipc.IpcWriteOptions(compression="zstd")
+    with pa.ipc.new_stream(sink, t.schema, options=opts) as w:
         w.write_table(t)
     return sink.getvalue().to_pybytes()
 
@@ -325,11 +327,12 @@ def _footer(path: Path):
     return meta, None
 
 
-def _part_tasks(path: Path):
+def _part_tasks(path: Path, meta: dict | None = None):
     """([(name, key, n_rows)], footer) of a compacted part, or (None, why not)."""
-    meta, problem = _footer(path)
     if meta is None:
-        return None, problem
+        meta, problem = _footer(path)
+        if meta is None:
+            return None, problem
     if _META_PART_TASKS not in meta:
         return None, "not a glaciar part (no task list in its metadata)"
     try:
@@ -337,6 +340,30 @@ def _part_tasks(path: Path):
     except (ValueError, TypeError) as exc:
         return None, f"unreadable task list ({exc})"
     return tasks, meta
+
+
+def _valid_parts(run_dir, warn: bool, names: bool):
+    """Yield ``(path, footer, task names or None)`` of each valid part, one footer at a time.
+
+    A part is valid when its footer parses and holds a task list; the list is
+    parsed only when ``names`` is asked for.  An invalid part is skipped with
+    a :class:`StoreWarning` naming it (``warn``).
+    """
+    for p in _part_files(run_dir):
+        meta, problem = _footer(p)
+        if meta is not None and _META_PART_TASKS not in meta:
+            meta, problem = None, "not a glaciar part (no task list in its metadata)"
+        got = None
+        if meta is not None and names:
+            tasks, problem = _part_tasks(p, meta)
+            meta = None if tasks is None else meta
+            got = None if tasks is None else {n for n, _, _ in tasks}
+        if meta is None:
+            if warn:
+                warnings.warn(f"{p}: {problem}; its tasks are not counted and will be run again",
+                              StoreWarning, stacklevel=4)
+            continue
+        yield p, meta, got
 
 
 def _store_units(run_dir, warn: bool = True):
@@ -350,16 +377,9 @@ def _store_units(run_dir, warn: bool = True):
     """
     loose_all = _loose_files(run_dir)
     parts, in_parts = [], set()
-    for p in _part_files(run_dir):
-        tasks, meta = _part_tasks(p)
-        if tasks is None:
-            if warn:
-                warnings.warn(f"{p}: {meta}; its tasks are not counted and will be run again",
-                              StoreWarning, stacklevel=3)
-            continue
+    for p, _, names in _valid_parts(run_dir, warn, bool(loose_all)):
         parts.append(p)
-        if loose_all:
-            in_parts.update(n for n, _, _ in tasks)
+        in_parts.update(names or ())
     loose = [f for f in loose_all if f.name not in in_parts]
     return parts, loose
 
@@ -588,10 +608,19 @@ def read_current_results(run_dir: str | os.PathLike,
 def _unit_counts(run_dir):
     """Per store unit (valid part, or loose task file no part holds): (counts table, covariate).
 
-    Yields ``None`` for a unit without counts (a task file written before them).
+    Yields ``None`` for a unit without counts (a task file written before
+    them).  One footer read per part; task lists are parsed only when loose
+    task files exist (to skip those a part already holds).
     """
-    parts, loose = _store_units(run_dir)
-    for f in parts + loose:
+    loose_all = _loose_files(run_dir)
+    in_parts = set()
+    for _, meta, names in _valid_parts(run_dir, True, bool(loose_all)):
+        in_parts.update(names or ())
+        yield (_ipc_table(meta[_META_COUNTS]), meta.get(_META_COUNTS_MAG)) \
+            if _META_COUNTS in meta else None
+    for f in loose_all:
+        if f.name in in_parts:
+            continue
         meta, _ = _footer(f)
         yield (_ipc_table(meta[_META_COUNTS]), meta.get(_META_COUNTS_MAG)) \
             if meta is not None and _META_COUNTS in meta else None
