@@ -21,7 +21,9 @@ report, the fit's 7 columns by projection), measured in the same run on a store 
 scaled linearly to the task counts above; the memory figure is the rows' in-memory
 size scaled the same way.
 
-Each measurement runs in a fresh subprocess (wall time with ``time.perf_counter``, peak
+The fit's process first reads the counts once on its own (to time reading apart from
+``run_fit``, which reads them again); its peak RSS covers both.  Each measurement runs
+in a fresh subprocess (wall time with ``time.perf_counter``, peak
 RSS from ``resource.getrusage(RUSAGE_SELF).ru_maxrss``).  The machine is shared (2
 cores, other jobs running): compare ratios from one run rather than absolute seconds.
 
@@ -262,7 +264,9 @@ def main(argv=None):
         cells = d.cells(0.01, {DEPTH_REF}, "mag_input")
         out["read_s"] = time.perf_counter() - t
         out["cells"] = len(cells)
+        t = time.perf_counter()
         run_fit({str(big)!r}, model="logistic", plots=False, seed=0{steps})
+        out["run_fit_s"] = time.perf_counter() - t
         s = json.load(open({str(big / 'fit' / 'summary.json')!r}))["fits"]["all"]
         out["sampler_s"] = s["wall_time_s"]
         out["n_sources"] = s["n_sources"]
@@ -308,10 +312,13 @@ def main(argv=None):
     print(f"machine loaded (2 cores shared with other jobs); one run; today = rows read per task "
           f"file, measured on {nt} task files of {N_PER_TASK} rows x 89 columns and scaled")
     print(f"{'':38s} {'counts (this branch)':>24s} {'today (rows, scaled)':>24s}")
-    print(f"{'fit, ' + str(n_big) + ' tasks: wall [s]':38s} {fit['wall_s']:24.1f} "
+    print(f"{'fit (run_fit), ' + str(n_big) + ' tasks [s]':38s} {fit['run_fit_s']:24.1f} "
           f"{per_task_fit * n_big:24.0f}  (reading alone)")
-    print(f"{'  of which reading + cells [s]':38s} {fit['read_s']:24.1f}")
-    print(f"{'  of which sampler (MAP + emcee) [s]':38s} {fit['sampler_s']:24.1f}")
+    print(f"{'  reading counts + cells [s]':38s} {fit['read_s']:24.1f}")
+    print(f"{'  sampler (MAP + emcee) [s]':38s} {fit['sampler_s']:24.1f}")
+    print(f"{'  rest: PPC, file grids, V_eff... [s]':38s} "
+          f"{fit['run_fit_s'] - fit['read_s'] - fit['sampler_s']:24.1f}")
+    print(f"{'  process wall incl. imports [s]':38s} {fit['wall_s'] - fit['read_s']:24.1f}")
     print(f"{'  peak RSS [MB]':38s} {fit['rss_mb']:24.0f} "
           f"{today_read['fit_bytes_per_row'] * N_PER_TASK * n_big / 2**20:24.0f}  (fit's 7 columns in memory)")
     print(f"{'  reading counts alone [s] / RSS [MB]':38s} {read['wall_s']:17.1f} / {read['rss_mb']:4.0f}"
@@ -324,7 +331,8 @@ def main(argv=None):
           f"{today_read['report_read_s']:24.2f}  (ratio {today_read['report_read_s'] / counts_same['s']:.1f}x)")
     print(f"fit: {fit['n_sources']} sources, converged={fit['converged']}, m50_0 median "
           f"{fit['m50_0']} (truth 26.8 at z = 8 with depth_ref {DEPTH_REF})")
-    print(f"targets: fit <= 60 s and <= 2048 MB: {fit['wall_s'] <= 60 and fit['rss_mb'] <= 2048}; "
+    print(f"targets: fit <= 60 s and <= 2048 MB: "
+          f"{fit['wall_s'] - fit['read_s'] <= 60 and fit['rss_mb'] <= 2048}; "
           f"report <= 10 s: {report['wall_s'] <= 10}")
     print(f"(stores under {root}; delete when done)")
 
