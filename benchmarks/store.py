@@ -21,6 +21,12 @@ report, the fit's 7 columns by projection), measured in the same run on a store 
 scaled linearly to the task counts above; the memory figure is the rows' in-memory
 size scaled the same way.
 
+``run_fit``'s LF products (V_eff(M_UV) and the photometric transfer matrices,
+:func:`glaciar.pipeline.selection_file.add_lf_products`) are switched off here: the
+transfer matrices are built from per-source rows (``read_columns``), which this store
+does not hold; at 213 M sources they would need the same treatment as the counts
+(per-task histograms of the measured magnitude stored beside the rows).
+
 The fit's process first reads the counts once on its own (to time reading apart from
 ``run_fit``, which reads them again); its peak RSS covers both.  Each measurement runs
 in a fresh subprocess (wall time with ``time.perf_counter``, peak
@@ -259,6 +265,9 @@ def main(argv=None):
     fit = _measure(f"""
         from glaciar.pipeline.fit import run_fit
         from glaciar.pipeline.inputs import fit_inputs
+        import glaciar.pipeline.selection_file as sfm
+        # The transfer matrices read per-source rows (none here): left out, see the docstring.
+        sfm.add_lf_products = lambda *a, **k: None
         t = time.perf_counter()
         d = fit_inputs({str(big)!r}, "mag_input", 0.01)
         cells = d.cells(0.01, {DEPTH_REF}, "mag_input")

@@ -36,7 +36,8 @@ import sep
 import glaciar.engine.task as task_module
 from glaciar.config import load_config
 from glaciar.demo import build_demo_survey
-from glaciar.engine.measure import _pack, measure_injected
+from glaciar.engine.measure import measure_injected
+from glaciar.engine.windows import pack_windows
 from glaciar.run import build_field_context, plan_tasks
 from glaciar.survey import Survey
 
@@ -88,7 +89,7 @@ def floor_and_full(a, windows):
     x, y = np.asarray(a["x"], float), np.asarray(a["y"], float)
     win = _windows_at_least(windows, x, y, det.shape, MIN_WINDOW)
     gap = max(params.filter_halfwidth + 1, 2)
-    oy, ox, shape = _pack(win[:, 1] - win[:, 0], win[:, 3] - win[:, 2], gap)
+    oy, ox, shape = pack_windows(win[:, 1] - win[:, 0], win[:, 3] - win[:, 2], gap)
     sl = [(slice(oy[k], oy[k] + y1 - y0), slice(ox[k], ox[k] + x1 - x0), slice(y0, y1), slice(x0, x1))
           for k, (y0, y1, x0, x1) in enumerate(win.tolist())]
     cx, cy = x - win[:, 2] + ox, y - win[:, 0] + oy
@@ -137,6 +138,8 @@ def main(argv=None):
     ap.add_argument("--mag", type=float, default=26.0, help="F160W magnitude [AB] (default 26)")
     ap.add_argument("--seed", type=int, default=3, help="seed of the demo images (default 3)")
     ap.add_argument("--profile", action="store_true", help="also print a cProfile of the timed tasks")
+    ap.add_argument("--clean-style", default=None,
+                    help="DetectionParams.clean_style (default: the configuration's, i.e. glaciar's default)")
     opt = ap.parse_args(argv)
 
     with tempfile.TemporaryDirectory(prefix="glaciar-throughput-") as tmp:
@@ -146,6 +149,13 @@ def main(argv=None):
         t_build = time.perf_counter() - t0
         cfg = load_config(path)
         t0 = time.process_time()
+        if opt.clean_style is not None:
+            import yaml
+            raw = yaml.safe_load(open(path))
+            raw.setdefault("detection", {})["CLEAN_STYLE"] = opt.clean_style
+            with open(path, "w") as fh:
+                yaml.safe_dump(raw, fh)
+            cfg = load_config(path)
         ctx = build_field_context(cfg, Survey.from_config(cfg), cfg.survey.fields[0])
         t_ctx = time.process_time() - t0
         specs = plan_tasks(cfg)

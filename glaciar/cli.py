@@ -63,6 +63,10 @@ def _cmd_simulate(args) -> int:
         from dask.distributed import Client  # optional extra: pip install glaciar[dask]
         executor = Client(args.scheduler).get_executor()
     workers = args.workers if args.workers is not None else default_workers()
+    if args.cells:
+        cfg = _with_cells_option(cfg, args.cells)
+    if args.adaptive:
+        return _simulate_adaptive(args, cfg, out, workers, executor)
     stats = simulate(cfg, out, workers=workers, seed=args.seed, executor=executor,
                      progress=not args.quiet, mode=args.mode)
     print(f"{stats['n_run']} tasks run ({stats['n_done_before']} already done of {stats['n_tasks']}), "
@@ -70,6 +74,46 @@ def _cmd_simulate(args) -> int:
           f"{1e3 * stats['cpu_seconds'] / max(stats['n_sources'], 1):.3f} ms CPU per source")
     _report(out, regions=cfg.output.regions)
     print(f"results in {out}")
+    return 0
+
+
+def _with_cells_option(cfg, path):
+    """``cfg`` plus the cells of the ``--cells`` file; errors name the file."""
+    from .config import ConfigError
+    from .config._types import At
+    from .config.models import read_cells_file
+    from .pipeline.adaptive import with_cells
+
+    try:
+        return with_cells(cfg, read_cells_file(Path(path)))
+    except At as exc:
+        raise ConfigError(f"--cells {path}: {exc.message}") from None
+    except ConfigError as exc:
+        raise ConfigError(f"--cells {path}: {exc}") from None
+
+
+def _simulate_adaptive(args, cfg, out: Path, workers: int, executor) -> int:
+    from .pipeline.adaptive import AdaptiveSettings, run_adaptive
+
+    from .run import plan_tasks
+
+    design = len(plan_tasks(cfg)) * cfg.simulation.n_galaxies
+    budget = args.budget if args.budget is not None else 3 * design
+    round_size = args.round_size if args.round_size is not None else max(
+        cfg.simulation.n_galaxies * len(cfg.survey.fields), design // 10)
+    settings = AdaptiveSettings(args.target_sd, budget, round_size, max_steps=args.max_steps)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            rounds = run_adaptive(cfg, out, settings, workers=workers, seed=args.seed,
+                                  executor=executor, progress=not args.quiet, mode=args.mode)
+        finally:
+            _print_warnings(caught)
+    last = rounds[-1]
+    print(f"adaptive: {len(rounds)} round(s), {last['n_sources']} sources, max sd of C·S "
+          f"{last['max_sd']:.4f}; {last.get('stop', '')}")
+    _report(out, regions=cfg.output.regions)
+    print(f"results in {out} (rounds in {out / 'adaptive_rounds.json'})")
     return 0
 
 
@@ -156,25 +200,37 @@ def _cmd_fit(args) -> int:
 
 
 def _cmd_next(args) -> int:
-    import numpy as np
-
-    from .inference import SelectionFunction, propose_cells
-    from .store import read_manifest
+    from .config import load_config
+    from .inference import SelectionFunction
+    from .pipeline.adaptive import cells_yaml, proposal_cells
+    from .store import atomic_write_text, read_manifest
 
     run_dir = Path(args.run_dir)
+    if args.write is not None and (Path(args.write).is_dir()
+                                   or not Path(args.write).resolve().parent.is_dir()):
+        raise FileNotFoundError(f"--write {args.write}: expected a file path in an existing "
+                                "directory")
     sf = SelectionFunction.read(run_dir / C.SELECTION_FUNCTION_NAME, field=args.field)
+    cfg_path = run_dir / C.RUN_CONFIG_NAME
+    if not cfg_path.is_file():
+        raise FileNotFoundError(f"{cfg_path}: the run's stored configuration is missing "
+                                "(needed for its simulated cells)")
+    cfg = load_config(cfg_path)
     manifest = read_manifest(run_dir) or {}
-    zv = np.asarray(manifest.get("z_values", []), float)
-    mv = np.asarray(manifest.get("mag_values", []), float)
-    if zv.size < 2 or mv.size < 2:
-        raise ValueError(f"{run_dir}: manifest has no z/mag grid to refine")
-    # Propose on a grid twice as fine as the one simulated, inside its range.
-    zg = np.linspace(zv.min(), zv.max(), 2 * zv.size - 1)
-    mg = np.linspace(mv.min(), mv.max(), 2 * mv.size - 1)
-    cells = propose_cells(sf, zg, mg, args.n)
-    print("# z mag width_68 median_CS")
-    for row in cells:
-        print(f"{row['z']:.3f} {row['mag']:.3f} {row['width']:.4f} {row['median']:.4f}")
+    cells, stats = proposal_cells(sf, cfg, args.n, add_iterations=args.iterations,
+                                  z_limit=manifest.get("detection_z_limit"))
+    print(f"# largest posterior sd of C*S: {stats['max_sd']:.4f} at z = {stats['at'][0]:g}, "
+          f"m = {stats['at'][1]:g}")
+    print("# z mag width_68 median_CS n_iterations")
+    for row, cell in zip(stats["ranked"], cells):
+        print(f"{row['z']:.3f} {row['mag']:.3f} {row['width']:.4f} {row['median']:.4f} "
+              f"{cell['n_iterations']}")
+    if args.write is not None:
+        atomic_write_text(Path(args.write), cells_yaml(
+            cells, f"glaciar next {run_dir} -n {args.n}: simulate them with\n"
+                   f"  glaciar simulate {cfg_path} --out {run_dir} --cells {args.write}\n"
+                   "n_iterations is each cell's new total (iterations per field)."))
+        print(f"wrote {args.write}")
     return 0
 
 
@@ -226,6 +282,17 @@ def _int_at_least(minimum: int):
 
 
 _positive_int = _int_at_least(1)
+
+
+def _positive_int_number(text):
+    """argparse type: a whole number >= 1, also written as 1e5."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and v >= 1 and v == int(v)):
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return int(v)
 _non_negative_int = _int_at_least(0)
 
 
@@ -266,6 +333,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override simulation.seed (an integer >= 0)")
     s.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
     s.add_argument("--mode", choices=["windowed", "full"], default="windowed")
+    s.add_argument("--cells", default=None, metavar="CELLS_YAML",
+                   help="add the cells of this file (as written by `glaciar next --write`)")
+    s.add_argument("--adaptive", action="store_true",
+                   help="after the design, rounds of fit -> propose -> simulate until "
+                        "--target-sd or --budget (glaciar.pipeline.adaptive)")
+    s.add_argument("--target-sd", type=_finite_positive, default=0.02,
+                   help="stop when the largest posterior sd of C*S over the grid is below this")
+    s.add_argument("--budget", type=_positive_int_number, default=None,
+                   help="stop at this many injected sources (default: 3x the design)")
+    s.add_argument("--round-size", type=_positive_int_number, default=None,
+                   help="sources added per round (default: a tenth of the design)")
+    s.add_argument("--max-steps", type=_positive_int, default=None,
+                   help="cap on each round's sampler steps")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_simulate)
 
@@ -296,6 +376,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("run_dir")
     s.add_argument("-n", type=_positive_int, default=5, help="number of cells (>= 1)")
     s.add_argument("--field", default=None, help="which field's fit, for per-field files")
+    s.add_argument("--iterations", type=_positive_int, default=1,
+                   help="iterations (n_galaxies sources per field each) to add per cell")
+    s.add_argument("--write", default=None, metavar="CELLS_YAML",
+                   help="write the proposal as a cells file for `glaciar simulate --cells`")
     s.set_defaults(func=_cmd_next)
     return p
 

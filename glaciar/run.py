@@ -144,6 +144,7 @@ def _detection_params(cfg: Config) -> DetectionParams:
         detect_thresh=d.detect_thresh, detect_minarea=d.detect_minarea, filter_kernel=kernel,
         filter_type=d.filter_type, deblend_nthresh=d.deblend_nthresh,
         deblend_mincont=d.deblend_mincont, clean=d.clean, clean_param=d.clean_param,
+        clean_style=d.clean_style, threshold_rms=d.threshold_rms, backend=d.backend,
         back_size=d.back_size, back_filtersize=d.back_filtersize,
         phot_apertures=d.phot_apertures, phot_autoparams=d.phot_autoparams, filter_name=name)
 
@@ -267,16 +268,50 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         coadd_bands=coadd_bands, coadd_method=coadd_method, detection_image_rms=det_image_rms)
 
 
+def task_cells(cfg: Config) -> dict[tuple[str, float, float], int]:
+    """Every simulated cell of a run: ``{(field, z, mag): n_iterations}``.
+
+    The Cartesian grid (``simulation.n_iterations`` each) united with
+    ``grid.cells``; a cell given twice (or also on the grid) runs the largest
+    of its iteration counts, so re-applying a proposal adds nothing.
+    """
+    n_it = cfg.simulation.n_iterations
+    cells: dict[tuple[str, float, float], int] = {}
+    for f in cfg.survey.fields:
+        for z in cfg.grid.z_values:
+            for m in cfg.grid.mag_values:
+                cells[(f, float(z), float(m))] = n_it
+    for cell in cfg.grid.cells:
+        for f in cell.fields or cfg.survey.fields:
+            key = (f, float(cell.z), float(cell.mag))
+            cells[key] = max(cells.get(key, 0), cell.n_iterations or n_it)
+    return cells
+
+
 def plan_tasks(cfg: Config) -> list[TaskSpec]:
-    """All tasks of a run, ordered field → z → mag → iteration (so per-process caches stay warm)."""
+    """All tasks of a run, ordered field → z → mag → iteration (so per-process caches stay warm).
+
+    Tasks are keyed by exact values (field name, z, mag, iteration); the
+    indices are positions in the sorted values the run simulates.
+    """
+    cells = task_cells(cfg)
+    field_index = {f: i for i, f in enumerate(cfg.survey.fields)}
+    zs = sorted({z for _, z, _ in cells})
+    ms = sorted({m for _, _, m in cells})
+    zi, mi = {z: i for i, z in enumerate(zs)}, {m: i for i, m in enumerate(ms)}
     out = []
-    for fi, f in enumerate(cfg.survey.fields):
-        for zi, z in enumerate(cfg.grid.z_values):
-            for mi, m in enumerate(cfg.grid.mag_values):
-                for it in range(cfg.simulation.n_iterations):
-                    out.append(TaskSpec(field=f, field_index=fi, z_index=zi, mag_index=mi,
-                                        iteration=it, z=float(z), mag=float(m)))
+    for (f, z, m), n in sorted(cells.items(), key=lambda kv: (field_index[kv[0][0]],) + kv[0][1:]):
+        for it in range(n):
+            out.append(TaskSpec(field=f, field_index=field_index[f], z_index=zi[z],
+                                mag_index=mi[m], iteration=it, z=z, mag=m))
     return out
+
+
+def manifest_cells(cfg: Config) -> list[dict]:
+    """``grid.cells`` as the manifest records them (plain JSON; fields resolved)."""
+    return [{"z": float(c.z), "mag": float(c.mag),
+             "n_iterations": int(c.n_iterations or cfg.simulation.n_iterations),
+             "fields": list(c.fields or cfg.survey.fields)} for c in cfg.grid.cells]
 
 
 def spec_filename(spec: TaskSpec) -> str:
@@ -564,6 +599,7 @@ def store_settings(cfg: Config) -> dict:
             b["filter"] = _FILE
     d["grid"].pop("z", None)
     d["grid"].pop("mag", None)
+    d["grid"].pop("cells", None)
     d["simulation"].pop("n_iterations", None)
     d["simulation"].pop("seed", None)
     det = d.get("detection") or {}
@@ -589,12 +625,41 @@ def _flatten(d, prefix=""):
     return {prefix[:-1]: d}
 
 
-def _settings_diff(old: dict, new: dict, limit: int = 3) -> str:
+def _flat_defaults() -> dict:
+    """Every default of the sections that have one for each key, flattened like the settings."""
+    from .config.models import SECTIONS
+
+    out = {}
+    for name, field in SECTIONS.items():
+        try:
+            section = field.annotation()
+        except Exception:  # noqa: BLE001 - sections with required keys (survey) or no model
+            continue
+        out.update(_flatten(json.loads(json.dumps(section.model_dump(mode="json", by_alias=True))),
+                            f"{name}."))
+    return out
+
+
+def _settings_differences(old: dict, new: dict) -> list[str]:
+    """What differs between two stores' settings, one ``key: old -> new`` string each.
+
+    A key the older store does not record (added to glaciar since) counts as the
+    same when its value now is its default: a new key's default keeps the rows
+    glaciar made before the key existed, so the older store stays extendable.
+    """
     a, b = _flatten(old), _flatten(new)
+    defaults = _flat_defaults()
     diffs = []
     for k in sorted(set(a) | set(b)):
+        if k not in a and k in defaults and b[k] == defaults[k]:
+            continue
         if a.get(k, "<unset>") != b.get(k, "<unset>"):
             diffs.append(f"{k}: {str(a.get(k, '<unset>'))[:40]} -> {str(b.get(k, '<unset>'))[:40]}")
+    return diffs
+
+
+def _settings_diff(old: dict, new: dict, limit: int = 3) -> str:
+    diffs = _settings_differences(old, new)
     more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
     return "; ".join(diffs[:limit]) + more
 
@@ -622,7 +687,7 @@ def detection_z_limit(cfg: Config, z_max: float = 30.0) -> float | None:
         except ValueError:
             return False
 
-    lo = max(cfg.grid.z_values)
+    lo = max(z for _, z, _ in task_cells(cfg))
     if not ok(lo):
         return float(lo)
     hi = lo
@@ -661,6 +726,7 @@ def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
         "magnitude_type": cfg.grid.magnitude_type,
         "n_galaxies": cfg.simulation.n_galaxies,
         "n_iterations": cfg.simulation.n_iterations,
+        "cells": manifest_cells(cfg),
         "pixel_scale_arcsec": pixscale,
         "area_arcmin2": area,
         "area_arcmin2_total": float(sum(area.values())),
@@ -676,7 +742,8 @@ def _check_same_store(run_dir: Path, old: dict, manifest: dict, items: list[Inpu
     what = []
     if old.get("seed") != manifest["seed"]:
         what.append(f"seed: {old.get('seed')} -> {manifest['seed']}")
-    if old.get("store_hash") != manifest["store_hash"]:
+    if old.get("store_hash") != manifest["store_hash"] and _settings_differences(
+            old.get("store_settings") or {}, manifest["store_settings"]):
         what.append(_settings_diff(old.get("store_settings") or {}, manifest["store_settings"]))
     if what:
         raise StoreMismatchError(
@@ -912,7 +979,8 @@ def placement_preflight(cfg: Config, survey: Survey) -> list[str]:
     slightly toward small sizes when a crowded field ends the sequence early.
     """
     n = cfg.simulation.n_galaxies
-    z, mag = min(cfg.grid.z_values), min(cfg.grid.mag_values)
+    cells = task_cells(cfg)
+    z, mag = min(z for _, z, _ in cells), min(m for _, _, m in cells)
     model = population.SourceModel(**cfg.source.model_dump())
     out = []
     for field in cfg.survey.fields:

@@ -33,6 +33,7 @@ import tempfile
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from .constants import (COL_FIELD, COL_ITERATION, COL_MAG, COL_Z, LOCK_NAME, MANIFEST_NAME,
@@ -542,6 +543,21 @@ def current_rows_mask(rows: pd.DataFrame, manifest: dict) -> "pd.Series":
     for col, key, test in checks:
         if col in rows.columns and manifest.get(key) is not None:
             keep &= test(rows[col], manifest[key])
+    cells = manifest.get("cells") or []
+    if cells and all(c in rows.columns for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION)):
+        # Explicit cells (grid.cells, adaptive rounds): a row of (field, z, mag) with an
+        # iteration below the cell's count is current too. Exact float comparison, as above.
+        listed = pd.DataFrame(
+            [(str(f), float(c["z"]), float(c["mag"]), int(c["n_iterations"]))
+             for c in cells for f in c["fields"]],
+            columns=["_f", "_z", "_m", "_n"]).groupby(["_f", "_z", "_m"], as_index=False).max()
+        key = pd.DataFrame({"_f": rows[COL_FIELD].astype(str).to_numpy(),
+                            "_z": rows[COL_Z].astype(float).to_numpy(),
+                            "_m": rows[COL_MAG].astype(float).to_numpy()})
+        n_it = key.merge(listed, on=["_f", "_z", "_m"], how="left")["_n"].to_numpy()
+        with np.errstate(invalid="ignore"):
+            in_cell = rows[COL_ITERATION].astype(int).to_numpy() < np.nan_to_num(n_it, nan=0)
+        keep |= pd.Series(in_cell, index=rows.index)
     return keep
 
 

@@ -437,34 +437,28 @@ class Survey:
         Raises
         ------
         ValueError
-            No config value and no celestial WCS scale in the header, or
+            No config value and no pixel scale in the header, or
             pixels that are not square to 1 %.
         """
         if self.config.survey.pixel_scale_arcsec is not None:
             return float(self.config.survey.pixel_scale_arcsec)
         self._check(field)
         if field not in self._scales:
-            import warnings
-
-            from astropy.wcs import WCS, FITSFixedWarning
-            from astropy.wcs.utils import proj_plane_pixel_scales
+            from .wcs import pixel_axis_scales_arcsec, pixel_scale_arcsec
 
             det = self.detection_band
             h = self.header(field, det)
             path = self.science_path(field, det)
-            has_scale = any(k in h for k in ("CD1_1", "CD2_2", "CDELT1", "CDELT2"))
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", FITSFixedWarning)
-                w = WCS(h, naxis=2)
-            if not (has_scale and w.has_celestial):
-                raise ValueError(f"{path}: no celestial WCS pixel scale (CD or CDELT) in the "
+            sides = pixel_axis_scales_arcsec(h)
+            if sides is None:
+                raise ValueError(f"{path}: no pixel scale (CD, CDELT or PIXSCALE) in the "
                                  f"header; set survey.pixel_scale_arcsec")
-            sx, sy = np.abs(proj_plane_pixel_scales(w.celestial)) * 3600.0
+            sx, sy = sides
             if not (np.isfinite(sx) and np.isfinite(sy) and sx > 0 and sy > 0):
                 raise ValueError(f"{path}: invalid WCS pixel scale ({sx}, {sy}) arcsec; set "
                                  f"survey.pixel_scale_arcsec")
             if abs(sx - sy) > 0.01 * max(sx, sy):
                 raise ValueError(f"{path}: pixels are not square ({sx:.5g} x {sy:.5g} arcsec); "
                                  f"set survey.pixel_scale_arcsec explicitly")
-            self._scales[field] = float(np.sqrt(sx * sy))
+            self._scales[field] = float(pixel_scale_arcsec(h))
         return self._scales[field]

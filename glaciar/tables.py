@@ -1,4 +1,5 @@
-"""Summaries of a run: GLACiAR's Table 1 per field, binned C, S and C·S, DS9 regions.
+"""Summaries of a run: GLACiAR's Table 1 per field, binned C, S and C·S, DS9 regions,
+and the photometric transfer matrices p(m_obs | m_in, z) (:func:`transfer_matrix`).
 
 Columns of the summary (the paper's Table 1, with headers that match the data):
 
@@ -24,6 +25,7 @@ Columns of the summary (the paper's Table 1, with headers that match the data):
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +35,8 @@ from astropy.table import Table
 from . import constants as C
 from .store import atomic_write_bytes, atomic_write_text, field_file_prefix
 
-__all__ = ["summary_table", "write_summaries", "region_file", "STATUS_COLUMNS"]
+__all__ = ["summary_table", "write_summaries", "region_file", "STATUS_COLUMNS",
+           "TransferMatrix", "transfer_matrix", "slice_edges", "TRANSFER_KINDS"]
 
 #: summary column of each status code
 STATUS_COLUMNS = {code: f"n_status_{code}" if code >= 0 else f"n_status_m{-code}"
@@ -156,3 +159,174 @@ def write_regions(rows: pd.DataFrame, out_dir) -> list[Path]:
         atomic_write_text(p, region_file(sub.sort_values(order, kind="stable")))
         paths.append(p)
     return paths
+
+
+# --------------------------------------------------------------------------
+# Photometric transfer function p(m_obs | m_in, z)
+# --------------------------------------------------------------------------
+#: Width of the measured-magnitude bins of the transfer matrices [mag].
+TRANSFER_MOBS_STEP = 0.2
+#: Width of the input-magnitude (and redshift) slices when the injections are not on a
+#: grid (more distinct values than TRANSFER_MAX_UNIQUE) [mag, z].
+TRANSFER_MIN_STEP = 0.25
+TRANSFER_Z_STEP = 0.25
+TRANSFER_MAX_UNIQUE = 200
+#: Measured magnitudes are binned from (min input edge - margin) to (max input edge + margin),
+#: with one open bin on either side [mag].
+TRANSFER_MOBS_MARGIN = 1.5
+#: Posterior draws of each transfer matrix written to the selection-function file.
+TRANSFER_DRAWS = 100
+#: The two matrices: entry 0 of the last axis is "not recovered" or "not selected".
+TRANSFER_KINDS = ("recovered", "selected")
+
+
+@dataclass(frozen=True)
+class TransferMatrix:
+    """The photometric transfer function p(m_obs | m_in, z) as row-normalised matrices.
+
+    For every redshift slice ``i`` and input-magnitude bin ``j``, entry ``[k, i, j, 0]``
+    is the fraction of injected sources that were *not* recovered (kind 0) or not
+    selected (kind 1), and entry ``[k, i, j, 1 + b]`` the fraction that were, with a
+    measured detection-band magnitude in bin ``b`` of ``m_obs_edges``; each row sums
+    to 1.  The first and last m_obs bins are open (edges -inf and +inf); a recovered
+    source whose measured flux is not positive (measured magnitude NaN) counts in
+    the last (faintest) bin.
+
+    Attributes
+    ----------
+    kinds : tuple of str
+        ``TRANSFER_KINDS``: what the first axis holds.
+    z_edges : ndarray (n_z + 1,)
+        Redshift slices [lo, hi).
+    z_mean : ndarray (n_z,)
+        Mean input redshift of the sources in each slice (NaN if empty).
+    m_in_edges : ndarray (n_in + 1,)
+        Input-magnitude bins [lo, hi) [mag].
+    m_obs_edges : ndarray (n_obs + 1,)
+        Measured-magnitude bins [mag]; first -inf, last +inf.
+    counts : ndarray int64 (2, n_z, n_in, 1 + n_obs)
+        Source counts per entry.
+    matrix : ndarray (2, n_z, n_in, 1 + n_obs)
+        ``counts / counts.sum(-1)`` (NaN for a row without sources).
+    draws : ndarray (n_draws, 2, n_z, n_in, 1 + n_obs)
+        Posterior draws of each row, Dirichlet(counts + alpha) (NaN for empty rows).
+    alpha : float
+        Dirichlet prior concentration per entry (Perks: 1 / (1 + n_obs), one
+        pseudo-source per row).
+    """
+
+    kinds: tuple
+    z_edges: np.ndarray
+    z_mean: np.ndarray
+    m_in_edges: np.ndarray
+    m_obs_edges: np.ndarray
+    counts: np.ndarray
+    matrix: np.ndarray
+    draws: np.ndarray
+    alpha: float
+
+
+def slice_edges(values, step: float, max_unique: int = TRANSFER_MAX_UNIQUE) -> np.ndarray:
+    """Bin edges for sources injected on a grid (one bin per value) or continuously.
+
+    With at most ``max_unique`` distinct values (rounded to 1e-6) the edges are the
+    midpoints between them, the outer ones half a spacing beyond (``step / 2`` for a
+    single value); otherwise uniform bins of width ``step`` from the minimum.
+    """
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        raise ValueError("slice_edges: no finite values")
+    u = np.unique(np.round(v, 6))
+    if len(u) == 1:
+        return np.array([u[0] - step / 2, u[0] + step / 2])
+    if len(u) <= max_unique:
+        mid = 0.5 * (u[1:] + u[:-1])
+        return np.concatenate([[u[0] - (mid[0] - u[0])], mid, [u[-1] + (u[-1] - mid[-1])]])
+    n = max(1, int(np.ceil((u[-1] - u[0]) / step + 1e-9)))
+    edges = u[0] + step * np.arange(n + 1)
+    edges[-1] = max(edges[-1], np.nextafter(u[-1], np.inf))
+    return edges
+
+
+def transfer_matrix(z, m_in, m_obs, recovered, selected, *, z_edges=None, m_in_edges=None,
+                    m_obs_edges=None, n_draws: int = TRANSFER_DRAWS, seed=0) -> TransferMatrix:
+    """p(m_obs | m_in, z) of recovered and of selected sources, with Dirichlet draws.
+
+    Parameters
+    ----------
+    z, m_in : array_like (N,)
+        Input redshift and total input detection-band magnitude [AB mag] per source.
+    m_obs : array_like (N,)
+        Measured detection-band magnitude [AB mag] (NaN for non-positive flux; only
+        used where recovered / selected).
+    recovered, selected : array_like of bool (N,)
+    z_edges, m_in_edges : array_like, optional
+        Slices; default :func:`slice_edges` of the data (``TRANSFER_Z_STEP``,
+        ``TRANSFER_MIN_STEP``).  Sources outside them are left out.
+    m_obs_edges : array_like, optional
+        Finite inner edges of the measured-magnitude bins, increasing; -inf and +inf
+        are added at the ends.  Default: steps of ``TRANSFER_MOBS_STEP`` over the
+        input range widened by ``TRANSFER_MOBS_MARGIN``.
+    n_draws : int
+        Posterior draws per row.
+    seed : int or sequence of int
+        Seed of the draws (the same seed and data give the same draws).
+
+    Returns
+    -------
+    TransferMatrix
+    """
+    z = np.asarray(z, float)
+    m_in = np.asarray(m_in, float)
+    m_obs = np.asarray(m_obs, float)
+    rec = np.asarray(recovered, bool)
+    sel = np.asarray(selected, bool)
+    n = len(z)
+    if not (len(m_in) == len(m_obs) == len(rec) == len(sel) == n):
+        raise ValueError("transfer_matrix: z, m_in, m_obs, recovered and selected must have "
+                         "the same length")
+    if n == 0:
+        raise ValueError("transfer_matrix: no sources")
+    if np.any(sel & ~rec):
+        raise ValueError("transfer_matrix: a selected source must be recovered")
+    ze = slice_edges(z, TRANSFER_Z_STEP) if z_edges is None else np.asarray(z_edges, float)
+    me = slice_edges(m_in, TRANSFER_MIN_STEP) if m_in_edges is None else np.asarray(m_in_edges, float)
+    if m_obs_edges is None:
+        lo = np.floor((me[0] - TRANSFER_MOBS_MARGIN) / TRANSFER_MOBS_STEP) * TRANSFER_MOBS_STEP
+        hi = np.ceil((me[-1] + TRANSFER_MOBS_MARGIN) / TRANSFER_MOBS_STEP) * TRANSFER_MOBS_STEP
+        inner = np.round(np.arange(lo, hi + TRANSFER_MOBS_STEP / 2, TRANSFER_MOBS_STEP), 6)
+    else:
+        inner = np.asarray(m_obs_edges, float)
+    for name, e in (("z_edges", ze), ("m_in_edges", me), ("m_obs_edges", inner)):
+        if e.ndim != 1 or len(e) < 2 or not np.all(np.isfinite(e)) or np.any(np.diff(e) <= 0):
+            raise ValueError(f"transfer_matrix: {name} must be >= 2 finite increasing values")
+    oe = np.concatenate([[-np.inf], inner, [np.inf]])
+    n_z, n_in, n_obs = len(ze) - 1, len(me) - 1, len(oe) - 1
+    iz = np.searchsorted(ze, z, side="right") - 1
+    im = np.searchsorted(me, m_in, side="right") - 1
+    inside = (iz >= 0) & (iz < n_z) & (im >= 0) & (im < n_in)
+    # NaN measured magnitude (flux <= 0) goes to the faintest, open bin.
+    io = np.where(np.isnan(m_obs), n_obs - 1, np.searchsorted(oe, m_obs, side="right") - 1)
+    io = np.clip(io, 0, n_obs - 1)
+    counts = np.zeros((len(TRANSFER_KINDS), n_z, n_in, 1 + n_obs), np.int64)
+    for k, flag in enumerate((rec, sel)):
+        entry = np.where(flag, 1 + io, 0)
+        flat = np.ravel_multi_index((iz[inside], im[inside], entry[inside]), (n_z, n_in, 1 + n_obs))
+        counts[k] = np.bincount(flat, minlength=n_z * n_in * (1 + n_obs)).reshape(n_z, n_in, 1 + n_obs)
+    tot = counts.sum(axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        matrix = np.where(tot > 0, counts / np.maximum(tot, 1), np.nan)
+    # Dirichlet(counts + alpha) per row, from independent Gamma variates.
+    alpha = 1.0 / (1 + n_obs)
+    rng = np.random.default_rng(seed)
+    g = rng.standard_gamma(counts[None] + alpha, size=(int(n_draws),) + counts.shape)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        draws = g / g.sum(axis=-1, keepdims=True)
+    draws[:, tot[..., 0] == 0] = np.nan
+    zsum = np.bincount(iz[inside], weights=z[inside], minlength=n_z)
+    zn = np.bincount(iz[inside], minlength=n_z)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z_mean = np.where(zn > 0, zsum / np.maximum(zn, 1), np.nan)
+    return TransferMatrix(kinds=TRANSFER_KINDS, z_edges=ze, z_mean=z_mean, m_in_edges=me,
+                          m_obs_edges=oe, counts=counts, matrix=matrix, draws=draws, alpha=alpha)

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Mapping
 
 from ._types import At, show
+from .models import parse_bool
 
 __all__ = ["is_glaciar_parameters", "glaciar_to_schema", "GLACIAR_TO_SCHEMA", "TOP_KEYS"]
 
@@ -107,19 +108,12 @@ def _int(ctx, path, value, *, ge=None) -> int:
     return value
 
 
-_TRUE = {"yes", "y", "true", "on", "1"}
-_FALSE = {"no", "n", "false", "off", "0"}
-
-
 def _bool(ctx, path, value) -> bool:
-    # GLACiAR files use YAML 1.1 words (yes/No), sometimes quoted.
-    if isinstance(value, bool):
-        return value
-    if isinstance(value, int) and value in (0, 1):
-        return bool(value)
-    if isinstance(value, str) and value.strip().lower() in _TRUE | _FALSE:
-        return value.strip().lower() in _TRUE
-    raise ctx.error(path, f"expected true/false, got {_show(value)}")
+    # GLACiAR files use YAML 1.1 words (yes/No), sometimes quoted: the models' one reader.
+    parsed = parse_bool(value)
+    if parsed is None:
+        raise ctx.error(path, f"expected true/false, got {_show(value)}")
+    return parsed
 
 
 def _str(ctx, path, value, *, choices=None) -> str:

@@ -252,7 +252,10 @@ def config_to_dict(cfg: Config, relative_to: str | os.PathLike | None = None) ->
         "survey": survey,
         "grid": {"z": {"values": list(cfg.grid.z_values)},
                  "mag": {"values": list(cfg.grid.mag_values)},
-                 "magnitude_type": cfg.grid.magnitude_type},
+                 "magnitude_type": cfg.grid.magnitude_type,
+                 # Only when given: configurations without cells keep their hashes.
+                 **({"cells": [c.model_dump(mode="json", exclude_none=True)
+                               for c in cfg.grid.cells]} if cfg.grid.cells else {})},
         "simulation": cfg.simulation.model_dump(mode="json"),
         "source": cfg.source.model_dump(mode="json"),
         "detection": cfg.detection.model_dump(mode="json", by_alias=True),
@@ -309,6 +312,7 @@ def store_hash(cfg: Config) -> str:
     d["survey"].pop("fields", None)
     d["grid"].pop("z", None)
     d["grid"].pop("mag", None)
+    d["grid"].pop("cells", None)
     d["simulation"].pop("n_iterations", None)
     return _sha256_json(d)
 

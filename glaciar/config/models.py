@@ -28,17 +28,17 @@ from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, ValidationE
 from .. import constants
 from ..engine.classify import ClassificationParams
 from ..engine import noise as _noise
-from ..engine.detect import DetectionParams, builtin_filter_names
+from ..engine.detect import BACKENDS, CLEAN_STYLES, THRESHOLD_RMS, DetectionParams, builtin_filter_names
 from ..galaxy import psf as _psf
 from ..galaxy.population import SourceModel
 from ..galaxy.filters import FILE_SUFFIXES as FILTER_FILE_SUFFIXES, looks_like_path
 from ..galaxy.sersic import Q_MIN
 from ._types import At, Choice, Float, Int, show, unknown_key_error
 
-__all__ = ["Section", "PsfProfile", "BandConfig", "SurveyConfig", "AxisSpec", "GridConfig",
+__all__ = ["Section", "PsfProfile", "BandConfig", "SurveyConfig", "AxisSpec", "GridCell", "GridConfig",
            "SimulationConfig", "SourceConfig", "DetectionImageConfig", "DetectionConfig", "ClassificationConfig",
            "OutputConfig", "NoiseConfig", "Config", "SECTIONS", "MAX_TASKS", "MAX_GRID_VALUES",
-           "selection_columns", "read_fields_file", "resolve_path", "looks_like_path"]
+           "selection_columns", "read_fields_file", "read_cells_file", "resolve_path", "looks_like_path"]
 
 #: Largest number of tasks a configuration may plan (fields x z x mag x iterations):
 #: the planner holds one small object per task (~10**7 is ~2 GB).
@@ -86,17 +86,27 @@ def _float_list(*, min_length=1, max_length=None, **bounds):
                      Field(min_length=min_length, max_length=max_length)]
 
 
-def _bool(value):
-    # GLACiAR and SExtractor files use YAML 1.1 / SExtractor words (yes, No, Y, N).
+#: Words read as true / false: YAML 1.1 and SExtractor spell them yes, No, Y, N.
+TRUE_WORDS = frozenset(("yes", "y", "true", "t", "on", "1"))
+FALSE_WORDS = frozenset(("no", "n", "false", "f", "off", "0"))
+
+
+def parse_bool(value) -> bool | None:
+    """``value`` as a bool (bool, 0/1 or one of the words above), or None if it is none."""
     if isinstance(value, bool):
         return value
     if isinstance(value, int) and value in (0, 1):
         return bool(value)
-    if isinstance(value, str) and value.strip().lower() in ("yes", "y", "true", "t", "on", "1"):
-        return True
-    if isinstance(value, str) and value.strip().lower() in ("no", "n", "false", "f", "off", "0"):
-        return False
-    raise At(f"expected true/false, got {show(value)}")
+    if isinstance(value, str) and value.strip().lower() in TRUE_WORDS | FALSE_WORDS:
+        return value.strip().lower() in TRUE_WORDS
+    return None
+
+
+def _bool(value):
+    parsed = parse_bool(value)
+    if parsed is None:
+        raise At(f"expected true/false, got {show(value)}")
+    return parsed
 
 
 Bool = Annotated[bool, BeforeValidator(_bool)]
@@ -580,8 +590,46 @@ _Z_DEFAULT = {"min": 9.0, "max": 11.8, "step": 0.2}
 _MAG_DEFAULT = {"min": 24.1, "max": 27.9, "step": 0.2}
 
 
+class GridCell(Section):
+    """One extra simulation cell outside (or on) the Cartesian grid.
+
+    ``n_iterations`` is the cell's total number of iterations (tasks per
+    field): a cell that is also on the grid runs the larger of the two, so a
+    proposal can be re-applied without duplicating work.
+    """
+
+    z: Float = Field(ge=0, description="redshift")
+    mag: Float = Field(description="magnitude [AB mag]")
+    n_iterations: Int | None = Field(None, ge=1, description="total iterations of the cell "
+                                                             "(default simulation.n_iterations)")
+    fields: tuple[str, ...] | None = Field(None, description="fields to simulate it in "
+                                                             "(default: all)")
+
+
+def read_cells_file(path) -> list:
+    """The ``cells:`` list of a YAML file written by ``glaciar next --write``."""
+    from ._types import ConfigError
+    from .io import read_yaml
+
+    try:
+        data = read_yaml(path)
+    except ConfigError as exc:
+        raise At(str(exc), "cells_file") from None
+    if isinstance(data, Mapping) and "cells" in data:
+        data = data["cells"]
+    if not isinstance(data, list):
+        raise At(f"{path}: expected a list of cells (or a mapping with key 'cells'), got "
+                 f"{show(data)}", "cells_file")
+    return data
+
+
 class GridConfig(Section):
-    """Simulation grid: one task per (field, z, mag, iteration)."""
+    """Simulation grid: one task per (field, z, mag, iteration).
+
+    The Cartesian product of ``z`` and ``mag`` plus any explicit ``cells``
+    (e.g. the proposals of ``glaciar next --write``); tasks are keyed by their
+    exact values, so cells and grid can grow between runs into one store.
+    """
 
     z: RedshiftAxis = Field(default_factory=lambda: RedshiftAxis(**_Z_DEFAULT),
                             description="redshifts: {min, max, step}, {min, max, n_bins} or "
@@ -592,6 +640,29 @@ class GridConfig(Section):
                                json_schema_extra={"template": _MAG_DEFAULT})
     magnitude_type: Choice("apparent", "absolute") = Field(
         "apparent", description="apparent (detection band, AB) | absolute (M_UV at 1600 A)")
+    cells: tuple[GridCell, ...] = Field((), description="extra cells [{z, mag, n_iterations, "
+                                        "fields}] besides the Cartesian grid",
+                                        max_length=MAX_GRID_VALUES)
+    cells_file: str | None = Field(None, description="a YAML file of cells (as written by "
+                                                     "`glaciar next --write`), added to cells")
+
+    @classmethod
+    def _prepare(cls, data: dict, info: ValidationInfo) -> dict:
+        if "cells_file" in data:
+            cf = data.pop("cells_file")
+            if not isinstance(cf, str) or not cf.strip():
+                raise At(f"expected a file name, got {show(cf)}", "cells_file")
+            path = resolve_path(_base_dir(info), cf.strip())
+            if not Path(path).is_file():
+                raise At(f"file not found: {path}", "cells_file")
+            extra = read_cells_file(path)
+            given = data.get("cells") or []
+            if not isinstance(given, (list, tuple)):
+                raise At(f"expected a list of cells, got {show(given)}", "cells")
+            # Resolved into `cells` (as fields_file into fields): the run's stored config
+            # lists the cells and does not depend on the file staying unchanged.
+            data["cells"] = list(given) + list(extra)
+        return data
 
     @property
     def z_values(self) -> tuple[float, ...]:
@@ -732,6 +803,24 @@ class DetectionConfig(Section):
     clean: Bool = Field(_det("clean"), alias="CLEAN", description="clean spurious detections")
     clean_param: Float = Field(_det("clean_param"), gt=0, alias="CLEAN_PARAM",
                                description="cleaning efficiency")
+    clean_style: Choice(*CLEAN_STYLES) = Field(
+        _det("clean_style"), alias="CLEAN_STYLE",
+        description="glaciar's key (not SExtractor's; a .sex file's CLEAN and CLEAN_PARAM "
+                    "set CLEAN and CLEAN_PARAM): region = sep's CLEAN inside each "
+                    "deblended region only (fast); sextractor = SExtractor 2.x's CLEAN on "
+                    "the whole injected image, cleaned pixels handed to the absorbing "
+                    "object; sep = plain sep's CLEAN on the whole image; sep-merge = sep's "
+                    "decisions with SExtractor's hand-over")
+    threshold_rms: Choice(*THRESHOLD_RMS) = Field(
+        _det("threshold_rms"), alias="THRESHOLD_RMS",
+        description="glaciar's key: the RMS DETECT_THRESH multiplies (THRESH_TYPE RELATIVE): "
+                    "pixel = each pixel's RMS (sep); filtered = the RMS of the filtered "
+                    "image (SExtractor with a weight map)")
+    backend: Choice(*BACKENDS) = Field(
+        _det("backend"), alias="BACKEND",
+        description="glaciar's key: who segments the detection image: sep (glaciar's "
+                    "windowed extraction, exact) or source-extractor (the SExtractor "
+                    "binary on the full injected image, dual-image mode; slower, a reference)")
     back_size: SquareInt = Field(_det("back_size"), ge=1, alias="BACK_SIZE",
                                  description="background mesh [pixels]")
     back_filtersize: SquareInt = Field(_det("back_filtersize"), ge=1, alias="BACK_FILTERSIZE",
@@ -966,12 +1055,22 @@ class Config(Section):
         if self.classification.sn_aperture_index >= n_ap:
             raise At(f"is {self.classification.sn_aperture_index} but detection.PHOT_APERTURES "
                      f"has {n_ap} aperture(s)", "classification", "sn_aperture_index")
+        fields = set(self.survey.fields)
+        n_cell_tasks = 0
+        for i, cell in enumerate(self.grid.cells):
+            unknown = [f for f in (cell.fields or ()) if f not in fields]
+            if unknown:
+                raise At(f"field(s) {unknown} not in survey.fields", "grid", "cells", i, "fields")
+            n_cell_tasks += ((cell.n_iterations or self.simulation.n_iterations)
+                             * len(cell.fields or fields))
         n_tasks = (len(self.survey.fields) * len(self.grid.z_values) * len(self.grid.mag_values)
-                   * self.simulation.n_iterations)
+                   * self.simulation.n_iterations) + n_cell_tasks
         if n_tasks > MAX_TASKS:
+            cells = f" + {n_cell_tasks} of grid.cells" if n_cell_tasks else ""
             raise At(f"{self.simulation.n_iterations} iterations x {len(self.survey.fields)} "
-                     f"field(s) x {len(self.grid.z_values)} z x {len(self.grid.mag_values)} mag "
-                     f"= {n_tasks:.3g} tasks, more than the {MAX_TASKS:.0e} one run can plan",
+                     f"field(s) x {len(self.grid.z_values)} z x {len(self.grid.mag_values)} mag"
+                     f"{cells} = {n_tasks:.3g} tasks, more than the {MAX_TASKS:.0e} one run can "
+                     "plan",
                      "simulation", "n_iterations")
         columns = selection_columns(self.survey.band_names, n_ap)
         if self.selection is None:

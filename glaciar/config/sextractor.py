@@ -20,13 +20,16 @@ from typing import Any
 from ._types import At
 
 __all__ = ["read_sex_file", "detection_keys_from_sex", "HONOURED_KEYS", "NO_EFFECT_KEYS",
-           "DEFAULT_ONLY_KEYS"]
+           "DEFAULT_ONLY_KEYS", "GLACIAR_ONLY_KEYS"]
 
 #: SExtractor keys glaciar reads into ``detection:`` (upper case).
 HONOURED_KEYS = ("DETECT_THRESH", "DETECT_MINAREA", "FILTER", "FILTER_NAME", "FILTER_TYPE",
                  "DEBLEND_NTHRESH", "DEBLEND_MINCONT", "CLEAN", "CLEAN_PARAM", "BACK_SIZE",
                  "BACK_FILTERSIZE", "PHOT_APERTURES", "PHOT_AUTOPARAMS", "WEIGHT_TYPE",
                  "WEIGHT_GAIN")
+#: detection keys glaciar has and SExtractor does not (which CLEAN, which RMS the
+#: RELATIVE threshold multiplies, which program segments): YAML only, never in a .sex file
+GLACIAR_ONLY_KEYS = ("CLEAN_STYLE", "THRESHOLD_RMS", "BACKEND")
 _LIST_KEYS = ("PHOT_APERTURES", "PHOT_AUTOPARAMS", "BACK_SIZE", "BACK_FILTERSIZE")
 
 #: Keys that do not change which injected sources are found or the fluxes glaciar
@@ -130,6 +133,9 @@ def detection_keys_from_sex(path, base_dir, info=None) -> dict[str, Any]:
                 raise At(f"{path}: {key} {text}: not supported (glaciar reproduces {key} "
                          f"{allowed} only); remove the line or set it to that", "sex_file")
             continue
+        if key in GLACIAR_ONLY_KEYS:
+            raise At(f"{path}: {key}: glaciar's own key, not SExtractor's; set detection.{key} "
+                     "in the YAML configuration instead", "sex_file")
         raise At(f"{path}: {key}: SExtractor key not supported by glaciar (it would change "
                  "the answer, and glaciar never ignores one silently); remove the line",
                  "sex_file")

@@ -26,8 +26,16 @@ import sep
 
 __all__ = [
     "DetectionError", "DetectionParams", "builtin_filter", "builtin_filter_names",
-    "read_conv_file", "measure_background", "extract", "sanitize",
+    "read_conv_file", "measure_background", "extract", "sanitize", "detection_rms",
+    "CLEAN_STYLES", "THRESHOLD_RMS", "BACKENDS",
 ]
+
+#: CLEAN styles (``DetectionParams.clean_style``; config ``detection.CLEAN_STYLE``), default first
+CLEAN_STYLES = ("region", "sextractor", "sep", "sep-merge")
+#: what DETECT_THRESH multiplies (``DetectionParams.threshold_rms``), default first
+THRESHOLD_RMS = ("pixel", "filtered")
+#: who segments the detection image (``DetectionParams.backend``), default first
+BACKENDS = ("sep", "source-extractor")
 
 #: sep's object flag for "deblended from a larger region" (SExtractor flag 2 is
 #: BLENDED; sep's SEP_OBJ_MERGED is bit 1).
@@ -162,6 +170,16 @@ class DetectionParams:
     ----------
     detect_thresh : float
         Threshold in units of the per-pixel RMS [DETECT_THRESH].
+    threshold_rms : {"pixel", "filtered"}
+        Which RMS DETECT_THRESH multiplies (no SExtractor key).  ``"pixel"``
+        (default): each pixel's RMS (sep).  ``"filtered"``: the square root of
+        the variance map filtered with the detection kernel, pixels without
+        data counting as infinite variance -- what SExtractor does with a
+        filter and a weight map (so it detects nothing within the filter
+        half-width of a pixel without data, and smooths the threshold across
+        depth steps).  The two differ only where the RMS varies; with
+        ``"filtered"`` and ``clean_style="sextractor"`` glaciar's segmentation
+        is SExtractor's (``tests/test_sextractor_backend.py``).
     detect_minarea : int
         Minimum number of pixels above threshold [DETECT_MINAREA].
     filter_kernel : ndarray or None
@@ -176,6 +194,23 @@ class DetectionParams:
         [DEBLEND_MINCONT]
     clean, clean_param : bool, float
         [CLEAN], [CLEAN_PARAM]
+    clean_style : {"region", "sextractor", "sep", "sep-merge"}
+        Which CLEAN (no SExtractor key: each program has its own).
+        ``"region"`` (default): sep's CLEAN run inside each re-extracted split
+        region only, so CLEAN acts between the deblended children of one
+        region, never between separate regions (fast: no task-wide object
+        list; not what a full-frame program does -- see
+        ``benchmarks/sextractor_agreement.py`` for the measured difference).
+        The three others run CLEAN on the injected image's whole pre-CLEAN
+        object list (:mod:`glaciar.engine.localclean`), as a full-frame run does.
+        ``"sextractor"``: SExtractor 2.x's -- objects are cleaned as they are
+        extracted, an absorbed object's pixels, filtered flux and area go to
+        the object that absorbs it (whose FLUX_ISO then includes them), and
+        later tests use the merged flux and area (see
+        :func:`glaciar.engine.clean.sextractor_clean`).  ``"sep"``: sep's --
+        every pair compared after extraction, removed objects' pixels left
+        unlabelled.  ``"sep-merge"``: sep's decisions with SExtractor's
+        hand-over of the removed pixels.
     back_size, back_filtersize : int
         Background mesh size and median-filter size [pixels / meshes]
         [BACK_SIZE], [BACK_FILTERSIZE].
@@ -190,11 +225,18 @@ class DetectionParams:
         Largest window side before giving up (FLAG_WINDOW_AT_LIMIT) [pixels].
     sub_object_limit : int
         sep's deblending sub-object limit (``sep.set_sub_object_limit``).
+    backend : {"sep", "source-extractor"}
+        Who segments the detection images: glaciar with sep (windowed or
+        full frame, exact) or the SExtractor binary on the full injected
+        image in dual-image mode (:mod:`glaciar.engine.sextractor_backend`;
+        a reference, ~3x slower than the full frame); classification and
+        photometry are glaciar's in both.
     filter_name : str
         Provenance of the kernel (built-in name or path).
     """
 
     detect_thresh: float = 0.7
+    threshold_rms: str = "pixel"
     detect_minarea: int = 9
     filter_kernel: np.ndarray | None = field(default_factory=_default_kernel)
     filter_type: str = "conv"
@@ -202,6 +244,7 @@ class DetectionParams:
     deblend_mincont: float = 0.005
     clean: bool = True
     clean_param: float = 1.0
+    clean_style: str = "region"
     back_size: int = 64
     back_filtersize: int = 3
     phot_apertures: tuple = (4.0, 8.0)
@@ -209,6 +252,7 @@ class DetectionParams:
     initial_window: int = 41
     max_window: int = 1025
     sub_object_limit: int = 1024
+    backend: str = "sep"
     filter_name: str = "gauss_2.0_5x5"
 
     def __post_init__(self):
@@ -231,8 +275,14 @@ class DetectionParams:
             bad("deblend_mincont", "a number in [0, 1]", self.deblend_mincont)
         if not isinstance(self.clean, (bool, np.bool_)):
             bad("clean", "true or false", self.clean)
+        if self.clean_style not in CLEAN_STYLES:
+            bad("clean_style", "one of " + ", ".join(repr(v) for v in CLEAN_STYLES), self.clean_style)
         if not isinstance(self.clean_param, num) or not self.clean_param > 0:
             bad("clean_param", "a positive number", self.clean_param)
+        if self.backend not in BACKENDS:
+            bad("backend", "one of " + ", ".join(repr(v) for v in BACKENDS), self.backend)
+        if self.threshold_rms not in THRESHOLD_RMS:
+            bad("threshold_rms", "one of " + ", ".join(repr(v) for v in THRESHOLD_RMS), self.threshold_rms)
         if self.filter_type not in ("conv", "matched"):
             bad("filter_type", "'conv' or 'matched'", self.filter_type)
         if self.filter_kernel is not None:
@@ -310,6 +360,42 @@ def sanitize(image, err=None, mask=None):
     return data, e, nodata
 
 
+def detection_rms(err, nodata, params: DetectionParams, outside=None):
+    """The RMS map the detection threshold multiplies (``params.threshold_rms``).
+
+    Parameters
+    ----------
+    err : ndarray of float32
+        Per-pixel RMS as passed to sep [image units].
+    nodata : ndarray of bool
+        Pixels without data.
+    params : DetectionParams
+    outside : ndarray of bool, optional
+        Pixels that are not part of the image at all (the blank gaps between
+        the windows of a canvas): they count as zero variance, like pixels
+        beyond the image edge, not as missing data.
+
+    Returns
+    -------
+    ndarray of float32
+        ``err`` itself for ``"pixel"`` (or without a filter); for
+        ``"filtered"``, ``sqrt(filter(err^2))`` with the detection kernel
+        (normalised by the sum of its absolute values, as the image), pixels
+        without data entering with a variance of 1e30.
+    """
+    if params.threshold_rms == "pixel" or params.filter_kernel is None:
+        return err
+    from glaciar.engine.clean import sep_filter
+
+    var = np.square(np.asarray(err, dtype=np.float32)).astype(np.float32)
+    var[np.asarray(nodata, dtype=bool)] = np.float32(1e30)
+    if outside is not None:
+        var[np.asarray(outside, dtype=bool)] = 0.0
+    out = np.sqrt(np.maximum(sep_filter(var, params.filter_kernel), 0.0)).astype(np.float32)
+    out[~(out > 0)] = np.float32(1.0)       # only where every neighbour is outside the image
+    return out
+
+
 def measure_background(image, mask, params: DetectionParams):
     """Background and RMS maps of an original band image (once per field and band).
 
@@ -384,4 +470,4 @@ def extract(image_sub, err, params: DetectionParams, mask=None):
         When sep fails (e.g. deblending overflow).
     """
     data, e, nodata = sanitize(image_sub, err, mask)
-    return _sep_extract(data, e, nodata, params, params.clean)
+    return _sep_extract(data, detection_rms(e, nodata, params), nodata, params, params.clean)

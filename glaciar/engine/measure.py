@@ -1,64 +1,19 @@
 """Detect, classify and measure injected sources: the one entry point a task calls.
 
-Windowed detection
-------------------
-Each injected source is detected in a cut-out *window* of the injected
-detection image.  Windows of many sources are tiled into one *canvas*,
-separated by masked blank gaps wider than the filter kernel, and extracted with
-one ``sep.extract`` call.  A window is grown (and the source re-done in the
-next round) until every connected above-threshold region that matters lies at
-least ``filter half-width + 1`` pixels inside the window edge (sides on the
-image edge excepted, where the full frame has the same edge):
+:func:`measure_injected` validates its inputs, chooses the segmentation
+backend -- glaciar's exact windowed (or full-frame) sep segmentation
+(:mod:`glaciar.engine.windows`) or the SExtractor binary on the full frame
+(:mod:`glaciar.engine.sextractor_backend`) -- and runs classification and
+photometry on the product either returns (:class:`~glaciar.engine.windows.SegmentedBatch`),
+with the same code for every backend.  :func:`reference_extraction` segments
+and measures the original image once per field.
 
-* regions with a pixel in the search box;
-* regions touching the bounding boxes of the Kron-radius ellipse (6 a, 6 b),
-  the AUTO ellipse and the largest circular aperture (they decide which pixels
-  are masked as neighbours).
-
-Then every pixel of those regions has the same filtered value and threshold as
-in the full frame, so the regions are identical.
-
-Two sep behaviours would still make a cut-out differ from the full frame, and
-both are made window-independent here, identically in ``mode="full"``:
-
-1. *Deblending is random.*  sep (like SExtractor) hands the faint pixels of a
-   split region to its children by drawing random numbers from one stream per
-   ``sep.extract`` call, so a deblended footprint depends on every region
-   processed before it anywhere in the image.  A region with more than one
-   segment that contains (part of) a source's search box is therefore
-   re-extracted *alone* (same pixels; the RMS set to infinity outside the
-   region so nothing else is detected), which makes its deblending
-   deterministic.
-2. *CLEAN compares objects across the whole image* (within 10 (a1 + a2)), so a
-   cut-out changes which spurious objects are removed.  The tiled extraction
-   runs with CLEAN off, and CLEAN is applied inside each re-extracted region:
-   i.e. CLEAN acts between the deblended children of one region, not between
-   separate regions.  Regions with a single segment are unaffected by CLEAN
-   in sep (it only removes objects).
-
-With ``filter_type="matched"`` the noise enters the filter and point 1 is only
-approximately window-independent.
-
-The reference (original-image) extraction is a plain full-frame sep run with
-CLEAN as configured; it is done once per field and shared by both modes.
-
-Speed without changing answers
-------------------------------
-Each shortcut below only decides *how much* is computed, never a result
-(``tests/test_windowed.py``, ``tests/test_windowed_batching.py``):
-
-* the first window is ``DetectionParams.initial_window`` (41 px: most sources
-  are exact after one extraction); a side whose required box reaches the
-  window edge grows by half the window, other sides just enough;
-* canvases are built by :meth:`Scene.paste_windows` (one overlap search per
-  canvas, stamps added where windows read them);
-* a region's box is the union of its segments' boxes from sep's catalogue;
-* a re-extracted (deblended) region is cached by its image position and
-  pixels for the whole call, so a later round or an overlapping window reuses
-  it (the extraction depends on nothing else);
-* band canvases hold only the pixels photometry reads: each detection's
-  segment and AUTO/aperture box; the detection band reuses the detection
-  canvas; windows that must grow get no band photometry.
+The reference (original-image) extraction is, for ``clean_style="region"``,
+a plain full-frame sep run with CLEAN as configured; for the task-wide CLEAN
+styles, glaciar's segmentation product of the original image
+(:func:`glaciar.engine.segmentation.sep_segmentation`: canonical deblending,
+the same CLEAN, pre-CLEAN objects kept); with ``backend="source-extractor"``,
+SExtractor's.  It is shared by the windowed and full modes.
 """
 from __future__ import annotations
 
@@ -66,22 +21,18 @@ from dataclasses import dataclass
 from typing import Mapping
 
 import numpy as np
-from scipy import ndimage
 
-from glaciar.constants import (COL_FLAGS, FLAG_SEP_ERROR, FLAG_WINDOW_AT_LIMIT,
-                               STATUS_NOT_DETECTED, band_column)
+from glaciar.constants import COL_FLAGS, FLAG_SEP_ERROR, STATUS_NOT_DETECTED, band_column
+from glaciar.engine import localclean as _lc
 from glaciar.engine import photometry as phot
-from glaciar.engine.classify import ClassificationParams, classify, footprint_overlap, input_pixel, \
-    select_detection
-from glaciar.engine.detect import DetectionError, DetectionParams, _sep_extract, sanitize
+from glaciar.engine.classify import ClassificationParams, classify, footprint_overlap, select_detection
+from glaciar.engine.detect import DetectionError, DetectionParams, _sep_extract, detection_rms, sanitize
 from glaciar.engine.scene import Scene
+from glaciar.engine.segmentation import sep_segmentation
+from glaciar.engine.windows import (Canvas, MeasureContext, SegmentedBatch, safe_shape, segment_full,
+                                    segment_windowed, window_groups)
 
 __all__ = ["FieldReference", "reference_extraction", "measure_injected", "output_columns"]
-
-_BIG_RMS = np.float32(1e30)
-_EIGHT = np.ones((3, 3), dtype=bool)   # sep/SExtractor regions are 8-connected
-_MAX_CANVAS_PIXELS = 600_000           # keep one sep call's buffers small
-_REMOVED = np.int32(2 ** 31 - 1)       # label of pixels whose object CLEAN removed
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,16 +49,23 @@ class FieldReference:
         AUTO magnitude per original id (detection zeropoint); NaN for flux <= 0.
     catalog : structured ndarray or None
         sep's catalogue (row id - 1).
+    product : Segmentation or None
+        The original image's segmentation product
+        (:func:`glaciar.engine.segmentation.sep_segmentation`), pre-CLEAN
+        objects included: CLEAN of an injected image takes the objects the
+        injection leaves untouched from it.  None (hand-made references):
+        CLEAN then sees only the objects near the task's stamps.
     """
 
     segmap: np.ndarray
     flux: np.ndarray
     mag: np.ndarray
     catalog: np.ndarray | None = None
+    product: object = None
 
 
 def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropoint: float,
-                         mask=None, photometry=None) -> FieldReference:
+                         mask=None, photometry=None, backend: str | None = None) -> FieldReference:
     """Extract the original (un-injected) detection image once per field.
 
     Parameters
@@ -125,6 +83,11 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         The band whose AUTO magnitudes the original sources get when it is not
         the detection image (a coadded detection image: fluxes in the
         detection *band*, the band ``zeropoint`` belongs to).
+    backend : {"sep", "source-extractor"}, optional
+        Default ``params.backend``.  Who segments the original image: glaciar's sep product
+        (:func:`~glaciar.engine.segmentation.sep_segmentation`; needed by the
+        sep modes, whose CLEAN takes unchanged objects from it) or the
+        SExtractor binary (for ``mode="source-extractor"``).
 
     Returns
     -------
@@ -133,29 +96,42 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         (MAG_AUTO as SExtractor: Kron factor and minimum radius from
         ``params.phot_autoparams``; neighbours masked).
     """
+    backend = params.backend if backend is None else backend
     data, err, nodata = sanitize(det_image_sub, det_rms, mask)
-    cat, seg = _sep_extract(data, err, nodata, params, params.clean)
-    n = len(cat)
+    if backend == "sep" and params.clean_style == "region":
+        # CLEAN within regions: the reference is a plain full-frame sep run with
+        # CLEAN as configured (no pre-CLEAN object list: no task-wide CLEAN needs it)
+        cat, seg = _sep_extract(data, detection_rms(err, nodata, params), nodata, params, params.clean)
+        geo = {f: np.asarray(cat[f], dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}
+        return _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, photometry, cat, None)
+    if backend == "sep":
+        prod = sep_segmentation(data, err, params, mask=nodata)
+        cat = prod.cat[np.flatnonzero(prod.owner == np.arange(len(prod.owner)))] if len(prod.cat) else prod.cat
+    elif backend == "source-extractor":
+        from glaciar.engine.sextractor_backend import sextractor_segmentation
+        prod = sextractor_segmentation(data, err, params, mask=nodata)
+        cat = None
+    else:
+        raise ValueError(f"backend must be 'sep' or 'source-extractor', got {backend!r}")
+    geo = {f: np.asarray(getattr(prod, f), dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}
+    return _reference_photometry(data, err, nodata, prod.seg, geo, params, zeropoint, mask, photometry, cat, prod)
+
+
+def _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, photometry, cat, prod):
+    """AUTO flux and magnitude of every object of an original image's segmentation."""
+    n = geo["x"].size
     if n == 0:
-        return FieldReference(seg, np.zeros(0), np.zeros(0), cat)
+        return FieldReference(seg, np.zeros(0), np.zeros(0), cat, prod)
     ids = np.arange(1, n + 1, dtype=np.int32)
-    a, b, th = _shape(cat["a"], cat["b"], cat["theta"])
-    kr = phot.kron_radius(data, cat["x"], cat["y"], a, b, th, segmap=seg, seg_id=ids, mask=nodata)
+    a, b, th = safe_shape(geo["a"], geo["b"], geo["theta"])
+    kr = phot.kron_radius(data, geo["x"], geo["y"], a, b, th, segmap=seg, seg_id=ids, mask=nodata)
     scale = phot.auto_scale(kr, params.phot_autoparams)
     if photometry is not None:
         data, err, nodata = sanitize(photometry[0], photometry[1], mask)
-    flux, _ = phot.auto_photometry(data, err, cat["x"], cat["y"], a, b, th, scale,
+    flux, _ = phot.auto_photometry(data, err, geo["x"], geo["y"], a, b, th, scale,
                                    segmap=seg, seg_id=ids, mask=nodata)
     mag, _, _ = phot.magnitudes(flux, np.ones_like(flux), zeropoint)
-    return FieldReference(seg, flux, mag, cat)
-
-
-def _shape(a, b, theta):
-    # sep requires a >= b >= 0 and |theta| <= pi/2; guard degenerate 1-pixel-wide objects
-    a = np.maximum(np.asarray(a, dtype=np.float64), 1e-3)
-    b = np.clip(np.asarray(b, dtype=np.float64), 1e-3, a)
-    th = np.clip(np.asarray(theta, dtype=np.float64), -np.pi / 2, np.pi / 2)
-    return a, b, th
+    return FieldReference(seg, flux, mag, cat, prod)
 
 
 def output_columns(bands, n_apertures: int) -> list[str]:
@@ -171,125 +147,6 @@ def output_columns(bands, n_apertures: int) -> list[str]:
     return cols
 
 
-# --------------------------------------------------------------------------
-# Canvas: tiled windows
-# --------------------------------------------------------------------------
-def _pack(heights, widths, gap):
-    """Shelf-pack rectangles; returns (y offsets, x offsets, canvas shape)."""
-    k = len(heights)
-    order = np.argsort(-np.asarray(heights), kind="stable")
-    area = float(np.sum((np.asarray(heights) + gap) * (np.asarray(widths) + gap)))
-    width = int(max(np.max(widths) + 2 * gap, np.sqrt(area) * 1.1))
-    oy = np.zeros(k, dtype=np.int64)
-    ox = np.zeros(k, dtype=np.int64)
-    y = x = gap
-    shelf = 0
-    for i in order:
-        h, w = int(heights[i]), int(widths[i])
-        if x + w + gap > width and x > gap:
-            y += shelf + gap
-            x = gap
-            shelf = 0
-        oy[i], ox[i] = y, x
-        x += w + gap
-        shelf = max(shelf, h)
-    return oy, ox, (int(y + shelf + gap), int(width))
-
-
-class _Canvas:
-    """Windows of the detection image (and later the bands) tiled into one array."""
-
-    def __init__(self, ctx, rects, full=False):
-        self.ctx = ctx
-        self.rects = rects                      # (K, 4) y0, y1, x0, x1 image coords
-        hh = rects[:, 1] - rects[:, 0]
-        ww = rects[:, 3] - rects[:, 2]
-        if full:
-            self.oy = np.zeros(1, dtype=np.int64)
-            self.ox = np.zeros(1, dtype=np.int64)
-            self.shape = ctx.shape
-        else:
-            self.oy, self.ox, self.shape = _pack(hh, ww, ctx.gap)
-        self.full = full
-        det = np.zeros(self.shape)
-        err = np.ones(self.shape, dtype=np.float32)
-        nodata = np.ones(self.shape, dtype=bool)
-        ref = np.zeros(self.shape, dtype=np.int32)
-        ctx.det_scene.paste_windows(det, rects, self.oy, self.ox)
-        for k, (y0, y1, x0, x1) in enumerate(rects.tolist()):
-            sl = self.slice(k)
-            err[sl] = ctx.det_rms[y0:y1, x0:x1]
-            nodata[sl] = False if ctx.mask is None else ctx.mask[y0:y1, x0:x1]
-            ref[sl] = ctx.ref_segmap[y0:y1, x0:x1]
-        with np.errstate(invalid="ignore"):
-            nodata |= ~np.isfinite(det) | ~(np.isfinite(err) & (err > 0))
-        det[nodata] = 0.0
-        err[nodata] = 1.0
-        self.det = det
-        self.det32 = det.astype(np.float32)
-        self.err = err
-        self.nodata = nodata
-        self.ref = ref
-
-    def slice(self, k):
-        y0, y1, x0, x1 = self.rects[k]
-        return (slice(self.oy[k], self.oy[k] + y1 - y0), slice(self.ox[k], self.ox[k] + x1 - x0))
-
-    def band(self, name, windows, boxes=None):
-        """Band data, RMS and no-data mask on the canvas.
-
-        Only the listed windows are filled, or with ``boxes`` ((K, 4) canvas
-        y0, y1, x0, x1 inside those windows) only those parts.  Pixels not
-        filled are flagged as no data; no aperture of the sources measured
-        reaches them (see ``room`` in :func:`_analyse` and :func:`_band_boxes`).
-        """
-        ctx = self.ctx
-        scene, brms = ctx.band_scenes[name], ctx.band_rms[name]
-        if scene is ctx.det_scene and brms is ctx.det_rms and ctx.det_rms.dtype == np.float32:
-            # The detection band read through the detection canvas: same pixels, same
-            # no-data definition (its RMS is float32, so err's cast changed nothing).
-            rms = self.err.astype(np.float64)
-            rms[self.nodata] = 0.0
-            return self.det, rms, self.nodata
-        windows = np.asarray(windows, dtype=np.int64)
-        if boxes is None:
-            cy, cx = self.oy[windows], self.ox[windows]
-            img = self.rects[windows]
-        else:
-            boxes = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
-            keep = (boxes[:, 1] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 2])
-            boxes, windows = boxes[keep], windows[keep]
-            cy, cx = boxes[:, 0], boxes[:, 2]
-            dy = self.rects[windows, 0] - self.oy[windows]      # canvas -> image
-            dx = self.rects[windows, 2] - self.ox[windows]
-            img = np.stack([boxes[:, 0] + dy, boxes[:, 1] + dy, boxes[:, 2] + dx, boxes[:, 3] + dx], axis=1)
-        data = np.zeros(self.shape)
-        rms = np.zeros(self.shape)
-        scene.paste_windows(data, img, cy, cx)
-        for (y0, y1, x0, x1), py, px in zip(img.tolist(), cy.tolist(), cx.tolist()):
-            rms[py:py + y1 - y0, px:px + x1 - x0] = brms[y0:y1, x0:x1]
-        with np.errstate(invalid="ignore"):
-            bad = self.nodata | ~np.isfinite(data) | ~(np.isfinite(rms) & (rms > 0))
-        data[bad] = 0.0
-        rms[bad] = 0.0
-        return data, rms, bad
-
-
-class _Context:
-    def __init__(self, **kw):
-        self.__dict__.update(kw)
-
-
-def _ellipse_half_extent(a, b, theta, r):
-    c, s = np.cos(theta), np.sin(theta)
-    dx = r * np.sqrt((a * c) ** 2 + (b * s) ** 2)
-    dy = r * np.sqrt((a * s) ** 2 + (b * c) ** 2)
-    return dy, dx
-
-
-# --------------------------------------------------------------------------
-# Main entry point
-# --------------------------------------------------------------------------
 def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping[str, Scene],
                      band_rms: Mapping[str, np.ndarray], x: np.ndarray, y: np.ndarray,
                      input_flux_det: np.ndarray, input_mag_det: np.ndarray,
@@ -322,8 +179,10 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
     detection_band : str
     mask : ndarray of bool, optional
         True where there are no data (all bands).
-    mode : {"windowed", "full"}
-        ``full`` extracts the whole injected image once (validation).
+    mode : {"windowed", "full", "source-extractor"}
+        ``full`` extracts the whole injected image once (validation);
+        ``source-extractor`` (or ``params.backend="source-extractor"``, which
+        takes precedence) segments it with the SExtractor binary.
     diagnostics : dict, optional
         If given, filled with ``"window"``: (N, 4) int array, the last
         window of each source (y0, y1, x0, x1, image pixels; the whole image
@@ -348,8 +207,8 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         undetected sources; ``detection_id`` is the label of the detection in
         this call's extraction (0 = none; not comparable between modes).
     """
-    if mode not in ("windowed", "full"):
-        raise ValueError(f"mode must be 'windowed' or 'full', got {mode!r}")
+    if mode not in ("windowed", "full", "source-extractor"):
+        raise ValueError(f"mode must be 'windowed', 'full' or 'source-extractor', got {mode!r}")
     bands = list(band_scenes)
     if detection_band not in band_scenes:
         raise ValueError(f"detection band {detection_band!r} missing from band_scenes ({', '.join(bands)})")
@@ -371,17 +230,6 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
     if y.size != n or np.size(input_flux_det) != n or np.size(input_mag_det) != n:
         raise ValueError("x, y, input_flux_det and input_mag_det must have the same length")
 
-    hw = params.filter_halfwidth
-    ctx = _Context(noise_models=dict(noise_models or {}),
-                   det_scene=det_scene, det_rms=det_rms, band_scenes=band_scenes, band_rms=band_rms,
-                   mask=mask, ref_segmap=reference.segmap, ref_mag=reference.mag, params=params,
-                   cls=classification, zeropoints=zeropoints, gains=gains, det_band=detection_band,
-                   bands=bands, shape=det_scene.shape, margin=hw + 1,
-                   gap=max(hw + 1, 2),
-                   input_flux=np.asarray(input_flux_det, dtype=np.float64).ravel(),
-                   input_mag=np.asarray(input_mag_det, dtype=np.float64).ravel(), x=x, y=y,
-                   templates=_input_templates(det_scene, input_templates, n))
-
     out = {c: np.full(n, np.nan) for c in output_columns(bands, len(params.phot_apertures))}
     out["status"] = np.full(n, STATUS_NOT_DETECTED, dtype=np.int8)
     out["detection_id"] = np.zeros(n, dtype=np.int64)
@@ -391,343 +239,81 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         if diagnostics is not None:
             diagnostics.update(window=np.zeros((0, 4), dtype=np.int64), rounds=0)
         return out
-    ctx.out = out
-    ctx.at_max = np.zeros(n, dtype=bool)
-    ctx.isolated = {}
-
-    ny, nx = ctx.shape
-    if mode == "full":
-        rects = np.array([[0, ny, 0, nx]], dtype=np.int64)
-        _run_canvas(ctx, np.arange(n), rects, np.zeros(n, dtype=np.int64), full=True)
-        if diagnostics is not None:
-            diagnostics.update(window=np.repeat(rects, n, axis=0), rounds=1)
-        return out
-
-    ix, iy = input_pixel(x, y)
-    r = params.initial_window // 2
-    rects = np.stack([np.clip(iy - r, 0, ny), np.clip(iy + r + 1, 0, ny),
-                      np.clip(ix - r, 0, nx), np.clip(ix + r + 1, 0, nx)], axis=1)
-    pending = np.arange(n)
-    rounds = 0
-    while pending.size:
-        rounds += 1
-        # chunk so one sep call stays small
-        areas = (rects[pending, 1] - rects[pending, 0] + ctx.gap) * (rects[pending, 3] - rects[pending, 2] + ctx.gap)
-        chunks = np.split(pending, np.flatnonzero(np.diff(np.cumsum(areas) // _MAX_CANVAS_PIXELS)) + 1)
-        grow_all = []
-        for chunk in chunks:
-            grow_all.append(_run_canvas(ctx, chunk, rects[chunk], np.arange(chunk.size), full=False,
-                                        all_rects=rects))
-        pending = np.concatenate(grow_all) if grow_all else np.zeros(0, dtype=np.int64)
+    ny, nx = det_scene.shape
+    sextractor = mode == "source-extractor" or params.backend == "source-extractor"
+    isolated = {}
+    tclean = None
+    if not sextractor and params.clean and params.clean_style != "region":
+        rp = reference.product
+        rp = rp if (rp is not None and getattr(rp, "objects", None) is not None) else None
+        try:
+            tclean = _lc.task_clean(det_scene, det_rms, params, rp, mask, isolated)
+        except DetectionError:
+            out[COL_FLAGS] |= FLAG_SEP_ERROR
+            if diagnostics is not None:
+                diagnostics.update(window=np.zeros((n, 4), dtype=np.int64), rounds=0)
+            return out
+    hw = params.filter_halfwidth
+    ctx = MeasureContext(
+        det_scene=det_scene, det_rms=det_rms, band_scenes=band_scenes, band_rms=band_rms, mask=mask,
+        ref_segmap=reference.segmap, ref_mag=reference.mag, params=params, cls=classification,
+        zeropoints=zeropoints, gains=gains, det_band=detection_band, bands=bands,
+        noise_models=dict(noise_models or {}), shape=det_scene.shape, margin=hw + 1, gap=max(hw + 1, 2),
+        x=x, y=y, input_flux=np.asarray(input_flux_det, dtype=np.float64).ravel(),
+        input_mag=np.asarray(input_mag_det, dtype=np.float64).ravel(),
+        templates=_input_templates(det_scene, input_templates, n),
+        out=out, at_max=np.zeros(n, dtype=bool), isolated=isolated, tclean=tclean)
+    if sextractor:
+        from glaciar.engine.sextractor_backend import sextractor_segmentation
+        prod = sextractor_segmentation(det_scene.full(), det_rms, params, mask=mask,
+                                       gain=gains.get(detection_band), zeropoint=zeropoints[detection_band])
+        _measure_product(ctx, prod)
+        last, rounds = np.repeat(np.array([[0, ny, 0, nx]]), n, axis=0), 1
+    elif mode == "full":
+        last, rounds = segment_full(ctx, _finish), 1
+    else:
+        last, rounds = segment_windowed(ctx, _finish)
     if diagnostics is not None:
-        diagnostics.update(window=rects.copy(), rounds=rounds)
+        diagnostics.update(window=np.array(last, copy=True), rounds=rounds)
     return out
 
 
-def _run_canvas(ctx, src, rects, src_win, full, all_rects=None):
-    """Extract one canvas; finish what is exact, return sources whose window must grow."""
-    try:
-        canvas = _Canvas(ctx, rects, full=full)
-        cat, seg = _sep_extract(canvas.det32, canvas.err, canvas.nodata, ctx.params, clean=False)
-    except DetectionError:
-        if len(rects) > 1:   # isolate the failing window(s)
-            grow = [_run_canvas(ctx, src[i:i + 1], rects[src_win[i]][None], np.zeros(1, dtype=np.int64),
-                                full, all_rects) for i in range(src.size)]
-            return np.concatenate(grow)
-        ctx.out[COL_FLAGS][src] |= FLAG_SEP_ERROR
-        return np.zeros(0, dtype=np.int64)
-    return _analyse(ctx, canvas, cat, seg, src, src_win, all_rects)
+def _measure_product(ctx, prod):
+    """Classification and photometry of every source on a full-frame segmentation product.
 
-
-def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
-    params, cls = ctx.params, ctx.cls
-    m = ctx.margin
+    The same selection, Kron/AUTO, photometry and classification code as the
+    sep modes (:func:`_finish`), on another backend's segmentation
+    (:class:`~glaciar.engine.segmentation.Segmentation`): its labels and
+    geometry are taken as they are.
+    """
     ny, nx = ctx.shape
-    full = cv.full
-    # ---- regions (8-connected components of detected pixels) and their boxes
-    comp, ncomp = ndimage.label(seg > 0, structure=_EIGHT)
-    nseg = len(cat)
-    seg2comp = np.zeros(nseg + 1, dtype=np.int64)
-    nzpix = np.flatnonzero(seg)
-    seg2comp[seg.ravel()[nzpix]] = comp.ravel()[nzpix]
-    segs_per_comp = np.bincount(seg2comp[1:], minlength=ncomp + 1)
-    # A region's box is the union of its segments' boxes, which sep's catalogue
-    # gives (x/ymin, x/ymax: the extremes of each object's pixels, the same pixels
-    # it writes to the segmentation map; no CLEAN here): no scan of the canvas.
-    cb = np.zeros((ncomp + 1, 4), dtype=np.int64)
-    if ncomp:
-        cb[1:, 0] = cb[1:, 2] = np.iinfo(np.int64).max // 4
-        cb[1:, 1] = cb[1:, 3] = -(np.iinfo(np.int64).max // 4)
-        c = seg2comp[1:]
-        np.minimum.at(cb[:, 0], c, np.asarray(cat["ymin"], dtype=np.int64))
-        np.maximum.at(cb[:, 1], c, np.asarray(cat["ymax"], dtype=np.int64) + 1)
-        np.minimum.at(cb[:, 2], c, np.asarray(cat["xmin"], dtype=np.int64))
-        np.maximum.at(cb[:, 3], c, np.asarray(cat["xmax"], dtype=np.int64) + 1)
-        cb[0] = 0
-
-    # ---- per-source window geometry on the canvas
-    k = src_win
-    rect = cv.rects[k]
-    wy0 = cv.oy[k]
-    wx0 = cv.ox[k]
-    wy1 = wy0 + rect[:, 1] - rect[:, 0]
-    wx1 = wx0 + rect[:, 3] - rect[:, 2]
-    # constrained sides: not on the image edge
-    lo_y = np.where(rect[:, 0] > 0, wy0 + m, -10 ** 9)
-    hi_y = np.where(rect[:, 1] < ny, wy1 - m, 10 ** 9)
-    lo_x = np.where(rect[:, 2] > 0, wx0 + m, -10 ** 9)
-    hi_x = np.where(rect[:, 3] < nx, wx1 - m, 10 ** 9)
-    cx = ctx.x[src] - rect[:, 2] + wx0
-    cy = ctx.y[src] - rect[:, 0] + wy0
-    bounds = np.stack([wy0, wy1, wx0, wx1], axis=1)
-
-    grow = np.zeros(src.size, dtype=bool)
-    edge = np.zeros(src.size, dtype=bool)
-    need = np.stack([cy, cy + 1, cx, cx + 1], axis=1).astype(np.int64)   # canvas bbox required exact
-
-    # region boxes with a neutral entry for background (label 0), so the union of the
-    # boxes of the regions touching a bbox needs no filtering
-    big = 2 ** 40
-    cbn = cb.copy()
-    cbn[0] = (big, -big, big, -big)
-    lo_y_l, hi_y_l, lo_x_l, hi_x_l = lo_y.tolist(), hi_y.tolist(), lo_x.tolist(), hi_x.tolist()
-    need_l = need.tolist()
-    H_cv, W_cv = cv.shape
-
-    def check(i, by0, by1, bx0, bx1):
-        """Is bbox (canvas) and every region touching it exact for source i?  Updates need[i]."""
-        by0, by1 = max(by0, 0), min(by1, H_cv)
-        bx0, bx1 = max(bx0, 0), min(bx1, W_cv)
-        ry0, ry1, rx0, rx1 = by0, by1, bx0, bx1
-        if by1 > by0 and bx1 > bx0:
-            sub = comp[by0:by1, bx0:bx1]
-            labs = sub[sub > 0]
-            if labs.size:
-                # the union of the boxes of the regions met (no np.unique: a repeated
-                # label only repeats its box)
-                b = cbn[labs]
-                lo_b, hi_b = b.min(axis=0).tolist(), b.max(axis=0).tolist()
-                ry0 = min(ry0, lo_b[0])
-                ry1 = max(ry1, hi_b[1])
-                rx0 = min(rx0, lo_b[2])
-                rx1 = max(rx1, hi_b[3])
-        nd = need_l[i]
-        nd[0], nd[1], nd[2], nd[3] = min(nd[0], ry0), max(nd[1], ry1), min(nd[2], rx0), max(nd[3], rx1)
-        return ry0 >= lo_y_l[i] and ry1 <= hi_y_l[i] and rx0 >= lo_x_l[i] and rx1 <= hi_x_l[i]
-
-    def room(i, by0, by1, bx0, bx1):
-        """Apertures running off the image edge are measured on the window alone.
-
-        sep scales aperture sums up for masked pixels but not for pixels
-        outside the array, so the blank gap around a window must not enter an
-        aperture: such sources are measured on their window cut from the
-        canvas, where the image edge is the array edge, as in the full frame.
-        """
-        if not full and max(wy0[i] - by0, by1 - wy1[i], wx0[i] - bx0, bx1 - wx1[i]) > 0:
-            edge[i] = True
-
-    at_max = np.zeros(src.size, dtype=bool) if full else ctx.at_max[src]
-    # canvas box holding every band pixel a source's AUTO and circular apertures can touch
-    phot_box = np.zeros((src.size, 4), dtype=np.int64)
-
-    def fail(i):
-        if at_max[i]:
-            ctx.out[COL_FLAGS][src[i]] |= FLAG_WINDOW_AT_LIMIT
-        else:
-            grow[i] = True
-
-    # ---- stage A: regions in the search box must be exact
-    # (vectorised over sources: the regions of each search box, clipped to its window)
-    icx, icy = input_pixel(cx, cy)
-    h = cls.search_box // 2
-    by0, by1 = np.maximum(icy - h, wy0), np.minimum(icy + h + 1, wy1)
-    bx0, bx1 = np.maximum(icx - h, wx0), np.minimum(icx + h + 1, wx1)
-    box_off = np.arange(-h, h + 1)
-    py, px = icy[:, None] + box_off, icx[:, None] + box_off
-    inbox = (((py >= by0[:, None]) & (py < by1[:, None]))[:, :, None]
-             & ((px >= bx0[:, None]) & (px < bx1[:, None]))[:, None, :])
-    box_lab = comp[np.clip(py, 0, H_cv - 1)[:, :, None], np.clip(px, 0, W_cv - 1)[:, None, :]]
-    box_lab = np.where(inbox, box_lab, 0).reshape(src.size, -1)
-    if not full:
-        rb = cbn[box_lab]
-        ry0, ry1 = np.minimum(by0, rb[:, :, 0].min(axis=1)), np.maximum(by1, rb[:, :, 1].max(axis=1))
-        rx0, rx1 = np.minimum(bx0, rb[:, :, 2].min(axis=1)), np.maximum(bx1, rb[:, :, 3].max(axis=1))
-        need = np.stack([np.minimum(need[:, 0], ry0), np.maximum(need[:, 1], ry1),
-                         np.minimum(need[:, 2], rx0), np.maximum(need[:, 3], rx1)], axis=1)
-        need_l = need.tolist()
-        exact = (ry0 >= lo_y) & (ry1 <= hi_y) & (rx0 >= lo_x) & (rx1 <= hi_x)
-        for i in np.flatnonzero(~exact):
-            fail(i)
-    split_in_box = segs_per_comp[box_lab] >= 2
-
-    # ---- canonical (isolated) re-extraction of deblended regions in search boxes
-    pseg = seg.astype(np.int64)
-    tab = _segment_table(cat)
-    next_label = nseg + 1
-    done_comps = {}
-    sep_failed = np.zeros(src.size, dtype=bool)
-    for i in np.flatnonzero(split_in_box.any(axis=1) & ~grow):
-        for c in np.unique(box_lab[i][split_in_box[i]]).tolist():
-            if c in done_comps:
-                if done_comps[c] is None:
-                    sep_failed[i] = True
-                continue
-            try:
-                off = (int(rect[i, 0] - wy0[i]), int(rect[i, 2] - wx0[i]))   # canvas -> image
-                next_label = _isolate(cv, comp, c, cb[c], bounds[i], pseg, tab, next_label, ctx, off)
-                done_comps[c] = True
-            except DetectionError:
-                done_comps[c] = None
-                sep_failed[i] = True
-    tab = {f: np.concatenate(v) for f, v in tab.items()}
-
-    # ---- choose the detection
+    n = ctx.x.size
+    rects = np.array([[0, ny, 0, nx]], dtype=np.int64)
+    cv = Canvas(ctx, rects, full=True)
+    src = np.arange(n)
+    src_win = np.zeros(n, dtype=np.int64)
+    pseg = np.asarray(prod.seg, dtype=np.int64)
+    tab = {f: np.r_[np.nan, np.asarray(getattr(prod, f), dtype=np.float64)]
+           for f in ("x", "y", "a", "b", "theta")}
     pix = np.flatnonzero(pseg)
     lab_pix = pseg.ravel()[pix]
-    nl = int(next_label)
-    seg_flux = np.bincount(lab_pix, weights=cv.det.ravel()[pix], minlength=nl)
-    label = select_detection(pseg, cx, cy, seg_flux, cls.search_box, bounds=bounds)
-    label[grow | sep_failed] = 0
+    seg_flux = np.bincount(lab_pix, weights=cv.det.ravel()[pix], minlength=len(prod) + 1)
+    bounds = np.tile(np.array([0, ny, 0, nx], dtype=np.int64), (n, 1))
+    label = select_detection(pseg, ctx.x, ctx.y, seg_flux, ctx.cls.search_box, bounds=bounds)
     det = label > 0
-
-    # ---- stage B: measurement apertures must see exact segmentation
-    xs = tab["x"][label]
-    ys = tab["y"][label]
-    a, b, th = _shape(tab["a"][label], tab["b"][label], tab["theta"][label])
-    if not full:
-        dy6, dx6 = _ellipse_half_extent(a, b, th, 6.0)
-        for i in np.flatnonzero(det):
-            bb = (int(np.floor(ys[i] - dy6[i])) - 1, int(np.ceil(ys[i] + dy6[i])) + 2,
-                  int(np.floor(xs[i] - dx6[i])) - 1, int(np.ceil(xs[i] + dx6[i])) + 2)
-            if not check(i, *bb):
-                fail(i)
-            room(i, *bb)
-        det &= ~grow
-    # Segmentation for neighbour masking in Kron/AUTO: pixels of objects that CLEAN removed
-    # (in re-extracted regions) stay masked for everyone, so the masks do not depend on
-    # which regions a given window re-extracted.
+    xs, ys = tab["x"][label], tab["y"][label]
+    a, b, th = safe_shape(tab["a"][label], tab["b"][label], tab["theta"][label])
     pseg32 = pseg.astype(np.int32)
-    pseg32[(pseg32 == 0) & (seg > 0)] = _REMOVED
-    kr = np.full(src.size, np.nan)
-    for ii, sl in _groups(cv, np.flatnonzero(det), edge, src_win):
-        oy, ox = sl[0].start, sl[1].start
-        kr[ii] = phot.kron_radius(cv.det[sl], xs[ii] - ox, ys[ii] - oy, a[ii], b[ii], th[ii],
-                                  segmap=pseg32[sl], seg_id=label[ii], mask=cv.nodata[sl])
-    scale = phot.auto_scale(kr, params.phot_autoparams)
-    if not full:
-        dya, dxa = _ellipse_half_extent(a, b, th, scale)
-        rap = 0.5 * max(params.phot_apertures)
-        dya, dxa = np.maximum(dya, rap), np.maximum(dxa, rap)
-        for i in np.flatnonzero(det):
-            bb = (int(np.floor(ys[i] - dya[i])) - 1, int(np.ceil(ys[i] + dya[i])) + 2,
-                  int(np.floor(xs[i] - dxa[i])) - 1, int(np.ceil(xs[i] + dxa[i])) + 2)
-            if not check(i, *bb):
-                fail(i)
-            room(i, *bb)
-            phot_box[i] = bb
-
-    # ---- windows that must grow: new rects (or, at max_window, one last round unchecked)
-    need = np.array(need_l, dtype=np.int64).reshape(-1, 4)
-    regrow = []
-    if not full:
-        for i in np.flatnonzero(grow):
-            s = src[i]
-            oy, ox = wy0[i] - rect[i, 0], wx0[i] - rect[i, 2]   # canvas -> image offset
-            pad = m + 4
-            ny0 = min(rect[i, 0], need[i, 0] - oy - pad)
-            ny1 = max(rect[i, 1], need[i, 1] - oy + pad)
-            nx0 = min(rect[i, 2], need[i, 2] - ox - pad)
-            nx1 = max(rect[i, 3], need[i, 3] - ox + pad)
-            # A side whose required box reaches the window edge may hide a region that
-            # continues outside: grow it by at least half the window size, so the rounds
-            # stay few.  A side whose box ends inside (within the margin) grows to it + pad.
-            gy = max(16, (rect[i, 1] - rect[i, 0]) // 2)
-            gx = max(16, (rect[i, 3] - rect[i, 2]) // 2)
-            ny0 = min(ny0, rect[i, 0] - gy) if need[i, 0] - oy <= rect[i, 0] else ny0
-            ny1 = max(ny1, rect[i, 1] + gy) if need[i, 1] - oy >= rect[i, 1] else ny1
-            nx0 = min(nx0, rect[i, 2] - gx) if need[i, 2] - ox <= rect[i, 2] else nx0
-            nx1 = max(nx1, rect[i, 3] + gx) if need[i, 3] - ox >= rect[i, 3] else nx1
-            new = np.array([max(ny0, 0), min(ny1, ny), max(nx0, 0), min(nx1, nx)])
-            mw = ctx.params.max_window
-            iy_, ix_ = int(np.floor(ctx.y[s] + 0.5)), int(np.floor(ctx.x[s] + 0.5))
-            if new[1] - new[0] > mw:
-                new[0], new[1] = max(iy_ - mw // 2, new[0]), min(iy_ - mw // 2 + mw, new[1])
-            if new[3] - new[2] > mw:
-                new[2], new[3] = max(ix_ - mw // 2, new[2]), min(ix_ - mw // 2 + mw, new[3])
-            if np.array_equal(new, all_rects[s]):
-                ctx.at_max[s] = True          # redo once more without the checks, flagged
-            all_rects[s] = new
-            regrow.append(s)
-
-    fin = ~grow
-    ctx.out[COL_FLAGS][src[sep_failed]] |= FLAG_SEP_ERROR
-    # (pseg is unchanged since pix, lab_pix were taken from it)
-    _finish(ctx, cv, pseg, pseg32, label * fin, xs, ys, a, b, th, scale, src, src_win, fin, rect, wy0, wx0,
-            edge, phot_box, bounds, pix, lab_pix)
-    return np.array(regrow, dtype=np.int64)
-
-
-def _segment_table(cat):
-    """Label-indexed geometry (index 0 = no detection), as lists of arrays to concatenate."""
-    tab = {}
-    for f in ("x", "y", "a", "b", "theta"):
-        tab[f] = [np.array([np.nan]), np.asarray(cat[f], dtype=np.float64)]
-    return tab
-
-
-def _isolate(cv, comp, c, box, win, pseg, tab, next_label, ctx, offset):
-    """Re-extract region ``c`` alone (fresh deblending RNG, CLEAN within the region).
-
-    The cut-out is the region's box plus the filter half-width + 1, clipped to
-    the window ``win`` (y0, y1, x0, x1), so it is the same array in a window
-    and in the full frame.  ``offset`` (dy, dx) turns canvas into image
-    coordinates: the same region (same image position, same pixels) met again
-    in another window or a later round reuses the first result, which is
-    exact because the extraction depends only on the cut-out.
-    """
-    params = ctx.params
-    pad = params.filter_halfwidth + 1
-    y0, y1 = max(box[0] - pad, win[0]), min(box[1] + pad, win[1])
-    x0, x1 = max(box[2] - pad, win[2]), min(box[3] + pad, win[3])
-    inside = comp[y0:y1, x0:x1] == c
-    key = (y0 + offset[0], y1 + offset[0], x0 + offset[1], x1 + offset[1], inside.tobytes())
-    hit = ctx.isolated.get(key, False)
-    if hit is None:
-        raise DetectionError("sep failed on this region before")
-    if hit is False:
-        data = np.ascontiguousarray(cv.det32[y0:y1, x0:x1])
-        err = np.array(cv.err[y0:y1, x0:x1], dtype=np.float32, order="C")
-        err[~inside] = _BIG_RMS   # nothing outside the region can pass the threshold
-        nod = np.ascontiguousarray(cv.nodata[y0:y1, x0:x1])
-        try:
-            cat, seg = _sep_extract(data, err, nod, params, params.clean)
-        except DetectionError:
-            ctx.isolated[key] = None
-            raise
-        hit = (seg, {f: np.asarray(cat[f], dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}, len(cat))
-        ctx.isolated[key] = hit
-    seg, geo, k = hit
-    region = pseg[y0:y1, x0:x1]
-    region[inside] = 0
-    new = seg > 0
-    region[new] = seg[new] + (next_label - 1)
-    tab["x"].append(geo["x"] + x0)
-    tab["y"].append(geo["y"] + y0)
-    for f in ("a", "b", "theta"):
-        tab[f].append(geo[f])
-    return next_label + k
-
-
-def _groups(cv, ii, edge, src_win):
-    """Yield (source indices, canvas slice): all non-edge sources on the whole canvas,
-    then each edge source on its own window (see ``room`` in :func:`_analyse`)."""
-    ii = np.asarray(ii, dtype=np.int64)
-    whole = (slice(0, cv.shape[0]), slice(0, cv.shape[1]))
-    inner = ii[~edge[ii]]
-    if inner.size:
-        yield inner, whole
-    for i in ii[edge[ii]]:
-        yield np.array([i]), cv.slice(src_win[i])
+    kr = np.full(n, np.nan)
+    ii = np.flatnonzero(det)
+    if ii.size:
+        kr[ii] = phot.kron_radius(cv.det, xs[ii], ys[ii], a[ii], b[ii], th[ii], segmap=pseg32,
+                                  seg_id=label[ii], mask=cv.nodata)
+    scale = phot.auto_scale(kr, ctx.params.phot_autoparams)
+    zeros = np.zeros(n, dtype=np.int64)
+    _finish(ctx, SegmentedBatch(cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win,
+                                np.ones(n, dtype=bool), rects[src_win], zeros, zeros, np.zeros(n, dtype=bool),
+                                np.zeros((n, 4), dtype=np.int64), bounds, pix, lab_pix))
 
 
 def _band_boxes(width, pix, lab_pix, labels, phot_box, bounds):
@@ -764,11 +350,12 @@ def _band_boxes(width, pix, lab_pix, labels, phot_box, bounds):
     return boxes
 
 
-def _finish(ctx, cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win, fin, rect, wy0, wx0, edge,
-            phot_box, bounds, pix, lab_all):
-    """Classification and photometry of the finished sources of a canvas.
-
-    ``pix``, ``lab_all``: ``np.flatnonzero(pseg)`` and the labels there."""
+def _finish(ctx: MeasureContext, batch: SegmentedBatch):
+    """Classification and photometry of the finished (``batch.done``) sources of a canvas."""
+    cv, pseg, pseg32, label = batch.canvas, batch.seg, batch.seg32, batch.label
+    xs, ys, a, b, th, scale = batch.x, batch.y, batch.a, batch.b, batch.theta, batch.kron_scale
+    src, src_win, fin, rect, wy0, wx0 = batch.src, batch.src_win, batch.done, batch.rect, batch.wy0, batch.wx0
+    edge, phot_box, bounds, pix, lab_all = batch.edge, batch.phot_box, batch.bounds, batch.pix, batch.lab_pix
     out, params, cls = ctx.out, ctx.params, ctx.cls
     idx = np.flatnonzero(fin)
     if idx.size == 0:
@@ -806,7 +393,7 @@ def _finish(ctx, cv, pseg, pseg32, label, xs, ys, a, b, th, scale, src, src_win,
         feau = fau.copy()
         pos = np.full(label.size, -1, dtype=np.int64)
         pos[idx] = np.arange(idx.size)          # canvas source index -> row of this finish
-        for j, sl in _groups(cv, idx[di], edge, src_win):
+        for j, sl in window_groups(cv, idx[di], edge, src_win):
             oy, ox = sl[0].start, sl[1].start
             r = pos[j]
             fa[:, r], fea[:, r] = phot.aperture_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy,
@@ -888,7 +475,7 @@ def _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scal
     tcv = np.zeros(cv.shape)
     pos = np.full(src_win.size, -1, dtype=np.int64)      # canvas source index -> row of lab
     pos[idx] = np.arange(idx.size)
-    for jj, sl in _groups(cv, idx[di], edge, src_win):
+    for jj, sl in window_groups(cv, idx[di], edge, src_win):
         oy, ox = sl[0].start, sl[1].start
         for j in jj.tolist():
             r = pos[j]

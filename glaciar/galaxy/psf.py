@@ -29,8 +29,11 @@ import os
 from collections.abc import Callable, Mapping
 
 import numpy as np
+
 from scipy.interpolate import CubicSpline
 from scipy.special import j1
+
+from ..wcs import pixel_scale_arcsec as header_pixel_scale
 
 __all__ = [
     "gaussian_psf",
@@ -250,32 +253,6 @@ def normalize_psf(psf, name: str = "PSF") -> np.ndarray:
     return np.ascontiguousarray(arr / total)
 
 
-def _header_pixel_scale(header) -> float | None:
-    """Pixel scale [arcsec] from PIXSCALE, the CD matrix, or CDELT x PC; None if absent."""
-    if header.get("PIXSCALE") is not None:
-        return float(header["PIXSCALE"])
-    unit = 3600.0                                   # FITS WCS default: degrees
-    cunit = str(header.get("CUNIT1", "deg")).strip().lower()
-    if cunit in ("arcsec", "arcseconds"):
-        unit = 1.0
-    elif cunit in ("arcmin", "arcminutes"):
-        unit = 60.0
-    if any(k in header for k in ("CD1_1", "CD1_2", "CD2_1", "CD2_2")):
-        cd = np.array([[header.get("CD1_1", 0.0), header.get("CD1_2", 0.0)],
-                       [header.get("CD2_1", 0.0), header.get("CD2_2", 0.0)]], dtype=float)
-    elif "CDELT1" in header:
-        # CDELTi scales the rows of PC (default identity); drizzled headers often
-        # carry CDELT = 1 with the real scale in PC, so both are needed.
-        pc = np.array([[header.get("PC1_1", 1.0), header.get("PC1_2", 0.0)],
-                       [header.get("PC2_1", 0.0), header.get("PC2_2", 1.0)]], dtype=float)
-        cdelt = np.array([header["CDELT1"], header.get("CDELT2", header["CDELT1"])], dtype=float)
-        cd = cdelt[:, None] * pc
-    else:
-        return None
-    # Geometric-mean scale: sqrt(|det|) is the side of a square pixel of equal area.
-    return math.sqrt(abs(np.linalg.det(cd))) * unit
-
-
 def _first_image_hdu(hdul, path):
     found = [h for h in hdul if h.data is not None and getattr(h, "is_image", False)
              and h.data.ndim >= 2]
@@ -317,7 +294,7 @@ def fits_pixel_scale(path, hdu: int | str | None = None) -> float | None:
         raise FileNotFoundError(f"file not found: {path}")
     with fits.open(path, memmap=False) as hdul:
         h = _first_image_hdu(hdul, path) if hdu is None else hdul[hdu]
-        return _header_pixel_scale(h.header)
+        return header_pixel_scale(h.header)
 
 
 def read_psf(path, psf_pixel_scale_arcsec: float | None = None,
@@ -370,7 +347,7 @@ def read_psf(path, psf_pixel_scale_arcsec: float | None = None,
         if psf_pixel_scale_arcsec is not None:
             scale = _check_positive("psf_pixel_scale_arcsec", psf_pixel_scale_arcsec)
         else:
-            scale = _header_pixel_scale(header)
+            scale = header_pixel_scale(header)
             if scale is None:
                 raise ValueError(f"{path}: no pixel scale in the header (PIXSCALE, CD1_1 or "
                                  "CDELT1); pass psf_pixel_scale_arcsec (in a config: "

@@ -140,7 +140,8 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
             n_walkers: int | None = None, max_steps: int = DEFAULT_MAX_STEPS,
             progress: bool = False, cosmology=None, area_arcmin2: float | None = None,
             mag_resolution: float | None = DEFAULT_MAG_RESOLUTION, resume: bool = True,
-            max_draws: int = 1000, plots: bool = True, depth: str = "auto"):
+            max_draws: int = 1000, plots: bool = True, depth: str = "auto",
+            write: bool = True):
     """Fit C and S to a run's per-source flags and write the selection-function file.
 
     Parameters
@@ -178,12 +179,17 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
     depth : {"auto", "on", "off"}
         Depth-aware model: "auto" whenever the local depth varies by more than
         one 0.05 mag bin.
+    write : bool
+        False: write nothing and skip the summaries (edges, m50, V_eff); return
+        the fitted :class:`SelectionFunction` objects (the adaptive loop's
+        intermediate rounds).
 
     Returns
     -------
     pathlib.Path
         ``RUN_DIR/selection_function.fits``.  The summary (also in
-        ``fit/summary.json``) is :func:`format_summary`'s input.
+        ``fit/summary.json``) is :func:`format_summary`'s input.  With
+        ``write=False``, the list of fits instead.
 
     Raises
     ------
@@ -331,6 +337,9 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         sf = SelectionFunction(mdl, draws, zg, mg, fmeta, name, ppc=ppc, fit_info=fit_info,
                                depth_area=own_depth, domain=domain,
                                diagnostics={"tau": res.tau, "ess": res.ess, "rhat": res.split_rhat})
+        if not write:
+            outputs.append((name, tag, res, key, draws, sf))
+            continue
         gd = sub.grid_draws(zg, mg)
         few = SelectionFunction(mdl, sub.draws[:_EDGE_DRAWS], meta=fmeta, depth_area=own_depth)
         edges = edge_report(gd["P"], zg, mg, extrapolate=lambda z, few=few: few.grid_draws(z, mg)["P"]) \
@@ -356,6 +365,12 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
             entry["effective_volume_note"] = str(exc)
         summary["fits"][name] = entry
         outputs.append((name, tag, res, key, draws, sf))
+
+    if not write:
+        return [sf for *_, sf in outputs]
+    # V_eff(M_UV) and the transfer matrices (issue 8.4), also before anything is written.
+    from .selection_file import add_lf_products
+    add_lf_products(run_dir, manifest, [sf for *_, sf in outputs], cosmology=cosmology, seed=seed)
 
     # Everything sampled and checked: now write.
     from astropy.table import Table

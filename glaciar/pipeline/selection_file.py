@@ -7,7 +7,12 @@ a primary header (format, version, model, magnitude type, area, fields), a
 (posterior draws; model and simulated box in the header), ``PARAMS``
 (quantiles and chain diagnostics per parameter), the ``C_GRID``, ``SR_GRID``
 and ``P_GRID`` cubes (posterior quantiles :data:`GRID_QUANTILES` on the z x m
-grid, survey averages over depth), ``PPC`` and ``DEPTH`` (area by depth).
+grid, survey averages over depth), ``PPC`` and ``DEPTH`` (area by depth), and
+for luminosity-function codes ``VEFF_MUV`` / ``VEFF_MUV_DRAWS`` (V_eff as a function
+of M_UV) and ``TRANSFER`` / ``TR_COUNTS`` / ``TR_DRAWS`` / ``TR_BINS`` (the photometric
+transfer function p(m_obs | m_in, z)); one ``DETFILT`` table holds the detection
+filter and the injections' beta distribution and IGM (:class:`InjectionSED`).
+:func:`add_lf_products` computes the last two for ``glaciar fit``.
 
 This module is the only place the layout is written or read;
 ``SelectionFunction.read/read_all/write/to_bytes`` forward here.
@@ -21,14 +26,25 @@ from pathlib import Path
 import numpy as np
 
 from ..inference.models import SurfaceModel
-from ..inference.selection_function import GRID_QUANTILES, SelectionFunction
+from ..inference.selection_function import (GRID_QUANTILES, EffectiveVolume, InjectionSED,
+                                             SelectionFunction, VeffTable)
+from ..tables import TransferMatrix
 
-__all__ = ["FILE_FORMAT", "to_bytes", "write", "read_all", "read"]
+__all__ = ["FILE_FORMAT", "to_bytes", "write", "read_all", "read", "add_lf_products",
+           "injection_sed"]
 
 FILE_FORMAT = "glaciar-selection-function-2"
 
 _DOMAIN_TAGS = (("z", "Z"), ("mag", "M"), ("depth", "D"))
 _GRID_EXTS = (("C", "C_GRID"), ("S", "SR_GRID"), ("P", "P_GRID"))
+#: V_eff(M_UV) in the file: M_UV step [mag], posterior draws, Simpson nodes in z and
+#: Gauss-Hermite nodes in beta (within 6.5e-4 of 401 z and 9 beta nodes, every draw and M_UV
+#: above 1e-3 of the peak, on a depth-aware demo fit).
+VEFF_MUV_STEP = 0.1
+VEFF_MUV_DRAWS = 200
+VEFF_MUV_NZ = 101
+VEFF_MUV_NBETA = 5
+VEFF_MUV_INTERVAL = 0.68
 _GRID_QUANTITY = {"C": "completeness C(m,z), area-weighted over depth",
                   "S": "selected given recovered = P/C",
                   "P": "selection probability P(rec and sel|z,m)"}
@@ -88,6 +104,10 @@ def _hdus(sf: SelectionFunction, extver: int) -> list:
         h.name, h.ver = "PPC", extver
         h.header["FIELD"] = sf.field
         hdus.append(h)
+    if sf.veff_muv is not None:
+        hdus += _veff_hdus(sf.veff_muv, sf.field, extver)
+    if sf.transfer_matrix is not None:
+        hdus += _transfer_hdus(sf.transfer_matrix, sf.field, extver)
     if sf.depth_area:
         rows = [(f, lo, hi, a) for f, (e, aa) in sorted(sf.depth_area.items())
                 for lo, hi, a in zip(e[:-1], e[1:], aa)]
@@ -97,6 +117,75 @@ def _hdus(sf: SelectionFunction, extver: int) -> list:
         h.header["FIELD"] = sf.field
         hdus.append(h)
     return hdus
+
+
+def _veff_hdus(vt: VeffTable, field: str, extver: int) -> list:
+    from astropy.io import fits
+    from astropy.table import Table
+
+    v = vt.volume
+    t = Table({"M_uv": np.asarray(vt.M_uv, float), "median": v.median.value,
+               "lower": v.lower.value, "upper": v.upper.value})
+    for c in ("median", "lower", "upper"):
+        t[c].unit = "Mpc3"
+    t["M_uv"].unit = "mag"
+    h = fits.table_to_hdu(t)
+    h.name, h.ver = "VEFF_MUV", extver
+    h.header["FIELD"] = field
+    h.header["INTERVAL"] = (float(vt.interval), "central credible interval of lower/upper")
+    h.header["AREA"] = (float(vt.area_arcmin2), "area integrated over [arcmin2]")
+    h.header["COSMO"] = (str(vt.cosmology), "cosmology of dV/dz and M_UV -> m")
+    d = fits.ImageHDU(np.asarray(v.draws.value, float), name="VEFF_MUV_DRAWS", ver=extver)
+    d.header["FIELD"] = field
+    d.header["BUNIT"] = "Mpc3"
+    d.header["COMMENT"] = "V_eff per posterior draw (axis 2) and M_UV of VEFF_MUV (axis 1)"
+    return [h, d]
+
+
+def _transfer_hdus(tm: TransferMatrix, field: str, extver: int) -> list:
+    from astropy.io import fits
+    from astropy.table import Table
+
+    out = []
+    for name, data in (("TRANSFER", tm.matrix), ("TR_COUNTS", tm.counts.astype(np.int64)),
+                       ("TR_DRAWS", tm.draws.astype(np.float32))):
+        h = fits.ImageHDU(data, name=name, ver=extver)
+        h.header["FIELD"] = field
+        for k, kind in enumerate(tm.kinds):
+            h.header[f"KIND{k + 1}"] = (kind, f"plane {k + 1} of the kind axis")
+        h.header["ALPHA"] = (float(tm.alpha), "Dirichlet prior per entry of a row")
+        h.header["COMMENT"] = ("entry 0 of the last axis: not recovered/selected; 1+b: m_obs bin b "
+                               "(TR_BINS); rows over the last axis sum to 1")
+        out.append(h)
+    rows = []
+    for axis, e, val in (("z", tm.z_edges, tm.z_mean),
+                         ("m_in", tm.m_in_edges, 0.5 * (tm.m_in_edges[1:] + tm.m_in_edges[:-1])),
+                         ("m_obs", tm.m_obs_edges, None)):
+        for i in range(len(e) - 1):
+            rows.append((axis, i, float(e[i]), float(e[i + 1]),
+                         float(val[i]) if val is not None else np.nan))
+    t = Table(rows=rows, names=("axis", "index", "lo", "hi", "value"))
+    h = fits.table_to_hdu(t)
+    h.name, h.ver = "TR_BINS", extver
+    h.header["FIELD"] = field
+    out.append(h)
+    return out
+
+
+def _sed_hdu(sed: InjectionSED):
+    from astropy.io import fits
+    from astropy.table import Table
+
+    f = sed.detection_filter
+    h = fits.table_to_hdu(Table({"wave_angstrom": np.asarray(f.wave_angstrom, float),
+                                 "throughput": np.asarray(f.throughput, float)}))
+    h.name = "DETFILT"
+    h.header["FILTNAME"] = (str(f.name), "detection band filter")
+    h.header["BETAMEAN"] = (float(sed.beta_mean), "injected beta ~ N(BETAMEAN, BETASD)")
+    h.header["BETASD"] = (float(sed.beta_sd), "scatter of the injected beta")
+    h.header["IGM"] = (str(sed.igm), "IGM attenuation of the injections")
+    h.header["COSMO"] = (str(sed.cosmology), "cosmology of the injections")
+    return h
 
 
 def to_bytes(fits_list: list[SelectionFunction], meta: dict | None = None) -> bytes:
@@ -143,6 +232,9 @@ def to_bytes(fits_list: list[SelectionFunction], meta: dict | None = None) -> by
     mh = fits.table_to_hdu(mt)
     mh.name = "META"
     hdus = [ph, mh]
+    sed = next((sf.sed for sf in fits_list if sf.sed is not None), None)
+    if sed is not None:
+        hdus.append(_sed_hdu(sed))
     for i, sf in enumerate(fits_list):
         hdus += _hdus(sf, i + 1)
     buf = io.BytesIO()
@@ -179,6 +271,15 @@ def read_all(path) -> dict[str, SelectionFunction]:
             t = _native(hdul["META"].data)
             for k, v in zip(t["key"], t["value"]):
                 meta[str(k)] = json.loads(str(v))
+        sed = None
+        if "DETFILT" in hdul:
+            from ..galaxy.filters import Filter
+            fh = hdul["DETFILT"]
+            ft = _native(fh.data)
+            sed = InjectionSED(Filter(str(fh.header["FILTNAME"]), np.asarray(ft["wave_angstrom"], float),
+                                      np.asarray(ft["throughput"], float)),
+                               float(fh.header["BETAMEAN"]), float(fh.header["BETASD"]),
+                               str(fh.header["IGM"]), str(fh.header["COSMO"]))
         nfits = int(hdul[0].header["NFITS"])
         for v in range(1, nfits + 1):
             dh = hdul["DRAWS", v]
@@ -213,8 +314,155 @@ def read_all(path) -> dict[str, SelectionFunction]:
                     diag[k] = np.asarray(p[k], float)
             field = str(hdr.get("FIELD", "all"))
             out[field] = SelectionFunction(model, draws, zg, mg, meta, field, ppc,
-                                           depth_area=depth_area, domain=domain, diagnostics=diag)
+                                           depth_area=depth_area, domain=domain, diagnostics=diag,
+                                           sed=sed, veff_muv=_read_veff(hdul, v),
+                                           transfer_matrix=_read_transfer(hdul, v))
     return out
+
+
+def _read_veff(hdul, v):
+    import astropy.units as u
+
+    if ("VEFF_MUV", v) not in hdul:
+        return None
+    h = hdul["VEFF_MUV", v]
+    t = _native(h.data)
+    unit = u.Mpc ** 3
+    draws = np.asarray(hdul["VEFF_MUV_DRAWS", v].data, float)
+    vol = EffectiveVolume(median=np.asarray(t["median"], float) * unit,
+                          lower=np.asarray(t["lower"], float) * unit,
+                          upper=np.asarray(t["upper"], float) * unit, draws=draws * unit)
+    return VeffTable(M_uv=np.asarray(t["M_uv"], float), volume=vol,
+                     interval=float(h.header["INTERVAL"]), area_arcmin2=float(h.header["AREA"]),
+                     cosmology=str(h.header["COSMO"]))
+
+
+def _read_transfer(hdul, v):
+    if ("TRANSFER", v) not in hdul:
+        return None
+    h = hdul["TRANSFER", v].header
+    kinds = []
+    while f"KIND{len(kinds) + 1}" in h:
+        kinds.append(str(h[f"KIND{len(kinds) + 1}"]))
+    b = _native(hdul["TR_BINS", v].data)
+
+    def axis(name):
+        r = b[b["axis"] == name]
+        r = r[np.argsort(r["index"])]
+        return np.append(np.asarray(r["lo"], float), float(r["hi"][-1])), np.asarray(r["value"], float)
+
+    ze, zm = axis("z")
+    me, _ = axis("m_in")
+    oe, _ = axis("m_obs")
+    return TransferMatrix(kinds=tuple(kinds), z_edges=ze, z_mean=zm, m_in_edges=me, m_obs_edges=oe,
+                          counts=np.asarray(hdul["TR_COUNTS", v].data, np.int64),
+                          matrix=np.asarray(hdul["TRANSFER", v].data, float),
+                          draws=np.asarray(hdul["TR_DRAWS", v].data, float),
+                          alpha=float(h["ALPHA"]))
+
+
+def injection_sed(run_dir, manifest: dict) -> InjectionSED | None:
+    """The injections' spectra of a run: detection filter, beta distribution, IGM, cosmology.
+
+    From the manifest's ``store_settings`` (the resolved configuration); a detection
+    filter given as a file is read from the run's ``config.yaml``.  None when the
+    manifest does not record them (a run made before they were stored).
+    """
+    from .. import constants as C
+    from ..galaxy.filters import get_filter
+
+    st = manifest.get("store_settings") or {}
+    src = st.get("source") or {}
+    det = manifest.get("detection_band")
+    band = ((st.get("survey") or {}).get("bands") or {}).get(det) or {}
+    spec = band.get("filter")
+    if not (src and det and spec) or any(k not in src for k in ("beta_mean", "beta_sd", "igm")):
+        return None
+    if spec == "<file>":
+        import yaml
+
+        cfg_path = Path(run_dir) / C.RUN_CONFIG_NAME
+        try:
+            spec = yaml.safe_load(cfg_path.read_text())["survey"]["bands"][det]["filter"]
+        except (OSError, KeyError, TypeError) as exc:
+            raise ValueError(f"{cfg_path}: cannot read the detection band's filter file "
+                             f"({exc})") from exc
+        p = Path(spec)
+        spec = p if p.is_absolute() else Path(run_dir) / p
+    return InjectionSED(get_filter(spec), float(src["beta_mean"]), float(src["beta_sd"]),
+                        str(src["igm"]), str(src.get("cosmology", "Planck18")))
+
+
+def add_lf_products(run_dir, manifest: dict, fits_list: list[SelectionFunction], *,
+                    cosmology=None, seed=0) -> None:
+    """Attach the injections' SED, V_eff(M_UV) and the transfer matrices to each fit.
+
+    Reads the per-source rows with :func:`glaciar.pipeline.inputs.read_columns`
+    (input and measured detection-band magnitudes and the flags); fits named by
+    a field use that field's rows, the pooled fit ("all") every listed field's.
+    V_eff(M_UV) is left out (with the reason in ``fit_info["veffmuv"]``) when
+    the fit has no area or no redshift range; the transfer matrices when the
+    rows have no measured magnitude.
+
+    Parameters
+    ----------
+    run_dir : path-like
+    manifest : dict
+    fits_list : list of SelectionFunction
+        Modified in place (``sed``, ``veff_muv``, ``transfer_matrix``).
+    cosmology : astropy Cosmology, optional
+        Default: the injections'.
+    seed : int
+        Seed of the transfer matrices' draws (fit i uses ``[seed, i]``).
+    """
+    import warnings
+
+    from .. import constants as C
+    from ..galaxy.population import get_cosmology
+    from ..tables import transfer_matrix
+    from .inputs import read_columns
+
+    sed = injection_sed(run_dir, manifest)
+    det = manifest.get("detection_band")
+    obs_col = C.band_column("mag", det) if det else None
+    want = [C.COL_FIELD, C.COL_Z, C.COL_MAG_INPUT, C.COL_RECOVERED, C.COL_SELECTED]
+    df = read_columns(run_dir, want + ([obs_col] if obs_col else []))
+    listed = [str(f) for f in (manifest.get("fields") or [])]
+    for i, sf in enumerate(fits_list):
+        sf.sed = sed
+        cosmo = get_cosmology(cosmology if cosmology is not None else
+                              (sed.cosmology if sed is not None else None))
+        if sed is not None or sf.magnitude_type == "absolute":
+            try:
+                grid = sf.muv_grid(VEFF_MUV_STEP, cosmology=cosmo)
+                if not grid.size:
+                    raise ValueError("no M_UV maps inside the simulated magnitude range at every z")
+                few = SelectionFunction(sf.model, sf.draws[:VEFF_MUV_DRAWS], meta=sf.meta,
+                                        field=sf.field, depth_area=sf.depth_area,
+                                        domain=sf.domain, sed=sed)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")     # the fit already warns about z edges
+                    vol = few.effective_volume_muv(grid, cosmology=cosmo,
+                                                   n_z=VEFF_MUV_NZ, n_beta=VEFF_MUV_NBETA,
+                                                   interval=VEFF_MUV_INTERVAL)
+                sf.veff_muv = VeffTable(M_uv=grid, volume=vol, interval=VEFF_MUV_INTERVAL,
+                                        area_arcmin2=float(few.area_arcmin2() or np.nan),
+                                        cosmology=str(getattr(cosmo, "name", cosmo)))
+            except ValueError as exc:
+                sf.fit_info["veffmuv"] = f"none: {exc}"[:60]
+        if obs_col is None or obs_col not in df.columns or C.COL_MAG_INPUT not in df.columns:
+            continue
+        rows = df
+        if C.COL_FIELD in df.columns:
+            keep = ([sf.field] if sf.field != "all" else listed) or None
+            if keep:
+                rows = df[df[C.COL_FIELD].astype(str).isin(keep)]
+        if not len(rows):
+            continue
+        sf.transfer_matrix = transfer_matrix(
+            rows[C.COL_Z].to_numpy(float), rows[C.COL_MAG_INPUT].to_numpy(float),
+            rows[obs_col].to_numpy(float), rows[C.COL_RECOVERED].to_numpy(bool),
+            rows[C.COL_SELECTED].to_numpy(bool), seed=[int(seed), i])
 
 
 def read(path, field: str | None = None) -> SelectionFunction:

@@ -1,0 +1,804 @@
+"""Exact local segmentation of injected sources: windows, growth, re-extraction.
+
+The product every sep mode and the SExtractor backend return
+(:class:`SegmentedBatch`: per source, its detection's label on a canvas, the
+canvas's segmentation, the detection's geometry and Kron scale) is made here;
+classification and photometry on it are :mod:`glaciar.engine.measure`'s.
+
+Windowed detection
+------------------
+Each injected source is detected in a cut-out *window* of the injected
+detection image.  Windows of many sources are tiled into one *canvas*,
+separated by masked blank gaps wider than the filter kernel, and extracted with
+one ``sep.extract`` call (CLEAN off).  A window is grown (and the source re-done
+in the next round) until every connected above-threshold region that matters
+lies at least ``filter half-width + 1`` pixels inside the window edge (sides on
+the image edge excepted, where the full frame has the same edge):
+
+* regions with a pixel in the search box;
+* regions touching the bounding boxes of the Kron-radius ellipse (6 a, 6 b),
+  the AUTO ellipse and the largest circular aperture (they decide which pixels
+  are masked as neighbours);
+* with a task-wide CLEAN (``clean_style`` other than ``"region"``), the
+  regions of every object whose pixels CLEAN hands to an object in the search
+  box (below).
+
+"Regions" are the 8-connected components of sep's above-threshold mask,
+recomputed exactly (:func:`glaciar.engine.clean.detection_mask`), *all* of
+them: a region that the window cuts below DETECT_MINAREA has no segment in the
+window, yet the full frame detects it, so checking only the segmentation
+would miss it (the "minarea gap").  Every pixel of a region inside its
+window's exact zone has the full frame's filtered value and threshold, so the
+region is the full frame's.
+
+Two sep behaviours would still make a cut-out differ from the full frame; both
+are made window-independent, identically in ``mode="full"``:
+
+1. *Deblending is random.*  sep (like SExtractor) hands the faint pixels of a
+   split region to its children by drawing random numbers from one stream per
+   ``sep.extract`` call, so a deblended footprint depends on every region
+   processed before it anywhere in the image.  Every split region glaciar
+   uses (in a search box, or holding objects CLEAN relabels) is therefore
+   re-extracted *alone* (same pixels; the RMS set to infinity outside the
+   region), which makes its deblending a function of its own pixels
+   (:func:`glaciar.engine.segmentation.isolate_region`).
+2. *CLEAN.*  ``clean_style="region"`` (default): sep's CLEAN runs inside each
+   re-extracted region, i.e. between the deblended children of one region,
+   never between separate regions (a single-segment region is unaffected:
+   sep's CLEAN only removes objects).  Otherwise CLEAN runs through the whole
+   image's object list, as in a full-frame program: glaciar applies it itself
+   (:mod:`glaciar.engine.clean`, SExtractor's or sep's, bit for bit) once per
+   task on the injected image's complete pre-CLEAN object list, made of the
+   original image's objects that no stamp comes near and one extraction of
+   the stamps' influence boxes (:mod:`glaciar.engine.localclean`), and each
+   window relabels the objects of its search box with the outcome.
+
+With ``filter_type="matched"`` the noise enters the filter and the detection
+mask is recomputed only approximately.
+
+Speed without changing answers
+------------------------------
+Each shortcut below only decides *how much* is computed, never a result
+(``tests/test_windowed.py``, ``tests/test_windowed_batching.py``):
+
+* the first window is ``DetectionParams.initial_window`` (41 px: most sources
+  are exact after one extraction); a side whose required box reaches the
+  window edge grows by half the window, other sides just enough;
+* canvases are built by :meth:`Scene.paste_windows` (one overlap search per
+  canvas, stamps added where windows read them);
+* a task-wide CLEAN's outcome is computed once per task and read by every
+  window;
+* a re-extracted (deblended) region is cached by its image position and
+  pixels for the whole call, so a later round or an overlapping window reuses
+  it (the extraction depends on nothing else);
+* band canvases hold only the pixels photometry reads: each detection's
+  segment and AUTO/aperture box; the detection band reuses the detection
+  canvas; windows that must grow get no band photometry.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Mapping
+
+import numpy as np
+from scipy import ndimage
+
+from glaciar.constants import COL_FLAGS, FLAG_SEP_ERROR, FLAG_WINDOW_AT_LIMIT
+from glaciar.engine import clean as _clean
+from glaciar.engine import photometry as phot
+from glaciar.engine.classify import ClassificationParams, input_pixel, select_detection
+from glaciar.engine.detect import DetectionError, DetectionParams, _sep_extract, detection_rms
+from glaciar.engine.scene import Scene
+from glaciar.engine.segmentation import isolate_region
+
+__all__ = ["MeasureContext", "SegmentedBatch", "Canvas", "segment_windowed", "segment_full", "pack_windows",
+           "safe_shape", "window_groups"]
+
+_EIGHT = np.ones((3, 3), dtype=bool)   # sep/SExtractor regions are 8-connected
+_MAX_CANVAS_PIXELS = 600_000           # keep one sep call's buffers small
+REMOVED = np.int32(2 ** 31 - 1)        #: label of pixels whose object CLEAN removed
+
+
+@dataclass(frozen=True, eq=False)
+class MeasureContext:
+    """Everything one :func:`~glaciar.engine.measure.measure_injected` call works with.
+
+    Images and settings (read only)
+    ---------------------------------
+    det_scene, det_rms : Scene, ndarray
+        Injected detection image and its RMS [image units].
+    band_scenes, band_rms : mapping band -> Scene / ndarray
+    mask : ndarray of bool or None
+        True where there are no data.
+    ref_segmap, ref_mag : ndarray
+        Original image's segmentation and AUTO magnitude per original id.
+    params, cls : DetectionParams, ClassificationParams
+    zeropoints, gains : mapping band -> float / float or None
+    det_band : str
+    bands : list of str
+    noise_models : dict band -> CorrelatedNoise
+    shape : (int, int)
+    margin, gap : int
+        Exact-zone margin (filter half-width + 1) and blank gap between windows [pixels].
+
+    Sources
+    -------
+    x, y, input_flux, input_mag : ndarray, shape (N,)
+    templates : list
+        Per source its detection-band stamp (y0, x0, data, flux) or None.
+
+    Per-call state (the containers are filled, never replaced)
+    -----------------------------------------------------------
+    out : dict of column -> ndarray (N,)
+    at_max : ndarray of bool (N,)
+        Window at ``max_window``: done once more unchecked, flagged.
+    isolated : dict
+        Cache of isolated region extractions (image box, pixels) -> result.
+    tclean : TaskClean or None
+        Task-wide CLEAN outcome (:mod:`glaciar.engine.localclean`), None for
+        ``clean_style="region"`` or CLEAN off.
+    """
+
+    det_scene: Scene
+    det_rms: np.ndarray
+    band_scenes: Mapping[str, Scene]
+    band_rms: Mapping[str, np.ndarray]
+    mask: np.ndarray | None
+    ref_segmap: np.ndarray
+    ref_mag: np.ndarray
+    params: DetectionParams
+    cls: ClassificationParams
+    zeropoints: Mapping[str, float]
+    gains: Mapping[str, float | None]
+    det_band: str
+    bands: list
+    noise_models: dict
+    shape: tuple
+    margin: int
+    gap: int
+    x: np.ndarray
+    y: np.ndarray
+    input_flux: np.ndarray
+    input_mag: np.ndarray
+    templates: list
+    out: dict
+    at_max: np.ndarray
+    isolated: dict
+    tclean: object = None
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentedBatch:
+    """The exact segmentation of a batch of sources on one canvas (what photometry needs).
+
+    Arrays of length B are per source of the batch (canvas coordinates).
+
+    Attributes
+    ----------
+    canvas : Canvas
+    seg : ndarray of int64
+        Canvas segmentation (canonically deblended, CLEAN applied).
+    seg32 : ndarray of int32
+        ``seg`` with pixels of objects CLEAN removed set to :data:`REMOVED`
+        (masked as neighbours for everyone).
+    label : ndarray of int (B,)
+        Label of each source's detection in ``seg`` (0: none, or not done).
+    x, y, a, b, theta : ndarray (B,)
+        The detection's centroid [canvas pixels] and shape.
+    kron_scale : ndarray (B,)
+        AUTO ellipse scale (Kron factor x radius, at least the minimum radius).
+    src : ndarray of int (B,)
+        Index of each source in the call.
+    src_win : ndarray of int (B,)
+        Its window on the canvas.
+    done : ndarray of bool (B,)
+        Exact: to be measured now (the others grow and are redone).
+    rect : ndarray (B, 4)
+        Its window (y0, y1, x0, x1) [image pixels].
+    wy0, wx0 : ndarray (B,)
+        The window's corner on the canvas.
+    edge : ndarray of bool (B,)
+        Apertures reach the window edge: measured on the window alone.
+    phot_box : ndarray (B, 4)
+        Canvas box photometry reads (AUTO ellipse, apertures).
+    bounds : ndarray (B, 4)
+        The window on the canvas (y0, y1, x0, x1).
+    pix, lab_pix : ndarray
+        ``np.flatnonzero(seg)`` and the labels there.
+    """
+
+    canvas: "Canvas"
+    seg: np.ndarray
+    seg32: np.ndarray
+    label: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    theta: np.ndarray
+    kron_scale: np.ndarray
+    src: np.ndarray
+    src_win: np.ndarray
+    done: np.ndarray
+    rect: np.ndarray
+    wy0: np.ndarray
+    wx0: np.ndarray
+    edge: np.ndarray
+    phot_box: np.ndarray
+    bounds: np.ndarray
+    pix: np.ndarray
+    lab_pix: np.ndarray
+
+
+def segment_full(ctx: MeasureContext, finish: Callable[[MeasureContext, SegmentedBatch], None]):
+    """Segment the whole injected image once (``mode="full"``); ``finish`` measures the batch.
+
+    Returns the (N, 4) windows (the whole image for every source)."""
+    ny, nx = ctx.shape
+    n = ctx.x.size
+    rects = np.array([[0, ny, 0, nx]], dtype=np.int64)
+    _run_canvas(ctx, np.arange(n), rects, np.zeros(n, dtype=np.int64), True, None, finish)
+    return np.repeat(rects, n, axis=0)
+
+
+def segment_windowed(ctx: MeasureContext, finish: Callable[[MeasureContext, SegmentedBatch], None]):
+    """Windowed segmentation, rounds of growing windows until every source is exact.
+
+    ``finish(ctx, batch)`` is called on each canvas's exact sources.
+    Returns the last windows ((N, 4) image y0, y1, x0, x1) and the number of rounds."""
+    ny, nx = ctx.shape
+    n = ctx.x.size
+    ix, iy = input_pixel(ctx.x, ctx.y)
+    r = ctx.params.initial_window // 2
+    rects = np.stack([np.clip(iy - r, 0, ny), np.clip(iy + r + 1, 0, ny),
+                      np.clip(ix - r, 0, nx), np.clip(ix + r + 1, 0, nx)], axis=1)
+    pending = np.arange(n)
+    rounds = 0
+    while pending.size:
+        rounds += 1
+        # chunk so one sep call stays small
+        areas = (rects[pending, 1] - rects[pending, 0] + ctx.gap) * (rects[pending, 3] - rects[pending, 2] + ctx.gap)
+        chunks = np.split(pending, np.flatnonzero(np.diff(np.cumsum(areas) // _MAX_CANVAS_PIXELS)) + 1)
+        grow_all = []
+        for chunk in chunks:
+            grow_all.append(_run_canvas(ctx, chunk, rects[chunk], np.arange(chunk.size), False, rects, finish))
+        pending = np.concatenate(grow_all) if grow_all else np.zeros(0, dtype=np.int64)
+    return rects, rounds
+
+
+def pack_windows(heights, widths, gap):
+    """Shelf-pack rectangles; returns (y offsets, x offsets, canvas shape)."""
+    k = len(heights)
+    order = np.argsort(-np.asarray(heights), kind="stable")
+    area = float(np.sum((np.asarray(heights) + gap) * (np.asarray(widths) + gap)))
+    width = int(max(np.max(widths) + 2 * gap, np.sqrt(area) * 1.1))
+    oy = np.zeros(k, dtype=np.int64)
+    ox = np.zeros(k, dtype=np.int64)
+    y = x = gap
+    shelf = 0
+    for i in order:
+        h, w = int(heights[i]), int(widths[i])
+        if x + w + gap > width and x > gap:
+            y += shelf + gap
+            x = gap
+            shelf = 0
+        oy[i], ox[i] = y, x
+        x += w + gap
+        shelf = max(shelf, h)
+    return oy, ox, (int(y + shelf + gap), int(width))
+
+
+class Canvas:
+    """Windows of the detection image (and later the bands) tiled into one array."""
+
+    def __init__(self, ctx, rects, full=False):
+        self.ctx = ctx
+        self.rects = rects                      # (K, 4) y0, y1, x0, x1 image coords
+        hh = rects[:, 1] - rects[:, 0]
+        ww = rects[:, 3] - rects[:, 2]
+        if full:
+            self.oy = np.zeros(1, dtype=np.int64)
+            self.ox = np.zeros(1, dtype=np.int64)
+            self.shape = ctx.shape
+        else:
+            self.oy, self.ox, self.shape = pack_windows(hh, ww, ctx.gap)
+        self.full = full
+        det = np.zeros(self.shape)
+        err = np.ones(self.shape, dtype=np.float32)
+        nodata = np.ones(self.shape, dtype=bool)
+        gap = np.ones(self.shape, dtype=bool)
+        ref = np.zeros(self.shape, dtype=np.int32)
+        ctx.det_scene.paste_windows(det, rects, self.oy, self.ox)
+        for k, (y0, y1, x0, x1) in enumerate(rects.tolist()):
+            sl = self.slice(k)
+            err[sl] = ctx.det_rms[y0:y1, x0:x1]
+            nodata[sl] = False if ctx.mask is None else ctx.mask[y0:y1, x0:x1]
+            gap[sl] = False
+            ref[sl] = ctx.ref_segmap[y0:y1, x0:x1]
+        with np.errstate(invalid="ignore"):
+            nodata |= ~np.isfinite(det) | ~(np.isfinite(err) & (err > 0))
+        det[nodata] = 0.0
+        err[nodata] = 1.0
+        self.det = det
+        self.det32 = det.astype(np.float32)
+        self.err = err
+        self.nodata = nodata
+        # the RMS the threshold multiplies; gaps between windows count as outside the image
+        self.derr = detection_rms(err, nodata & ~gap, ctx.params, outside=gap)
+        self.ref = ref
+
+    def detection(self):
+        """sep's above-threshold mask of the canvas, its filtered image and threshold (cached).
+
+        Every connected region of the mask, whatever its size, is a region
+        sep sees (:func:`glaciar.engine.clean.detection_mask`); the exactness
+        checks use these, not the segmentation, so a region a window cuts
+        below DETECT_MINAREA is not missed."""
+        if getattr(self, "_detection", None) is None:
+            self._detection = _clean.detection_mask(self.det32, self.derr, self.nodata, self.ctx.params)
+        return self._detection
+
+    def slice(self, k):
+        y0, y1, x0, x1 = self.rects[k]
+        return (slice(self.oy[k], self.oy[k] + y1 - y0), slice(self.ox[k], self.ox[k] + x1 - x0))
+
+    def band(self, name, windows, boxes=None):
+        """Band data, RMS and no-data mask on the canvas.
+
+        Only the listed windows are filled, or with ``boxes`` ((K, 4) canvas
+        y0, y1, x0, x1 inside those windows) only those parts.  Pixels not
+        filled are flagged as no data; no aperture of the sources measured
+        reaches them (see ``room`` in :func:`_analyse` and :func:`_band_boxes`).
+        """
+        ctx = self.ctx
+        scene, brms = ctx.band_scenes[name], ctx.band_rms[name]
+        if scene is ctx.det_scene and brms is ctx.det_rms and ctx.det_rms.dtype == np.float32:
+            # The detection band read through the detection canvas: same pixels, same
+            # no-data definition (its RMS is float32, so err's cast changed nothing).
+            rms = self.err.astype(np.float64)
+            rms[self.nodata] = 0.0
+            return self.det, rms, self.nodata
+        windows = np.asarray(windows, dtype=np.int64)
+        if boxes is None:
+            cy, cx = self.oy[windows], self.ox[windows]
+            img = self.rects[windows]
+        else:
+            boxes = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
+            keep = (boxes[:, 1] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 2])
+            boxes, windows = boxes[keep], windows[keep]
+            cy, cx = boxes[:, 0], boxes[:, 2]
+            dy = self.rects[windows, 0] - self.oy[windows]      # canvas -> image
+            dx = self.rects[windows, 2] - self.ox[windows]
+            img = np.stack([boxes[:, 0] + dy, boxes[:, 1] + dy, boxes[:, 2] + dx, boxes[:, 3] + dx], axis=1)
+        data = np.zeros(self.shape)
+        rms = np.zeros(self.shape)
+        scene.paste_windows(data, img, cy, cx)
+        for (y0, y1, x0, x1), py, px in zip(img.tolist(), cy.tolist(), cx.tolist()):
+            rms[py:py + y1 - y0, px:px + x1 - x0] = brms[y0:y1, x0:x1]
+        with np.errstate(invalid="ignore"):
+            bad = self.nodata | ~np.isfinite(data) | ~(np.isfinite(rms) & (rms > 0))
+        data[bad] = 0.0
+        rms[bad] = 0.0
+        return data, rms, bad
+
+
+def _ellipse_half_extent(a, b, theta, r):
+    c, s = np.cos(theta), np.sin(theta)
+    dx = r * np.sqrt((a * c) ** 2 + (b * s) ** 2)
+    dy = r * np.sqrt((a * s) ** 2 + (b * c) ** 2)
+    return dy, dx
+
+
+def safe_shape(a, b, theta):
+    """Ellipse shape sep accepts (a >= b > 0, |theta| <= pi/2)."""
+    # sep requires a >= b >= 0 and |theta| <= pi/2; guard degenerate 1-pixel-wide objects
+    a = np.maximum(np.asarray(a, dtype=np.float64), 1e-3)
+    b = np.clip(np.asarray(b, dtype=np.float64), 1e-3, a)
+    th = np.clip(np.asarray(theta, dtype=np.float64), -np.pi / 2, np.pi / 2)
+    return a, b, th
+
+
+def _run_canvas(ctx, src, rects, src_win, full, all_rects, finish):
+    """Extract one canvas; ``finish`` what is exact, return sources whose window must grow."""
+    try:
+        canvas = Canvas(ctx, rects, full=full)
+        cat, seg = _sep_extract(canvas.det32, canvas.derr, canvas.nodata, ctx.params, clean=False)
+    except DetectionError:
+        if len(rects) > 1:   # isolate the failing window(s)
+            grow = [_run_canvas(ctx, src[i:i + 1], rects[src_win[i]][None], np.zeros(1, dtype=np.int64),
+                                full, all_rects, finish) for i in range(src.size)]
+            return np.concatenate(grow)
+        ctx.out[COL_FLAGS][src] |= FLAG_SEP_ERROR
+        return np.zeros(0, dtype=np.int64)
+    regrow, batch = _analyse(ctx, canvas, cat, seg, src, src_win, all_rects)
+    finish(ctx, batch)
+    return regrow
+
+
+def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
+    """Exactness checks, canonical re-extraction and CLEAN on one extracted canvas.
+
+    Returns the sources whose window must grow and the batch of the others
+    (:class:`SegmentedBatch`)."""
+    params, cls = ctx.params, ctx.cls
+    m = ctx.margin
+    ny, nx = ctx.shape
+    full = cv.full
+    # ---- regions: 8-connected components of sep's above-threshold mask, *every* one,
+    # those below DETECT_MINAREA included: a region a window truncates below
+    # DETECT_MINAREA has no segment in the window, yet it is a detection in the full
+    # frame, so the exactness checks must see it.
+    dmask = cv.detection()[0] | (seg > 0)
+    comp, ncomp = ndimage.label(dmask, structure=_EIGHT)
+    nseg = len(cat)
+    seg2comp = np.zeros(nseg + 1, dtype=np.int64)
+    nzpix = np.flatnonzero(seg)
+    seg2comp[seg.ravel()[nzpix]] = comp.ravel()[nzpix]
+    segs_per_comp = np.bincount(seg2comp[1:], minlength=ncomp + 1)
+    cb = np.zeros((ncomp + 1, 4), dtype=np.int64)
+    for c, sl in enumerate(ndimage.find_objects(comp), start=1):
+        cb[c] = (sl[0].start, sl[0].stop, sl[1].start, sl[1].stop)
+
+    # ---- per-source window geometry on the canvas
+    k = src_win
+    rect = cv.rects[k]
+    wy0 = cv.oy[k]
+    wx0 = cv.ox[k]
+    wy1 = wy0 + rect[:, 1] - rect[:, 0]
+    wx1 = wx0 + rect[:, 3] - rect[:, 2]
+    # constrained sides: not on the image edge
+    lo_y = np.where(rect[:, 0] > 0, wy0 + m, -10 ** 9)
+    hi_y = np.where(rect[:, 1] < ny, wy1 - m, 10 ** 9)
+    lo_x = np.where(rect[:, 2] > 0, wx0 + m, -10 ** 9)
+    hi_x = np.where(rect[:, 3] < nx, wx1 - m, 10 ** 9)
+    cx = ctx.x[src] - rect[:, 2] + wx0
+    cy = ctx.y[src] - rect[:, 0] + wy0
+    bounds = np.stack([wy0, wy1, wx0, wx1], axis=1)
+
+    grow = np.zeros(src.size, dtype=bool)
+    edge = np.zeros(src.size, dtype=bool)
+    need = np.stack([cy, cy + 1, cx, cx + 1], axis=1).astype(np.int64)   # canvas bbox required exact
+
+    # region boxes with a neutral entry for background (label 0), so the union of the
+    # boxes of the regions touching a bbox needs no filtering
+    big = 2 ** 40
+    cbn = cb.copy()
+    cbn[0] = (big, -big, big, -big)
+    lo_y_l, hi_y_l, lo_x_l, hi_x_l = lo_y.tolist(), hi_y.tolist(), lo_x.tolist(), hi_x.tolist()
+    need_l = need.tolist()
+    H_cv, W_cv = cv.shape
+
+    def check(i, by0, by1, bx0, bx1):
+        """Is bbox (canvas) and every region touching it exact for source i?  Updates need[i]."""
+        by0, by1 = max(by0, 0), min(by1, H_cv)
+        bx0, bx1 = max(bx0, 0), min(bx1, W_cv)
+        ry0, ry1, rx0, rx1 = by0, by1, bx0, bx1
+        if by1 > by0 and bx1 > bx0:
+            sub = comp[by0:by1, bx0:bx1]
+            labs = sub[sub > 0]
+            if labs.size:
+                # the union of the boxes of the regions met (no np.unique: a repeated
+                # label only repeats its box)
+                b = cbn[labs]
+                lo_b, hi_b = b.min(axis=0).tolist(), b.max(axis=0).tolist()
+                ry0 = min(ry0, lo_b[0])
+                ry1 = max(ry1, hi_b[1])
+                rx0 = min(rx0, lo_b[2])
+                rx1 = max(rx1, hi_b[3])
+        nd = need_l[i]
+        nd[0], nd[1], nd[2], nd[3] = min(nd[0], ry0), max(nd[1], ry1), min(nd[2], rx0), max(nd[3], rx1)
+        return ry0 >= lo_y_l[i] and ry1 <= hi_y_l[i] and rx0 >= lo_x_l[i] and rx1 <= hi_x_l[i]
+
+    def room(i, by0, by1, bx0, bx1):
+        """Apertures running off the image edge are measured on the window alone.
+
+        sep scales aperture sums up for masked pixels but not for pixels
+        outside the array, so the blank gap around a window must not enter an
+        aperture: such sources are measured on their window cut from the
+        canvas, where the image edge is the array edge, as in the full frame.
+        """
+        if not full and max(wy0[i] - by0, by1 - wy1[i], wx0[i] - bx0, bx1 - wx1[i]) > 0:
+            edge[i] = True
+
+    at_max = np.zeros(src.size, dtype=bool) if full else ctx.at_max[src]
+    # canvas box holding every band pixel a source's AUTO and circular apertures can touch
+    phot_box = np.zeros((src.size, 4), dtype=np.int64)
+
+    def fail(i):
+        if at_max[i]:
+            ctx.out[COL_FLAGS][src[i]] |= FLAG_WINDOW_AT_LIMIT
+        else:
+            grow[i] = True
+
+    # ---- stage A: regions in the search box must be exact
+    # (vectorised over sources: the regions of each search box, clipped to its window)
+    icx, icy = input_pixel(cx, cy)
+    h = cls.search_box // 2
+    by0, by1 = np.maximum(icy - h, wy0), np.minimum(icy + h + 1, wy1)
+    bx0, bx1 = np.maximum(icx - h, wx0), np.minimum(icx + h + 1, wx1)
+    box_off = np.arange(-h, h + 1)
+    py, px = icy[:, None] + box_off, icx[:, None] + box_off
+    inbox = (((py >= by0[:, None]) & (py < by1[:, None]))[:, :, None]
+             & ((px >= bx0[:, None]) & (px < bx1[:, None]))[:, None, :])
+    box_lab = comp[np.clip(py, 0, H_cv - 1)[:, :, None], np.clip(px, 0, W_cv - 1)[:, None, :]]
+    box_lab = np.where(inbox, box_lab, 0).reshape(src.size, -1)
+    if not full:
+        rb = cbn[box_lab]
+        ry0, ry1 = np.minimum(by0, rb[:, :, 0].min(axis=1)), np.maximum(by1, rb[:, :, 1].max(axis=1))
+        rx0, rx1 = np.minimum(bx0, rb[:, :, 2].min(axis=1)), np.maximum(bx1, rb[:, :, 3].max(axis=1))
+        need = np.stack([np.minimum(need[:, 0], ry0), np.maximum(need[:, 1], ry1),
+                         np.minimum(need[:, 2], rx0), np.maximum(need[:, 3], rx1)], axis=1)
+        need_l = need.tolist()
+        exact = (ry0 >= lo_y) & (ry1 <= hi_y) & (rx0 >= lo_x) & (rx1 <= hi_x)
+        for i in np.flatnonzero(~exact):
+            fail(i)
+    split_in_box = segs_per_comp[box_lab] >= 2
+
+    # ---- canonical (isolated) re-extraction of deblended regions in search boxes
+    pseg = seg.astype(np.int64)
+    tab = _segment_table(cat)
+    next_label = nseg + 1
+    done_comps = {}
+    sep_failed = np.zeros(src.size, dtype=bool)
+    for i in np.flatnonzero(split_in_box.any(axis=1) & ~grow):
+        for c in np.unique(box_lab[i][split_in_box[i]]).tolist():
+            if c in done_comps:
+                if done_comps[c] is None:
+                    sep_failed[i] = True
+                continue
+            try:
+                off = (int(rect[i, 0] - wy0[i]), int(rect[i, 2] - wx0[i]))   # canvas -> image
+                next_label = _isolate(cv, comp, c, cb[c], bounds[i], pseg, tab, next_label, ctx, off)
+                done_comps[c] = True
+            except DetectionError:
+                done_comps[c] = None
+                sep_failed[i] = True
+    # ---- CLEAN: glaciar's (sep's test and order, exact in any window; see localclean)
+    if ctx.tclean is not None:
+        zone = np.stack([lo_y, hi_y, lo_x, hi_x], axis=1)
+        pseg, next_label = _clean_stage(ctx, cv, comp, cb, seg2comp, segs_per_comp, cat, pseg, tab, next_label,
+                                        src, rect, wy0, wx0, bounds, zone, icx, icy, grow, sep_failed, fail,
+                                        need_l)
+    tab.pop("iso")
+    tab = {f: np.concatenate(v) for f, v in tab.items()}
+
+    # ---- choose the detection
+    pix = np.flatnonzero(pseg)
+    lab_pix = pseg.ravel()[pix]
+    nl = int(next_label)
+    seg_flux = np.bincount(lab_pix, weights=cv.det.ravel()[pix], minlength=nl)
+    label = select_detection(pseg, cx, cy, seg_flux, cls.search_box, bounds=bounds)
+    label[grow | sep_failed] = 0
+    det = label > 0
+
+    # ---- stage B: measurement apertures must see exact segmentation
+    xs = tab["x"][label]
+    ys = tab["y"][label]
+    a, b, th = safe_shape(tab["a"][label], tab["b"][label], tab["theta"][label])
+    if not full:
+        dy6, dx6 = _ellipse_half_extent(a, b, th, 6.0)
+        for i in np.flatnonzero(det):
+            bb = (int(np.floor(ys[i] - dy6[i])) - 1, int(np.ceil(ys[i] + dy6[i])) + 2,
+                  int(np.floor(xs[i] - dx6[i])) - 1, int(np.ceil(xs[i] + dx6[i])) + 2)
+            if not check(i, *bb):
+                fail(i)
+            room(i, *bb)
+        det &= ~grow
+    # Segmentation for neighbour masking in Kron/AUTO: pixels of objects that CLEAN removed
+    # (in re-extracted regions) stay masked for everyone, so the masks do not depend on
+    # which regions a given window re-extracted.
+    pseg32 = pseg.astype(np.int32)
+    pseg32[(pseg32 == 0) & (seg > 0)] = REMOVED
+    kr = np.full(src.size, np.nan)
+    for ii, sl in window_groups(cv, np.flatnonzero(det), edge, src_win):
+        oy, ox = sl[0].start, sl[1].start
+        kr[ii] = phot.kron_radius(cv.det[sl], xs[ii] - ox, ys[ii] - oy, a[ii], b[ii], th[ii],
+                                  segmap=pseg32[sl], seg_id=label[ii], mask=cv.nodata[sl])
+    scale = phot.auto_scale(kr, params.phot_autoparams)
+    if not full:
+        dya, dxa = _ellipse_half_extent(a, b, th, scale)
+        rap = 0.5 * max(params.phot_apertures)
+        dya, dxa = np.maximum(dya, rap), np.maximum(dxa, rap)
+        for i in np.flatnonzero(det):
+            bb = (int(np.floor(ys[i] - dya[i])) - 1, int(np.ceil(ys[i] + dya[i])) + 2,
+                  int(np.floor(xs[i] - dxa[i])) - 1, int(np.ceil(xs[i] + dxa[i])) + 2)
+            if not check(i, *bb):
+                fail(i)
+            room(i, *bb)
+            phot_box[i] = bb
+
+    # ---- windows that must grow: new rects (or, at max_window, one last round unchecked)
+    need = np.array(need_l, dtype=np.int64).reshape(-1, 4)
+    regrow = []
+    if not full:
+        for i in np.flatnonzero(grow):
+            s = src[i]
+            oy, ox = wy0[i] - rect[i, 0], wx0[i] - rect[i, 2]   # canvas -> image offset
+            pad = m + 4
+            ny0 = min(rect[i, 0], need[i, 0] - oy - pad)
+            ny1 = max(rect[i, 1], need[i, 1] - oy + pad)
+            nx0 = min(rect[i, 2], need[i, 2] - ox - pad)
+            nx1 = max(rect[i, 3], need[i, 3] - ox + pad)
+            # A side whose required box reaches the window edge may hide a region that
+            # continues outside: grow it by at least half the window size, so the rounds
+            # stay few.  A side whose box ends inside (within the margin) grows to it + pad.
+            gy = max(16, (rect[i, 1] - rect[i, 0]) // 2)
+            gx = max(16, (rect[i, 3] - rect[i, 2]) // 2)
+            ny0 = min(ny0, rect[i, 0] - gy) if need[i, 0] - oy <= rect[i, 0] else ny0
+            ny1 = max(ny1, rect[i, 1] + gy) if need[i, 1] - oy >= rect[i, 1] else ny1
+            nx0 = min(nx0, rect[i, 2] - gx) if need[i, 2] - ox <= rect[i, 2] else nx0
+            nx1 = max(nx1, rect[i, 3] + gx) if need[i, 3] - ox >= rect[i, 3] else nx1
+            new = np.array([max(ny0, 0), min(ny1, ny), max(nx0, 0), min(nx1, nx)])
+            mw = ctx.params.max_window
+            iy_, ix_ = int(np.floor(ctx.y[s] + 0.5)), int(np.floor(ctx.x[s] + 0.5))
+            if new[1] - new[0] > mw:
+                new[0], new[1] = max(iy_ - mw // 2, new[0]), min(iy_ - mw // 2 + mw, new[1])
+            if new[3] - new[2] > mw:
+                new[2], new[3] = max(ix_ - mw // 2, new[2]), min(ix_ - mw // 2 + mw, new[3])
+            if np.array_equal(new, all_rects[s]):
+                ctx.at_max[s] = True          # redo once more without the checks, flagged
+            all_rects[s] = new
+            regrow.append(s)
+
+    fin = ~grow
+    ctx.out[COL_FLAGS][src[sep_failed]] |= FLAG_SEP_ERROR
+    # (pseg is unchanged since pix, lab_pix were taken from it)
+    batch = SegmentedBatch(cv, pseg, pseg32, label * fin, xs, ys, a, b, th, scale, src, src_win, fin, rect, wy0,
+                           wx0, edge, phot_box, bounds, pix, lab_pix)
+    return np.array(regrow, dtype=np.int64), batch
+
+
+def _clean_stage(ctx, cv, comp, cb, seg2comp, segs_per_comp, cat, pseg, tab, next_label, src, rect, wy0, wx0,
+                 bounds, zone, icx, icy, grow, sep_failed, fail, need_l):
+    """Relabel what each source's search box shows as the full frame's CLEAN leaves it.
+
+    Every object with a pixel in a source's search box takes the label of the
+    object that owns it after CLEAN (:class:`glaciar.engine.localclean.TaskClean`:
+    itself, its absorber when the clean style hands removed pixels over, or
+    none), and every object absorbed by such an owner takes it too, so the
+    owner's segment is complete.
+    The window must hold the regions of all of them (exact, canonically
+    deblended); otherwise the source must grow (``fail``; ``need_l`` updated).
+
+    Returns the relabelled ``pseg`` and the next free label.
+    """
+    tc = ctx.tclean
+    ny, nx = ctx.shape
+    ncomp = cb.shape[0] - 1
+    comp_seg = np.zeros(ncomp + 1, dtype=np.int64)           # region -> its first segment label
+    comp_seg[seg2comp[1:][::-1]] = np.arange(len(cat), 0, -1)
+    h = ctx.cls.search_box // 2
+    relabel = {}
+    state = {"next": next_label}
+
+    for i in np.flatnonzero(~grow & ~sep_failed).tolist():
+        oy, ox = int(rect[i, 0] - wy0[i]), int(rect[i, 2] - wx0[i])      # canvas -> image
+        wb = bounds[i].tolist()
+        lo_y, hi_y, lo_x, hi_x = zone[i].tolist()
+
+        def canvas_label(ident):
+            """Canvas label of an object, or None when its region is not exact in this window."""
+            b = tc.region_box(ident)
+            bcv = (b[0] - oy, b[1] - oy, b[2] - ox, b[3] - ox)
+            if not (bcv[0] >= max(lo_y, wb[0]) and bcv[1] <= min(hi_y, wb[1])
+                    and bcv[2] >= max(lo_x, wb[2]) and bcv[3] <= min(hi_x, wb[3])):
+                return None
+            y, x = tc.pixel_of(ident, ctx.shape)
+            cy, cx = y - oy, x - ox
+            c = int(comp[cy, cx])
+            if segs_per_comp[c] >= 2 and c not in tab["iso"]:
+                state["next"] = _isolate(cv, comp, c, cb[c], bounds[i], pseg, tab, state["next"], ctx, (oy, ox))
+            return int(pseg[cy, cx])
+
+        by0, by1 = max(int(icy[i]) - h, wb[0]), min(int(icy[i]) + h + 1, wb[1])
+        bx0, bx1 = max(int(icx[i]) - h, wb[2]), min(int(icx[i]) + h + 1, wb[3])
+        box = pseg[by0:by1, bx0:bx1]
+        need = []
+        moves = {}
+        for lab in np.unique(box[box > 0]).tolist():
+            yy, xx = np.nonzero(box == lab)
+            y, x = int(yy[0]) + by0 + oy, int(xx[0]) + bx0 + ox
+            ident = tc.at_pixel(y * nx + x)
+            if ident is None and tc.ref is not None:
+                r = int(tc.ref.pre_seg[y, x]) - 1
+                ident = r if r >= 0 else None
+            if ident is None:          # no CLEAN information (hand-made reference)
+                continue
+            w = tc.owner(ident)
+            if w is None:
+                moves[lab] = 0
+                continue
+            lw = canvas_label(w)
+            group = tc.absorbed(w)
+            labels = [canvas_label(m) for m in group]
+            miss = [m for m, lm in zip(group + [w], labels + [lw]) if lm is None]
+            if miss:
+                need.extend(tc.region_box(m) for m in miss)
+                continue
+            for lm in labels:
+                moves[lm] = lw
+        if need:
+            fail(i)
+            _need_union(need_l[i], need, oy, ox)
+            if grow[i]:
+                continue
+        relabel.update(moves)
+    lut = np.arange(max(state["next"], int(pseg.max(initial=0)) + 1), dtype=np.int64)
+    for lm, lw in relabel.items():
+        lut[lm] = lw
+    return lut[pseg], state["next"]
+
+
+def _need_union(nd, boxes, oy, ox):
+    """Grow a source's required canvas box ``nd`` to hold image boxes ``boxes``."""
+    for b in boxes:
+        nd[0], nd[1] = min(nd[0], b[0] - oy), max(nd[1], b[1] - oy)
+        nd[2], nd[3] = min(nd[2], b[2] - ox), max(nd[3], b[3] - ox)
+
+
+def _segment_table(cat):
+    """Label-indexed geometry (index 0 = no detection), as lists of arrays to concatenate;
+    ``"iso"``: region -> (first label, count, sep rows) of its isolated extraction."""
+    tab = {}
+    for f in ("x", "y", "a", "b", "theta"):
+        tab[f] = [np.array([np.nan]), np.asarray(cat[f], dtype=np.float64)]
+    tab["iso"] = {}
+    return tab
+
+
+def _isolate(cv, comp, c, box, win, pseg, tab, next_label, ctx, offset):
+    """Re-extract region ``c`` alone (fresh deblending RNG; CLEAN is applied later, by glaciar).
+
+    The cut-out is the region's box plus the filter half-width + 1, clipped to
+    the window ``win`` (y0, y1, x0, x1), so it is the same array in a window
+    and in the full frame.  ``offset`` (dy, dx) turns canvas into image
+    coordinates: the same region (same image position, same pixels) met again
+    in another window or a later round reuses the first result, which is
+    exact because the extraction depends only on the cut-out.  The region's
+    children get labels ``next_label ...``; ``tab["iso"][c]`` records
+    (first label, count, their sep rows in canvas coordinates).
+    """
+    params = ctx.params
+    pad = params.filter_halfwidth + 1
+    y0, y1 = max(box[0] - pad, win[0]), min(box[1] + pad, win[1])
+    x0, x1 = max(box[2] - pad, win[2]), min(box[3] + pad, win[3])
+    inside = comp[y0:y1, x0:x1] == c
+    key = (y0 + offset[0], y1 + offset[0], x0 + offset[1], x1 + offset[1], inside.tobytes())
+    hit = ctx.isolated.get(key, False)
+    if hit is None:
+        raise DetectionError("sep failed on this region before")
+    if hit is False:
+        try:
+            cat, seg = isolate_region(cv.det32[y0:y1, x0:x1], cv.derr[y0:y1, x0:x1], cv.nodata[y0:y1, x0:x1],
+                                      inside, params, clean=params.clean and params.clean_style == "region")
+        except DetectionError:
+            ctx.isolated[key] = None
+            raise
+        hit = (np.where(inside, seg, 0), cat, len(cat))
+        ctx.isolated[key] = hit
+    seg, cat, k = hit
+    region = pseg[y0:y1, x0:x1]
+    region[inside] = 0
+    new = seg > 0
+    region[new] = seg[new] + (next_label - 1)
+    rows = np.array(cat, copy=True)
+    rows["x"] = rows["x"] + x0      # cut-out -> canvas
+    rows["y"] = rows["y"] + y0
+    tab["x"].append(rows["x"].astype(np.float64))
+    tab["y"].append(rows["y"].astype(np.float64))
+    for f in ("a", "b", "theta"):
+        tab[f].append(np.asarray(cat[f], dtype=np.float64))
+    tab["iso"][c] = (next_label, k, rows)
+    return next_label + k
+
+
+def window_groups(cv, ii, edge, src_win):
+    """Yield (source indices, canvas slice): all non-edge sources on the whole canvas,
+    then each edge source on its own window (see ``room`` in :func:`_analyse`)."""
+    ii = np.asarray(ii, dtype=np.int64)
+    whole = (slice(0, cv.shape[0]), slice(0, cv.shape[1]))
+    inner = ii[~edge[ii]]
+    if inner.size:
+        yield inner, whole
+    for i in ii[edge[ii]]:
+        yield np.array([i]), cv.slice(src_win[i])

@@ -1,0 +1,272 @@
+"""The adaptive loop at the edge: fit → propose → simulate into one store, round by round.
+
+``glaciar simulate CONFIG --adaptive`` runs the configuration's design (the
+coarse grid plus any ``grid.cells``), then repeats
+
+1. fit the run (:func:`glaciar.pipeline.run_fit`, the logistic surface),
+2. measure the largest posterior sd of P = C·S over the (z, m) box,
+3. stop when it is below ``target_sd`` or ``budget`` sources are spent,
+4. otherwise propose cells (:mod:`glaciar.inference.adaptive`), log the
+   proposal, and simulate it into the same store.
+
+Every round is written to ``RUN/adaptive_rounds.json`` (atomically) before
+its cells are simulated, so a run killed at any instant resumes where it
+stopped: logged proposals are simulated again by task key (finished tasks
+are skipped), and a round killed during its fit is fitted again from the
+same store, which gives the same proposal (the fit's seed is fixed).  The
+cells of the rounds are part of the run: its stored ``config.yaml`` lists
+them as ``grid.cells``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from .. import constants as C
+
+__all__ = ["ADAPTIVE_ROUNDS_NAME", "AdaptiveSettings", "read_rounds", "with_cells",
+           "run_adaptive", "proposal_cells", "cells_yaml"]
+
+ADAPTIVE_ROUNDS_NAME = "adaptive_rounds.json"
+#: The surface each round fits (the default model of ``glaciar fit``).
+ROUND_MODEL = "logistic"
+#: Candidate points per unit of the simulated grid's spacing (2: the values and midpoints).
+REFINE = 2
+
+
+class AdaptiveSettings:
+    """Stopping rule and round size of the loop (validated on construction).
+
+    Parameters
+    ----------
+    target_sd : float
+        Stop when the largest posterior sd of P = C·S over the box is below this.
+    budget : int
+        Stop when the store holds this many injected sources (the coarse design counts).
+    round_size : int
+        Sources to add per round (rounded to whole tasks of ``n_galaxies`` per field).
+    max_steps : int, optional
+        Cap on each round's sampler steps (default: ``glaciar fit``'s).
+    """
+
+    def __init__(self, target_sd: float, budget: int, round_size: int,
+                 max_steps: int | None = None):
+        for name, v in (("--target-sd", target_sd), ("--budget", budget),
+                        ("--round-size", round_size)):
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
+                    or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
+        self.target_sd = float(target_sd)
+        self.budget = int(budget)
+        self.round_size = int(round_size)
+        self.max_steps = max_steps
+
+
+def read_rounds(run_dir) -> list[dict]:
+    """The rounds logged in ``RUN/adaptive_rounds.json`` ([] when there are none)."""
+    p = Path(run_dir) / ADAPTIVE_ROUNDS_NAME
+    if not p.exists():
+        return []
+    try:
+        rounds = json.loads(p.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{p}: not a valid rounds log ({exc}); move it away to restart the "
+                         "adaptive loop from the store") from None
+    if not isinstance(rounds, list) or not all(isinstance(r, dict) for r in rounds):
+        raise ValueError(f"{p}: expected a JSON list of rounds")
+    return rounds
+
+
+def _write_rounds(run_dir, rounds: list[dict]) -> None:
+    from ..store import atomic_write_text
+
+    atomic_write_text(Path(run_dir) / ADAPTIVE_ROUNDS_NAME, json.dumps(rounds, indent=1) + "\n")
+
+
+def with_cells(cfg, cells: list[dict]):
+    """``cfg`` with ``cells`` ({z, mag, n_iterations[, fields]}) added to ``grid.cells``."""
+    from ..config import config_from_dict, config_to_dict
+
+    if not cells:
+        return cfg
+    d = config_to_dict(cfg)
+    d["grid"]["cells"] = list(d["grid"].get("cells", [])) + [dict(c) for c in cells]
+    return config_from_dict(d, base_dir=cfg.base_dir)
+
+
+def _simulated_values(cfg):
+    from ..run import task_cells
+
+    cells = task_cells(cfg)
+    return (np.array(sorted({z for _, z, _ in cells})), np.array(sorted({m for _, _, m in cells})),
+            cells)
+
+
+def candidate_values(values, refine: int = REFINE) -> np.ndarray:
+    """Sorted values plus ``refine - 1`` evenly spaced points inside each gap.
+
+    Works on any sorted set (grown grids are not uniform): the candidates are
+    the values themselves and interior points of each interval between them.
+    """
+    v = np.unique(np.asarray(values, float))
+    if v.size < 2:
+        return v
+    t = np.arange(1, refine) / refine
+    inner = (v[:-1, None] + t[None, :] * np.diff(v)[:, None]).ravel()
+    return np.unique(np.round(np.concatenate([v, inner]), 6))
+
+
+def proposal_cells(sf, cfg, n_cells: int, *, add_iterations: int = 1,
+                   z_limit: float | None = None, box=None) -> tuple[list[dict], dict]:
+    """The ``n_cells`` cells where the fit is least certain, as ``grid.cells`` entries.
+
+    Candidates are the design's z and m values and the midpoints between
+    them (:func:`candidate_values`, which needs no uniform spacing), ranked
+    by :func:`glaciar.inference.propose_cells`.
+
+    Parameters
+    ----------
+    sf : SelectionFunction
+        The current fit.
+    cfg : Config
+        The run's configuration (with the cells simulated so far).
+    n_cells : int
+        Cells to propose.
+    add_iterations : int
+        Iterations (tasks per field, ``n_galaxies`` sources each) each cell gains.
+    z_limit : float, optional
+        No candidate at or beyond this redshift (the detection band receives no flux).
+    box : (z_lo, z_hi, m_lo, m_hi), optional
+        Where to look (default: the simulated values' range).
+
+    Returns
+    -------
+    cells : list of dict
+        ``{z, mag, n_iterations}``, ``n_iterations`` being the cell's new total.
+    stats : dict
+        ``max_sd`` (largest posterior sd of P = C·S over the candidates), ``at``
+        ([z, m] where it is), and ``ranked`` (the scored cells, best first).
+    """
+    from ..inference import propose_cells
+
+    zs, ms, simulated = _simulated_values(cfg)
+    # Candidates refine the Cartesian design (a fixed lattice: a cell proposed again gains
+    # iterations rather than new midpoints halving the spacing round after round); an
+    # axis the design does not span falls back to every simulated value.
+    zd, md = np.asarray(cfg.grid.z_values, float), np.asarray(cfg.grid.mag_values, float)
+    zc = candidate_values(zd if zd.size > 1 else zs)
+    mc = candidate_values(md if md.size > 1 else ms)
+    if box is not None:
+        zc = zc[(zc >= box[0]) & (zc <= box[1])]
+        mc = mc[(mc >= box[2]) & (mc <= box[3])]
+    if z_limit is not None:
+        zc = zc[zc < float(z_limit)]
+    if zc.size == 0 or mc.size == 0:
+        raise ValueError("no candidate cell inside the box (and below the detection band's "
+                         "redshift limit)")
+    draws = sf.grid_draws(zc, mc)["P"]
+    sd = np.nanstd(draws, axis=0)
+    iz, im = np.unravel_index(int(np.nanargmax(sd)), sd.shape)
+    ranked = propose_cells(draws, zc, mc, int(n_cells))
+    cells = []
+    for row in ranked:
+        z, m = float(row["z"]), float(row["mag"])
+        have = max((simulated.get((f, z, m), 0) for f in cfg.survey.fields), default=0)
+        cells.append({"z": z, "mag": m, "n_iterations": int(have + add_iterations)})
+    return cells, {"max_sd": float(sd[iz, im]), "at": [float(zc[iz]), float(mc[im])],
+                   "ranked": ranked}
+
+
+def cells_yaml(cells: list[dict], header: str = "") -> str:
+    """The text of a cells file (``grid.cells_file``) for ``cells``."""
+    import yaml
+
+    body = yaml.safe_dump({"cells": [dict(c) for c in cells]}, sort_keys=False)
+    return "".join(f"# {line}\n" for line in header.splitlines()) + body
+
+
+def _sources_in_store(run_dir) -> int:
+    from .inputs import read_columns
+
+    return int(len(read_columns(run_dir, [C.COL_Z])))
+
+
+def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
+                 seed: int | None = None, executor=None, progress: bool = True,
+                 mode: str = "windowed", box=None, echo=print) -> list[dict]:
+    """Run (or resume) the adaptive loop; return the rounds log.
+
+    Parameters
+    ----------
+    cfg : Config
+        The coarse design.
+    run_dir : path
+        Results store; ``adaptive_rounds.json`` there is read and extended.
+    settings : AdaptiveSettings
+    workers, seed, executor, progress, mode
+        As :func:`glaciar.run.simulate`.
+    box : (z_lo, z_hi, m_lo, m_hi), optional
+        Where the stopping statistic and proposals are evaluated.
+    echo : callable
+        Prints one line per round.
+    """
+    from ..run import simulate
+    from ..store import read_manifest
+    from .fit import run_fit
+
+    run_dir = Path(run_dir)
+    rounds = read_rounds(run_dir)
+    cfg = with_cells(cfg, [c for r in rounds for c in r.get("cells", [])])
+    while True:
+        t0 = time.process_time()
+        stats = simulate(cfg, run_dir, workers=workers, seed=seed, executor=executor,
+                         progress=progress, mode=mode)
+        if rounds and "simulated" not in rounds[-1] and rounds[-1].get("cells"):
+            rounds[-1]["simulated"] = {"n_tasks_run": stats["n_run"],
+                                       "cpu_seconds": round(stats["cpu_seconds"], 3)}
+            _write_rounds(run_dir, rounds)
+        n_sources = _sources_in_store(run_dir)
+        fit_kwargs = {"max_steps": settings.max_steps} if settings.max_steps else {}
+        # Rounds fit in memory (no file, no summaries); the round that stops the loop is
+        # fitted again with the same seed (the same draws) and written in full.
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            sf = run_fit(run_dir, model=ROUND_MODEL, seed=0, progress=False, resume=False,
+                         plots=False, write=False, **fit_kwargs)[0]
+        manifest = read_manifest(run_dir) or {}
+        remaining = settings.budget - n_sources
+        per_task = cfg.simulation.n_galaxies * len(cfg.survey.fields)
+        # One more iteration of a cell adds n_galaxies sources per field.
+        n_cells = max(1, int(round(min(settings.round_size, remaining) / per_task)))
+        cells, st = proposal_cells(sf, cfg, n_cells,
+                                   z_limit=manifest.get("detection_z_limit"), box=box)
+        entry = {"round": len(rounds), "n_sources": n_sources, "max_sd": round(st["max_sd"], 5),
+                 "max_sd_at": st["at"],
+                 "fit_cpu_seconds": round(time.process_time() - t0, 3)}
+        if st["max_sd"] <= settings.target_sd:
+            entry["stop"] = f"max sd {st['max_sd']:.4f} <= target {settings.target_sd:g}"
+        elif remaining < per_task:
+            entry["stop"] = f"budget: {n_sources} of {settings.budget} sources spent"
+        else:
+            entry["cells"] = cells
+        if rounds and rounds[-1].get("stop"):
+            rounds = rounds[:-1]            # a finished loop resumed with a new target/budget
+        rounds.append(entry)
+        _write_rounds(run_dir, rounds)
+        echo(f"round {entry['round']}: {n_sources} sources, max sd of C·S {st['max_sd']:.4f} at "
+             f"z = {st['at'][0]:g}, m = {st['at'][1]:g}"
+             + (f"; stop ({entry['stop']})" if "stop" in entry else
+                f"; adding {len(cells)} cell-iteration(s)"))
+        if "stop" in entry:
+            # Each round's fit warns about the same things: only the final fit's
+            # warnings are shown (they describe the selection function the run ends with).
+            # (No PNG plots: `glaciar fit RUN` draws them, and `glaciar report` reads the file.)
+            run_fit(run_dir, model=ROUND_MODEL, seed=0, progress=False, resume=False,
+                    plots=False, **fit_kwargs)
+            return rounds
+        cfg = with_cells(cfg, cells)
