@@ -39,7 +39,7 @@ from .galaxy.filters import get_filter
 from .galaxy.psf import measure_fwhm, prepare_psf
 from .galaxy.templates import TemplateCache
 from .store import (RunLock, StoreMismatchError, StoreWarning, atomic_write_text,
-                    field_file_prefix, file_fingerprint, finished_task_names, manifest_text,
+                    COMPACT_EVERY, compact, field_file_prefix, file_fingerprint, finished_task_names, manifest_text,
                     read_manifest, store_format, task_filename, task_key, verified_task_names,
                     write_manifest, write_task_table)
 from .survey import Survey
@@ -360,7 +360,9 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
         ctx = _context(cfg_dict, base_dir, cfg_hash, spec.field)
         table = run_task(ctx, spec, seed, mode=mode)
         name = spec_filename(spec)
-        write_task_table(run_dir, name, table, key=spec_key(spec))
+        # The task's counts go in its file's footer, keyed on the fit's magnitude covariate.
+        mag_column = C.COL_M_UV if ctx.magnitude_type == "absolute" else C.COL_MAG_INPUT
+        write_task_table(run_dir, name, table, key=spec_key(spec), mag_column=mag_column)
         done.append((name, len(table), time.process_time() - t0))
     return done
 
@@ -1024,7 +1026,7 @@ def placement_preflight(cfg: Config, survey: Survey) -> list[str]:
 def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_tasks, tqdm):
     specs = plan_tasks(cfg)
     wanted = {spec_filename(s): spec_key(s) for s in specs}
-    finished = verified_task_names(run_dir, wanted)
+    finished = verified_task_names(run_dir, wanted, quarantine=True)
     pending = [s for s in specs if spec_filename(s) not in finished]
     n_done_before = len(specs) - len(pending)
     if max_tasks is not None:
@@ -1044,6 +1046,11 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
             stats["n_sources"] += rows
             stats["cpu_seconds"] += cpu
         bar.update(len(result))
+        # Bound the number of loose task files of a long run (glaciar.store: Compaction).
+        if stats["n_run"] // COMPACT_EVERY > account.compactions:
+            account.compactions = stats["n_run"] // COMPACT_EVERY
+            compact(run_dir, min_tasks=COMPACT_EVERY)
+    account.compactions = 0
 
     try:
         if executor is None and n_workers == 1:
@@ -1067,6 +1074,7 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
                     ex.shutdown(wait=True, cancel_futures=True)
     finally:
         bar.close()
+    compact(run_dir, min_tasks=COMPACT_EVERY)
     stats["wall_seconds"] = time.perf_counter() - t0
     return stats
 

@@ -4,7 +4,10 @@ Layout of a run directory::
 
     RUN_DIR/config.yaml        the resolved configuration of the run
     RUN_DIR/manifest.json      store format, settings, input fingerprints, seed, glaciar version
-    RUN_DIR/results/*.parquet  one file per finished task
+    RUN_DIR/results/task_*.parquet  one file per finished task (rows; counts in its footer)
+    RUN_DIR/results/compact/field=<name>-<hash>/z=<z>/part-<hash>.parquet
+                               compacted tasks of one (field, z): their rows, and in the
+                               footer their task list and counts (:func:`compact`)
     RUN_DIR/.lock              advisory lock held by the run writing here (its pid inside)
     RUN_DIR/.input_fingerprints.json   cache of input-file hashes by (path, size, mtime)
 
@@ -39,13 +42,37 @@ from .constants import (COL_FIELD, COL_ITERATION, COL_MAG, COL_Z, LOCK_NAME, MAN
 __all__ = ["atomic_write_bytes", "atomic_write_text", "task_key", "task_filename",
            "field_file_prefix", "write_task_table", "finished_task_names", "verified_task_names",
            "read_results", "read_current_results", "read_manifest", "write_manifest",
-           "file_fingerprint", "RunLock", "StoreMismatchError", "RunLockedError", "StoreWarning"]
+           "file_fingerprint", "RunLock", "StoreMismatchError", "RunLockedError", "StoreWarning",
+           "task_counts", "read_current_counts", "store_columns", "write_part", "compact", "COMPACT_EVERY",
+           "COUNTS_MAG_RESOLUTION", "COUNT_COLUMNS"]
 
 #: Key-value metadata of every task file: the exact task key and the number of rows.
 _META_TASK = b"glaciar.task"
 _META_ROWS = b"glaciar.n_rows"
+#: Footer metadata of the counts: an Arrow IPC stream, and the magnitude covariate they key on.
+_META_COUNTS = b"glaciar.counts"
+_META_COUNTS_MAG = b"glaciar.counts_mag_column"
+#: Footer metadata of a compacted part: JSON list of [task file name, task key, n_rows].
+_META_PART_TASKS = b"glaciar.part_tasks"
 #: Characters of the field name kept in the readable part of a task file name.
 _READABLE_FIELD_CHARS = 40
+#: Sub-directory of results/ holding the compacted parts.
+COMPACT_DIRNAME = "compact"
+#: Compact when at least this many task files are loose (end of simulate, and during a run).
+COMPACT_EVERY = 1024
+#: Magnitude key resolution of the counts [mag]: the fit's default grouping resolution, so the
+#: fit's (z, magnitude) cells are unions of count groups (identical partition) at that default.
+COUNTS_MAG_RESOLUTION = 0.01
+#: Counts columns (beside the identity columns field, z, mag, iteration).
+COUNT_MAG_KEY = "mag_key"          #: round(covariate / COUNTS_MAG_RESOLUTION), float (NaN if non-finite)
+COUNT_DEPTH_KEY = "depth_key"      #: floor(depth_local / DEPTH_BIN_MAG), float (NaN if unknown)
+COUNT_N = "n"
+COUNT_K_REC = "k_recovered"
+COUNT_K_SEL = "k_selected"
+COUNT_SUM_MAG = "sum_mag"          #: sum of the magnitude covariate over the group [mag]
+COUNT_SUM_DEPTH = "sum_depth"      #: sum of depth_local over the group [AB mag]
+COUNT_MAG_MIN, COUNT_MAG_MAX = "mag_min", "mag_max"
+COUNT_DEPTH_MIN, COUNT_DEPTH_MAX = "depth_min", "depth_max"
 
 
 class StoreMismatchError(RuntimeError):
@@ -148,12 +175,14 @@ def task_filename(field: str, z: float, mag: float, iteration: int) -> str:
 
 
 def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
-                     key: str | None = None) -> Path:
+                     key: str | None = None, mag_column: str | None = None) -> Path:
     """Write one task's per-source rows atomically as ``results/<name>``.
 
     ``key`` (:func:`task_key`) and the row count are stored in the file's
     metadata, so that :func:`verified_task_names` can tell a complete file of
     the right task from a truncated or foreign one without reading the rows.
+    With ``mag_column`` (the fit's magnitude covariate, ``mag_input`` or
+    ``M_uv``), the task's :func:`task_counts` are stored in the footer too.
     """
     import io
 
@@ -166,6 +195,9 @@ def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
     meta[_META_ROWS] = str(len(table)).encode()
     if key is not None:
         meta[_META_TASK] = key.encode("utf-8")
+    if mag_column is not None:
+        meta[_META_COUNTS] = _ipc_bytes(task_counts(table, mag_column))
+        meta[_META_COUNTS_MAG] = mag_column.encode("utf-8")
     t = t.replace_schema_metadata(meta)
     buf = io.BytesIO()
     pq.write_table(t, buf)
@@ -173,12 +205,197 @@ def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
     return path
 
 
-def finished_task_names(run_dir: str | os.PathLike) -> set[str]:
-    """Names of the task files present (temporary files excluded; not validated)."""
+# --------------------------------------------------------------------------
+# Counts
+# --------------------------------------------------------------------------
+def _status_columns() -> dict:
+    from .tables import STATUS_COLUMNS     # the report's names of the status counts
+    return STATUS_COLUMNS
+
+
+def task_counts(rows: pd.DataFrame, mag_column: str) -> pd.DataFrame:
+    """Binomial counts of per-source rows per group of identical covariates.
+
+    Groups are (field, z, mag, iteration, magnitude key, depth key): the
+    identity columns of the task, ``round(rows[mag_column] /
+    COUNTS_MAG_RESOLUTION)`` and ``floor(depth_local / DEPTH_BIN_MAG)`` (NaN
+    keys, e.g. unknown depth, form their own group).
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        Per-source rows (one or several tasks) with ``recovered``, ``selected``,
+        ``status``, ``mag_column`` and the identity columns that exist.
+    mag_column : str
+        The fit's magnitude covariate (``mag_input`` [AB mag] or ``M_uv``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per group: the identity columns present, ``mag_key``,
+        ``depth_key``, ``n``, ``k_recovered``, ``k_selected``, one
+        ``n_status_*`` column per status code, ``sum_mag``, ``mag_min``,
+        ``mag_max`` [mag], ``sum_depth``, ``depth_min``, ``depth_max`` [AB mag].
+    """
+    import numpy as np
+
+    from .constants import COL_DEPTH, COL_RECOVERED, COL_SELECTED, COL_STATUS, DEPTH_BIN_MAG
+
+    ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
+    m = rows[mag_column].to_numpy(float)
+    dep = rows[COL_DEPTH].to_numpy(float) if COL_DEPTH in rows.columns else np.full(len(rows), np.nan)
+    g = pd.DataFrame({c: rows[c].to_numpy() for c in ids})
+    g[COUNT_MAG_KEY] = np.where(np.isfinite(m), np.round(m / COUNTS_MAG_RESOLUTION), np.nan)
+    g[COUNT_DEPTH_KEY] = np.where(np.isfinite(dep), np.floor(dep / DEPTH_BIN_MAG), np.nan)
+    g[COUNT_N] = np.ones(len(rows), np.int64)
+    g[COUNT_K_REC] = rows[COL_RECOVERED].to_numpy().astype(np.int64)
+    g[COUNT_K_SEL] = rows[COL_SELECTED].to_numpy().astype(np.int64)
+    st = rows[COL_STATUS].to_numpy() if COL_STATUS in rows.columns else None
+    for code, col in _status_columns().items():
+        g[col] = (st == code).astype(np.int64) if st is not None else np.zeros(len(rows), np.int64)
+    g[COUNT_SUM_MAG] = m
+    g[COUNT_MAG_MIN] = m
+    g[COUNT_MAG_MAX] = m
+    g[COUNT_SUM_DEPTH] = dep
+    g[COUNT_DEPTH_MIN] = dep
+    g[COUNT_DEPTH_MAX] = dep
+    keys = ids + [COUNT_MAG_KEY, COUNT_DEPTH_KEY]
+    return _group_sums(g, keys)
+
+
+def _group_sums(g: pd.DataFrame, keys: list) -> pd.DataFrame:
+    """Counts summed per ``keys``: ints and sums added, extremes kept; an all-NaN sum stays NaN."""
+    import numpy as np
+
+    grouped = g.groupby(keys, sort=True, dropna=False)
+    sums = [c for c in g.columns if c not in keys and (c == COUNT_N or c.startswith(
+        ("k_", "n_status_", "sum_")))]
+    out = grouped[sums].sum()
+    for c, lo, hi in ((COUNT_SUM_MAG, COUNT_MAG_MIN, COUNT_MAG_MAX),
+                      (COUNT_SUM_DEPTH, COUNT_DEPTH_MIN, COUNT_DEPTH_MAX)):
+        out[lo] = grouped[lo].min()
+        out[hi] = grouped[hi].max()
+        # Unknown depth (NaN) in every source of a group: the sum stays NaN, not 0.
+        out[c] = np.where(np.isnan(out[lo].to_numpy(float)), np.nan, out[c].to_numpy(float))
+    return out.reset_index()
+
+
+#: Counts columns in the order :func:`task_counts` writes them (after the identity columns).
+COUNT_COLUMNS = (COUNT_MAG_KEY, COUNT_DEPTH_KEY, COUNT_N, COUNT_K_REC, COUNT_K_SEL,
+                 COUNT_SUM_MAG, COUNT_MAG_MIN, COUNT_MAG_MAX, COUNT_SUM_DEPTH, COUNT_DEPTH_MIN,
+                 COUNT_DEPTH_MAX)
+
+
+def _ipc_bytes(df: pd.DataFrame) -> bytes:
+    import pyarrow as pa
+
+    t = pa.Table.from_pandas(df, preserve_index=False).replace_schema_metadata(None)
+    sink = pa.BufferOutputStream()
+    # zstd: counts repeat their keys and are mostly small integers (~10x smaller footers).
+    opts = pa.ipc.IpcWriteOptions(compression="zstd")
+    with pa.ipc.new_stream(sink, t.schema, options=opts) as w:
+        w.write_table(t)
+    return sink.getvalue().to_pybytes()
+
+
+def _ipc_table(data: bytes):
+    import pyarrow as pa
+
+    return pa.ipc.open_stream(pa.py_buffer(data)).read_all()
+
+
+# --------------------------------------------------------------------------
+# Units of the store: loose task files and compacted parts
+# --------------------------------------------------------------------------
+def _loose_files(run_dir) -> list[Path]:
     d = Path(run_dir) / RESULTS_DIRNAME
-    if not d.is_dir():
-        return set()
-    return {p.name for p in d.glob("task_*.parquet")}
+    return sorted(d.glob("task_*.parquet")) if d.is_dir() else []
+
+
+def _part_files(run_dir) -> list[Path]:
+    d = Path(run_dir) / RESULTS_DIRNAME / COMPACT_DIRNAME
+    return sorted(d.glob("field=*/z=*/part-*.parquet")) if d.is_dir() else []
+
+
+def _footer(path: Path):
+    """(key-value metadata dict, None) of a Parquet file, or (None, why not)."""
+    import pyarrow.parquet as pq
+
+    try:
+        meta = pq.read_metadata(path).metadata or {}
+    except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad files
+        return None, f"not a complete Parquet file ({type(exc).__name__}: {exc})"
+    return meta, None
+
+
+def _part_tasks(path: Path, meta: dict | None = None):
+    """([(name, key, n_rows)], footer) of a compacted part, or (None, why not)."""
+    if meta is None:
+        meta, problem = _footer(path)
+        if meta is None:
+            return None, problem
+    if _META_PART_TASKS not in meta:
+        return None, "not a glaciar part (no task list in its metadata)"
+    try:
+        tasks = [(str(n), str(k), int(r)) for n, k, r in json.loads(meta[_META_PART_TASKS])]
+    except (ValueError, TypeError) as exc:
+        return None, f"unreadable task list ({exc})"
+    return tasks, meta
+
+
+def _valid_parts(run_dir, warn: bool, names: bool):
+    """Yield ``(path, footer, task names or None)`` of each valid part, one footer at a time.
+
+    A part is valid when its footer parses and holds a task list; the list is
+    parsed only when ``names`` is asked for.  An invalid part is skipped with
+    a :class:`StoreWarning` naming it (``warn``).
+    """
+    for p in _part_files(run_dir):
+        meta, problem = _footer(p)
+        if meta is not None and _META_PART_TASKS not in meta:
+            meta, problem = None, "not a glaciar part (no task list in its metadata)"
+        got = None
+        if meta is not None and names:
+            tasks, problem = _part_tasks(p, meta)
+            meta = None if tasks is None else meta
+            got = None if tasks is None else {n for n, _, _ in tasks}
+        if meta is None:
+            if warn:
+                warnings.warn(f"{p}: {problem}; its tasks are not counted and will be run again",
+                              StoreWarning, stacklevel=4)
+            continue
+        yield p, meta, got
+
+
+def _store_units(run_dir, warn: bool = True):
+    """Valid parts and the loose task files that no valid part holds.
+
+    Returns ``(parts, loose)``, two lists of paths.  A task file whose name a
+    valid part lists is left out (the window between a part's rename and the
+    deletion of its task files: counted once).  An invalid part is left out
+    with a :class:`StoreWarning` naming it (``warn``).  Footers are parsed
+    one at a time and not kept (memory bounded by one part's footer).
+    """
+    loose_all = _loose_files(run_dir)
+    parts, in_parts = [], set()
+    for p, _, names in _valid_parts(run_dir, warn, bool(loose_all)):
+        parts.append(p)
+        in_parts.update(names or ())
+    loose = [f for f in loose_all if f.name not in in_parts]
+    return parts, loose
+
+
+def finished_task_names(run_dir: str | os.PathLike) -> set[str]:
+    """Names of the finished tasks' files: loose task files and tasks listed by valid parts.
+
+    Temporary files excluded; loose files not validated (:func:`verified_task_names` does).
+    """
+    parts, loose = _store_units(run_dir, warn=False)
+    names = {f.name for f in loose}
+    for p in parts:
+        tasks, _ = _part_tasks(p)
+        names.update(n for n, _, _ in tasks or ())
+    return names
 
 
 def _task_file_problem(path: Path, key: str) -> str | None:
@@ -215,25 +432,42 @@ def _task_file_problem(path: Path, key: str) -> str | None:
     return None
 
 
-def verified_task_names(run_dir: str | os.PathLike, wanted: dict[str, str]) -> set[str]:
-    """The names among ``wanted`` whose file is a complete task file of the right task.
+
+def verified_task_names(run_dir: str | os.PathLike, wanted: dict[str, str],
+                        quarantine: bool = False) -> set[str]:
+    """The names among ``wanted`` whose task is stored completely, as the right task.
 
     Parameters
     ----------
     run_dir : path
     wanted : dict
         ``{file name: task key}`` of the tasks to look for.
+    quarantine : bool
+        Rename a corrupt part to ``<part>.corrupt`` so that readers stop
+        meeting it (only the holder of the run's lock may).
 
     Returns
     -------
     set of str
-        Names whose file exists and passes :func:`_task_file_problem` (complete
-        Parquet footer holding the expected task key).  Each other existing
-        file gets a :class:`StoreWarning` naming it (its task will be run again).
+        Names listed with the expected key by a valid compacted part, or whose
+        loose file passes :func:`_task_file_problem` (complete Parquet footer
+        holding the expected task key).  Each other existing file gets a
+        :class:`StoreWarning` naming it (its tasks will be run again).
     """
     d = Path(run_dir) / RESULTS_DIRNAME
     good = set()
-    for name in sorted(finished_task_names(run_dir) & set(wanted)):
+    for p in _part_files(run_dir):
+        tasks, meta = _part_tasks(p)
+        if tasks is None:
+            warnings.warn(f"{p}: {meta}; its tasks will be run again", StoreWarning, stacklevel=2)
+            if quarantine:
+                os.replace(p, p.with_name(p.name + ".corrupt"))
+            continue
+        good.update(n for n, k, _ in tasks if wanted.get(n) == k)
+    for f in _loose_files(run_dir):
+        name = f.name
+        if name not in wanted or name in good:
+            continue
         problem = _task_file_problem(d / name, wanted[name])
         if problem is None:
             good.add(name)
@@ -254,9 +488,26 @@ def _read_task_file(path: Path, columns):
                          "`glaciar simulate` again to redo it") from None
 
 
-def read_results(run_dir: str | os.PathLike, columns: list[str] | None = None) -> pd.DataFrame:
-    """Every per-source row in the store, current or not, as one DataFrame (sorted by file).
+def store_columns(run_dir: str | os.PathLike) -> set[str]:
+    """Names of the per-source columns the store's rows have (from one file's schema)."""
+    import pyarrow.parquet as pq
 
+    parts, loose = _store_units(run_dir, warn=False)
+    first = parts[0] if parts else (loose[0] if loose else None)
+    if first is None:
+        return set()
+    try:
+        return set(pq.read_schema(first).names)
+    except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad files
+        raise ValueError(f"{first}: unreadable task file ({type(exc).__name__}: {exc}); "
+                         "run `glaciar simulate` again to redo it") from None
+
+
+def read_results(run_dir: str | os.PathLike, columns: list[str] | None = None) -> pd.DataFrame:
+    """Every per-source row in the store, current or not, as one DataFrame.
+
+    Compacted parts first (sorted by path), then loose task files (sorted by
+    name); a task is read once even while both its part and its file exist.
     Most callers want :func:`read_current_results`, which keeps only the rows
     of the tasks the run's configuration lists now.
 
@@ -268,7 +519,8 @@ def read_results(run_dir: str | os.PathLike, columns: list[str] | None = None) -
         A task file that cannot be read (named).
     """
     d = Path(run_dir) / RESULTS_DIRNAME
-    files = sorted(d.glob("task_*.parquet")) if d.is_dir() else []
+    parts, loose = _store_units(run_dir)
+    files = parts + loose
     if not files:
         raise FileNotFoundError(f"{d}: no finished task files (task_*.parquet); "
                                 "run `glaciar simulate` first")
@@ -309,6 +561,24 @@ def current_rows_mask(rows: pd.DataFrame, manifest: dict) -> "pd.Series":
     return keep
 
 
+def _keep_current(df: pd.DataFrame, manifest: dict, run_dir: Path, what: str) -> pd.DataFrame:
+    """``df`` restricted by :func:`current_rows_mask`, warning once about what is left out."""
+    keep = current_rows_mask(df, manifest)
+    if bool(keep.all()):
+        return df
+    out = df.loc[~keep]
+    key_cols = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in df.columns]
+    n_tasks = len(out[key_cols].drop_duplicates())
+    n_out = int(out["n"].sum()) if what == "counts" else len(out)
+    gone = sorted(set(map(str, out[COL_FIELD])) - set(map(str, manifest["fields"]))) \
+        if COL_FIELD in df.columns and manifest.get("fields") is not None else []
+    extra = f" (fields no longer listed: {gone})" if gone else ""
+    warnings.warn(f"{run_dir}: ignoring {n_out} rows of {n_tasks} task(s) whose field, z, "
+                  f"magnitude or iteration the run's configuration no longer lists{extra}",
+                  StoreWarning, stacklevel=3)
+    return df[keep].reset_index(drop=True)
+
+
 def read_current_results(run_dir: str | os.PathLike,
                          columns: list[str] | None = None) -> pd.DataFrame:
     """The per-source rows of the tasks the run's manifest lists now.
@@ -318,7 +588,8 @@ def read_current_results(run_dir: str | os.PathLike,
     longer lists (a run directory grows and shrinks with its configuration)
     are left out, with one :class:`StoreWarning` saying how many.  The
     manifest's areas cover exactly the fields kept.  Without a manifest
-    (a hand-made store) every row counts.
+    (a hand-made store) every row counts.  Counts follow the same rule
+    (:func:`read_current_counts`).
 
     Parameters
     ----------
@@ -333,40 +604,228 @@ def read_current_results(run_dir: str | os.PathLike,
     ValueError
         A task file that cannot be read (named).
     """
-    import pyarrow.parquet as pq
-
     run_dir = Path(run_dir)
     manifest = read_manifest(run_dir) or {}
     d = run_dir / RESULTS_DIRNAME
-    files = sorted(d.glob("task_*.parquet")) if d.is_dir() else []
     read_cols = None
-    if columns is not None and files:
-        try:
-            have = set(pq.read_schema(files[0]).names)
-        except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad files
-            raise ValueError(f"{files[0]}: unreadable task file ({type(exc).__name__}: {exc}); "
-                             "run `glaciar simulate` again to redo it") from None
+    if columns is not None:
+        have = store_columns(run_dir)
         keys = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in have]
         read_cols = list(dict.fromkeys(list(columns) + keys))
-    rows = read_results(run_dir, columns=read_cols)
-    keep = current_rows_mask(rows, manifest)
-    n_out = int((~keep).sum())
-    if n_out:
-        key_cols = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
-        n_tasks = len(rows.loc[~keep, key_cols].drop_duplicates())
-        gone = sorted(set(map(str, rows.loc[~keep, COL_FIELD])) - set(map(str, manifest["fields"]))) \
-            if COL_FIELD in rows.columns and manifest.get("fields") is not None else []
-        what = f" (fields no longer listed: {gone})" if gone else ""
-        warnings.warn(f"{run_dir}: ignoring {n_out} rows of {n_tasks} task(s) whose field, z, "
-                      f"magnitude or iteration the run's configuration no longer lists{what}",
-                      StoreWarning, stacklevel=2)
-        rows = rows[keep].reset_index(drop=True)
+    rows = _keep_current(read_results(run_dir, columns=read_cols), manifest, run_dir, "rows")
     if rows.empty:
         raise FileNotFoundError(f"{d}: no finished task of the fields and grid the run's "
                                 "configuration lists; run `glaciar simulate` first")
     if columns is not None:
         rows = rows[list(columns)]
     return rows
+
+
+def _unit_counts(run_dir):
+    """Per store unit (valid part, or loose task file no part holds): (counts table, covariate).
+
+    Yields ``None`` for a unit without counts (a task file written before
+    them).  One footer read per part; task lists are parsed only when loose
+    task files exist (to skip those a part already holds).
+    """
+    loose_all = _loose_files(run_dir)
+    in_parts = set()
+    for _, meta, names in _valid_parts(run_dir, True, bool(loose_all)):
+        in_parts.update(names or ())
+        yield (_ipc_table(meta[_META_COUNTS]), meta.get(_META_COUNTS_MAG)) \
+            if _META_COUNTS in meta else None
+    for f in loose_all:
+        if f.name in in_parts:
+            continue
+        meta, _ = _footer(f)
+        yield (_ipc_table(meta[_META_COUNTS]), meta.get(_META_COUNTS_MAG)) \
+            if meta is not None and _META_COUNTS in meta else None
+
+
+def _merge_counts(df: pd.DataFrame) -> pd.DataFrame:
+    """Counts summed over iterations: one row per (field, z, mag, mag key, depth key)."""
+    keys = [c for c in (COL_FIELD, COL_Z, COL_MAG) if c in df.columns] + [COUNT_MAG_KEY,
+                                                                          COUNT_DEPTH_KEY]
+    return _group_sums(df.drop(columns=[COL_ITERATION], errors="ignore"), keys)
+
+
+def read_current_counts(run_dir: str | os.PathLike, merge_iterations: bool = True):
+    """The stored counts of the tasks the run's manifest lists now.
+
+    The same rule as the rows (:func:`current_rows_mask` on the counts'
+    identity columns, one :class:`StoreWarning` about what is left out), read
+    from footers only (no row data).
+
+    Parameters
+    ----------
+    run_dir : path
+    merge_iterations : bool
+        Sum the counts over iterations (and tasks) as units are read, so that
+        memory scales with the cells, not the tasks.
+
+    Returns
+    -------
+    (pandas.DataFrame, str) or None
+        The counts (:func:`task_counts` columns; without ``iteration`` when
+        merged) and the magnitude covariate they are keyed on; ``None`` when
+        some task has no counts (a store written before them: read the rows)
+        or tasks disagree on the covariate.
+
+    Raises
+    ------
+    FileNotFoundError
+        No task, or none of a listed task.
+    """
+    import pyarrow as pa
+
+    run_dir = Path(run_dir)
+    manifest = read_manifest(run_dir) or {}
+    mags, batch, merged = set(), [], []
+    n_out, tasks_out, gone = 0, 0, set()
+    n_batch = 0
+
+    def flush():
+        nonlocal n_out, tasks_out
+        df = pa.concat_tables(batch, promote_options="permissive").to_pandas()
+        batch.clear()
+        keep = current_rows_mask(df, manifest)
+        if not bool(keep.all()):
+            out = df.loc[~keep]
+            n_out += int(out[COUNT_N].sum())
+            ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in df.columns]
+            tasks_out += len(out[ids].drop_duplicates())
+            if COL_FIELD in df.columns and manifest.get("fields") is not None:
+                gone.update(set(map(str, out[COL_FIELD])) - set(map(str, manifest["fields"])))
+            df = df[keep]
+        merged.append(_merge_counts(df) if merge_iterations else df)
+
+    for unit in _unit_counts(run_dir):
+        if unit is None:
+            return None
+        batch.append(unit[0])
+        mags.add(unit[1])
+        n_batch += unit[0].num_rows
+        if n_batch >= 1_000_000:
+            flush()
+            n_batch = 0
+    if batch:
+        flush()
+    if not merged:
+        raise FileNotFoundError(f"{run_dir / RESULTS_DIRNAME}: no finished task files; run "
+                                "`glaciar simulate` first")
+    if len(mags) != 1 or None in mags:
+        return None
+    if n_out:
+        extra = f" (fields no longer listed: {sorted(gone)})" if gone else ""
+        warnings.warn(f"{run_dir}: ignoring {n_out} rows of {tasks_out} task(s) whose field, z, "
+                      f"magnitude or iteration the run's configuration no longer lists{extra}",
+                      StoreWarning, stacklevel=2)
+    counts = pd.concat(merged, ignore_index=True)
+    if merge_iterations and len(merged) > 1:
+        counts = _merge_counts(counts)
+    if counts.empty:
+        raise FileNotFoundError(f"{run_dir / RESULTS_DIRNAME}: no finished task of the fields "
+                                "and grid the run's configuration lists; run `glaciar simulate` "
+                                "first")
+    return counts, mags.pop().decode("utf-8")
+
+
+# --------------------------------------------------------------------------
+# Compaction
+# --------------------------------------------------------------------------
+def _partition_dir(run_dir: Path, field: str, z: float) -> Path:
+    return (run_dir / RESULTS_DIRNAME / COMPACT_DIRNAME / f"field={_readable(field)}-"
+            f"{_short_hash(str(field), 8)}" / f"z={float(z)!r}")
+
+
+def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.DataFrame | None,
+               mag_column: str | None, extra_meta: dict | None = None) -> Path:
+    """Write one compacted part of (field, z) atomically; return its path.
+
+    Parameters
+    ----------
+    table : pyarrow.Table
+        The tasks' per-source rows.
+    tasks : list of [name, key, n_rows]
+        The task files it replaces (name, :func:`task_key`, row count).
+    counts : pandas.DataFrame or None
+        The tasks' :func:`task_counts` (None: a part without counts).
+    mag_column : str or None
+        The covariate the counts are keyed on.
+    """
+    import io
+
+    import pyarrow.parquet as pq
+
+    meta = {**(extra_meta or {}),
+            _META_PART_TASKS: json.dumps(tasks, ensure_ascii=False).encode("utf-8"),
+            _META_ROWS: str(table.num_rows).encode()}
+    if counts is not None:
+        meta[_META_COUNTS] = _ipc_bytes(counts)
+        meta[_META_COUNTS_MAG] = mag_column.encode("utf-8")
+    buf = io.BytesIO()
+    pq.write_table(table.replace_schema_metadata(meta), buf)
+    name = "part-" + _short_hash("\n".join(sorted(str(t[1]) for t in tasks)), 16) + ".parquet"
+    path = _partition_dir(Path(run_dir), field, float(z)) / name
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
+    """Merge loose task files into one part per (field, z); return the tasks compacted.
+
+    Only the holder of the run's lock may call this.  Nothing happens when
+    fewer than ``min_tasks`` task files are loose.  Per partition: the rows
+    of its tasks are concatenated into ``part-<hash of the task keys>.parquet``
+    (footer: the task list and the tasks' counts), written to a temporary
+    name, fsynced and renamed; then the task files are deleted.  Task files
+    that a valid part already lists (a kill after a rename) are deleted;
+    task files that fail the footer check are left for resume to redo.
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    run_dir = Path(run_dir)
+    # Temporary parts of a compaction that was killed (the caller holds the lock).
+    for stale in (run_dir / RESULTS_DIRNAME / COMPACT_DIRNAME).glob("field=*/z=*/.part-*.tmp"):
+        stale.unlink(missing_ok=True)
+    parts, loose = _store_units(run_dir, warn=False)
+    for f in set(_loose_files(run_dir)) - set(loose):
+        f.unlink(missing_ok=True)            # already in a renamed part: a kill left it behind
+    if len(loose) < max(1, int(min_tasks)):
+        return 0
+    groups: dict = {}
+    for f in loose:
+        meta, _ = _footer(f)
+        if meta is None or _META_TASK not in meta:
+            continue
+        key = meta[_META_TASK].decode("utf-8")
+        if _task_file_problem(f, key) is not None:
+            continue
+        field, z, _, _ = json.loads(key)
+        groups.setdefault((field, z), []).append((f, key, meta))
+    n_done = 0
+    for (field, z), items in sorted(groups.items()):
+        tables, counts, tasks, mags = [], [], [], set()
+        pandas_meta = {}
+        for f, key, meta in items:
+            t = pq.read_table(f)
+            if b"pandas" in meta and not pandas_meta:
+                pandas_meta = {b"pandas": meta[b"pandas"]}
+            tables.append(t.replace_schema_metadata(None))
+            tasks.append([f.name, key, t.num_rows])
+            if _META_COUNTS in meta:
+                counts.append(_ipc_table(meta[_META_COUNTS]))
+                mags.add(meta.get(_META_COUNTS_MAG))
+        table = pa.concat_tables(tables, promote_options="permissive")
+        cnt = (pa.concat_tables(counts, promote_options="permissive").to_pandas()
+               if counts and len(counts) == len(items) and len(mags) == 1 else None)
+        write_part(run_dir, field, float(z), table, tasks, cnt,
+                   mags.pop().decode("utf-8") if cnt is not None else None, pandas_meta)
+        for f, _, _ in items:                # only after the part is in place
+            f.unlink(missing_ok=True)
+        n_done += len(items)
+    return n_done
 
 
 # --------------------------------------------------------------------------

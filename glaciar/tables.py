@@ -33,7 +33,7 @@ import pandas as pd
 from astropy.table import Table
 
 from . import constants as C
-from .store import atomic_write_bytes, atomic_write_text, task_filename
+from .store import atomic_write_bytes, atomic_write_text, field_file_prefix
 
 __all__ = ["summary_table", "write_summaries", "region_file", "STATUS_COLUMNS",
            "TransferMatrix", "transfer_matrix", "slice_edges", "TRANSFER_KINDS"]
@@ -49,13 +49,22 @@ def summary_table(rows: pd.DataFrame) -> pd.DataFrame:
     Parameters
     ----------
     rows : pandas.DataFrame
-        Per-source rows with at least ``z``, ``mag``, ``status``, ``recovered``, ``selected``.
+        Per-source rows with at least ``z``, ``mag``, ``status``, ``recovered``,
+        ``selected``; or stored counts (:func:`glaciar.store.task_counts`
+        columns, recognised by their ``n`` column), summed per cell.
 
     Returns
     -------
     pandas.DataFrame
         One row per (z, mag) cell, columns as in the module docstring.
     """
+    from .store import COUNT_K_REC, COUNT_K_SEL, COUNT_N
+    if COUNT_N in rows.columns:
+        cols = [COUNT_N, *STATUS_COLUMNS.values(), COUNT_K_REC, COUNT_K_SEL]
+        out = rows.groupby([C.COL_Z, C.COL_MAG], sort=True)[cols].sum()
+        out = out.rename(columns={COUNT_N: "n_input", COUNT_K_REC: "n_recovered",
+                                  COUNT_K_SEL: "n_selected"})
+        return _fractions(out)
     g = rows.groupby([C.COL_Z, C.COL_MAG], sort=True)
     out = g.size().rename("n_input").to_frame()
     counts = rows.groupby([C.COL_Z, C.COL_MAG, C.COL_STATUS]).size().unstack(fill_value=0)
@@ -63,6 +72,11 @@ def summary_table(rows: pd.DataFrame) -> pd.DataFrame:
         out[col] = counts[code] if code in counts.columns else 0
     out["n_recovered"] = g[C.COL_RECOVERED].sum().astype(np.int64)
     out["n_selected"] = g[C.COL_SELECTED].sum().astype(np.int64)
+    return _fractions(out)
+
+
+def _fractions(out: pd.DataFrame) -> pd.DataFrame:
+    """The fraction columns beside the counts of a (z, mag)-indexed summary; the index reset."""
     out["completeness"] = out["n_recovered"] / out["n_input"]
     out["selection_total"] = out["n_selected"] / out["n_input"]
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -129,19 +143,20 @@ def region_file(rows: pd.DataFrame, radius_pix: float = 5.0) -> str:
 
 
 def write_regions(rows: pd.DataFrame, out_dir) -> list[Path]:
-    """One DS9 region file per (field, z, mag, iteration) task.
+    """One DS9 region file per field, written atomically (sources of every task of the field).
 
-    Named like the task's results file (:func:`glaciar.store.task_filename`), so
-    that two tasks never share a region file (fields ``a b`` / ``a_b``, z values
-    closer than the printed decimals).
+    Sources are in task order (z, mag, iteration, then source order), each
+    tagged with its task's z and magnitude.  Named by the field's file prefix
+    (:func:`glaciar.store.field_file_prefix`: readable name + hash), so that
+    two fields never share a region file (``a b`` / ``a_b``).
     """
     out_dir = Path(out_dir)
     paths = []
-    keys = [C.COL_FIELD, C.COL_Z, C.COL_MAG, C.COL_ITERATION]
-    for (f, z, m, it), sub in rows.groupby(keys, sort=True):
-        stem = task_filename(str(f), float(z), float(m), int(it))
-        p = out_dir / f"regions_{stem[len('task_'):-len('.parquet')]}.reg"
-        atomic_write_text(p, region_file(sub))
+    order = [c for c in (C.COL_Z, C.COL_MAG, C.COL_ITERATION, C.COL_SOURCE) if c in rows.columns]
+    for f, sub in rows.groupby(C.COL_FIELD, sort=True):
+        prefix = field_file_prefix(str(f))
+        p = out_dir / f"regions_{prefix[len('task_'):-1]}.reg"
+        atomic_write_text(p, region_file(sub.sort_values(order, kind="stable")))
         paths.append(p)
     return paths
 

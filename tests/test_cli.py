@@ -60,7 +60,10 @@ def test_simulate_and_report(small_survey, tmp_path, capsys):
     assert capsys.readouterr().out.startswith("0 tasks run")
     assert main(["report", str(out), "--regions"]) == 0
     regs = list((out / C.SUMMARY_DIRNAME / "regions").glob("*.reg"))
-    assert len(regs) == len(t) * cfg.simulation.n_iterations
+    # One region file per field, a circle per injected source.
+    assert len(regs) == len(cfg.survey.fields)
+    n_all = Table.read(out / C.SUMMARY_DIRNAME / "summary_all.ecsv")["n_input"].sum()
+    assert sum(r.read_text().count("circle(") for r in regs) == int(n_all)
 
 
 def test_fit_and_next_on_a_run(small_survey, small_run, tmp_path, capsys):

@@ -157,8 +157,9 @@ def test_region_files_do_not_collide(tmp_path):
                          C.COL_MAG: 24.0, C.COL_ITERATION: 0, C.COL_X: 1.0, C.COL_Y: 2.0,
                          C.COL_STATUS: C.STATUS_ISOLATED})
     paths = write_regions(rows, tmp_path)
-    assert len(set(paths)) == 4 and all(p.is_file() for p in paths)
-    assert all(p.read_text().count("circle(") == 1 for p in paths)
+    # One file per field: "a b" and "a_b" do not share one; "a_b" holds both of its tasks.
+    assert len(set(paths)) == 3 and all(p.is_file() for p in paths)
+    assert sorted(p.read_text().count("circle(") for p in paths) == [1, 1, 2]
 
 
 def test_store_of_the_old_format_is_refused_not_mixed(run_copy, tmp_path):

@@ -1,6 +1,7 @@
 """``glaciar fit``: read a run, fit, check, write the selection-function file.
 
-:func:`run_fit` reads only the columns the fit needs from the run's store,
+:func:`run_fit` reads the run's stored counts (or, for stores written before
+counts, only the columns the fit needs: :func:`glaciar.pipeline.inputs.fit_inputs`),
 decides the model (depth-aware whenever the local depth varies;
 ``model="auto"`` picks the completeness step by PSIS-LOO), samples with
 :func:`glaciar.inference.fit_and_choose`, runs the posterior-predictive check
@@ -27,13 +28,13 @@ import numpy as np
 
 from .. import constants as C
 from ..inference.diagnostics import edge_report, ppc_cells, ppc_verdict
-from ..inference.fit import DEFAULT_MAG_RESOLUTION, aggregate_cells, fit_and_choose, fit_surfaces
+from ..inference.fit import DEFAULT_MAG_RESOLUTION, fit_and_choose, fit_surfaces
 from ..inference.models import COMPLETENESS_SHAPES
 from ..inference.sampling import DEFAULT_MAX_STEPS
 from ..inference.selection_function import SelectionFunction
 from .chains import chains_key, file_tag, load_chains, save_chains
 from .inputs import depth_area as _depth_area
-from .inputs import manifest_areas, read_columns
+from .inputs import fit_inputs, manifest_areas
 from .summary import (cmax_summary, format_summary, json_default, m50_summary, param_summary,
                       param_table, veff_summary)
 
@@ -212,11 +213,9 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
     manifest = read_manifest(run_dir) or {}
     magnitude_type = str(manifest.get("magnitude_type", "apparent"))
     mag_col = C.COL_M_UV if magnitude_type == "absolute" else C.COL_MAG_INPUT
-    want = [C.COL_FIELD, C.COL_Z, C.COL_MAG, mag_col, C.COL_RECOVERED, C.COL_SELECTED, C.COL_DEPTH]
-    df = read_columns(run_dir, want)
-    if C.COL_FIELD not in df.columns:
-        df[C.COL_FIELD] = "all"
-    fields = sorted(map(str, df[C.COL_FIELD].unique()))
+    # Counts when the store has them (column projection of rows otherwise): :mod:`.inputs`.
+    data = fit_inputs(run_dir, mag_col, mag_resolution)
+    fields = sorted(set(map(str, data.field)))
     # Only the fields the manifest lists now count: rows of removed fields are ignored.
     listed = manifest.get("fields")
     if listed:
@@ -224,17 +223,17 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         if dropped:
             warnings.warn(f"{run_dir}: ignoring rows of field(s) {dropped}, which the run's "
                           "configuration no longer lists", FitWarning)
-            df = df[df[C.COL_FIELD].astype(str).isin(list(map(str, listed)))]
-            fields = sorted(map(str, df[C.COL_FIELD].unique()))
+            data = data.subset(np.isin(data.field, list(map(str, listed))))
+            fields = sorted(set(map(str, data.field)))
     field_area = manifest_areas(manifest, run_dir)
     depth_area = _depth_area(manifest, fields)
 
     # Depth-aware?
-    has_depth = C.COL_DEPTH in df.columns and np.isfinite(df[C.COL_DEPTH].to_numpy(float)).all()
+    has_depth = bool(np.isfinite(data.depth).all())
     if depth == "on" and not has_depth:
         raise ValueError(f"{run_dir}: the per-source table has no finite {C.COL_DEPTH!r} "
                          "column; the depth-aware model needs a run made with local depths")
-    spread = float(np.ptp(df[C.COL_DEPTH].to_numpy(float))) if has_depth else 0.0
+    spread = float(np.max(data.depth_hi) - np.min(data.depth_lo)) if has_depth else 0.0
     depth_aware = has_depth and (depth == "on" or (depth == "auto" and spread > C.DEPTH_BIN_MAG))
     if not has_depth and depth == "auto":
         warnings.warn(f"{run_dir}: no local depths in the per-source table (a run made before "
@@ -248,7 +247,7 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
             wts = np.concatenate([a for _, a in depth_area.values()])
             depth_ref = round(_weighted_median(cen, wts), 2)
         else:
-            depth_ref = round(float(np.median(df[C.COL_DEPTH])), 2)
+            depth_ref = round(data.depth_median(), 2)
     if area_arcmin2 is not None:
         # Rescale the fields' areas (and depth distributions) to the given total.
         tot = sum(np.sum(a) for _, a in depth_area.values()) if depth_area else sum(
@@ -275,24 +274,22 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
 
     fit_dir = run_dir / "fit"
     fit_dir.mkdir(exist_ok=True)
-    cells_all = aggregate_cells(df, mag_resolution, depth_ref, mag_col)
-    zall = df[C.COL_Z].to_numpy(float)
-    mall = df[mag_col].to_numpy(float)
-    domain = {"z": (float(zall.min()), float(zall.max())), "mag": (float(mall.min()), float(mall.max()))}
+    cells_all = data.cells(mag_resolution, depth_ref, mag_col)
+    domain = {"z": (float(data.z.min()), float(data.z.max())),
+              "mag": (float(np.min(data.mag_lo)), float(np.max(data.mag_hi)))}
     if depth_aware:
-        dall = df[C.COL_DEPTH].to_numpy(float)
-        domain["depth"] = (float(dall.min()), float(dall.max()))
+        domain["depth"] = (float(np.min(data.depth_lo)), float(np.max(data.depth_hi)))
     zg = _grid(*domain["z"], _GRID_STEP)
     mg = _grid(*domain["mag"], _GRID_STEP)
-    groups = ([(f, df[df[C.COL_FIELD].astype(str) == f]) for f in fields] if per_field
-              else [("all", df)])
+    groups = ([(f, data.subset(data.field == f)) for f in fields] if per_field
+              else [("all", data)])
     shapes = list(COMPLETENESS_SHAPES) if model == "auto" else [model]
 
     outputs = []
     summary = {"model": model, "seed": seed, "magnitude_type": magnitude_type,
                "depth_aware": bool(depth_aware), "depth_ref": depth_ref, "fits": {}}
     for i, (name, d) in enumerate(groups):
-        cells = cells_all if not per_field else aggregate_cells(d, mag_resolution, depth_ref, mag_col)
+        cells = cells_all if not per_field else d.cells(mag_resolution, depth_ref, mag_col)
         fseed = [int(seed), i] if per_field else int(seed)
         keys = {}
 
@@ -316,10 +313,8 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         # Posterior-predictive check on a subset of draws.
         sub = SelectionFunction(mdl, res.draws(_DIAG_DRAWS), meta=fmeta, field=name,
                                 depth_area=own_depth, domain=domain)
-        zz = d[C.COL_Z].to_numpy(float)
-        mm = d[mag_col].to_numpy(float)
-        dd = d[C.COL_DEPTH].to_numpy(float) if depth_aware else None
-        mnom = d[C.COL_MAG].to_numpy(float) if C.COL_MAG in d.columns else np.round(mm / 0.25) * 0.25
+        zz, mm, mnom = d.z, d.mag, d.mag_nominal
+        dd = d.depth if depth_aware else None
 
         def c_fn(idx, zz=zz, mm=mm, dd=dd, sub=sub):
             return sub.model.completeness(sub.draws, mm[idx], zz[idx], None if dd is None else dd[idx])
@@ -330,9 +325,10 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
 
         # Cells are split by depth whenever depths are known, also for a fit without
         # depth: that is where such a fit fails.
-        ppc = ppc_cells(zz, mnom, mdl.relative_magnitude(mm, dd), d[C.COL_RECOVERED].to_numpy(bool),
-                        d[C.COL_SELECTED].to_numpy(bool), c_fn, s_fn,
-                        depth=d[C.COL_DEPTH].to_numpy(float) if has_depth else None)
+        # (From counts, an entry is a group of n sources evaluated at its mean covariates.)
+        ppc = ppc_cells(zz, mnom, mdl.relative_magnitude(mm, dd), d.k_rec, d.k_sel, c_fn, s_fn,
+                        depth=d.depth_bin if has_depth else None,
+                        counts=None if not d.from_counts else d.n)
         verdict = ppc_verdict(ppc)
         fit_info = {"nsources": cells.n_sources, "ncells": len(cells), "converge": res.converged,
                     "taumax": float(np.max(res.tau)), "essmin": float(np.min(res.ess)),
