@@ -191,8 +191,15 @@ def cells_yaml(cells: list[dict], header: str = "") -> str:
 
 
 def _sources_in_store(run_dir) -> int:
+    """Injected sources of the run's current tasks: from the stored counts, else the rows."""
+    from ..store import COUNT_N, read_current_counts
     from .inputs import read_columns
 
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")        # the fit that follows says what it leaves out
+        got = read_current_counts(run_dir)
+    if got is not None:
+        return int(got[0][COUNT_N].sum())
     return int(len(read_columns(run_dir, [C.COL_Z])))
 
 
