@@ -126,12 +126,14 @@ def sd_statistic(sf) -> float:
     return max_posterior_sd(sf.grid_draws(EVAL_Z, EVAL_M)["P"], EVAL_Z, EVAL_M, BOX)
 
 
-def make_propose(box=BOX, min_per_cell: int = 10, outcomes: str = "selected"):
+def make_propose(box=BOX, min_per_cell: int = 10, outcomes: str = "selected",
+                 criterion: str = "information"):
     """``propose(posterior, cells, k, seed)``: candidate grid + information gain + allocation."""
     def propose(sf, cells, k, seed):
         zc, mc = candidate_grid(cells.z, cells.mag, box=box, refine=2)
         g = sf.grid_draws(zc, mc)
-        return plan_round(g["C"], g["S"], zc, mc, k, outcomes=outcomes, min_per_cell=min_per_cell)
+        return plan_round(g["C"], g["S"], zc, mc, k, criterion=criterion, outcomes=outcomes,
+                          min_per_cell=min_per_cell)
     return propose
 
 
@@ -252,12 +254,14 @@ def main(argv=None):
                     help="default: half the uniform design's final budget")
     ap.add_argument("--min-per-cell", type=int, default=10)
     ap.add_argument("--outcomes", choices=("selected", "all"), default="selected")
+    ap.add_argument("--criterion", choices=("information", "sd"), default="information")
     a = ap.parse_args(argv)
     budget = a.adaptive_budget or UNIFORM_Z.size * UNIFORM_M.size * max(a.uniform_n) // 2
     print(f"surrogate: known C*S, box z {BOX[0]}, m {BOX[1]}; fit max_steps {a.max_steps}; "
-          f"acquisition: information gain ({a.outcomes}), min {a.min_per_cell} per cell")
+          f"acquisition: {a.criterion} ({a.outcomes}), min {a.min_per_cell} per cell")
     compare_designs(surrogate_simulate, make_fit(a.max_steps),
-                    make_propose(min_per_cell=a.min_per_cell, outcomes=a.outcomes), a.seeds,
+                    make_propose(min_per_cell=a.min_per_cell, outcomes=a.outcomes,
+                                 criterion=a.criterion), a.seeds,
                     uniform_n=a.uniform_n, initial_n=a.initial_n, adaptive_budget=budget,
                     round_size=a.round_size)
 

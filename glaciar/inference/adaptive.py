@@ -467,9 +467,9 @@ def merge_cells(a: Cells | None, b: Cells) -> Cells:
                  k_sel=add(a.k_sel, b.k_sel))
 
 
-def plan_round(c_draws, s_draws, z_cand, m_cand, k: int, *, outcomes: str = "selected",
-               misfit=None, weight=None, misfit_weight: float = 1.0, n_cells: int | None = None,
-               min_per_cell: int = 1) -> np.ndarray:
+def plan_round(c_draws, s_draws, z_cand, m_cand, k: int, *, criterion: str = "information",
+               outcomes: str = "selected", misfit=None, weight=None, misfit_weight: float = 1.0,
+               n_cells: int | None = None, min_per_cell: int = 1) -> np.ndarray:
     """One round's request: score the candidates, share ``k`` sources among the best.
 
     Parameters
@@ -481,6 +481,9 @@ def plan_round(c_draws, s_draws, z_cand, m_cand, k: int, *, outcomes: str = "sel
         Candidate grid (:func:`candidate_grid`).
     k : int
         Sources in the round.
+    criterion : {"information", "sd"}
+        Base score: the expected information gain (:func:`information_gain`),
+        or the posterior sd of P = C S (the stopping statistic's quantity).
     outcomes, misfit, weight, misfit_weight
         As :func:`information_gain` and :func:`acquisition_score`.
     n_cells, min_per_cell
@@ -493,7 +496,14 @@ def plan_round(c_draws, s_draws, z_cand, m_cand, k: int, *, outcomes: str = "sel
     """
     zc = np.asarray(z_cand, float).ravel()
     mc = np.asarray(m_cand, float).ravel()
-    gain = information_gain(c_draws, s_draws, outcomes)
+    if criterion == "information":
+        gain = information_gain(c_draws, s_draws, outcomes)
+    elif criterion == "sd":
+        c = np.asarray(c_draws, float)
+        p = c if s_draws is None else c * np.nan_to_num(np.asarray(s_draws, float), nan=0.0)
+        gain = p.std(axis=0)
+    else:
+        raise ValueError(f"plan_round: criterion must be 'information' or 'sd', not {criterion!r}")
     if gain.shape != (zc.size, mc.size):
         raise ValueError(f"plan_round: draws cover {gain.shape}, the candidates "
                          f"{(zc.size, mc.size)}")
