@@ -57,6 +57,8 @@ COARSE_Z = np.linspace(7.8, 12.6, 5)
 COARSE_M = np.linspace(24.5, 28.5, 5)
 EVAL_Z = np.linspace(7.8, 12.6, 49)                #: where the error is measured
 EVAL_M = np.linspace(24.5, 28.5, 41)
+VR_Z = np.linspace(7.8, 12.6, 25)                  #: the "variance" rule's objective grid
+VR_M = np.linspace(24.5, 28.5, 17)
 N_DRAWS = 400                                      #: posterior draws kept per fit
 
 
@@ -132,8 +134,10 @@ def make_propose(box=BOX, min_per_cell: int = 10, outcomes: str = "selected",
     def propose(sf, cells, k, seed):
         zc, mc = candidate_grid(cells.z, cells.mag, box=box, refine=2)
         g = sf.grid_draws(zc, mc)
+        # The batch rule's objective: the variance of C*S on a fixed grid over the box.
+        p_eval = sf.grid_draws(VR_Z, VR_M)["P"] if criterion == "variance" else None
         return plan_round(g["C"], g["S"], zc, mc, k, criterion=criterion, outcomes=outcomes,
-                          min_per_cell=min_per_cell)
+                          min_per_cell=min_per_cell, p_eval=p_eval)
     return propose
 
 
@@ -254,7 +258,8 @@ def main(argv=None):
                     help="default: half the uniform design's final budget")
     ap.add_argument("--min-per-cell", type=int, default=10)
     ap.add_argument("--outcomes", choices=("selected", "all"), default="selected")
-    ap.add_argument("--criterion", choices=("information", "sd"), default="information")
+    ap.add_argument("--criterion", choices=("information", "sd", "variance"),
+                    default="information")
     a = ap.parse_args(argv)
     budget = a.adaptive_budget or UNIFORM_Z.size * UNIFORM_M.size * max(a.uniform_n) // 2
     print(f"surrogate: known C*S, box z {BOX[0]}, m {BOX[1]}; fit max_steps {a.max_steps}; "

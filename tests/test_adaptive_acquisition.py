@@ -6,6 +6,7 @@ import pytest
 from scipy import stats
 
 from glaciar.inference.adaptive import (REQUEST_DTYPE, acquisition_score, allocate_sources,
+                                        allocate_variance_reduction,
                                         candidate_grid, information_gain, max_posterior_sd,
                                         merge_cells, misfit_on_candidates, plan_round,
                                         propose_cells, run_design)
@@ -242,3 +243,35 @@ def test_run_design_spends_the_budget_exactly_and_is_deterministic():
     assert t.cells.n_sources == 20 + 25 * math.ceil((625 - 20) / 25)
     with pytest.raises(ValueError, match="budget"):
         _toy_loop(7, budget=5)
+
+
+def test_variance_reduction_follows_the_explicit_kalman_update():
+    # Independent computation: the covariance matrix of the draws, the greedy gain
+    # sum_e w_e Cov(e, x)^2 / (Var x + pbar (1 - pbar) / n), and the rank-one update.
+    rng = np.random.default_rng(5)
+    d, n_cells, chunk = 60, 9, 5
+    p = rng.uniform(0.1, 0.9, (d, 1)) * rng.uniform(0.5, 1.0, (1, n_cells)) \
+        + 0.05 * rng.standard_normal((d, n_cells))
+    p = np.clip(p, 0, 1)
+    w = rng.uniform(0, 1, n_cells)
+    cov = np.cov(p.T, bias=True)
+    r = p.mean(0) * (1 - p.mean(0)) / chunk
+    picks = []
+    for _ in range(4):
+        gain = np.array([np.sum(w * cov[:, x] ** 2) / (cov[x, x] + r[x]) for x in range(n_cells)])
+        x = int(np.argmax(gain))
+        picks.append(x)
+        cov = cov - np.outer(cov[:, x], cov[x, :]) / (cov[x, x] + r[x])
+    expect = np.bincount(picks, minlength=n_cells) * chunk
+    got = allocate_variance_reduction(p, 4 * chunk, eval_weight=w, min_per_cell=chunk)
+    assert got.tolist() == expect.tolist()
+    # Sums to k with a remainder, is deterministic, and misfit cells come first.
+    a = allocate_variance_reduction(p, 23, eval_weight=w, min_per_cell=chunk)
+    assert a.sum() == 23 and np.array_equal(a, allocate_variance_reduction(p, 23, eval_weight=w,
+                                                                          min_per_cell=chunk))
+    never = int(np.argmin(a))
+    flag = np.zeros(n_cells, bool)
+    flag[never] = True
+    assert allocate_variance_reduction(p, 23, eval_weight=w, misfit=flag, min_per_cell=chunk)[never] > 0
+    # Certain cells (no posterior spread anywhere) still get the sources, deterministically.
+    assert allocate_variance_reduction(np.full((10, 3), 0.5), 7).sum() == 7

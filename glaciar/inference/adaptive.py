@@ -56,9 +56,10 @@ import numpy as np
 from .models import Cells
 
 __all__ = ["propose_cells", "candidate_grid", "information_gain", "acquisition_score",
-           "misfit_on_candidates", "allocate_sources", "max_posterior_sd", "in_box",
+           "misfit_on_candidates", "allocate_sources", "allocate_variance_reduction",
+           "max_posterior_sd", "in_box",
            "merge_cells", "plan_round", "round_seed", "run_design", "DesignRound", "DesignResult",
-           "REQUEST_DTYPE", "OUTCOMES"]
+           "REQUEST_DTYPE", "OUTCOMES", "CRITERIA"]
 
 #: Dtype of a simulation request: cells and the number of sources to inject in each.
 REQUEST_DTYPE = [("z", float), ("mag", float), ("n", np.int64)]
@@ -412,6 +413,122 @@ def allocate_sources(scores, k: int, *, n_cells: int | None = None,
     return out.reshape(s.shape)
 
 
+def _chunks(k, min_per_cell):
+    """k split into chunks of min_per_cell, the remainder dealt one by one from the first."""
+    n = max(1, k // min_per_cell)
+    sizes = np.full(n, min(min_per_cell, k), np.int64)
+    extra = k - int(sizes.sum())
+    sizes += extra // n
+    sizes[: extra % n] += 1
+    return sizes
+
+
+def allocate_variance_reduction(p_cand, k: int, *, p_eval=None, eval_weight=None, misfit=None,
+                                min_per_cell: int = 1, max_draws: int = 200) -> np.ndarray:
+    """Share ``k`` sources so as to shrink the integrated posterior variance of C S most.
+
+    A batch rule that sees what the proportional one does not: sources at one
+    cell also inform its neighbours (the draws are correlated), and the
+    second batch at a cell is worth less than the first.  The draws define a
+    linear-Gaussian (ensemble Kalman) approximation of the posterior of
+    P = C S: observing the selected fraction of n sources at candidate x
+    (noise variance pbar_x (1 - pbar_x) / n) reduces the w-weighted sum of
+    variances over the evaluation points e by
+
+        sum_e w_e Cov(P_e, P_x)^2 / (Var P_x + pbar_x (1 - pbar_x) / n).
+
+    Chunks of ``min_per_cell`` sources go one at a time to the candidate with
+    the largest reduction, and the covariance is updated after each (square-
+    root form, so the cost per chunk is O(D^2 N) for D draws, N candidates).
+    Cells flagged by the PPC (``misfit``) are given a chunk first, since the
+    posterior there cannot be trusted to say how uncertain it is.
+
+    Parameters
+    ----------
+    p_cand : array_like, shape (D, ...)
+        Draws of P at the candidate cells.
+    k : int
+        Sources in the round.
+    p_eval : array_like, shape (D, ...), optional
+        The same draws at the points where precision is wanted (e.g. a fixed
+        grid over the user's box, so that the objective does not depend on
+        how densely earlier rounds refined the candidates); default ``p_cand``.
+    eval_weight : array_like, optional
+        Weight w >= 0 of each evaluation point (broadcast to ``p_eval``'s
+        cells), e.g. where a luminosity function needs precision; default 1.
+    misfit : array_like of bool, optional
+        Flagged candidates (shape ``p_cand.shape[1:]``).
+    min_per_cell : int
+        Chunk size, the smallest number of sources a chosen cell receives
+        (unless ``k`` is smaller).
+    max_draws : int
+        Draws used (evenly spaced), bounding the cost.
+
+    Returns
+    -------
+    ndarray of int64, shape ``p_cand.shape[1:]``, summing to exactly ``k``;
+    deterministic (ties go to the lower flat index).
+    """
+    pc = np.asarray(p_cand, float)
+    if pc.ndim < 2 or not np.all(np.isfinite(pc)):
+        raise ValueError("allocate_variance_reduction: p_cand must be finite draws (D, ...)")
+    if int(k) != k or k < 0:
+        raise ValueError(f"allocate_variance_reduction: k must be an integer >= 0, not {k!r}")
+    if int(min_per_cell) != min_per_cell or min_per_cell < 1:
+        raise ValueError("allocate_variance_reduction: min_per_cell must be an integer >= 1")
+    shape = pc.shape[1:]
+    out = np.zeros(int(np.prod(shape)), np.int64)
+    if k == 0:
+        return out.reshape(shape)
+    pe = pc if p_eval is None else np.asarray(p_eval, float)
+    if pe.shape[0] != pc.shape[0] or not np.all(np.isfinite(pe)):
+        raise ValueError("allocate_variance_reduction: p_eval must be finite draws with "
+                         f"{pc.shape[0]} draws, like p_cand")
+    w = np.ones(pe.shape[1:]) if eval_weight is None else np.broadcast_to(
+        np.asarray(eval_weight, float), pe.shape[1:])
+    w = w.ravel()
+    pc = pc.reshape(pc.shape[0], -1)
+    pe = pe.reshape(pe.shape[0], -1)
+    if np.any(~np.isfinite(w)) or np.any(w < 0):
+        raise ValueError("allocate_variance_reduction: eval_weight must be finite and >= 0")
+    if pc.shape[0] > max_draws:
+        keep = np.linspace(0, pc.shape[0] - 1, int(max_draws)).round().astype(int)
+        pc, pe = pc[keep], pe[keep]
+    d = pc.shape[0]
+    pbar = pc.mean(axis=0)
+    # Per-source noise variance of the selected indicator; floored so that a
+    # certain cell (pbar = 0 or 1, zero posterior variance) scores 0, not 0/0.
+    q = np.maximum(pbar * (1.0 - pbar), 1e-9)
+    a_c = (pc - pbar) / np.sqrt(d)                             # Cov = a^T a
+    a_e = (pe - pe.mean(axis=0)) / np.sqrt(d)
+    g = (a_e * w) @ a_e.T                                      # (D, D)
+    first = []
+    if misfit is not None:
+        f = np.asarray(misfit, bool).ravel()
+        if f.size != out.size:
+            raise ValueError(f"allocate_variance_reduction: misfit must have shape {shape}")
+        first = list(np.flatnonzero(f)[np.argsort(-np.sum(a_c[:, f] ** 2, axis=0), kind="stable")])
+    for step, n in enumerate(_chunks(int(k), int(min_per_cell))):
+        r = q / n
+        if step < len(first):
+            x = int(first[step])
+        else:
+            num = np.sum(a_c * (g @ a_c), axis=0)
+            den = np.sum(a_c ** 2, axis=0) + r
+            gain = num / den
+            x = int(np.argmax(gain)) if gain.max() > 0 else int(np.argmax(q))
+        out[x] += n
+        a = a_c[:, x].copy()
+        s2 = float(a @ a)
+        if s2 > 0:
+            beta = (1.0 - np.sqrt(r[x] / (s2 + r[x]))) / s2
+            # T = I - beta a a^T: T^T T = I - a a^T / (|a|^2 + r), the Kalman update.
+            a_c -= beta * np.outer(a, a @ a_c)
+            ga = g @ a
+            g = g - beta * (np.outer(a, ga) + np.outer(ga, a)) + beta ** 2 * float(a @ ga) * np.outer(a, a)
+    return out.reshape(shape)
+
+
 def max_posterior_sd(p_draws, z_grid=None, m_grid=None, box=None) -> float:
     """The stopping statistic: the largest posterior sd of C S over the box.
 
@@ -467,10 +584,14 @@ def merge_cells(a: Cells | None, b: Cells) -> Cells:
                  k_sel=add(a.k_sel, b.k_sel))
 
 
+#: Criteria of :func:`plan_round`.
+CRITERIA = ("information", "sd", "variance")
+
+
 def plan_round(c_draws, s_draws, z_cand, m_cand, k: int, *, criterion: str = "information",
                outcomes: str = "selected", misfit=None, weight=None, misfit_weight: float = 1.0,
-               n_cells: int | None = None, min_per_cell: int = 1) -> np.ndarray:
-    """One round's request: score the candidates, share ``k`` sources among the best.
+               n_cells: int | None = None, min_per_cell: int = 1, p_eval=None) -> np.ndarray:
+    """One round's request: where the next ``k`` sources go, and how many in each cell.
 
     Parameters
     ----------
@@ -481,34 +602,45 @@ def plan_round(c_draws, s_draws, z_cand, m_cand, k: int, *, criterion: str = "in
         Candidate grid (:func:`candidate_grid`).
     k : int
         Sources in the round.
-    criterion : {"information", "sd"}
-        Base score: the expected information gain (:func:`information_gain`),
-        or the posterior sd of P = C S (the stopping statistic's quantity).
+    criterion : {"information", "sd", "variance"}
+        "information": score = expected information gain
+        (:func:`information_gain`, with the misfit and weight terms of
+        :func:`acquisition_score`), shared in proportion to score
+        (:func:`allocate_sources`); "sd": the same with the posterior sd of
+        P = C S as the base score; "variance": the batch rule
+        :func:`allocate_variance_reduction` (integrated variance of P over
+        ``p_eval``, weighted by ``weight``; misfit cells first).
     outcomes, misfit, weight, misfit_weight
-        As :func:`information_gain` and :func:`acquisition_score`.
+        As :func:`information_gain` and :func:`acquisition_score` (for
+        "variance", ``weight`` is the weight of the evaluation points).
     n_cells, min_per_cell
-        As :func:`allocate_sources`.
+        As :func:`allocate_sources` (``n_cells`` is not used by "variance").
+    p_eval : array_like, shape (D, ...), optional
+        "variance" only: the same draws of P at the evaluation points
+        (default the candidates).
 
     Returns
     -------
     numpy structured array, dtype :data:`REQUEST_DTYPE`: the cells with n > 0,
     sorted by z then mag.
     """
+    if criterion not in CRITERIA:
+        raise ValueError(f"plan_round: criterion must be one of {CRITERIA}, not {criterion!r}")
     zc = np.asarray(z_cand, float).ravel()
     mc = np.asarray(m_cand, float).ravel()
-    if criterion == "information":
-        gain = information_gain(c_draws, s_draws, outcomes)
-    elif criterion == "sd":
-        c = np.asarray(c_draws, float)
-        p = c if s_draws is None else c * np.nan_to_num(np.asarray(s_draws, float), nan=0.0)
-        gain = p.std(axis=0)
-    else:
-        raise ValueError(f"plan_round: criterion must be 'information' or 'sd', not {criterion!r}")
-    if gain.shape != (zc.size, mc.size):
-        raise ValueError(f"plan_round: draws cover {gain.shape}, the candidates "
+    c = np.asarray(c_draws, float)
+    if c.shape[1:] != (zc.size, mc.size):
+        raise ValueError(f"plan_round: draws cover {c.shape[1:]}, the candidates "
                          f"{(zc.size, mc.size)}")
-    score = acquisition_score(gain, misfit, weight, misfit_weight)
-    alloc = allocate_sources(score, k, n_cells=n_cells, min_per_cell=min_per_cell)
+    p = c if s_draws is None else c * np.nan_to_num(np.asarray(s_draws, float), nan=0.0)
+    if criterion == "variance":
+        alloc = allocate_variance_reduction(p, k, p_eval=p_eval, eval_weight=weight,
+                                            misfit=misfit, min_per_cell=min_per_cell)
+    else:
+        gain = information_gain(c_draws, s_draws, outcomes) if criterion == "information" \
+            else p.std(axis=0)
+        score = acquisition_score(gain, misfit, weight, misfit_weight)
+        alloc = allocate_sources(score, k, n_cells=n_cells, min_per_cell=min_per_cell)
     i, j = np.nonzero(alloc)                     # row-major: sorted by z, then mag
     out = np.empty(i.size, dtype=REQUEST_DTYPE)
     out["z"], out["mag"], out["n"] = zc[i], mc[j], alloc[i, j]
