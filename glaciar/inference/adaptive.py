@@ -45,6 +45,19 @@ A round of K sources is shared among the best cells in proportion to score
 (:func:`allocate_sources`), and the loop stops when the largest posterior sd
 of C S over the user's box (:func:`max_posterior_sd`) is below a target, or
 the budget is spent (:func:`run_design`).
+
+Scores are myopic (one more source, cells independent).  The batch rule
+:func:`allocate_variance_reduction` (``plan_round(..., criterion="variance")``)
+instead places the round chunk by chunk where it most reduces the integrated
+posterior variance of C S over the box, updating the draws' covariance after
+each chunk, so it accounts for neighbouring cells informing each other and
+for the diminishing return of a second batch at the same cell.
+
+Candidates come from the values simulated so far (:func:`candidate_grid`:
+the values and the midpoints between neighbours, inside the box), so a grid
+grown unevenly by earlier rounds is refined where it was grown.
+``benchmarks/adaptive.py`` compares the designs against uniform grids on a
+surrogate with a known surface.
 """
 from __future__ import annotations
 
