@@ -59,6 +59,7 @@ EVAL_Z = np.linspace(7.8, 12.6, 49)                #: where the error is measure
 EVAL_M = np.linspace(24.5, 28.5, 41)
 VR_Z = np.linspace(7.8, 12.6, 25)                  #: the "variance" rule's objective grid
 VR_M = np.linspace(24.5, 28.5, 17)
+MIN_STEP = (0.05, 0.05)                            #: finest candidate spacing (dz, dm [mag])
 N_DRAWS = 400                                      #: posterior draws kept per fit
 
 
@@ -132,7 +133,7 @@ def make_propose(box=BOX, min_per_cell: int = 10, outcomes: str = "selected",
                  criterion: str = "information"):
     """``propose(posterior, cells, k, seed)``: candidate grid + information gain + allocation."""
     def propose(sf, cells, k, seed):
-        zc, mc = candidate_grid(cells.z, cells.mag, box=box, refine=2)
+        zc, mc = candidate_grid(cells.z, cells.mag, box=box, refine=2, min_step=MIN_STEP)
         g = sf.grid_draws(zc, mc)
         # The batch rule's objective: the variance of C*S on a fixed grid over the box.
         p_eval = sf.grid_draws(VR_Z, VR_M)["P"] if criterion == "variance" else None

@@ -157,6 +157,9 @@ def test_candidate_grid_on_non_uniform_values_stays_inside_the_box():
     z3, _ = candidate_grid([1.0, 2.0, 5.0], [0.0], refine=3)
     assert np.allclose(z3, [1.0, 4 / 3, 5 / 3, 2.0, 3.0, 4.0, 5.0])
     assert np.allclose(candidate_grid(z, m, refine=1)[0], zs)
+    # min_step: only intervals whose halves are >= 0.3 wide are split (7.8-8.2 and 9.0-9.4 are not).
+    zm, _ = candidate_grid(z, m, min_step=(0.3, 0.0))
+    assert np.allclose(zm, [7.8, 8.2, 8.6, 9.0, 9.4, 10.0, 10.6])
     with pytest.raises(ValueError, match="inside the box"):
         candidate_grid(z, m, box=((20, 21), (24, 25)))
     with pytest.raises(ValueError, match="refine"):

@@ -121,19 +121,21 @@ def in_box(z, m, box=None) -> np.ndarray:
     return zin[:, None] & min_[None, :]
 
 
-def _refined(values, refine, name):
+def _refined(values, refine, name, min_step):
     v = np.asarray(values, float).ravel()
     if v.size == 0 or not np.all(np.isfinite(v)):
         raise ValueError(f"candidate_grid: {name} values must be finite and non-empty")
     v = np.unique(v)
     if v.size == 1 or refine == 1:
         return v
-    frac = np.arange(refine) / refine                           # 0, 1/r, ..., (r-1)/r
-    inner = (v[:-1, None] + np.diff(v)[:, None] * frac[None, :]).ravel()
-    return np.append(inner, v[-1])
+    frac = np.arange(1, refine) / refine                        # 1/r, ..., (r-1)/r
+    gap = np.diff(v)
+    split = gap / refine >= min_step - _SAME                    # intervals wide enough to split
+    inner = (v[:-1][split, None] + gap[split, None] * frac[None, :]).ravel()
+    return np.sort(np.concatenate([v, inner]))
 
 
-def candidate_grid(z_values, m_values, box=None, refine: int = 2):
+def candidate_grid(z_values, m_values, box=None, refine: int = 2, min_step=(0.0, 0.0)):
     """Candidate (z, m) cells from the values simulated so far, however spaced.
 
     Each interval between consecutive simulated values is split into
@@ -149,6 +151,13 @@ def candidate_grid(z_values, m_values, box=None, refine: int = 2):
         Keep only candidates inside (edges included).
     refine : int
         Parts per interval, >= 1 (1: the simulated values only).
+    min_step : (float, float)
+        Smallest spacing (dz, dm [mag]) the refinement creates: an interval
+        is split only if its parts are at least this wide.  Repeated rounds
+        otherwise halve the spacing where they concentrate, without limit
+        (the candidate grid, and the memory of the draws on it, grows each
+        round).  Sources drawn continuously in z or m should be given as
+        their bin values.
 
     Returns
     -------
@@ -164,9 +173,15 @@ def candidate_grid(z_values, m_values, box=None, refine: int = 2):
     if int(refine) != refine or refine < 1:
         raise ValueError(f"candidate_grid: refine must be an integer >= 1, not {refine!r}")
     refine = int(refine)
+    try:
+        dz_min, dm_min = (float(x) for x in min_step)
+    except (TypeError, ValueError):
+        raise ValueError(f"candidate_grid: min_step must be (dz, dm), not {min_step!r}") from None
+    if not (dz_min >= 0 and dm_min >= 0):
+        raise ValueError(f"candidate_grid: min_step must be >= 0, not {min_step!r}")
     (zl, zh), (ml, mh) = _box(box)
-    zc = _refined(z_values, refine, "z")
-    mc = _refined(m_values, refine, "magnitude")
+    zc = _refined(z_values, refine, "z", dz_min)
+    mc = _refined(m_values, refine, "magnitude", dm_min)
     zc = zc[(zc >= zl - _SAME) & (zc <= zh + _SAME)]
     mc = mc[(mc >= ml - _SAME) & (mc <= mh + _SAME)]
     if zc.size == 0 or mc.size == 0:
