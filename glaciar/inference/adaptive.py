@@ -416,6 +416,8 @@ def allocate_sources(scores, k: int, *, n_cells: int | None = None,
         raise ValueError(f"allocate_sources: k must be an integer >= 0, not {k!r}")
     if int(min_per_cell) != min_per_cell or min_per_cell < 1:
         raise ValueError(f"allocate_sources: min_per_cell must be an integer >= 1, not {min_per_cell!r}")
+    if n_cells is not None and (int(n_cells) != n_cells or n_cells < 1):
+        raise ValueError(f"allocate_sources: n_cells must be an integer >= 1, not {n_cells!r}")
     k, min_per_cell = int(k), int(min_per_cell)
     flat = s.ravel()
     out = np.zeros(flat.size, np.int64)
@@ -779,6 +781,7 @@ def run_design(simulate, fit, propose, initial, *, budget: int, round_size: int,
             if int(np.sum(request["n"])) > k or np.any(request["n"] < 0):
                 raise ValueError(f"run_design: propose asked for {int(np.sum(request['n']))} "
                                  f"sources in round {index}, more than the {k} left to it")
+            request = request[request["n"] > 0]
         cells = merge_cells(cells, simulate(request, s_sim))
         spent += int(np.sum(request["n"]))
         posterior = fit(cells, s_fit)
