@@ -10,15 +10,17 @@ selection-function file, the chains, tables and figures is
 - :mod:`~glaciar.inference.sampling` -- emcee per parameter block, convergence;
 - :mod:`~glaciar.inference.diagnostics` -- PPC, PSIS-LOO, redshift-edge check;
 - :mod:`~glaciar.inference.selection_function` -- the fitted selection function, V_eff;
-- :mod:`~glaciar.inference.adaptive` -- where to simulate next.
+- :mod:`~glaciar.inference.adaptive` -- where to simulate next, how many, when to stop.
 """
-from .adaptive import propose_cells
+from .adaptive import (allocate_sources, allocate_variance_reduction, candidate_grid,
+                       information_gain, max_posterior_sd, plan_round, propose_cells, run_design)
 from .fit import (ConvergenceWarning, FitResult, aggregate_cells, find_map, fit_and_choose,
                   fit_surfaces, laplace_covariance)
 from .models import COMPLETENESS_SHAPES, Cells, SurfaceModel
 from .selection_function import EffectiveVolume, SelectionFunction
 
-__all__ = ["propose_cells", "ConvergenceWarning", "FitResult", "aggregate_cells", "find_map",
+__all__ = ["propose_cells", "allocate_sources", "allocate_variance_reduction", "candidate_grid", "information_gain",
+           "max_posterior_sd", "plan_round", "run_design", "ConvergenceWarning", "FitResult", "aggregate_cells", "find_map",
            "fit_and_choose", "fit_surfaces", "laplace_covariance", "run_fit", "COMPLETENESS_SHAPES",
            "Cells", "SurfaceModel", "EffectiveVolume", "SelectionFunction"]
 
