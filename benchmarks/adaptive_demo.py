@@ -73,7 +73,8 @@ def _n_sources(run_dir):
 def main(argv=None):
     from glaciar.config import load_config
     from glaciar.demo import build_demo_survey
-    from glaciar.pipeline.adaptive import AdaptiveSettings, candidate_values, run_adaptive
+    from glaciar.inference import candidate_grid
+    from glaciar.pipeline.adaptive import AdaptiveSettings, run_adaptive
     from glaciar.run import detection_z_limit, simulate
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -88,9 +89,8 @@ def main(argv=None):
     cfg_path = build_demo_survey(work / "survey", n_galaxies=args.n_galaxies, n_iterations=1)
     base = load_config(cfg_path)
     zlim = detection_z_limit(base)
-    zc = candidate_values(base.grid.z_values)
+    zc, mc = candidate_grid(base.grid.z_values, base.grid.mag_values)
     zc = zc[zc < zlim] if zlim is not None else zc
-    mc = candidate_values(base.grid.mag_values)
     n_cells = len(base.grid.z_values) * len(base.grid.mag_values) * len(base.survey.fields)
     unit = n_cells * args.n_galaxies
 

@@ -6,8 +6,10 @@ coarse grid plus any ``grid.cells``), then repeats
 1. fit the run (:func:`glaciar.pipeline.run_fit`, the logistic surface),
 2. measure the largest posterior sd of P = C·S over the (z, m) box,
 3. stop when it is below ``target_sd`` or ``budget`` sources are spent,
-4. otherwise propose cells (:mod:`glaciar.inference.adaptive`), log the
-   proposal, and simulate it into the same store.
+4. otherwise share ~``round_size`` sources among the candidate cells
+   (:func:`glaciar.inference.plan_round`: expected information gain about
+   P = C·S plus the posterior-predictive misfit term), log the proposal,
+   and simulate it into the same store.
 
 Every round is written to ``RUN/adaptive_rounds.json`` (atomically) before
 its cells are simulated, so a run killed at any instant resumes where it
@@ -30,7 +32,7 @@ import numpy as np
 from .. import constants as C
 
 __all__ = ["ADAPTIVE_ROUNDS_NAME", "AdaptiveSettings", "read_rounds", "with_cells",
-           "run_adaptive", "proposal_cells", "cells_yaml"]
+           "run_adaptive", "proposal_cells", "round_cells", "cells_yaml"]
 
 ADAPTIVE_ROUNDS_NAME = "adaptive_rounds.json"
 #: The surface each round fits (the default model of ``glaciar fit``).
@@ -107,27 +109,57 @@ def _simulated_values(cfg):
             cells)
 
 
-def candidate_values(values, refine: int = REFINE) -> np.ndarray:
-    """Sorted values plus ``refine - 1`` evenly spaced points inside each gap.
+def _candidates(cfg, box=None, z_limit=None):
+    """The candidate (z, m) lattice: the design's values and the midpoints between them.
 
-    Works on any sorted set (grown grids are not uniform): the candidates are
-    the values themselves and interior points of each interval between them.
+    The design (the Cartesian axes; every simulated value on an axis the
+    design does not span) fixes the lattice, so a cell proposed again gains
+    iterations instead of new midpoints halving the spacing round after round
+    (:func:`glaciar.inference.candidate_grid`, which assumes no uniform spacing).
     """
-    v = np.unique(np.asarray(values, float))
-    if v.size < 2:
-        return v
-    t = np.arange(1, refine) / refine
-    inner = (v[:-1, None] + t[None, :] * np.diff(v)[:, None]).ravel()
-    return np.unique(np.round(np.concatenate([v, inner]), 6))
+    from ..inference import candidate_grid
+
+    zs, ms, simulated = _simulated_values(cfg)
+    zd, md = np.asarray(cfg.grid.z_values, float), np.asarray(cfg.grid.mag_values, float)
+    zb = None if box is None else ((box[0], box[1]), (box[2], box[3]))
+    zc, mc = candidate_grid(zd if zd.size > 1 else zs, md if md.size > 1 else ms, box=zb,
+                            refine=REFINE)
+    if z_limit is not None:
+        zc = zc[zc < float(z_limit)]
+    if zc.size == 0 or mc.size == 0:
+        raise ValueError("no candidate cell inside the box (and below the detection band's "
+                         "redshift limit)")
+    return zc, mc, simulated
+
+
+def _scored(sf, zc, mc):
+    """Draws of C, S and P on the candidates, and the PPC's misfit mask there."""
+    from ..inference.adaptive import misfit_on_candidates
+
+    g = sf.grid_draws(zc, mc)
+    misfit = None
+    if getattr(sf, "ppc", None) is not None and len(sf.ppc):
+        misfit = misfit_on_candidates(sf.ppc, zc, mc)
+    return g, misfit
+
+
+def _with_totals(cells_zm_n, cfg, simulated) -> list[dict]:
+    out = []
+    for z, m, add in cells_zm_n:
+        have = max((simulated.get((f, float(z), float(m)), 0) for f in cfg.survey.fields),
+                   default=0)
+        out.append({"z": float(z), "mag": float(m), "n_iterations": int(have + add)})
+    return out
 
 
 def proposal_cells(sf, cfg, n_cells: int, *, add_iterations: int = 1,
                    z_limit: float | None = None, box=None) -> tuple[list[dict], dict]:
-    """The ``n_cells`` cells where the fit is least certain, as ``grid.cells`` entries.
+    """The ``n_cells`` cells where one more injection teaches most, as ``grid.cells`` entries.
 
-    Candidates are the design's z and m values and the midpoints between
-    them (:func:`candidate_values`, which needs no uniform spacing), ranked
-    by :func:`glaciar.inference.propose_cells`.
+    Ranked by :func:`glaciar.inference.propose_cells` with the information
+    criterion: the expected information gain of one more selected / not
+    selected outcome about P = C·S, plus a term for the cells the
+    posterior-predictive check flags as misfit.
 
     Parameters
     ----------
@@ -142,44 +174,50 @@ def proposal_cells(sf, cfg, n_cells: int, *, add_iterations: int = 1,
     z_limit : float, optional
         No candidate at or beyond this redshift (the detection band receives no flux).
     box : (z_lo, z_hi, m_lo, m_hi), optional
-        Where to look (default: the simulated values' range).
+        Where to look (default: the design's range).
 
     Returns
     -------
     cells : list of dict
         ``{z, mag, n_iterations}``, ``n_iterations`` being the cell's new total.
     stats : dict
-        ``max_sd`` (largest posterior sd of P = C·S over the candidates), ``at``
-        ([z, m] where it is), and ``ranked`` (the scored cells, best first).
+        ``max_sd`` (largest posterior sd of P over the candidates), ``at`` ([z, m] where
+        it is) and ``ranked`` (the scored cells, best first).
     """
     from ..inference import propose_cells
 
-    zs, ms, simulated = _simulated_values(cfg)
-    # Candidates refine the Cartesian design (a fixed lattice: a cell proposed again gains
-    # iterations rather than new midpoints halving the spacing round after round); an
-    # axis the design does not span falls back to every simulated value.
-    zd, md = np.asarray(cfg.grid.z_values, float), np.asarray(cfg.grid.mag_values, float)
-    zc = candidate_values(zd if zd.size > 1 else zs)
-    mc = candidate_values(md if md.size > 1 else ms)
-    if box is not None:
-        zc = zc[(zc >= box[0]) & (zc <= box[1])]
-        mc = mc[(mc >= box[2]) & (mc <= box[3])]
-    if z_limit is not None:
-        zc = zc[zc < float(z_limit)]
-    if zc.size == 0 or mc.size == 0:
-        raise ValueError("no candidate cell inside the box (and below the detection band's "
-                         "redshift limit)")
-    draws = sf.grid_draws(zc, mc)["P"]
-    sd = np.nanstd(draws, axis=0)
+    zc, mc, simulated = _candidates(cfg, box, z_limit)
+    g, misfit = _scored(sf, zc, mc)
+    ranked = propose_cells(g["P"], zc, mc, int(n_cells), criterion="information",
+                           misfit=misfit)
+    cells = _with_totals([(r["z"], r["mag"], add_iterations) for r in ranked], cfg, simulated)
+    return cells, {**_stopping(g["P"], zc, mc), "ranked": ranked}
+
+
+def _stopping(p_draws, zc, mc) -> dict:
+    from ..inference import max_posterior_sd
+
+    sd = np.std(p_draws, axis=0)
     iz, im = np.unravel_index(int(np.nanargmax(sd)), sd.shape)
-    ranked = propose_cells(draws, zc, mc, int(n_cells))
-    cells = []
-    for row in ranked:
-        z, m = float(row["z"]), float(row["mag"])
-        have = max((simulated.get((f, z, m), 0) for f in cfg.survey.fields), default=0)
-        cells.append({"z": z, "mag": m, "n_iterations": int(have + add_iterations)})
-    return cells, {"max_sd": float(sd[iz, im]), "at": [float(zc[iz]), float(mc[im])],
-                   "ranked": ranked}
+    return {"max_sd": float(max_posterior_sd(p_draws)), "at": [float(zc[iz]), float(mc[im])]}
+
+
+def round_cells(sf, cfg, n_units: int, *, z_limit=None, box=None) -> tuple[list[dict], dict]:
+    """One adaptive round: ``n_units`` cell-iterations shared among the candidates.
+
+    :func:`glaciar.inference.plan_round` (information criterion with the PPC
+    misfit term) shares the units in proportion to the score (largest
+    remainders, at least one per chosen cell); each unit is one more task per
+    field of a cell.
+    """
+    from ..inference import plan_round
+
+    zc, mc, simulated = _candidates(cfg, box, z_limit)
+    g, misfit = _scored(sf, zc, mc)
+    request = plan_round(g["C"], g["S"], zc, mc, int(n_units), criterion="information",
+                         misfit=misfit)
+    cells = _with_totals([(r["z"], r["mag"], int(r["n"])) for r in request], cfg, simulated)
+    return cells, _stopping(g["P"], zc, mc)
 
 
 def cells_yaml(cells: list[dict], header: str = "") -> str:
@@ -249,9 +287,9 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
         remaining = settings.budget - n_sources
         per_task = cfg.simulation.n_galaxies * len(cfg.survey.fields)
         # One more iteration of a cell adds n_galaxies sources per field.
-        n_cells = max(1, int(round(min(settings.round_size, remaining) / per_task)))
-        cells, st = proposal_cells(sf, cfg, n_cells,
-                                   z_limit=manifest.get("detection_z_limit"), box=box)
+        n_units = max(1, int(round(min(settings.round_size, remaining) / per_task)))
+        cells, st = round_cells(sf, cfg, n_units, z_limit=manifest.get("detection_z_limit"),
+                                box=box)
         entry = {"round": len(rounds), "n_sources": n_sources, "max_sd": round(st["max_sd"], 5),
                  "max_sd_at": st["at"],
                  "fit_cpu_seconds": round(time.process_time() - t0, 3)}
@@ -268,7 +306,7 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
         echo(f"round {entry['round']}: {n_sources} sources, max sd of C·S {st['max_sd']:.4f} at "
              f"z = {st['at'][0]:g}, m = {st['at'][1]:g}"
              + (f"; stop ({entry['stop']})" if "stop" in entry else
-                f"; adding {len(cells)} cell-iteration(s)"))
+                f"; adding {n_units} task(s) per field in {len(cells)} cell(s)"))
         if "stop" in entry:
             # Each round's fit warns about the same things: only the final fit's
             # warnings are shown (they describe the selection function the run ends with).
