@@ -71,7 +71,9 @@ def _cmd_simulate(args) -> int:
                      progress=not args.quiet, mode=args.mode)
     print(f"{stats['n_run']} tasks run ({stats['n_done_before']} already done of {stats['n_tasks']}), "
           f"{stats['n_sources']} sources, {stats['wall_seconds']:.1f} s wall, "
-          f"{1e3 * stats['cpu_seconds'] / max(stats['n_sources'], 1):.3f} ms CPU per source")
+          f"{1e3 * stats['process_cpu_seconds'] / max(stats['n_sources'], 1):.3f} ms CPU per "
+          f"source (whole process; {1e3 * stats['cpu_seconds'] / max(stats['n_sources'], 1):.3f} "
+          "inside the tasks)")
     _report(out, regions=cfg.output.regions)
     print(f"results in {out}")
     return 0

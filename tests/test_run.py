@@ -55,8 +55,20 @@ def test_per_source_invariants(serial_run):
 
 def test_same_table_with_two_workers(serial_run, tmp_path):
     cfg, _, rows = serial_run
-    simulate(cfg, tmp_path, workers=2, progress=False)
+    import resource
+
+    def own_cpu():
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return r.ru_utime + r.ru_stime
+
+    c0 = own_cpu()
+    stats = simulate(cfg, tmp_path, workers=2, progress=False)
+    parent = own_cpu() - c0
     pd.testing.assert_frame_equal(_sorted(read_results(tmp_path)), rows)
+    # Whole-process CPU is this process's plus the workers' (their tasks and set-up): at
+    # least the parent's own share plus what the tasks' timers measured in the workers.
+    assert stats["cpu_seconds"] > 0
+    assert stats["process_cpu_seconds"] >= parent + 0.95 * stats["cpu_seconds"]
 
 
 def test_resume_skips_finished_and_matches(serial_run, tmp_path):
