@@ -108,8 +108,18 @@ def test_rows_of_listed_cells_are_current_and_others_are_not():
 # next --write -> simulate --cells, by hand
 # ---------------------------------------------------------------------------
 def _cli(*args, cwd=None, timeout=600):
+    """The command line in a fresh interpreter (`python -m glaciar`)."""
     return subprocess.run([sys.executable, "-m", "glaciar", *map(str, args)], cwd=cwd,
                           capture_output=True, text=True, timeout=timeout)
+
+
+def _main(capsys, *args):
+    """The command line in this process: (exit code, stderr)."""
+    from glaciar.cli import main
+
+    capsys.readouterr()
+    code = main([str(a) for a in args])
+    return code, capsys.readouterr().err
 
 
 def _rows(run_dir: Path) -> pd.DataFrame:
@@ -191,14 +201,15 @@ def test_adaptive_run_killed_mid_round_resumes_to_the_same_table(adaptive_uninte
     assert [e["max_sd"] for e in ra] == [e["max_sd"] for e in rb]
 
 
-def test_next_writes_cells_that_simulate_reads(adaptive_uninterrupted, small_survey, tmp_path):
+def test_next_writes_cells_that_simulate_reads(adaptive_uninterrupted, small_survey, tmp_path,
+                                               capsys):
     import shutil
 
     run = tmp_path / "run"
     shutil.copytree(adaptive_uninterrupted[0], run, ignore=shutil.ignore_patterns(C.LOCK_NAME))
     cells_path = tmp_path / "cells.yaml"
-    r = _cli("next", run, "-n", "3", "--iterations", "2", "--write", cells_path)
-    assert r.returncode == 0, r.stderr
+    code, err = _main(capsys, "next", run, "-n", "3", "--iterations", "2", "--write", cells_path)
+    assert code == 0, err
     cells = yaml.safe_load(cells_path.read_text())["cells"]
     assert len(cells) == 3
     before = task_cells(load_config(run / C.RUN_CONFIG_NAME))
@@ -208,15 +219,15 @@ def test_next_writes_cells_that_simulate_reads(adaptive_uninterrupted, small_sur
         assert c["n_iterations"] == have + 2
     n_before = len(list((run / C.RESULTS_DIRNAME).glob("task_*.parquet")))
     # The run's own stored config is accepted, with the cells file on top.
-    r = _cli("simulate", run / C.RUN_CONFIG_NAME, "--out", run, "--cells", cells_path,
-             "--workers", "1", "--quiet")
-    assert r.returncode == 0, r.stderr
+    code, err = _main(capsys, "simulate", run / C.RUN_CONFIG_NAME, "--out", run, "--cells",
+                      cells_path, "--workers", "1", "--quiet")
+    assert code == 0, err
     n_after = len(list((run / C.RESULTS_DIRNAME).glob("task_*.parquet")))
     n_fields = len(load_config(small_survey).survey.fields)
     assert n_after - n_before == 2 * 3 * n_fields
     # `next` keeps working on the grown run (the manifest still has its grid).
-    r = _cli("next", run, "-n", "2")
-    assert r.returncode == 0, r.stderr
+    code, err = _main(capsys, "next", run, "-n", "2")
+    assert code == 0, err
 
 
 @pytest.mark.parametrize("args, word", [
@@ -225,16 +236,16 @@ def test_next_writes_cells_that_simulate_reads(adaptive_uninterrupted, small_sur
     (["--target-sd", "0"], "--target-sd"), (["--round-size", "2.5"], "--round-size"),
 ])
 def test_bad_adaptive_arguments_are_refused_before_anything_is_written(small_survey, tmp_path,
-                                                                       args, word):
+                                                                       args, word, capsys):
     out = tmp_path / "run"
-    r = _cli("simulate", small_survey, "--out", out, "--adaptive", *args)
-    assert r.returncode == 2
-    assert word in r.stderr and len(r.stderr.strip().splitlines()) <= 2
+    code, err = _main(capsys, "simulate", small_survey, "--out", out, "--adaptive", *args)
+    assert code == 2
+    assert word in err and len(err.strip().splitlines()) <= 2
     assert not out.exists()
 
 
 @pytest.mark.parametrize("n", ["0", "-1", "x", "1.5"])
-def test_bad_next_counts_are_refused(tmp_path, n):
-    r = _cli("next", tmp_path, "-n", n, "--write", tmp_path / "c.yaml")
-    assert r.returncode == 2 and "-n" in r.stderr
+def test_bad_next_counts_are_refused(tmp_path, n, capsys):
+    code, err = _main(capsys, "next", tmp_path, "-n", n, "--write", tmp_path / "c.yaml")
+    assert code == 2 and "-n" in err
     assert not (tmp_path / "c.yaml").exists()
