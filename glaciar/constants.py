@@ -107,6 +107,7 @@ BAND_QUANTITIES = ("mag_in", "mag_in_stamp", "flux_in", "flux_iso", "fluxerr_iso
 RESULTS_DIRNAME = "results"          #: one Parquet file per finished task
 MANIFEST_NAME = "manifest.json"
 RUN_CONFIG_NAME = "config.yaml"      #: the resolved config the run was made with
+ADAPTIVE_ROUNDS_NAME = "adaptive_rounds.json"   #: the adaptive loop's log of rounds (in RUN_DIR)
 SUMMARY_DIRNAME = "summary"
 SELECTION_FUNCTION_NAME = "selection_function.fits"
 LOCK_NAME = ".lock"                  #: advisory lock of the run writing into the directory

@@ -46,7 +46,7 @@ __all__ = ["load_report_data", "render_html", "write_html_report", "REPORT_NAME"
 #: file name of the page inside the run directory
 REPORT_NAME = "report.html"
 #: the adaptive loop's log inside the run directory (a JSON list of objects, one per round)
-ADAPTIVE_ROUNDS_NAME = "adaptive_rounds.json"
+ADAPTIVE_ROUNDS_NAME = C.ADAPTIVE_ROUNDS_NAME
 #: quantile planes of the file's grids, in the order the figures want them
 _PLANE_ORDER = (0.5, 0.16, 0.84, 0.025, 0.975)
 #: per-field per-cell tables are shown up to this many fields (the pooled one always)
@@ -529,14 +529,27 @@ def _depth_section(d: dict) -> str:
     return _section("depth", "Depth map of completeness", body)
 
 
+def _round_value(column: str, value):
+    """One cell of the rounds table: a round's cells and task counts summarised."""
+    if column == "cells" and isinstance(value, list) and value and all(
+            isinstance(c, dict) and {"z", "mag"} <= set(c) for c in value):
+        z = [float(c["z"]) for c in value]
+        m = [float(c["mag"]) for c in value]
+        return f"{len(value)} cells, z {min(z):g}–{max(z):g}, m {min(m):g}–{max(m):g}"
+    if column == "simulated" and isinstance(value, dict):
+        return f"{value.get('n_tasks_run', '?')} tasks, {value.get('cpu_seconds', '?')} s CPU"
+    if isinstance(value, (list, dict)):
+        return json.dumps(value)
+    return value
+
+
 def _adaptive_section(d: dict) -> str:
     rounds = d["adaptive_rounds"]
     if not rounds:
         body = '<p id="adaptive-none">none — this run has no adaptive rounds.</p>'
     else:
         cols = list(dict.fromkeys(k for r in rounds for k in r))
-        rows = [[r.get(c) if not isinstance(r.get(c), (list, dict)) else json.dumps(r.get(c))
-                 for c in cols] for r in rounds]
+        rows = [[_round_value(c, r.get(c)) for c in cols] for r in rounds]
         body = _table(cols, rows, table_id="adaptive-rounds")
     return _section("adaptive", "Adaptive rounds", body)
 

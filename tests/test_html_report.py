@@ -221,14 +221,21 @@ def test_adaptive_rounds_are_shown_when_the_run_has_them(reported):
 
     run, _, _ = reported
     path = run / ADAPTIVE_ROUNDS_NAME
-    rounds = [{"round": 1, "cells": 5, "sources": 500, "max_sd": 0.081, "cpu_seconds": 12.5},
-              {"round": 2, "cells": 4, "sources": 400, "max_sd": 0.043, "cpu_seconds": 10.0}]
+    # As glaciar.pipeline.adaptive logs them.
+    rounds = [{"round": 0, "n_sources": 500, "max_sd": 0.081, "max_sd_at": [9.0, 26.5],
+               "cells": [{"z": 9.0, "mag": 26.5, "n_iterations": 3},
+                         {"z": 9.5, "mag": 27.0, "n_iterations": 1}],
+               "simulated": {"n_tasks_run": 4, "cpu_seconds": 2.5}},
+              {"round": 1, "n_sources": 900, "max_sd": 0.043, "max_sd_at": [9.5, 27.0],
+               "stop": "budget: 900 of 900 sources spent"}]
     try:
         path.write_text(json.dumps(rounds))
         data = load_report_data(run)
         page = _Page(report._adaptive_section(data))
         assert "adaptive-none" not in page.ids
         np.testing.assert_array_equal(_exact(page.column("adaptive-rounds", "max_sd")), [0.081, 0.043])
+        html = report._adaptive_section(data)
+        assert "2 cells, z 9–9.5, m 26.5–27" in html and "4 tasks, 2.5 s CPU" in html
         path.write_text(json.dumps({"round": 1}))
         with pytest.raises(ValueError, match="one per round"):
             load_report_data(run)

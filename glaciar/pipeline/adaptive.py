@@ -34,7 +34,7 @@ from .. import constants as C
 __all__ = ["ADAPTIVE_ROUNDS_NAME", "AdaptiveSettings", "read_rounds", "with_cells",
            "run_adaptive", "proposal_cells", "round_cells", "cells_yaml"]
 
-ADAPTIVE_ROUNDS_NAME = "adaptive_rounds.json"
+ADAPTIVE_ROUNDS_NAME = C.ADAPTIVE_ROUNDS_NAME
 #: The surface each round fits (the default model of ``glaciar fit``).
 ROUND_MODEL = "logistic"
 #: Candidate points per unit of the simulated grid's spacing (2: the values and midpoints).
@@ -124,6 +124,9 @@ def _candidates(cfg, box=None, z_limit=None):
     zb = None if box is None else ((box[0], box[1]), (box[2], box[3]))
     zc, mc = candidate_grid(zd if zd.size > 1 else zs, md if md.size > 1 else ms, box=zb,
                             refine=REFINE)
+    # Midpoints carry binary noise (9.4 + 9.8) / 2 = 9.600000000000001; cells are
+    # keyed by exact values, so they are named to 1e-6 as the design's axes are.
+    zc, mc = np.unique(np.round(zc, 6)), np.unique(np.round(mc, 6))
     if z_limit is not None:
         zc = zc[zc < float(z_limit)]
     if zc.size == 0 or mc.size == 0:
