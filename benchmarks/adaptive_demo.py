@@ -47,14 +47,6 @@ def _config(base_cfg, n_iterations, seed):
     return config_from_dict(d, base_dir=base_cfg.base_dir)
 
 
-def _cpu():
-    """Whole-process CPU so far [s]: this process and its reaped workers."""
-    import resource
-
-    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
-
-
 def _fit(run_dir):
     from glaciar.pipeline import run_fit
 
@@ -75,7 +67,7 @@ def main(argv=None):
     from glaciar.demo import build_demo_survey
     from glaciar.inference import candidate_grid
     from glaciar.pipeline.adaptive import AdaptiveSettings, run_adaptive
-    from glaciar.run import detection_z_limit, simulate
+    from glaciar.run import detection_z_limit, process_cpu_seconds, simulate
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3)
@@ -112,22 +104,24 @@ def main(argv=None):
     budgets = [unit, 2 * unit, 4 * unit]
     for seed in range(1, args.seeds + 1):
         # Uniform: 1, 2, 4 iterations per cell (each a resume of the previous store).
-        c0 = _cpu()
+        c0 = process_cpu_seconds()
         u_dir = work / f"uniform_{seed}"
         for k in (1, 2, 4):
             simulate(_config(base, k, seed), u_dir, workers=args.workers, progress=False)
             _fit(u_dir)
-            rows.append(("uniform", seed, _n_sources(u_dir), _cpu() - c0, *err(u_dir)))
+            rows.append(("uniform", seed, _n_sources(u_dir), process_cpu_seconds() - c0,
+                         *err(u_dir)))
         # Adaptive: the 1-iteration design, then rounds until each budget (each call
         # resumes the previous one's store and rounds log).
-        c0 = _cpu()
+        c0 = process_cpu_seconds()
         a_dir = work / f"adaptive_{seed}"
         for budget in budgets[1:]:
             settings = AdaptiveSettings(target_sd=1e-9, budget=budget,
                                         round_size=max(unit // 4, args.n_galaxies))
             rounds = run_adaptive(_config(base, 1, seed), a_dir, settings, workers=args.workers,
                                   progress=False, echo=lambda *_: None)
-            rows.append(("adaptive", seed, _n_sources(a_dir), _cpu() - c0, *err(a_dir)))
+            rows.append(("adaptive", seed, _n_sources(a_dir), process_cpu_seconds() - c0,
+                         *err(a_dir)))
         (work / f"rounds_{seed}.json").write_text(json.dumps(rounds, indent=1))
 
     print(f"\n{'design':9s} {'seed':>4s} {'sources':>8s} {'CPU s':>8s} {'max|dP|':>8s} "

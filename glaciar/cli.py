@@ -96,10 +96,10 @@ def _with_cells_option(cfg, path):
 
 def _simulate_adaptive(args, cfg, out: Path, workers: int, executor) -> int:
     from .pipeline.adaptive import AdaptiveSettings, run_adaptive
+    from .run import task_cells
 
-    from .run import plan_tasks
-
-    design = len(plan_tasks(cfg)) * cfg.simulation.n_galaxies
+    # Sources of the design: tasks (iterations of every cell) x n_galaxies.
+    design = sum(task_cells(cfg).values()) * cfg.simulation.n_galaxies
     budget = args.budget if args.budget is not None else 3 * design
     round_size = args.round_size if args.round_size is not None else max(
         cfg.simulation.n_galaxies * len(cfg.survey.fields), design // 10)
@@ -115,7 +115,7 @@ def _simulate_adaptive(args, cfg, out: Path, workers: int, executor) -> int:
     print(f"adaptive: {len(rounds)} round(s), {last['n_sources']} sources, max sd of C·S "
           f"{last['max_sd']:.4f}; {last.get('stop', '')}")
     _report(out, regions=cfg.output.regions)
-    print(f"results in {out} (rounds in {out / 'adaptive_rounds.json'})")
+    print(f"results in {out} (rounds in {out / C.ADAPTIVE_ROUNDS_NAME})")
     return 0
 
 

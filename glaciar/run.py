@@ -668,8 +668,7 @@ def _settings_differences(old: dict, new: dict) -> list[str]:
     return diffs
 
 
-def _settings_diff(old: dict, new: dict, limit: int = 3) -> str:
-    diffs = _settings_differences(old, new)
+def _summary(diffs: list[str], limit: int = 3) -> str:
     more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
     return "; ".join(diffs[:limit]) + more
 
@@ -752,9 +751,10 @@ def _check_same_store(run_dir: Path, old: dict, manifest: dict, items: list[Inpu
     what = []
     if old.get("seed") != manifest["seed"]:
         what.append(f"seed: {old.get('seed')} -> {manifest['seed']}")
-    if old.get("store_hash") != manifest["store_hash"] and _settings_differences(
-            old.get("store_settings") or {}, manifest["store_settings"]):
-        what.append(_settings_diff(old.get("store_settings") or {}, manifest["store_settings"]))
+    if old.get("store_hash") != manifest["store_hash"]:
+        diffs = _settings_differences(old.get("store_settings") or {}, manifest["store_settings"])
+        if diffs:
+            what.append(_summary(diffs))
     if what:
         raise StoreMismatchError(
             f"{run_dir}: results were made with a different configuration or seed "

@@ -198,11 +198,10 @@ def proposal_cells(sf, cfg, n_cells: int, *, add_iterations: int = 1,
 
 
 def _stopping(p_draws, zc, mc) -> dict:
-    from ..inference import max_posterior_sd
-
+    """The stopping statistic (as :func:`glaciar.inference.max_posterior_sd`) and where it is."""
     sd = np.std(p_draws, axis=0)
     iz, im = np.unravel_index(int(np.nanargmax(sd)), sd.shape)
-    return {"max_sd": float(max_posterior_sd(p_draws)), "at": [float(zc[iz]), float(mc[im])]}
+    return {"max_sd": float(np.max(sd)), "at": [float(zc[iz]), float(mc[im])]}
 
 
 def round_cells(sf, cfg, n_units: int, *, z_limit=None, box=None) -> tuple[list[dict], dict]:
@@ -271,13 +270,13 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
     rounds = read_rounds(run_dir)
     cfg = with_cells(cfg, [c for r in rounds for c in r.get("cells", [])])
     while True:
-        t0 = time.process_time()
         stats = simulate(cfg, run_dir, workers=workers, seed=seed, executor=executor,
                          progress=progress, mode=mode)
         if rounds and "simulated" not in rounds[-1] and rounds[-1].get("cells"):
             rounds[-1]["simulated"] = {"n_tasks_run": stats["n_run"],
                                        "cpu_seconds": round(stats["cpu_seconds"], 3)}
             _write_rounds(run_dir, rounds)
+        t0 = time.process_time()
         n_sources = _sources_in_store(run_dir)
         fit_kwargs = {"max_steps": settings.max_steps} if settings.max_steps else {}
         # Rounds fit in memory (no file, no summaries); the round that stops the loop is
@@ -293,6 +292,8 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
         n_units = max(1, int(round(min(settings.round_size, remaining) / per_task)))
         cells, st = round_cells(sf, cfg, n_units, z_limit=manifest.get("detection_z_limit"),
                                 box=box)
+        if rounds and rounds[-1].get("stop"):
+            rounds = rounds[:-1]            # a finished loop resumed with a new target/budget
         entry = {"round": len(rounds), "n_sources": n_sources, "max_sd": round(st["max_sd"], 5),
                  "max_sd_at": st["at"],
                  "fit_cpu_seconds": round(time.process_time() - t0, 3)}
@@ -302,8 +303,6 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
             entry["stop"] = f"budget: {n_sources} of {settings.budget} sources spent"
         else:
             entry["cells"] = cells
-        if rounds and rounds[-1].get("stop"):
-            rounds = rounds[:-1]            # a finished loop resumed with a new target/budget
         rounds.append(entry)
         _write_rounds(run_dir, rounds)
         echo(f"round {entry['round']}: {n_sources} sources, max sd of C·S {st['max_sd']:.4f} at "
