@@ -26,7 +26,7 @@ from glaciar.galaxy.igm import IGM_MODELS, igm_discontinuities, igm_transmission
 from glaciar.galaxy.population import Z_MIN_DISTANCE, get_cosmology
 
 __all__ = ["uv_flambda", "band_magnitudes", "absolute_magnitude", "apparent_uv_magnitude",
-           "mag_to_flux", "flux_to_mag", "bands_to_skip"]
+           "distance_term", "mag_to_flux", "flux_to_mag", "bands_to_skip"]
 
 _LN10_OVER_2P5 = np.log(10.0) / 2.5
 _BETA_MIN, _BETA_MAX, _BETA_STEP = -10.0, 6.0, 0.25
@@ -180,12 +180,18 @@ def _check_igm(igm: str) -> str:
     return igm
 
 
-def _distance_term(z: float, cosmology) -> float:
-    """DM(z) - 2.5 log10(1+z): m_obs(1600 A (1+z)) - M_UV for a source at z."""
-    if not z >= Z_MIN_DISTANCE:     # not only z = 0: denormal z give D_L = 0 (see the constant)
+def distance_term(z, cosmology=None):
+    """DM(z) - 2.5 log10(1+z) [mag]: m_obs(1600 A (1+z)) - M_UV for a source at z.
+
+    ``z`` a number (returns a float) or an array (returns an array); every z
+    must be at least ``Z_MIN_DISTANCE`` (not only z = 0: denormal z give D_L = 0).
+    """
+    za = np.asarray(z, dtype=float)
+    if not np.all(za >= Z_MIN_DISTANCE):
         raise ValueError(f"absolute magnitudes need z > 0 (at least {Z_MIN_DISTANCE:g}), got {z}")
     cosmo = get_cosmology(cosmology)
-    return float(cosmo.distmod(z).value) - 2.5 * np.log10(1.0 + z)
+    out = np.asarray(cosmo.distmod(za).value, dtype=float) - 2.5 * np.log10(1.0 + za)
+    return float(out) if out.ndim == 0 else out
 
 
 def _check_detection_colour(c_det: np.ndarray, name: str, z: float, igm: str,
@@ -296,7 +302,7 @@ def band_magnitudes(z: float, beta, filters, *, mag=None, detection_index: int |
         # exact by construction where c - c_det cancels
         out[:, detection_index] = norm
     else:
-        out = norm[:, None] + _distance_term(z, cosmology) + colours
+        out = norm[:, None] + distance_term(z, cosmology) + colours
     if faint_limit is not None:
         out[out > faint_limit] = np.inf
     return out
@@ -341,14 +347,14 @@ def absolute_magnitude(mag, z: float, beta, detection_filter, *, cosmology=None,
     m, b = np.broadcast_arrays(np.asarray(mag, dtype=float), np.asarray(beta, dtype=float))
     c = _band_table(z, filt, igm).colour(np.ravel(b)).reshape(b.shape)
     _check_detection_colour(c, filt.name, z, igm, FAINT_MAG_LIMIT)
-    out = m - c - _distance_term(z, cosmology)
+    out = m - c - distance_term(z, cosmology)
     return out if out.ndim else float(out)
 
 
 def apparent_uv_magnitude(M_uv, z: float, *, cosmology=None):
     """Apparent AB magnitude at observed 1600 A (1+z): M_uv + DM(z) - 2.5 log10(1+z)."""
     z = _check_z(z)
-    out = np.asarray(M_uv, dtype=float) + _distance_term(z, cosmology)
+    out = np.asarray(M_uv, dtype=float) + distance_term(z, cosmology)
     return out if out.ndim else float(out)
 
 

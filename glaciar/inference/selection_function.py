@@ -227,13 +227,14 @@ def kcorrection(z, beta, detection_filter, *, igm: str = "inoue14", cosmology=No
     from scipy.interpolate import CubicSpline
 
     from ..galaxy.population import get_cosmology
+    from ..galaxy.sed import distance_term
 
     cosmology = get_cosmology(cosmology)
     z = np.atleast_1d(np.asarray(z, float))
     b = np.atleast_1d(np.asarray(beta, float))
     if z.size and not np.all(np.isfinite(z) & (z > 0)):
         raise ValueError("kcorrection: z must be finite and > 0")
-    dist = np.asarray(cosmology.distmod(z).value, float) - 2.5 * np.log10(1.0 + z)
+    dist = distance_term(z, cosmology) if z.size else np.zeros(0)
     lo, hi = (float(z.min()), float(z.max())) if z.size else (0.0, 0.0)
     n_nodes = int(np.ceil((hi - lo) / dz)) + 1 if dz else z.size + 1
     if n_nodes >= z.size or n_nodes < 4:
