@@ -79,18 +79,13 @@ def _grid(lo, hi, step, max_n=81):
     return np.linspace(lo, hi, n)
 
 
-def _one_fit(cells, mdl, fit_dir, tag, seed, n_walkers, max_steps, resume, progress):
-    """fit_surfaces, continuing saved chains of the same data and settings, with a progress bar."""
-    from tqdm.auto import tqdm
-
+def _one_fit(cells, mdl, fit_dir, tag, seed, n_walkers, max_steps, resume, bar):
+    """fit_surfaces, continuing saved chains of the same data and settings; steps on ``bar``."""
     key = chains_key(cells, mdl, seed, n_walkers)
     prev = load_chains(fit_dir, tag, mdl, key) if resume else None
-    bar = tqdm(desc=f"fit {tag}", unit="step", disable=not progress, leave=False)
-    try:
-        res = fit_surfaces(cells, mdl, seed=seed, n_walkers=n_walkers, max_steps=max_steps,
-                           callback=bar.update, resume=prev)
-    finally:
-        bar.close()
+    bar.set_postfix_str(tag, refresh=False)
+    res = fit_surfaces(cells, mdl, seed=seed, n_walkers=n_walkers, max_steps=max_steps,
+                       callback=bar.update, resume=prev)
     return res, key
 
 
@@ -161,7 +156,7 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         Cap on the steps each chain runs in this call; a re-run extends
         unconverged saved chains by up to this many steps.
     progress : bool
-        One progress bar per fit.
+        Show one progress bar (sampler steps of every model and field).
     cosmology : astropy Cosmology, optional
         Cosmology of the V_eff entries (default Planck18).
     area_arcmin2 : float, optional
@@ -288,6 +283,10 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
     outputs = []
     summary = {"model": model, "seed": seed, "magnitude_type": magnitude_type,
                "depth_aware": bool(depth_aware), "depth_ref": depth_ref, "fits": {}}
+    from tqdm.auto import tqdm
+
+    # One progress bar for the job (every model and field), named by the fit it is on.
+    bar = tqdm(desc="fit", unit="step", disable=not progress, leave=False)
     for i, (name, d) in enumerate(groups):
         cells = cells_all if not per_field else d.cells(mag_resolution, depth_ref, mag_col)
         fseed = [int(seed), i] if per_field else int(seed)
@@ -296,7 +295,7 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         def fit(c, mdl, name=name, fseed=fseed, keys=keys):
             tag = file_tag(f"{name}_{mdl.shape}")
             res, keys[mdl.shape] = _one_fit(c, mdl, fit_dir, tag, fseed, n_walkers, max_steps,
-                                            resume, progress)
+                                            resume, bar)
             return res
 
         chosen, results, comparison = fit_and_choose(cells, shapes, depth_ref=depth_ref,
@@ -366,6 +365,7 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         summary["fits"][name] = entry
         outputs.append((name, tag, res, key, draws, sf))
 
+    bar.close()
     if not write:
         return [sf for *_, sf in outputs]
     # V_eff(M_UV) and the transfer matrices (issue 8.4), also before anything is written.
