@@ -86,12 +86,12 @@ def _with_cells_option(cfg, path):
     from .config.models import read_cells_file
     from .pipeline.adaptive import with_cells
 
+    if not Path(path).is_file():
+        raise ConfigError(f"--cells {path}: file not found")
     try:
-        return with_cells(cfg, read_cells_file(Path(path)))
+        return with_cells(cfg, read_cells_file(Path(path)), source_name=f"--cells {path}")
     except At as exc:
         raise ConfigError(f"--cells {path}: {exc.message}") from None
-    except ConfigError as exc:
-        raise ConfigError(f"--cells {path}: {exc}") from None
 
 
 def _simulate_adaptive(args, cfg, out: Path, workers: int, executor) -> int:

@@ -90,15 +90,18 @@ def _write_rounds(run_dir, rounds: list[dict]) -> None:
     atomic_write_text(Path(run_dir) / ADAPTIVE_ROUNDS_NAME, json.dumps(rounds, indent=1) + "\n")
 
 
-def with_cells(cfg, cells: list[dict]):
-    """``cfg`` with ``cells`` ({z, mag, n_iterations[, fields]}) added to ``grid.cells``."""
+def with_cells(cfg, cells: list[dict], source_name: str = "cells"):
+    """``cfg`` with ``cells`` ({z, mag, n_iterations[, fields]}) added to ``grid.cells``.
+
+    Errors in the cells are reported as coming from ``source_name``.
+    """
     from ..config import config_from_dict, config_to_dict
 
     if not cells:
         return cfg
     d = config_to_dict(cfg)
     d["grid"]["cells"] = list(d["grid"].get("cells", [])) + [dict(c) for c in cells]
-    return config_from_dict(d, base_dir=cfg.base_dir)
+    return config_from_dict(d, base_dir=cfg.base_dir, source_name=source_name)
 
 
 def _simulated_values(cfg):
