@@ -116,3 +116,9 @@ FINGERPRINT_CACHE_NAME = ".input_fingerprints.json"   #: input hashes by (path, 
 #: key and row count in their metadata; manifest with store settings and input fingerprints.
 #: Directories of format 1 (no ``store_format`` in the manifest) can be read but not resumed.
 STORE_FORMAT = 2
+
+# ---------------------------------------------------------------------------
+# grid.box: continuous injection points (glaciar.box)
+# ---------------------------------------------------------------------------
+BOX_Z_RESOLUTION = 1e-4     #: box points' redshifts are multiples of this (exact keys)
+BOX_MAG_RESOLUTION = 1e-4   #: box points' magnitudes are multiples of this [mag]

@@ -278,12 +278,27 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         detection_background=backgrounds[det])
 
 
+def box_cells(cfg: Config) -> list[dict]:
+    """The points of ``grid.box`` as cells (plain JSON, fields resolved); [] without a box.
+
+    The points depend on ``simulation.seed`` (:func:`glaciar.box.box_points`;
+    :func:`simulate` puts a ``seed`` override into the config first).
+    """
+    box = cfg.grid.box
+    if box is None:
+        return []
+    fields = list(box.fields or cfg.survey.fields)
+    return [{"z": z, "mag": m, "n_iterations": int(box.n_iterations), "fields": fields}
+            for z, m in box.points(cfg.simulation.seed)]
+
+
 def task_cells(cfg: Config) -> dict[tuple[str, float, float], int]:
     """Every simulated cell of a run: ``{(field, z, mag): n_iterations}``.
 
     The Cartesian grid (``simulation.n_iterations`` each) united with
-    ``grid.cells``; a cell given twice (or also on the grid) runs the largest
-    of its iteration counts, so re-applying a proposal adds nothing.
+    ``grid.cells`` and the points of ``grid.box``; a cell given twice (or also
+    on the grid) runs the largest of its iteration counts, so re-applying a
+    proposal adds nothing.
     """
     n_it = cfg.simulation.n_iterations
     cells: dict[tuple[str, float, float], int] = {}
@@ -291,10 +306,10 @@ def task_cells(cfg: Config) -> dict[tuple[str, float, float], int]:
         for z in cfg.grid.z_values:
             for m in cfg.grid.mag_values:
                 cells[(f, float(z), float(m))] = n_it
-    for cell in cfg.grid.cells:
-        for f in cell.fields or cfg.survey.fields:
-            key = (f, float(cell.z), float(cell.mag))
-            cells[key] = max(cells.get(key, 0), cell.n_iterations or n_it)
+    for cell in manifest_cells(cfg):
+        for f in cell["fields"]:
+            key = (f, cell["z"], cell["mag"])
+            cells[key] = max(cells.get(key, 0), cell["n_iterations"])
     return cells
 
 
@@ -318,10 +333,15 @@ def plan_tasks(cfg: Config) -> list[TaskSpec]:
 
 
 def manifest_cells(cfg: Config) -> list[dict]:
-    """``grid.cells`` as the manifest records them (plain JSON; fields resolved)."""
+    """``grid.cells`` and the points of ``grid.box`` as the manifest records them.
+
+    Plain JSON, fields resolved: the rows of every listed cell are current
+    (:func:`glaciar.store.current_rows_mask`).
+    """
     return [{"z": float(c.z), "mag": float(c.mag),
              "n_iterations": int(c.n_iterations or cfg.simulation.n_iterations),
-             "fields": list(c.fields or cfg.survey.fields)} for c in cfg.grid.cells]
+             "fields": list(c.fields or cfg.survey.fields)} for c in cfg.grid.cells] \
+        + box_cells(cfg)
 
 
 def spec_filename(spec: TaskSpec) -> str:
@@ -610,6 +630,7 @@ def store_settings(cfg: Config) -> dict:
     d["grid"].pop("z", None)
     d["grid"].pop("mag", None)
     d["grid"].pop("cells", None)
+    d["grid"].pop("box", None)       # box points are cells: they only add tasks
     d["simulation"].pop("n_iterations", None)
     d["simulation"].pop("seed", None)
     det = d.get("detection") or {}
@@ -736,6 +757,9 @@ def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
         "n_galaxies": cfg.simulation.n_galaxies,
         "n_iterations": cfg.simulation.n_iterations,
         "cells": manifest_cells(cfg),
+        **({} if cfg.grid.box is None else
+           {"box": {"z": list(cfg.grid.box.z), "mag": list(cfg.grid.box.mag),
+                    "n_points": cfg.grid.box.n_points}}),
         "pixel_scale_arcsec": pixscale,
         "area_arcmin2": area,
         "area_arcmin2_total": float(sum(area.values())),
@@ -968,6 +992,11 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
 
     run_dir = Path(run_dir)
     seed = _check_count("seed", cfg.simulation.seed if seed is None else seed, 0)
+    if seed != cfg.simulation.seed:
+        # The override is the run's seed everywhere, the box's points included (and the
+        # run's stored config.yaml says so).
+        cfg = cfg.model_copy(update={"simulation": cfg.simulation.model_copy(
+            update={"seed": seed})})
     workers = _check_count("workers", workers, 1)
     if mode not in ("windowed", "full"):
         raise ValueError(f"mode: expected 'windowed' or 'full', got {mode!r}")

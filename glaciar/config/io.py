@@ -255,7 +255,9 @@ def config_to_dict(cfg: Config, relative_to: str | os.PathLike | None = None) ->
                  "magnitude_type": cfg.grid.magnitude_type,
                  # Only when given: configurations without cells keep their hashes.
                  **({"cells": [c.model_dump(mode="json", exclude_none=True)
-                               for c in cfg.grid.cells]} if cfg.grid.cells else {})},
+                               for c in cfg.grid.cells]} if cfg.grid.cells else {}),
+                 **({"box": cfg.grid.box.model_dump(mode="json", exclude_none=True)}
+                    if cfg.grid.box is not None else {})},
         "simulation": cfg.simulation.model_dump(mode="json"),
         "source": cfg.source.model_dump(mode="json"),
         "detection": cfg.detection.model_dump(mode="json", by_alias=True),
@@ -302,7 +304,7 @@ def store_hash(cfg: Config) -> str:
     """SHA-256 (hex) of the settings that fix every task's rows.
 
     As :func:`config_hash`, but without the field list, the grid's z and
-    magnitude values and ``simulation.n_iterations``: those only add or remove
+    magnitude values, its cells and box, and ``simulation.n_iterations``: those only add or remove
     tasks (each task's random stream is keyed by its field name, z, magnitude
     and iteration, not by its position in the grid), so a results store can be
     extended with more cells or iterations and stay consistent.
@@ -313,6 +315,7 @@ def store_hash(cfg: Config) -> str:
     d["grid"].pop("z", None)
     d["grid"].pop("mag", None)
     d["grid"].pop("cells", None)
+    d["grid"].pop("box", None)
     d["simulation"].pop("n_iterations", None)
     return _sha256_json(d)
 

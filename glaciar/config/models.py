@@ -36,7 +36,7 @@ from ..galaxy.sersic import Q_MIN
 from ._types import At, Choice, Float, Int, show, unknown_key_error
 
 __all__ = ["Section", "PsfProfile", "BandConfig", "SurveyConfig", "AxisSpec", "GridCell", "GridConfig",
-           "SimulationConfig", "SourceConfig", "DetectionImageConfig", "DetectionConfig", "ClassificationConfig",
+           "GridBox", "SimulationConfig", "SourceConfig", "DetectionImageConfig", "DetectionConfig", "ClassificationConfig",
            "OutputConfig", "NoiseConfig", "Config", "SECTIONS", "MAX_TASKS", "MAX_GRID_VALUES",
            "selection_columns", "read_fields_file", "read_cells_file", "resolve_path", "looks_like_path"]
 
@@ -45,6 +45,8 @@ __all__ = ["Section", "PsfProfile", "BandConfig", "SurveyConfig", "AxisSpec", "G
 MAX_TASKS = 10_000_000
 #: Largest number of values of one grid axis.
 MAX_GRID_VALUES = 10_000
+#: Largest number of points of ``grid.box`` (the manifest lists each one).
+MAX_BOX_POINTS = 100_000
 
 
 def _default(cls, name: str):
@@ -623,12 +625,51 @@ def read_cells_file(path) -> list:
     return data
 
 
+def _range(lower=None):
+    """A ``[lo, hi]`` pair of finite numbers (``lo >= lower``); the order is checked by the model."""
+    item = Annotated[Float, Field(ge=lower)] if lower is not None else Float
+    return tuple[item, item]
+
+
+class GridBox(Section):
+    """Injection points drawn continuously over a (z, m) box (:mod:`glaciar.box`).
+
+    ``n_points`` points of a randomly shifted Halton sequence (the shift derived
+    from ``simulation.seed``), rounded to 1e-4 in z and mag; each point is a
+    cell of ``n_iterations`` tasks per field. Growing ``n_points`` keeps the
+    first points (a prefix of the sequence), so a store is extended, not redone.
+    """
+
+    z: _range(lower=0.0) = Field(description="[z_lo, z_hi]: redshift range, z_lo < z_hi")
+    mag: _range() = Field(description="[m_lo, m_hi]: magnitude range [AB mag], m_lo < m_hi")
+    n_points: Int = Field(ge=1, le=MAX_BOX_POINTS, description="number of (z, mag) points")
+    n_iterations: Int = Field(1, ge=1, description="iterations (tasks of simulation.n_galaxies "
+                                                   "sources) per point and field")
+    fields: tuple[str, ...] | None = Field(None, description="fields to simulate it in "
+                                                             "(default: all)")
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        for key in ("z", "mag"):
+            lo, hi = getattr(self, key)
+            if not lo < hi:
+                raise At(f"expected [lo, hi] with lo < hi, got [{lo:g}, {hi:g}]", key)
+        return self
+
+    def points(self, seed: int) -> list[tuple[float, float]]:
+        """The box's (z, mag) points for a run seed (:func:`glaciar.box.box_points`)."""
+        from ..box import box_points
+
+        return box_points(self.z, self.mag, self.n_points, seed)
+
+
 class GridConfig(Section):
     """Simulation grid: one task per (field, z, mag, iteration).
 
     The Cartesian product of ``z`` and ``mag`` plus any explicit ``cells``
-    (e.g. the proposals of ``glaciar next --write``); tasks are keyed by their
-    exact values, so cells and grid can grow between runs into one store.
+    (e.g. the proposals of ``glaciar next --write``) plus the points of a
+    ``box``; tasks are keyed by their exact values, so grid, cells and box can
+    grow between runs into one store.
     """
 
     z: RedshiftAxis = Field(default_factory=lambda: RedshiftAxis(**_Z_DEFAULT),
@@ -645,6 +686,9 @@ class GridConfig(Section):
                                         max_length=MAX_GRID_VALUES)
     cells_file: str | None = Field(None, description="a YAML file of cells (as written by "
                                                      "`glaciar next --write`), added to cells")
+    box: GridBox | None = Field(None, description="points drawn continuously over a (z, mag) "
+                                "box: {z: [lo, hi], mag: [lo, hi], n_points, n_iterations, "
+                                "fields}; added to the grid and cells")
 
     @classmethod
     def _prepare(cls, data: dict, info: ValidationInfo) -> dict:
@@ -1082,10 +1126,18 @@ class Config(Section):
                 raise At(f"field(s) {unknown} not in survey.fields", "grid", "cells", i, "fields")
             n_cell_tasks += ((cell.n_iterations or self.simulation.n_iterations)
                              * len(cell.fields or fields))
+        box = self.grid.box
+        n_box_tasks = 0
+        if box is not None:
+            unknown = [f for f in (box.fields or ()) if f not in fields]
+            if unknown:
+                raise At(f"field(s) {unknown} not in survey.fields", "grid", "box", "fields")
+            n_box_tasks = box.n_points * box.n_iterations * len(box.fields or fields)
         n_tasks = (len(self.survey.fields) * len(self.grid.z_values) * len(self.grid.mag_values)
-                   * self.simulation.n_iterations) + n_cell_tasks
+                   * self.simulation.n_iterations) + n_cell_tasks + n_box_tasks
         if n_tasks > MAX_TASKS:
             cells = f" + {n_cell_tasks} of grid.cells" if n_cell_tasks else ""
+            cells += f" + {n_box_tasks} of grid.box" if n_box_tasks else ""
             raise At(f"{self.simulation.n_iterations} iterations x {len(self.survey.fields)} "
                      f"field(s) x {len(self.grid.z_values)} z x {len(self.grid.mag_values)} mag"
                      f"{cells} = {n_tasks:.3g} tasks, more than the {MAX_TASKS:.0e} one run can "

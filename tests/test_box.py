@@ -1,0 +1,163 @@
+"""``grid.box``: injection points drawn continuously over a (z, m) box.
+
+The points are checked against an independent construction (scipy's unscrambled
+Halton sequence, shifted by the BLAKE2b rotation the docs define), and a small
+box is simulated, interrupted, resumed and fitted on the tiny demo survey.
+"""
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from glaciar import constants as C
+from glaciar.config import ConfigError, config_from_dict, config_to_dict, load_config
+from glaciar.run import plan_tasks, task_cells
+
+BOX = {"z": [8.2, 10.1], "mag": [24.5, 27.0], "n_points": 3}
+
+
+def _config_with(base_config: Path, tmp_path: Path, name="cfg.yaml", **grid) -> Path:
+    d = yaml.safe_load(base_config.read_text())
+    d["grid"].update(grid)
+    out = tmp_path / name
+    out.write_text(yaml.safe_dump(d, sort_keys=False))
+    return out
+
+
+def _expected_points(z, mag, n, seed):
+    """The documented construction, rebuilt from scipy.stats.qmc and hashlib."""
+    from scipy.stats import qmc
+
+    h = hashlib.blake2b(f"glaciar.box:{seed}".encode(), digest_size=16).digest()
+    shift = np.array([int.from_bytes(h[:8], "little") >> 12,
+                      int.from_bytes(h[8:], "little") >> 12]) / 2.0 ** 52
+    u = np.mod(qmc.Halton(d=2, scramble=False).random(n) + shift, 1.0)
+    zz = z[0] + u[:, 0] * (z[1] - z[0])
+    mm = mag[0] + u[:, 1] * (mag[1] - mag[0])
+    return np.round(zz, 4), np.round(mm, 4)
+
+
+@pytest.mark.parametrize("seed", [0, 12345, 2 ** 62 + 7])
+def test_points_are_a_shifted_halton_sequence_rounded_inside_the_box(seed):
+    from glaciar.box import box_points
+
+    z, mag, n = (9.0, 11.5), (24.0, 28.3), 576
+    pts = np.array(box_points(z, mag, n, seed))
+    ez, em = _expected_points(z, mag, n, seed)
+    # Equal up to a rounding tie (scipy sums the digits in floating point).
+    assert np.mean(np.abs(pts[:, 0] - ez) < 1e-9) > 0.99
+    assert np.mean(np.abs(pts[:, 1] - em) < 1e-9) > 0.99
+    assert np.all(np.abs(pts - np.c_[ez, em]) <= 1e-4 + 1e-9)
+    assert np.all((pts[:, 0] >= z[0]) & (pts[:, 0] <= z[1]))
+    assert np.all((pts[:, 1] >= mag[0]) & (pts[:, 1] <= mag[1]))
+    # Multiples of the resolution, written as short decimals (exact keys, YAML/JSON round-trip).
+    assert all(float(repr(float(v))) == v and len(repr(float(v)).split(".")[-1]) <= 4
+               for v in pts.ravel())
+    assert len({tuple(p) for p in pts}) == n
+    # Low discrepancy: each of 8 x 9 sub-boxes holds 8 points within 3 (independent
+    # uniform draws give 3 to 15).
+    h, _, _ = np.histogram2d(pts[:, 0], pts[:, 1], bins=(8, 9), range=[z, mag])
+    assert h.min() >= 5 and h.max() <= 11
+
+
+def test_points_depend_on_the_seed_and_a_larger_box_keeps_the_first_points():
+    from glaciar.box import box_points
+
+    a = box_points((8, 10), (25, 27), 40, 1)
+    assert box_points((8, 10), (25, 27), 40, 1) == a
+    assert box_points((8, 10), (25, 27), 17, 1) == a[:17]
+    assert box_points((8, 10), (25, 27), 40, 2) != a
+
+
+def test_box_cells_join_the_grid_and_do_not_change_the_store_identity(small_survey, tmp_path):
+    from glaciar.config import store_hash
+    from glaciar.run import store_settings
+
+    plain = load_config(small_survey)
+    cfg = load_config(_config_with(small_survey, tmp_path, box=dict(BOX, n_iterations=2)))
+    assert store_hash(plain) == store_hash(cfg)
+    assert store_settings(plain) == store_settings(cfg)
+    again = config_from_dict(config_to_dict(cfg), base_dir=cfg.base_dir)
+    assert again == cfg
+    n_f = len(cfg.survey.fields)
+    ez, em = _expected_points(BOX["z"], BOX["mag"], 3, cfg.simulation.seed)
+    cells = task_cells(cfg)
+    for z, m in zip(ez, em):
+        assert all(cells[(f, float(z), float(m))] == 2 for f in cfg.survey.fields)
+    # 2 z x 2 mag x 2 iterations on the grid, plus 3 points x 2 iterations, per field.
+    assert len(plan_tasks(cfg)) == n_f * (8 + 6)
+
+
+@pytest.mark.parametrize("box, where", [
+    ({"z": [10.0, 9.0], "mag": [25, 26], "n_points": 4}, "grid.box.z"),
+    ({"z": [9.0, 10.0], "mag": [26, 26], "n_points": 4}, "grid.box.mag"),
+    ({"z": [-1.0, 10.0], "mag": [25, 26], "n_points": 4}, "grid.box.z"),
+    ({"z": [9.0, 10.0, 11.0], "mag": [25, 26], "n_points": 4}, "grid.box.z"),
+    ({"z": [9.0, 10.0], "mag": [25, 26], "n_points": 0}, "grid.box.n_points"),
+    ({"z": [9.0, 10.0], "mag": [25, 26]}, "grid.box.n_points"),
+    ({"z": [9.0, 10.0], "mag": [25, "x"], "n_points": 3}, "grid.box.mag"),
+    ({"z": [9.0, 10.0], "mag": [25, 26], "n_points": 3, "fields": ["nope"]}, "grid.box.fields"),
+])
+def test_bad_boxes_are_refused_in_one_line_with_exit_2(small_survey, tmp_path, box, where, capsys):
+    from glaciar.cli import main
+
+    with pytest.raises(ConfigError) as err:
+        load_config(_config_with(small_survey, tmp_path, box=box))
+    assert where in str(err.value)
+    out = tmp_path / "run"
+    capsys.readouterr()
+    code = main(["simulate", str(tmp_path / "cfg.yaml"), "--out", str(out), "--quiet"])
+    err_text = capsys.readouterr().err.strip()
+    assert code == 2 and where in err_text and len(err_text.splitlines()) == 1
+    assert not out.exists()
+
+
+def _table(run_dir: Path) -> pd.DataFrame:
+    files = sorted((run_dir / C.RESULTS_DIRNAME).rglob("*.parquet"))
+    df = pd.concat([pd.read_parquet(f) for f in files], ignore_index=True)
+    return df.sort_values([C.COL_FIELD, C.COL_Z, C.COL_MAG, C.COL_ITERATION,
+                           C.COL_SOURCE]).reset_index(drop=True)
+
+
+@pytest.mark.filterwarnings("ignore::glaciar.inference.sampling.ConvergenceWarning")
+def test_box_simulates_resumes_to_the_same_table_grows_by_a_prefix_and_fits(small_survey,
+                                                                            tmp_path):
+    from glaciar.pipeline.fit import run_fit
+    from glaciar.run import simulate
+    from glaciar.store import read_manifest
+
+    # Written beside the survey: its paths are relative to the config.
+    here = small_survey.parent
+    cfg = load_config(_config_with(small_survey, here, name="box_run.yaml", box=BOX))
+    a, b = tmp_path / "a", tmp_path / "b"
+    simulate(cfg, a, progress=False)
+    simulate(cfg, b, progress=False, max_tasks=5)          # interrupted ...
+    simulate(cfg, b, progress=False)                       # ... and resumed
+    ta, tb = _table(a), _table(b)
+    pd.testing.assert_frame_equal(ta, tb)
+    ez, em = _expected_points(BOX["z"], BOX["mag"], 3, cfg.simulation.seed)
+    box_rows = ta[ta[C.COL_Z].isin(ez)]
+    assert sorted(set(zip(box_rows[C.COL_Z], box_rows[C.COL_MAG]))) == sorted(zip(ez, em))
+    # Growing the box runs only the new points: the first three are a prefix.
+    grown = load_config(_config_with(small_survey, here, name="box_grown.yaml",
+                                     box=dict(BOX, n_points=5)))
+    stats = simulate(grown, a, progress=False)
+    assert stats["n_run"] == len(grown.survey.fields) * 2
+    manifest = read_manifest(a)
+    assert manifest["box"]["n_points"] == 5
+    # The fit reads every point of grid and box at its own z (2 grid z + 5 box z).
+    from glaciar.pipeline.inputs import fit_inputs
+    from glaciar.store import COUNTS_MAG_RESOLUTION
+
+    fi = fit_inputs(a, C.COL_MAG_INPUT, COUNTS_MAG_RESOLUTION)
+    assert sorted(np.unique(fi.z)) == sorted({8.0, 10.4, *ez, *_expected_points(
+        BOX["z"], BOX["mag"], 5, cfg.simulation.seed)[0]})
+    sf = run_fit(a, model="logistic", progress=False, plots=False, write=False,
+                 max_steps=300)[0]
+    p = sf.grid_draws(np.array([8.5, 9.5]), np.array([24.5, 27.0]))["P"]
+    assert np.all(np.isfinite(p)) and np.all((p >= 0) & (p <= 1))
