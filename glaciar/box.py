@@ -25,9 +25,16 @@ import numpy as np
 
 from .constants import BOX_MAG_RESOLUTION, BOX_Z_RESOLUTION
 
-__all__ = ["halton", "box_shift", "box_points"]
+__all__ = ["halton", "box_shift", "box_points", "box_lattice", "box_bin_edges"]
 
 _BASES = (2, 3)
+#: Values per axis of the candidate lattice over a box (``glaciar next``, ``--adaptive``):
+#: about sqrt(n_points), within these bounds, before the midpoints are added.
+LATTICE_MIN, LATTICE_MAX = 3, 17
+#: Box points per bin (on average) of the binned summary tables (``box_summary_*.ecsv``).
+POINTS_PER_BIN = 4
+#: Largest number of bins per axis of the binned summary tables.
+BINS_MAX = 20
 
 
 def halton(n: int, start: int = 0) -> np.ndarray:
@@ -95,3 +102,27 @@ def box_points(z_range, mag_range, n: int, seed: int) -> list[tuple[float, float
 
 def _decimals(res: float) -> int:
     return max(0, int(round(-np.log10(res))))
+
+
+def box_lattice(z_range, mag_range, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """A regular (z, mag) lattice over the box, for proposing cells where it is least certain.
+
+    ``ceil(sqrt(n_points))`` values per axis (between ``LATTICE_MIN`` and
+    ``LATTICE_MAX``), edges included, named to 1e-6 like the candidates of
+    :func:`glaciar.inference.candidate_grid` (cells are keyed by exact values).
+    The box's own points are not a lattice: taking their values as candidate
+    axes would give n_points**2 candidates.
+    """
+    n = int(np.clip(np.ceil(np.sqrt(n_points)), LATTICE_MIN, LATTICE_MAX))
+    return tuple(np.round(np.linspace(float(lo), float(hi), n), 6)
+                 for lo, hi in (z_range, mag_range))
+
+
+def box_bin_edges(z_range, mag_range, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Equal bins over the box for the binned summary tables, ~``POINTS_PER_BIN`` points each.
+
+    ``round(sqrt(n_points / POINTS_PER_BIN))`` bins per axis (1 to ``BINS_MAX``):
+    a low-discrepancy sequence fills such bins almost evenly.
+    """
+    n = int(np.clip(np.round(np.sqrt(n_points / POINTS_PER_BIN)), 1, BINS_MAX))
+    return tuple(np.linspace(float(lo), float(hi), n + 1) for lo, hi in (z_range, mag_range))

@@ -138,7 +138,15 @@ def _report(run_dir: Path, regions: bool = False) -> list[Path]:
     manifest = read_manifest(run_dir) or {}
     out_dir = run_dir / C.SUMMARY_DIRNAME
     meta = {k: manifest[k] for k in ("config_hash", "seed", "detection_band", "selection") if k in manifest}
-    paths = write_summaries(rows, out_dir, meta)
+    box = None
+    if manifest.get("box"):
+        from .box import box_bin_edges, box_points
+
+        b = manifest["box"]
+        ze, me = box_bin_edges(b["z"], b["mag"], b["n_points"])
+        box = {"points": box_points(b["z"], b["mag"], b["n_points"], manifest["seed"]),
+               "z_edges": ze, "mag_edges": me}
+    paths = write_summaries(rows, out_dir, meta, box=box)
     mag_label = "M_UV" if manifest.get("magnitude_type") == "absolute" else \
         f"m ({manifest.get('detection_band', 'detection band')}, AB)"
     for field, sub in rows.groupby(C.COL_FIELD):

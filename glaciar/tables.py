@@ -21,6 +21,10 @@ Columns of the summary (the paper's Table 1, with headers that match the data):
 ``selection_total``   C·S = n_selected / n_input
 ``selection``         S = n_selected / n_recovered (NaN where nothing was recovered)
 ====================  =====================================================
+
+A run with ``grid.box`` also gets ``box_summary_*.ecsv``: the same columns for the
+box's points binned on a grid over the box (:func:`box_summary_table`), with the
+bin edges ``z_lo``, ``z_hi``, ``mag_lo``, ``mag_hi`` and ``n_points``.
 """
 from __future__ import annotations
 
@@ -35,7 +39,7 @@ from astropy.table import Table
 from . import constants as C
 from .store import atomic_write_bytes, atomic_write_text, field_file_prefix
 
-__all__ = ["summary_table", "write_summaries", "region_file", "STATUS_COLUMNS",
+__all__ = ["summary_table", "box_summary_table", "write_summaries", "region_file", "STATUS_COLUMNS",
            "TransferMatrix", "transfer_matrix", "slice_edges", "TRANSFER_KINDS"]
 
 #: summary column of each status code
@@ -89,6 +93,58 @@ def _fractions(out: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
+def box_summary_table(rows: pd.DataFrame, points, z_edges, mag_edges) -> pd.DataFrame:
+    """Counts of the ``grid.box`` points binned on a (z, mag) grid over the box.
+
+    A box point is one (z, m) cell of a few tasks: a table of its own per point
+    says little.  The box's points (and only them: grid cells and ``grid.cells``
+    inside the box are not mixed in) are summed per bin.
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        As :func:`summary_table` (rows or stored counts).
+    points : sequence of (float, float)
+        The box's (z, mag) points (:func:`glaciar.box.box_points`), matched exactly.
+    z_edges, mag_edges : array_like
+        Bin edges (:func:`glaciar.box.box_bin_edges`); the last bin includes its upper edge.
+
+    Returns
+    -------
+    pandas.DataFrame
+        :func:`summary_table`'s columns, ``z`` and ``mag`` being the bin centres, plus
+        ``z_lo``, ``z_hi``, ``mag_lo``, ``mag_hi`` and ``n_points`` (box points with rows
+        in the bin).  Empty bins are left out.
+    """
+    ze, me = np.asarray(z_edges, float), np.asarray(mag_edges, float)
+    pts = pd.DataFrame(list(points), columns=["_z", "_m"]).drop_duplicates()
+    key = pd.DataFrame({"_z": rows[C.COL_Z].astype(float).to_numpy(),
+                        "_m": rows[C.COL_MAG].astype(float).to_numpy()})
+    on_box = key.merge(pts.assign(_in=True), on=["_z", "_m"], how="left")["_in"]
+    sub = rows.loc[on_box.fillna(False).astype(bool).to_numpy()].copy()
+    iz = np.clip(np.searchsorted(ze, sub[C.COL_Z].to_numpy(float), side="right") - 1, 0, ze.size - 2)
+    im = np.clip(np.searchsorted(me, sub[C.COL_MAG].to_numpy(float), side="right") - 1, 0,
+                 me.size - 2)
+    n_points = (pd.DataFrame({"iz": iz, "im": im, "z": sub[C.COL_Z].to_numpy(float),
+                              "m": sub[C.COL_MAG].to_numpy(float)})
+                .drop_duplicates().groupby(["iz", "im"]).size())
+    # Centres without binary noise (8.674999999999999): they name the rows.
+    sub[C.COL_Z] = np.round(0.5 * (ze[iz] + ze[iz + 1]), 10)
+    sub[C.COL_MAG] = np.round(0.5 * (me[im] + me[im + 1]), 10)
+    if sub.empty:
+        return summary_table(rows.iloc[:0]).assign(z_lo=[], z_hi=[], mag_lo=[], mag_hi=[],
+                                                   n_points=[])
+    out = summary_table(sub)
+    jz = np.clip(np.searchsorted(ze, out[C.COL_Z].to_numpy(), side="right") - 1, 0, ze.size - 2)
+    jm = np.clip(np.searchsorted(me, out[C.COL_MAG].to_numpy(), side="right") - 1, 0, me.size - 2)
+    out.insert(2, "z_lo", ze[jz])
+    out.insert(3, "z_hi", ze[jz + 1])
+    out.insert(4, "mag_lo", me[jm])
+    out.insert(5, "mag_hi", me[jm + 1])
+    out.insert(6, "n_points", n_points.reindex(list(zip(jz, jm))).to_numpy(np.int64))
+    return out
+
+
 _DESCRIPTIONS = {
     "z": "input redshift", "mag": "nominal magnitude of the grid cell",
     "n_input": "artificial sources injected",
@@ -99,6 +155,9 @@ _DESCRIPTIONS = {
     "n_recovered": "recovered (status 0, 1, 2)", "n_selected": "recovered and selected",
     "completeness": "C = n_recovered / n_input", "selection_total": "C*S = n_selected / n_input",
     "selection": "S = n_selected / n_recovered",
+    "z_lo": "lower redshift edge of the box bin", "z_hi": "upper redshift edge of the box bin",
+    "mag_lo": "lower magnitude edge of the box bin", "mag_hi": "upper magnitude edge of the box bin",
+    "n_points": "box points (each a (z, mag) of its own) in the bin",
 }
 
 
@@ -113,17 +172,29 @@ def _ecsv_bytes(df: pd.DataFrame, meta: dict) -> bytes:
     return buf.getvalue().encode()
 
 
-def write_summaries(rows: pd.DataFrame, out_dir, meta: dict | None = None) -> list[Path]:
-    """Write one ECSV summary per field, plus ``summary_all.ecsv`` pooled over fields."""
+def write_summaries(rows: pd.DataFrame, out_dir, meta: dict | None = None,
+                    box: dict | None = None) -> list[Path]:
+    """Write one ECSV summary per field, plus ``summary_all.ecsv`` pooled over fields.
+
+    With ``box`` (``{"points", "z_edges", "mag_edges"}``, a run with ``grid.box``),
+    also ``box_summary_<field>.ecsv`` and ``box_summary_all.ecsv``: the box's points
+    binned (:func:`box_summary_table`).  The per-cell tables list every point as it is.
+    """
     out_dir = Path(out_dir)
     paths = []
-    for field, sub in rows.groupby(C.COL_FIELD, sort=True):
-        p = out_dir / f"summary_{field}.ecsv"
-        atomic_write_bytes(p, _ecsv_bytes(summary_table(sub), {**(meta or {}), "field": str(field)}))
+    tables = [("summary", summary_table)]
+    if box is not None:
+        def binned(df):
+            return box_summary_table(df, box["points"], box["z_edges"], box["mag_edges"])
+        tables.append(("box_summary", binned))
+    for prefix, make in tables:
+        for field, sub in rows.groupby(C.COL_FIELD, sort=True):
+            p = out_dir / f"{prefix}_{field}.ecsv"
+            atomic_write_bytes(p, _ecsv_bytes(make(sub), {**(meta or {}), "field": str(field)}))
+            paths.append(p)
+        p = out_dir / f"{prefix}_all.ecsv"
+        atomic_write_bytes(p, _ecsv_bytes(make(rows), {**(meta or {}), "field": "all"}))
         paths.append(p)
-    p = out_dir / "summary_all.ecsv"
-    atomic_write_bytes(p, _ecsv_bytes(summary_table(rows), {**(meta or {}), "field": "all"}))
-    paths.append(p)
     return paths
 
 

@@ -21,6 +21,11 @@ from glaciar.run import plan_tasks, task_cells
 BOX = {"z": [8.2, 10.1], "mag": [24.5, 27.0], "n_points": 3}
 
 
+def BOX_N_GALAXIES(cfg):
+    """Sources of one box point in one field (n_iterations 1 by default)."""
+    return cfg.simulation.n_galaxies
+
+
 def _config_with(base_config: Path, tmp_path: Path, name="cfg.yaml", **grid) -> Path:
     d = yaml.safe_load(base_config.read_text())
     d["grid"].update(grid)
@@ -125,6 +130,7 @@ def _table(run_dir: Path) -> pd.DataFrame:
 
 
 @pytest.mark.filterwarnings("ignore::glaciar.inference.sampling.ConvergenceWarning")
+@pytest.mark.filterwarnings("ignore:fit 'all'")
 def test_box_simulates_resumes_to_the_same_table_grows_by_a_prefix_and_fits(small_survey,
                                                                             tmp_path):
     from glaciar.pipeline.fit import run_fit
@@ -157,7 +163,68 @@ def test_box_simulates_resumes_to_the_same_table_grows_by_a_prefix_and_fits(smal
     fi = fit_inputs(a, C.COL_MAG_INPUT, COUNTS_MAG_RESOLUTION)
     assert sorted(np.unique(fi.z)) == sorted({8.0, 10.4, *ez, *_expected_points(
         BOX["z"], BOX["mag"], 5, cfg.simulation.seed)[0]})
-    sf = run_fit(a, model="logistic", progress=False, plots=False, write=False,
-                 max_steps=300)[0]
+    run_fit(a, model="logistic", progress=False, plots=False, max_steps=300)
+    from glaciar.inference import SelectionFunction
+
+    sf = SelectionFunction.read(a / C.SELECTION_FUNCTION_NAME)
     p = sf.grid_draws(np.array([8.5, 9.5]), np.array([24.5, 27.0]))["P"]
     assert np.all(np.isfinite(p)) and np.all((p >= 0) & (p <= 1))
+
+    # report: the box's points binned (one bin for 5 points), every box source counted once.
+    from glaciar.cli import main
+
+    assert main(["report", str(a), "--html"]) == 0
+    from astropy.table import Table
+
+    binned = Table.read(a / C.SUMMARY_DIRNAME / "box_summary_all.ecsv").to_pandas()
+    pts = set(zip(*_expected_points(BOX["z"], BOX["mag"], 5, cfg.simulation.seed)))
+    rows = _table(a)
+    r = rows[[(z, m) in pts for z, m in zip(rows[C.COL_Z], rows[C.COL_MAG])]]
+    assert binned["n_input"].sum() == len(r) == 5 * len(cfg.survey.fields) * BOX_N_GALAXIES(cfg)
+    assert binned["n_selected"].sum() == r[C.COL_SELECTED].sum()
+    assert (a / "report.html").stat().st_size > 0
+
+    # next: candidates are a lattice over the box (3 values per axis for 5 points: ceil
+    # sqrt 5) united with the grid's axes, and the midpoints; never the points' own values.
+    from glaciar.pipeline.adaptive import proposal_cells
+
+    _, stats = proposal_cells(sf, grown, 100)
+    zax = np.union1d(np.linspace(*BOX["z"], 3), [8.0, 10.4])
+    max_ = np.union1d(np.linspace(*BOX["mag"], 3), [24.0, 27.5])
+    zc = np.union1d(zax, 0.5 * (zax[1:] + zax[:-1]))
+    mc = np.union1d(max_, 0.5 * (max_[1:] + max_[:-1]))
+    got = {(round(c["z"], 6), round(c["mag"], 6)) for c in stats["ranked"]}
+    want = {(round(z, 6), round(m, 6)) for z in zc for m in mc
+            if z < (read_manifest(a)["detection_z_limit"] or np.inf)}
+    assert got == want
+
+
+def test_box_summary_bins_the_box_points_only_as_a_histogram_does():
+    from glaciar.tables import box_summary_table
+
+    rng = np.random.default_rng(3)
+    pts = [(round(z, 4), round(m, 4)) for z, m in rng.uniform((8, 24), (10, 28), (40, 2))]
+    n = 400
+    k = rng.integers(0, 40, n)
+    rows = pd.DataFrame({C.COL_FIELD: "f", C.COL_Z: [pts[i][0] for i in k],
+                         C.COL_MAG: [pts[i][1] for i in k],
+                         C.COL_STATUS: rng.choice(C.STATUS_CODES, n)})
+    rows[C.COL_RECOVERED] = rows[C.COL_STATUS].isin(C.RECOVERED_STATUSES)
+    rows[C.COL_SELECTED] = rows[C.COL_RECOVERED] & (rng.random(n) < 0.5)
+    grid = pd.DataFrame({C.COL_FIELD: "f", C.COL_Z: 9.0, C.COL_MAG: 25.0, C.COL_STATUS: 0,
+                         C.COL_RECOVERED: True, C.COL_SELECTED: True}, index=range(7))
+    ze, me = np.linspace(8, 10, 4), np.linspace(24, 28, 5)
+    out = box_summary_table(pd.concat([rows, grid], ignore_index=True), pts, ze, me)
+    for col, w in (("n_input", None), ("n_recovered", rows[C.COL_RECOVERED]),
+                   ("n_selected", rows[C.COL_SELECTED])):
+        h, _, _ = np.histogram2d(rows[C.COL_Z], rows[C.COL_MAG], bins=(ze, me),
+                                 weights=None if w is None else w.to_numpy(float))
+        got = np.zeros_like(h)
+        for _, b in out.iterrows():
+            iz, im = np.searchsorted(ze, b["z_lo"]), np.searchsorted(me, b["mag_lo"])
+            assert np.isclose(b["z"], 0.5 * (ze[iz] + ze[iz + 1]))
+            got[iz, im] = b[col]
+        assert np.array_equal(got, h), col
+    z_of = np.array([p[0] for p in pts])
+    h, _, _ = np.histogram2d(z_of, [p[1] for p in pts], bins=(ze, me))
+    assert out["n_points"].sum() == 40 and set(out["n_points"]) <= set(h.ravel().astype(int))

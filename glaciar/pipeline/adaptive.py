@@ -115,7 +115,8 @@ def _simulated_values(cfg):
 def _candidates(cfg, box=None, z_limit=None):
     """The candidate (z, m) lattice: the design's values and the midpoints between them.
 
-    The design (the Cartesian axes; every simulated value on an axis the
+    The design (the Cartesian axes, and a regular lattice over ``grid.box``
+    (:func:`glaciar.box.box_lattice`); every simulated value on an axis the
     design does not span) fixes the lattice, so a cell proposed again gains
     iterations instead of new midpoints halving the spacing round after round
     (:func:`glaciar.inference.candidate_grid`, which assumes no uniform spacing).
@@ -124,6 +125,14 @@ def _candidates(cfg, box=None, z_limit=None):
 
     zs, ms, simulated = _simulated_values(cfg)
     zd, md = np.asarray(cfg.grid.z_values, float), np.asarray(cfg.grid.mag_values, float)
+    if cfg.grid.box is not None:
+        # A box's points are scattered: its candidates are a lattice over the box, united
+        # with the Cartesian axes (also simulated), and never the points' own values.
+        from ..box import box_lattice
+
+        b = cfg.grid.box
+        zl, ml = box_lattice(b.z, b.mag, b.n_points)
+        zd, md = np.union1d(zl, zd), np.union1d(ml, md)
     zb = None if box is None else ((box[0], box[1]), (box[2], box[3]))
     zc, mc = candidate_grid(zd if zd.size > 1 else zs, md if md.size > 1 else ms, box=zb,
                             refine=REFINE)
