@@ -228,3 +228,55 @@ def test_box_summary_bins_the_box_points_only_as_a_histogram_does():
     z_of = np.array([p[0] for p in pts])
     h, _, _ = np.histogram2d(z_of, [p[1] for p in pts], bins=(ze, me))
     assert out["n_points"].sum() == 40 and set(out["n_points"]) <= set(h.ravel().astype(int))
+
+
+# ---------------------------------------------------------------------------
+# band colours at many redshifts (glaciar.galaxy.sed: z lattice + interpolation)
+# ---------------------------------------------------------------------------
+def _direct_mags(z, beta, filters):
+    """AB magnitudes of (lambda / 1600 A (1+z))^beta x T_IGM by numpy's trapezoid rule on a
+    fine wavelength grid (nodes either side of the IGM's line onsets), up to a common offset."""
+    from glaciar.constants import C_ANGSTROM_PER_S
+    from glaciar.galaxy.igm import igm_transmission
+
+    lo = min(f.wave_angstrom[0] for f in filters)
+    hi = max(f.wave_angstrom[-1] for f in filters)
+    wave = np.exp(np.arange(np.log(lo), np.log(hi), 2e-5))
+    edges = np.array([1215.67, 1025.72, 972.537, 949.743, 911.75]) * (1 + z)
+    wave = np.union1d(wave, np.concatenate([edges * (1 - 1e-10), edges * (1 + 1e-10)]))
+    t_igm = igm_transmission(wave, z, "inoue14")
+    out = np.empty((len(beta), len(filters)))
+    for j, f in enumerate(filters):
+        thr = np.interp(wave, f.wave_angstrom, f.throughput, left=0.0, right=0.0)
+        den = np.trapezoid(thr * C_ANGSTROM_PER_S / wave, wave)
+        for k, b in enumerate(beta):
+            num = np.trapezoid((wave / (1600.0 * (1 + z))) ** b * t_igm * thr * wave, wave)
+            out[k, j] = -2.5 * np.log10(num / den) if num > 0 else np.inf
+    return out
+
+
+def test_band_magnitudes_off_the_z_lattice_match_direct_integration_to_1e_3_mag():
+    from glaciar.galaxy.filters import get_filter
+    from glaciar.galaxy.sed import Z_LATTICE_STEP, _band_table, band_magnitudes
+
+    names = ["wfc3_uvis_f606w", "wfc3_ir_f098m", "wfc3_ir_f125w", "wfc3_ir_f160w",
+             "nircam_f200w"]
+    filters = [get_filter(n) for n in names]
+    det = names.index("nircam_f200w")
+    rng = np.random.default_rng(8)
+    # Where the Lyman-alpha break crosses the bands (kinks in z) and where it does not.
+    zs = np.round(rng.uniform(7.0, 13.0, 8), 4)
+    zs = zs[np.abs(zs / Z_LATTICE_STEP - np.round(zs / Z_LATTICE_STEP)) > 1e-6]
+    betas = np.array([-2.6, -1.7])
+    worst, interpolated = 0.0, 0
+    for z in zs:
+        got = band_magnitudes(float(z), betas, filters, mag=26.0, detection_index=det)
+        exact = np.array([_band_table(float(z), f, "inoue14").colour(betas) for f in filters]).T
+        exact = exact - exact[:, det:det + 1] + 26.0
+        interpolated += int(np.any(got[np.isfinite(got)] != exact[np.isfinite(got)]))
+        ref = _direct_mags(float(z), betas, filters)
+        ref = ref - ref[:, det:det + 1] + 26.0
+        ok = ref < 26.0 + 10.0                # bands with >= 1e-4 of the detection flux
+        worst = max(worst, float(np.max(np.abs(got[ok] - ref[ok]))))
+    assert worst < 1e-3, worst
+    assert interpolated >= len(zs) // 2         # the lattice served most of them

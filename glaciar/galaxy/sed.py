@@ -12,6 +12,18 @@ grid (cached) and interpolated with cubic Hermite polynomials, so a
 magnitude costs a few arithmetic operations per source and band.  The
 interpolation error is below 1e-6 mag (tested); beta outside the table
 [-10, 6] is integrated directly.
+
+Many redshifts (``grid.box`` draws z continuously): a table costs ~20-100 ms
+per (z, filter), mostly the IGM.  A z on the lattice of step ``Z_LATTICE_STEP``
+(0.01: every grid value with at most two decimals) is computed exactly as
+before; another z takes its colours from the cached tables of the five lattice
+nodes around it, by cubic interpolation in z (nodes -1..2), unless the second
+cubic (nodes 0..3) disagrees by more than ``Z_LATTICE_TOL`` mag at the sources'
+beta (the colour has kinks where the IGM's edges cross filter samples or the
+Lyman limit enters a band) or a node receives no flux: then the exact table is
+used.  Error against direct integration < 1e-3 mag in every band with flux
+(tested on z = 7-13 in HST and JWST bands); rows of off-lattice z in a store
+made before this differ by at most that.
 """
 from __future__ import annotations
 
@@ -119,7 +131,42 @@ def _refine(nodes: np.ndarray, dlnlam: float) -> np.ndarray:
     return np.append(nodes[interval] + d[interval] * k / n[interval], nodes[-1])
 
 
-@functools.lru_cache(maxsize=1024)
+#: Step of the z lattice whose cached band tables serve any z by interpolation.
+Z_LATTICE_STEP = 0.01
+#: Largest disagreement [mag] of the two cubic stencils before the exact table is used.
+Z_LATTICE_TOL = 1e-4
+# Lagrange weights of nodes -1, 0, 1, 2 (and 0, 1, 2, 3) at t in [0, 1) from node 0.
+_STENCILS = (np.array([-1.0, 0.0, 1.0, 2.0]), np.array([0.0, 1.0, 2.0, 3.0]))
+
+
+def _lagrange(pos: np.ndarray, t: float) -> np.ndarray:
+    w = np.ones(pos.size)
+    for i in range(pos.size):
+        for j in range(pos.size):
+            if i != j:
+                w[i] *= (t - pos[j]) / (pos[i] - pos[j])
+    return w
+
+
+def _colour(z: float, filt: Filter, igm: str, beta: np.ndarray) -> np.ndarray:
+    """c(beta) = m_band - m_1600 at ``z``: exact on the z lattice, else interpolated (see module)."""
+    k = z / Z_LATTICE_STEP
+    k0 = int(np.floor(k))
+    t = k - k0
+    if t < 1e-9 or t > 1 - 1e-9 or k0 < 1:
+        return _band_table(z, filt, igm).colour(beta)
+    nodes = np.array([_band_table(round((k0 + j) * Z_LATTICE_STEP, 10), filt, igm).colour(beta)
+                      for j in range(-1, 4)])
+    if not np.all(np.isfinite(nodes)):
+        return _band_table(z, filt, igm).colour(beta)
+    a = _lagrange(_STENCILS[0], t) @ nodes[:4]
+    b = _lagrange(_STENCILS[1], t) @ nodes[1:]
+    if np.max(np.abs(a - b)) > Z_LATTICE_TOL:
+        return _band_table(z, filt, igm).colour(beta)
+    return a
+
+
+@functools.lru_cache(maxsize=4096)
 def _band_table(z: float, filt: Filter, igm: str) -> _BandTable:
     fw, ft = filt.wave_angstrom, filt.throughput
     # Quadrature on the filter's own samples (where T is linear), restricted to
@@ -267,7 +314,9 @@ def band_magnitudes(z: float, beta, filters, *, mag=None, detection_index: int |
     Accuracy: against direct integration of the power law on a fine
     wavelength grid, better than 1e-4 mag (trapezoid rule on the filter
     samples refined to d ln lambda = 2e-4, with nodes at every IGM line
-    onset; the beta interpolation adds < 1e-6 mag).
+    onset; the beta interpolation adds < 1e-6 mag) for z on the lattice of
+    step ``Z_LATTICE_STEP``; better than 1e-3 mag at any other z (interpolated
+    in z, see the module docstring).
     """
     z = _check_z(z)
     _check_igm(igm)
@@ -288,7 +337,7 @@ def band_magnitudes(z: float, beta, filters, *, mag=None, detection_index: int |
         raise ValueError(f"beta (shape {b.shape}) and mag/M_uv (shape {norm.shape}) "
                          f"do not broadcast") from None
 
-    colours = np.stack([_band_table(z, f, igm).colour(b) for f in filts], axis=1)
+    colours = np.stack([_colour(z, f, igm, b) for f in filts], axis=1)
     if mag is not None:
         if detection_index is None:
             raise ValueError("mag needs detection_index (which band it refers to)")
