@@ -212,7 +212,7 @@ def kcorrection(z, beta, detection_filter, *, igm: str = "inoue14", cosmology=No
         Default Planck18.
     dz : float or None
         The colour c (one band integral per z, ~16 ms) is computed exactly on
-        nodes ``dz`` apart and interpolated by a cubic spline in z, when that
+        the multiples of ``dz`` that cover the z asked and interpolated by a cubic spline in z, when that
         takes fewer nodes than ``z`` has: with dz = 0.05 the error is < 2e-8 mag
         while the band is redward of Lyman-alpha and < 3e-4 mag where the IGM
         enters it (F160W, z = 6-12.5, measured).  The distance term is exact.
@@ -236,11 +236,16 @@ def kcorrection(z, beta, detection_filter, *, igm: str = "inoue14", cosmology=No
         raise ValueError("kcorrection: z must be finite and > 0")
     dist = distance_term(z, cosmology) if z.size else np.zeros(0)
     lo, hi = (float(z.min()), float(z.max())) if z.size else (0.0, 0.0)
-    n_nodes = int(np.ceil((hi - lo) / dz)) + 1 if dz else z.size + 1
+    # Nodes on multiples of dz (covering [lo, hi]): they lie on the z lattice of
+    # glaciar.galaxy.sed, whose tables are exact and cached there (another z costs
+    # the five lattice tables around it).
+    k = np.arange(np.floor(lo / dz), np.ceil(hi / dz) + 1) if dz else np.zeros(z.size + 1)
+    n_nodes = k.size
     if n_nodes >= z.size or n_nodes < 4:
         col = np.array([_colour(zi, b, detection_filter, igm, cosmology) for zi in z])
         return dist[:, None] + col.reshape(len(z), len(b))
-    zn = np.linspace(lo, hi, n_nodes)
+    zn = np.round(k * dz, 10)
+    zn[0] = max(zn[0], lo)           # never below the lowest z asked (z = 0 has no distance)
     cn = np.array([_colour(zi, b, detection_filter, igm, cosmology) for zi in zn])
     fin = np.isfinite(cn).all(axis=1)
     # No flux happens above a redshift (the IGM eats the band): the finite nodes are a prefix.
@@ -253,6 +258,12 @@ def kcorrection(z, beta, detection_filter, *, igm: str = "inoue14", cosmology=No
         inside = z <= zn[last]
         col[inside] = np.array([_colour(zi, b, detection_filter, igm, cosmology)
                                 for zi in z[inside]])
+    if 0 <= last < len(zn) - 1:
+        # Between the last node with flux and the first without: exact (flux may end there).
+        edge = (z > zn[last]) & (z < zn[last + 1])
+        if np.any(edge):
+            col[edge] = np.array([_colour(zi, b, detection_filter, igm, cosmology)
+                                  for zi in z[edge]])
     return dist[:, None] + col
 
 
