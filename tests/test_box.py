@@ -285,3 +285,19 @@ def test_band_magnitudes_off_the_z_lattice_match_direct_integration_to_1e_3_mag(
         worst = max(worst, float(np.max(np.abs(got[ok] - ref[ok]))))
     assert worst < 1e-3, worst
     assert interpolated >= len(zs) // 2         # the lattice served most of them
+
+
+def test_a_seed_override_moves_the_box_points_and_the_stored_config_says_so(small_survey):
+    from glaciar.run import simulate
+    from glaciar.store import read_manifest
+
+    here = small_survey.parent
+    cfg = load_config(_config_with(small_survey, here, name="box_seed.yaml", box=BOX))
+    run = here / "box_seed_run"
+    simulate(cfg, run, seed=7, progress=False, max_tasks=0)
+    ez, em = _expected_points(BOX["z"], BOX["mag"], 3, 7)
+    listed = {(c["z"], c["mag"]) for c in read_manifest(run)["cells"]}
+    assert listed == set(zip(ez.tolist(), em.tolist()))
+    stored = load_config(run / C.RUN_CONFIG_NAME)
+    assert stored.simulation.seed == 7 and task_cells(stored) == task_cells(
+        cfg.model_copy(update={"simulation": cfg.simulation.model_copy(update={"seed": 7})}))
