@@ -138,6 +138,8 @@ def main(argv=None):
     ap.add_argument("--mag", type=float, default=26.0, help="F160W magnitude [AB] (default 26)")
     ap.add_argument("--seed", type=int, default=3, help="seed of the demo images (default 3)")
     ap.add_argument("--profile", action="store_true", help="also print a cProfile of the timed tasks")
+    ap.add_argument("--sort", default="tottime", help="cProfile sort key (default tottime)")
+    ap.add_argument("--top", type=int, default=25, help="cProfile rows printed (default 25)")
     ap.add_argument("--clean-style", default=None,
                     help="DetectionParams.clean_style (default: the configuration's, i.e. glaciar's default)")
     opt = ap.parse_args(argv)
@@ -239,7 +241,7 @@ def main(argv=None):
           f"extraction rounds per task: {np.mean(rounds):.1f}")
     if opt.profile:
         import pstats
-        pstats.Stats(prof).sort_stats("tottime").print_stats(25)
+        pstats.Stats(prof).sort_stats(opt.sort).print_stats(opt.top)
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from glaciar.constants import STATUS_NOT_DETECTED
 from glaciar.engine.classify import ClassificationParams
 from glaciar.engine.detect import DetectionParams, measure_background
 from glaciar.engine.measure import measure_injected, reference_extraction
@@ -130,11 +131,95 @@ def test_results_do_not_depend_on_first_window_size(small_field):
         assert win.shape == (xs.size, 4)
         assert np.all((win[:, 0] <= iy) & (iy < win[:, 1]) & (win[:, 2] <= ix) & (ix < win[:, 3]))
         assert np.all((win[:, 0] >= 0) & (win[:, 1] <= N) & (win[:, 2] >= 0) & (win[:, 3] <= N))
-        # no window is smaller than the first one unless clipped by the image edge
+        # no window is smaller than the first one unless clipped by the image edge, or the
+        # source was found undetectable before any extraction (early exit): its window is
+        # then the search box plus the filter's reach, and it is not detected
         side = np.minimum(win[:, 1] - win[:, 0], win[:, 3] - win[:, 2])
         inner = (win[:, 0] > 0) & (win[:, 1] < N) & (win[:, 2] > 0) & (win[:, 3] < N)
+        early = side == ClassificationParams().search_box + 2 * (params.filter_halfwidth + 1)
+        assert np.all(w["status"][early] == STATUS_NOT_DETECTED)
+        inner &= ~early
         assert np.all(side[inner] >= first)
         seen_rounds.add(diag["rounds"])
     # a 9-pixel first window cannot hold these sources: windows really grew
     assert max(seen_rounds) > 1
     assert np.any(full["status"] >= 0)
+
+
+def test_early_exit_is_exact_and_only_skips_sources_without_above_threshold_pixels(small_field):
+    """Skipping undetectable sources changes no value; skipped sources really have no
+    above-threshold pixel in their search box according to plain sep on the whole image."""
+    import sep
+
+    sub, rms, params, ref, xs, ys, flux, stamps = small_field
+    # faint sources (many are below threshold everywhere) beside the fixture's
+    faint = [(y0, x0, t, 0.02 * f) for y0, x0, t, f in stamps]
+    det = Scene(sub, faint)
+    kw = dict(det_rms=rms, band_scenes={"h": det}, band_rms={"h": rms}, x=xs, y=ys,
+              input_flux_det=0.02 * flux, input_mag_det=25.0 - 2.5 * np.log10(0.02 * flux), reference=ref,
+              params=params, classification=ClassificationParams(), zeropoints={"h": 25.0},
+              gains={"h": None}, detection_band="h")
+    d_on, d_off = {}, {}
+    on = measure_injected(det, early_exit=True, diagnostics=d_on, **kw)
+    off = measure_injected(det, early_exit=False, diagnostics=d_off, **kw)
+    for c in on:
+        if c == "detection_id":
+            continue
+        a, b = on[c], off[c]
+        if a.dtype.kind == "f":
+            assert np.array_equal(np.isnan(a), np.isnan(b)), c
+            assert np.allclose(a, b, rtol=1e-9, atol=0, equal_nan=True), c
+        else:
+            np.testing.assert_array_equal(a, b, err_msg=c)
+    side = d_on["window"][:, 1] - d_on["window"][:, 0]
+    skipped = side == ClassificationParams().search_box + 2 * (params.filter_halfwidth + 1)
+    assert 0 < skipped.sum() < xs.size          # the test exercises both branches
+    # independent: sep's segmentation of the whole injected image, every region kept
+    # (minarea 1, no deblending), marks exactly its above-threshold pixels
+    img = det.full().astype(np.float32)
+    sep.set_extract_pixstack(img.size + 1024)
+    _, seg = sep.extract(img, params.detect_thresh, err=rms.astype(np.float32), minarea=1,
+                         filter_kernel=params.filter_kernel, filter_type=params.filter_type, deblend_cont=1.0,
+                         clean=False, segmentation_map=True)
+    h = ClassificationParams().search_box // 2
+    ix, iy = np.floor(xs + 0.5).astype(int), np.floor(ys + 0.5).astype(int)
+    for i in range(xs.size):
+        box = seg[max(iy[i] - h, 0):iy[i] + h + 1, max(ix[i] - h, 0):ix[i] + h + 1]
+        if skipped[i]:
+            assert not box.any(), i
+            assert on["status"][i] == STATUS_NOT_DETECTED
+    # and sources with such a pixel were not skipped
+    assert all(seg[max(iy[i] - h, 0):iy[i] + h + 1, max(ix[i] - h, 0):ix[i] + h + 1].any()
+               for i in np.flatnonzero(~skipped))
+
+
+def test_initial_windows_hold_the_neighbours_a_source_may_touch():
+    from glaciar.engine.windows import _OWN_HALF, initial_windows
+
+    params = DetectionParams()
+    margin = params.filter_halfwidth + 1
+    pad = margin + 4
+    r = params.initial_window // 2
+    x = np.array([100.2, 300.0, 500.0, 700.0])
+    y = np.array([100.0, 300.0, 500.0, 700.0])
+    # object 0: its region box meets source 0's own box (not its search box): the region must fit
+    # object 1: its region box covers source 1's search box: its Kron/AUTO box must fit
+    # object 2: far from everything
+    region = np.array([[100 + _OWN_HALF - 2, 160, 90, 110],
+                       [290, 310, 295, 305],
+                       [900, 910, 900, 910]])
+    need = np.array([[95, 170, 80, 120],
+                     [200, 380, 250, 330],
+                     [880, 930, 880, 930]])
+    win = initial_windows(x, y, (1000, 1000), params, 3, margin, region, need)
+    sq = lambda c: (c - r, c + r + 1)  # noqa: E731
+    np.testing.assert_array_equal(win[0], [sq(100)[0], 160 + pad, sq(100)[0], sq(100)[1]])
+    np.testing.assert_array_equal(win[1], [200 - pad, 380 + pad, 250 - pad, 330 + pad])
+    np.testing.assert_array_equal(win[2], [*sq(500), *sq(500)])
+    np.testing.assert_array_equal(win[3], [*sq(700), *sq(700)])
+    # without the reference boxes: the squares; clipped to the image; capped at max_window
+    plain = initial_windows(np.array([3.0]), np.array([998.0]), (1000, 1000), params, 3, margin)
+    np.testing.assert_array_equal(plain[0], [998 - r, 1000, 0, 3 + r + 1])
+    huge = initial_windows(x[1:2], y[1:2], (5000, 5000), dataclasses.replace(params, max_window=101), 3, margin,
+                           region[1:2], np.array([[0, 4000, 0, 4000]]))
+    assert huge[0, 1] - huge[0, 0] == 101 and huge[0, 3] - huge[0, 2] == 101
