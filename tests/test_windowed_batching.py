@@ -194,7 +194,7 @@ def test_early_exit_is_exact_and_only_skips_sources_without_above_threshold_pixe
 
 
 def test_initial_windows_hold_the_neighbours_a_source_may_touch():
-    from glaciar.engine.windows import _OWN_HALF, initial_windows
+    from glaciar.engine.windows import _OWN_HALF, ObjectBoxes, initial_windows
 
     params = DetectionParams()
     margin = params.filter_halfwidth + 1
@@ -211,7 +211,7 @@ def test_initial_windows_hold_the_neighbours_a_source_may_touch():
     need = np.array([[95, 170, 80, 120],
                      [200, 380, 250, 330],
                      [880, 930, 880, 930]])
-    win = initial_windows(x, y, (1000, 1000), params, 3, margin, region, need)
+    win = initial_windows(x, y, (1000, 1000), params, 3, margin, ObjectBoxes.build(region, need, (1000, 1000)))
     sq = lambda c: (c - r, c + r + 1)  # noqa: E731
     np.testing.assert_array_equal(win[0], [sq(100)[0], 160 + pad, sq(100)[0], sq(100)[1]])
     np.testing.assert_array_equal(win[1], [200 - pad, 380 + pad, 250 - pad, 330 + pad])
@@ -221,5 +221,25 @@ def test_initial_windows_hold_the_neighbours_a_source_may_touch():
     plain = initial_windows(np.array([3.0]), np.array([998.0]), (1000, 1000), params, 3, margin)
     np.testing.assert_array_equal(plain[0], [998 - r, 1000, 0, 3 + r + 1])
     huge = initial_windows(x[1:2], y[1:2], (5000, 5000), dataclasses.replace(params, max_window=101), 3, margin,
-                           region[1:2], np.array([[0, 4000, 0, 4000]]))
+                           ObjectBoxes.build(region[1:2], [[0, 4000, 0, 4000]], (5000, 5000)))
     assert huge[0, 1] - huge[0, 0] == 101 and huge[0, 3] - huge[0, 2] == 101
+
+
+def test_object_boxes_candidates_hold_every_meeting_box():
+    """The grid index returns every object whose box meets a query box (brute force)."""
+    from glaciar.engine.windows import ObjectBoxes
+
+    rng = np.random.default_rng(5)
+    shape = (700, 900)
+    y0, x0 = rng.integers(-20, 700, 300), rng.integers(-20, 900, 300)
+    region = np.stack([y0, y0 + rng.integers(1, 200, 300), x0, x0 + rng.integers(1, 120, 300)], axis=1)
+    ob = ObjectBoxes.build(region, region, shape, cell=50)
+    qy, qx = rng.integers(0, 700, 400), rng.integers(0, 900, 400)
+    q = np.stack([qy - 10, qy + 11, qx - 3, qx + 4], axis=1)
+    si, oi = ob.candidates(q)
+    got = set(zip(si.tolist(), oi.tolist()))
+    meet = ((region[None, :, 0] < q[:, None, 1]) & (region[None, :, 1] > q[:, None, 0])
+            & (region[None, :, 2] < q[:, None, 3]) & (region[None, :, 3] > q[:, None, 2]))
+    want = set(zip(*[v.tolist() for v in np.nonzero(meet)]))
+    assert want <= got
+    assert len(got) < 0.2 * q.shape[0] * region.shape[0]       # an index, not all pairs

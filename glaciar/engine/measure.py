@@ -31,8 +31,8 @@ from glaciar.engine.classify import ClassificationParams, classify, footprint_ov
 from glaciar.engine.detect import DetectionError, DetectionParams, _sep_extract, detection_rms, sanitize
 from glaciar.engine.scene import Scene
 from glaciar.engine.segmentation import sep_segmentation
-from glaciar.engine.windows import (Canvas, MeasureContext, SegmentedBatch, ellipse_half_extent, safe_shape,
-                                    segment_full, segment_windowed, window_groups)
+from glaciar.engine.windows import (Canvas, MeasureContext, ObjectBoxes, SegmentedBatch, ellipse_half_extent,
+                                    safe_shape, segment_full, segment_windowed, window_groups)
 
 __all__ = ["FieldReference", "reference_extraction", "measure_injected", "output_columns"]
 
@@ -51,7 +51,7 @@ class FieldReference:
         AUTO magnitude per original id (detection zeropoint); NaN for flux <= 0.
     catalog : structured ndarray or None
         sep's catalogue (row id - 1).
-    region_box, need_box : ndarray of int64, shape (n, 4), or None
+    objects : ObjectBoxes or None
         Per original id (row id - 1), image boxes (y0, y1, x0, x1): the
         connected above-threshold region holding the object, and that region
         widened by the object's Kron (6 a, 6 b) and AUTO ellipses.  Only used
@@ -71,8 +71,7 @@ class FieldReference:
     mag: np.ndarray
     catalog: np.ndarray | None = None
     product: object = None
-    region_box: np.ndarray | None = None
-    need_box: np.ndarray | None = None
+    objects: ObjectBoxes | None = None
 
 
 def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropoint: float,
@@ -144,7 +143,7 @@ def _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, 
                                    segmap=seg, seg_id=ids, mask=nodata)
     mag, _, _ = phot.magnitudes(flux, np.ones_like(flux), zeropoint)
     region_box, need_box = _reference_boxes(data_det, err_det, nodata_det, seg, geo, a, b, th, scale, params)
-    return FieldReference(seg, flux, mag, cat, prod, region_box, need_box)
+    return FieldReference(seg, flux, mag, cat, prod, ObjectBoxes.build(region_box, need_box, seg.shape))
 
 
 def _reference_boxes(data, err, nodata, seg, geo, a, b, th, scale, params):
@@ -312,7 +311,7 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         input_mag=np.asarray(input_mag_det, dtype=np.float64).ravel(),
         templates=_input_templates(det_scene, input_templates, n),
         out=out, at_max=np.zeros(n, dtype=bool), isolated=isolated, tclean=tclean,
-        det_background=det_background, ref_region_box=reference.region_box, ref_need_box=reference.need_box)
+        det_background=det_background, ref_objects=reference.objects)
     if sextractor:
         from glaciar.engine.sextractor_backend import sextractor_segmentation
         prod = sextractor_segmentation(det_scene.full(), det_rms, params, mask=mask,

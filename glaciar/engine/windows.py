@@ -92,7 +92,7 @@ from glaciar.engine.scene import Scene
 from glaciar.engine.segmentation import isolate_region
 
 __all__ = ["MeasureContext", "SegmentedBatch", "Canvas", "segment_windowed", "segment_full", "pack_windows",
-           "safe_shape", "window_groups", "ellipse_half_extent", "initial_windows", "undetectable"]
+           "safe_shape", "window_groups", "ellipse_half_extent", "initial_windows", "undetectable", "ObjectBoxes"]
 
 _EIGHT = np.ones((3, 3), dtype=bool)   # sep/SExtractor regions are 8-connected
 _MAX_CANVAS_PIXELS = 600_000           # keep one sep call's buffers small
@@ -145,7 +145,7 @@ class MeasureContext:
     det_background : ndarray or None
         Background map subtracted from the detection band [image units]
         (SATUR_LEVEL flag: pixel + background); None = 0.
-    ref_region_box, ref_need_box : ndarray (M, 4) or None
+    ref_objects : ObjectBoxes or None
         Original objects' boxes that size first windows (:func:`initial_windows`).
     """
 
@@ -176,8 +176,7 @@ class MeasureContext:
     isolated: dict
     tclean: object = None
     det_background: np.ndarray | None = None
-    ref_region_box: np.ndarray | None = None
-    ref_need_box: np.ndarray | None = None
+    ref_objects: "ObjectBoxes | None" = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -265,7 +264,7 @@ def segment_windowed(ctx: MeasureContext, finish: Callable[[MeasureContext, Segm
     Returns the last windows ((N, 4) image y0, y1, x0, x1) and the number of rounds."""
     n = ctx.x.size
     rects = initial_windows(ctx.x, ctx.y, ctx.shape, ctx.params, ctx.cls.search_box, ctx.margin,
-                            ctx.ref_region_box, ctx.ref_need_box)
+                            ctx.ref_objects)
     pending = np.arange(n)
     if early_exit and n:
         skip, boxes = undetectable(ctx)
@@ -282,6 +281,75 @@ def segment_windowed(ctx: MeasureContext, finish: Callable[[MeasureContext, Segm
             grow_all.append(_run_canvas(ctx, chunk, rects[chunk], np.arange(chunk.size), False, rects, finish))
         pending = np.concatenate(grow_all) if grow_all else np.zeros(0, dtype=np.int64)
     return rects, rounds
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectBoxes:
+    """Boxes of an image's objects, indexed on a grid of square cells for box queries.
+
+    Attributes
+    ----------
+    region, need : ndarray of int64, shape (M, 4)
+        Per object, image boxes (y0, y1, x0, x1): its above-threshold region,
+        and that region widened by its Kron and AUTO ellipses.
+    cell : int
+        Cell side [pixels].
+    ncx : int
+        Cells per image row.
+    start, ids : ndarray of int64
+        Objects whose region box meets cell ``k``: ``ids[start[k]:start[k + 1]]``.
+    """
+
+    region: np.ndarray
+    need: np.ndarray
+    cell: int
+    ncx: int
+    start: np.ndarray
+    ids: np.ndarray
+
+    @classmethod
+    def build(cls, region, need, shape, cell: int = 64) -> "ObjectBoxes":
+        region = np.asarray(region, dtype=np.int64).reshape(-1, 4)
+        need = np.asarray(need, dtype=np.int64).reshape(-1, 4)
+        ny, nx = shape
+        ncy, ncx = -(-ny // cell), -(-nx // cell)
+        cy0 = np.clip(region[:, 0] // cell, 0, ncy - 1)
+        cy1 = np.clip((region[:, 1] - 1) // cell, 0, ncy - 1)
+        cx0 = np.clip(region[:, 2] // cell, 0, ncx - 1)
+        cx1 = np.clip((region[:, 3] - 1) // cell, 0, ncx - 1)
+        ob, cells = _expand_cells(cy0, cy1, cx0, cx1, ncx)
+        order = np.argsort(cells, kind="stable")
+        start = np.searchsorted(cells[order], np.arange(ncy * ncx + 1))
+        return cls(region, need, int(cell), int(ncx), start.astype(np.int64), ob[order])
+
+    def __len__(self):
+        return len(self.region)
+
+    def candidates(self, boxes):
+        """(box index, object index) pairs of every object sharing a cell with each box.
+
+        A superset of the objects whose region box meets the box; pairs may repeat."""
+        boxes = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
+        ncy = (len(self.start) - 1) // self.ncx
+        c = self.cell
+        cy0 = np.clip(boxes[:, 0] // c, 0, ncy - 1)
+        cy1 = np.clip((boxes[:, 1] - 1) // c, 0, ncy - 1)
+        cx0 = np.clip(boxes[:, 2] // c, 0, self.ncx - 1)
+        cx1 = np.clip((boxes[:, 3] - 1) // c, 0, self.ncx - 1)
+        bi, cells = _expand_cells(cy0, cy1, cx0, cx1, self.ncx)
+        n = self.start[cells + 1] - self.start[cells]
+        pair_box = np.repeat(bi, n)
+        first = np.repeat(self.start[cells] - np.cumsum(n) + n, n)
+        return pair_box, self.ids[first + np.arange(pair_box.size)]
+
+
+def _expand_cells(cy0, cy1, cx0, cx1, ncx):
+    """(item index, cell index) for every grid cell of each item's inclusive cell range."""
+    hy, hx = cy1 - cy0 + 1, cx1 - cx0 + 1
+    n = hy * hx
+    item = np.repeat(np.arange(n.size), n)
+    k = np.arange(item.size) - np.repeat(np.cumsum(n) - n, n)
+    return item, (cy0[item] + k // hx[item]) * ncx + cx0[item] + k % hx[item]
 
 
 def undetectable(ctx: MeasureContext):
@@ -333,7 +401,7 @@ def undetectable(ctx: MeasureContext):
 
 
 def initial_windows(x, y, shape, params: DetectionParams, search_box: int, margin: int,
-                    region_box=None, need_box=None):
+                    objects: "ObjectBoxes | None" = None):
     """First detection window of each source (y0, y1, x0, x1 image pixels), shape (N, 4).
 
     A square of ``params.initial_window`` pixels around the source, widened
@@ -346,7 +414,7 @@ def initial_windows(x, y, shape, params: DetectionParams, search_box: int, margi
       the source's Kron and AUTO ellipses);
     * for an object whose region box meets the search box (the source may
       merge with it, and the detection then has the object's ellipses), its
-      ``need_box`` (region plus Kron and AUTO ellipse boxes).
+      need box (region plus Kron and AUTO ellipse boxes).
 
     Each side that widens gets the exact-zone ``margin`` plus 4 pixels, as a
     window grown in a later round does.  Windows are capped at
@@ -364,7 +432,7 @@ def initial_windows(x, y, shape, params: DetectionParams, search_box: int, margi
         Side of the classification search box [pixels].
     margin : int
         Exact-zone margin (filter half-width + 1) [pixels].
-    region_box, need_box : ndarray (M, 4) or None
+    objects : ObjectBoxes or None
         Original objects' boxes (:class:`glaciar.engine.measure.FieldReference`);
         None: squares only.
     """
@@ -375,33 +443,31 @@ def initial_windows(x, y, shape, params: DetectionParams, search_box: int, margi
         # the local-background annulus must fit too: start from a window that holds it
         r = max(r, params.backphoto_thick + 16)
     rects = np.stack([iy - r, iy + r + 1, ix - r, ix + r + 1], axis=1)
-    if region_box is not None and need_box is not None and len(region_box) and ix.size:
+    if objects is not None and len(objects.region) and ix.size:
         h = search_box // 2
-        sbox = np.stack([iy - h, iy + h + 1, ix - h, ix + h + 1], axis=1)
         c = _OWN_HALF
-        core = np.stack([iy - c, iy + c + 1, ix - c, ix + c + 1], axis=1)
         big = np.int64(2 ** 40)
         want = np.empty_like(rects)
         want[:, 0::2], want[:, 1::2] = big, -big
-        step = max(1, 4_000_000 // len(region_box))      # bound the (sources x objects) tests
-        for s0 in range(0, ix.size, step):
-            sl = slice(s0, s0 + step)
-            for box, own in ((core[sl], region_box), (sbox[sl], need_box)):
-                meet = ((region_box[None, :, 0] < box[:, None, 1]) & (region_box[None, :, 1] > box[:, None, 0])
-                        & (region_box[None, :, 2] < box[:, None, 3]) & (region_box[None, :, 3] > box[:, None, 2]))
-                for c, fn, fill in ((0, np.min, big), (1, np.max, -big), (2, np.min, big), (3, np.max, -big)):
-                    v = fn(np.where(meet, own[None, :, c], fill), axis=1)
-                    want[sl, c] = np.minimum(want[sl, c], v) if c % 2 == 0 else np.maximum(want[sl, c], v)
+        for half, own in ((c, objects.region), (h, objects.need)):
+            box = np.stack([iy - half, iy + half + 1, ix - half, ix + half + 1], axis=1)
+            si, oi = objects.candidates(box)
+            rb = objects.region[oi]
+            meet = ((rb[:, 0] < box[si, 1]) & (rb[:, 1] > box[si, 0])
+                    & (rb[:, 2] < box[si, 3]) & (rb[:, 3] > box[si, 2]))
+            si, ob = si[meet], own[oi[meet]]
+            for k in range(4):
+                (np.minimum if k % 2 == 0 else np.maximum).at(want[:, k], si, ob[:, k])
         pad = margin + 4
         rects[:, 0] = np.minimum(rects[:, 0], want[:, 0] - pad)
         rects[:, 1] = np.maximum(rects[:, 1], want[:, 1] + pad)
         rects[:, 2] = np.minimum(rects[:, 2], want[:, 2] - pad)
         rects[:, 3] = np.maximum(rects[:, 3], want[:, 3] + pad)
         mw = params.max_window
-        for lo, hi, c in ((0, 1, iy), (2, 3, ix)):
+        for lo, hi, cc in ((0, 1, iy), (2, 3, ix)):
             wide = rects[:, hi] - rects[:, lo] > mw
-            rects[wide, lo] = np.maximum(c[wide] - mw // 2, rects[wide, lo])
-            rects[wide, hi] = np.minimum(c[wide] - mw // 2 + mw, rects[wide, hi])
+            rects[wide, lo] = np.maximum(cc[wide] - mw // 2, rects[wide, lo])
+            rects[wide, hi] = np.minimum(cc[wide] - mw // 2 + mw, rects[wide, hi])
     rects[:, 0:2] = np.clip(rects[:, 0:2], 0, ny)
     rects[:, 2:4] = np.clip(rects[:, 2:4], 0, nx)
     return rects
