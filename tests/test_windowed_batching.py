@@ -73,6 +73,20 @@ def test_scene_rejects_malformed_stamp():
 N = 240
 
 
+def _assert_same_columns(got, want, what):
+    """Every output column equal (floats to 1e-9 relative, NaN where NaN); detection_id is
+    a label of one call's extraction, not comparable."""
+    for c in got:
+        if c == "detection_id":
+            continue
+        a, b = got[c], want[c]
+        if a.dtype.kind == "f":
+            same = (np.isnan(a) & np.isnan(b)) | (np.abs(a - b) <= 1e-9 * np.abs(b))
+        else:
+            same = a == b
+        assert same.all(), (what, c, a[~same], b[~same])
+
+
 @pytest.fixture(scope="module")
 def small_field():
     rng = np.random.default_rng(4)
@@ -117,15 +131,7 @@ def test_results_do_not_depend_on_first_window_size(small_field):
         diag = {}
         p = dataclasses.replace(params, initial_window=first)
         w = measure_injected(det, params=p, diagnostics=diag, **kw)
-        for c in w:
-            if c == "detection_id":
-                continue
-            a, b = w[c], full[c]
-            if a.dtype.kind == "f":
-                same = (np.isnan(a) & np.isnan(b)) | (np.abs(a - b) <= 1e-9 * np.abs(b))
-            else:
-                same = a == b
-            assert same.all(), (first, c, a[~same], b[~same])
+        _assert_same_columns(w, full, first)
         win = diag["window"]
         ix, iy = np.floor(xs + 0.5), np.floor(ys + 0.5)
         assert win.shape == (xs.size, 4)
@@ -162,15 +168,7 @@ def test_early_exit_is_exact_and_only_skips_sources_without_above_threshold_pixe
     d_on, d_off = {}, {}
     on = measure_injected(det, early_exit=True, diagnostics=d_on, **kw)
     off = measure_injected(det, early_exit=False, diagnostics=d_off, **kw)
-    for c in on:
-        if c == "detection_id":
-            continue
-        a, b = on[c], off[c]
-        if a.dtype.kind == "f":
-            assert np.array_equal(np.isnan(a), np.isnan(b)), c
-            assert np.allclose(a, b, rtol=1e-9, atol=0, equal_nan=True), c
-        else:
-            np.testing.assert_array_equal(a, b, err_msg=c)
+    _assert_same_columns(on, off, "early exit")
     side = d_on["window"][:, 1] - d_on["window"][:, 0]
     skipped = side == ClassificationParams().search_box + 2 * (params.filter_halfwidth + 1)
     assert 0 < skipped.sum() < xs.size          # the test exercises both branches
