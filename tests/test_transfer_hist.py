@@ -170,7 +170,7 @@ def test_unreadable_histogram_metadata_is_redone_and_not_read(tmp_path):
     data[start:start + 16] = b"\x01" * 16                     # same length: the footer stays valid
     bad.write_bytes(bytes(data))
     wanted = {f.name: task_key(*_key_of(f)) for f in loose}
-    with pytest.warns(StoreWarning, match="unreadable glaciar.mobs_hist"):
+    with pytest.warns(StoreWarning, match="unreadable glaciar.mobs_hist metadata"):
         good = verified_task_names(tmp_path, wanted)
     assert good == set(wanted) - {bad.name}
     with warnings.catch_warnings(record=True) as got:
