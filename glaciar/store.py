@@ -4,10 +4,12 @@ Layout of a run directory::
 
     RUN_DIR/config.yaml        the resolved configuration of the run
     RUN_DIR/manifest.json      store format, settings, input fingerprints, seed, glaciar version
-    RUN_DIR/results/task_*.parquet  one file per finished task (rows; counts in its footer)
+    RUN_DIR/results/task_*.parquet  one file per finished task (rows; counts and m_obs
+                               histograms in its footer, :func:`task_counts`,
+                               :func:`task_histogram`)
     RUN_DIR/results/compact/field=<name>-<hash>/z=<z>/part-<hash>.parquet
                                compacted tasks of one (field, z): their rows, and in the
-                               footer their task list and counts (:func:`compact`)
+                               footer their task list, counts and histograms (:func:`compact`)
     RUN_DIR/.lock              advisory lock held by the run writing here (its pid inside)
     RUN_DIR/.input_fingerprints.json   cache of input-file hashes by (path, size, mtime)
 
