@@ -1032,12 +1032,14 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
                 pandas_meta = {b"pandas": meta[b"pandas"]}
             tables.append(t.replace_schema_metadata(None))
             tasks.append([f.name, key, t.num_rows])
-            if _META_COUNTS in meta:
-                counts.append(_ipc_table(meta[_META_COUNTS]))
-                mags.add(meta.get(_META_COUNTS_MAG))
-            if _META_HIST in meta:
-                hists.append(_ipc_table(meta[_META_HIST]))
-                obs.add(meta.get(_META_HIST_OBS))
+            for got, tags, mk, tk in ((counts, mags, _META_COUNTS, _META_COUNTS_MAG),
+                                      (hists, obs, _META_HIST, _META_HIST_OBS)):
+                if mk in meta:
+                    try:
+                        got.append(_ipc_table(meta[mk]))
+                        tags.add(meta.get(tk))
+                    except Exception:  # noqa: BLE001 - a file from before digests, garbled:
+                        pass           # the part goes without; readers then use the rows
         table = pa.concat_tables(tables, promote_options="permissive")
         cnt = (pa.concat_tables(counts, promote_options="permissive").to_pandas()
                if counts and len(counts) == len(items) and len(mags) == 1 else None)

@@ -452,7 +452,9 @@ def add_lf_products(run_dir, manifest: dict, fits_list: list[SelectionFunction],
                 sf.fit_info["veffmuv"] = f"none: {exc}"[:60]
         if transfer is not None:
             keep = ([sf.field] if sf.field != "all" else listed) or None
-            sf.transfer_matrix = transfer(keep, [int(seed), i])
+            tm = transfer(keep, [int(seed), i])
+            if tm is not None:
+                sf.transfer_matrix = tm
 
 
 def _transfer_source(run_dir, obs_col):
