@@ -905,9 +905,19 @@ def _read_current_tables(run_dir, units, merge, warn: bool):
 
 
 def _merge_histograms(df: pd.DataFrame) -> pd.DataFrame:
-    """Histograms summed over iterations and nominal magnitudes: per (field, z, m_in key, bin)."""
-    ids = [c for c in (COL_FIELD, COL_Z) if c in df.columns]
-    return _hist_sums(df, ids)
+    """Histograms summed over iterations and nominal magnitudes: per (field, z, m_in key, bin).
+
+    Arrow's hash aggregation (single-threaded: the same order every run), ~2x faster
+    than pandas' groupby on these ~1e6-row batches; NaN keys form their own group.
+    """
+    import pyarrow as pa
+
+    keys = [c for c in (COL_FIELD, COL_Z) if c in df.columns] + [HIST_MIN_KEY, HIST_MOBS_BIN]
+    sums = [COUNT_N, COUNT_K_REC, COUNT_K_SEL]
+    t = pa.Table.from_pandas(df[keys + sums], preserve_index=False)
+    out = t.group_by(keys, use_threads=False).aggregate([(c, "sum") for c in sums])
+    names = [c[:-len("_sum")] if c.endswith("_sum") else c for c in out.column_names]
+    return out.rename_columns(names).to_pandas()
 
 
 def read_current_histograms(run_dir: str | os.PathLike):
