@@ -362,7 +362,9 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
         name = spec_filename(spec)
         # The task's counts go in its file's footer, keyed on the fit's magnitude covariate.
         mag_column = C.COL_M_UV if ctx.magnitude_type == "absolute" else C.COL_MAG_INPUT
-        write_task_table(run_dir, name, table, key=spec_key(spec), mag_column=mag_column)
+        # And the histograms of the measured detection-band magnitude (transfer matrices).
+        write_task_table(run_dir, name, table, key=spec_key(spec), mag_column=mag_column,
+                         obs_column=C.band_column("mag", ctx.detection_band))
         done.append((name, len(table), time.process_time() - t0))
     return done
 
