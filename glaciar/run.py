@@ -266,9 +266,9 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         bases[b.name], rms[b.name], _ = band_pixels(survey, field, b.name, footprint, params,
                                                     cfg.detection.weight_type,
                                                     background=backgrounds if b.name == det else None)
-    # The context holds its own background-subtracted copies: the survey's cached
-    # images would only double the memory of every task that follows.
-    survey.release_pixels(field)
+        # The context holds its own background-subtracted copies: the survey's cached
+        # images would only double the memory (at this peak and in every task after it).
+        survey.release_pixels(field, (b.name,))
     zps = {b.name: float(b.zeropoint) for b in cfg.survey.bands}
     gains = {b.name: (None if b.gain is None else float(b.gain)) for b in cfg.survey.bands}
     coadd_bands, coadd_method, det_image_rms = (), "ivw", None

@@ -309,15 +309,16 @@ class Survey:
         path = self.science_path(field, band)
         return _cached(("science",) + _file_key(path), lambda: _read_array(path))
 
-    def release_pixels(self, field: str) -> None:
+    def release_pixels(self, field: str, bands=None) -> None:
         """Drop this process's cached science and noise arrays of ``field`` (masks stay).
 
         For a caller that has made its own arrays from them (the field context
         holds background-subtracted copies): the cached ones would double the
         memory of every task that follows. A later call reads the file again.
+        ``bands``: only these (default: every band).
         """
         keys = set()
-        for b in self.bands:
+        for b in (self.bands if bands is None else bands):
             keys.add(("science",) + _file_key_or_none(self.science_path(field, b)))
             noise = self.noise_path(field, b)
             if noise is not None:
