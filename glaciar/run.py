@@ -1139,6 +1139,10 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
             try:
                 futs = [ex.submit(_run_chunk, cfg_dict, base_dir, cfg_hash, str(run_dir), seed, ch, mode)
                         for ch in chunks]
+                # The workers exist now (a forked pool starts them all at the first
+                # submission, with this process's field context): this process runs no
+                # task, so it lets its copy go.
+                _CONTEXTS.clear()
                 for fut in cf.as_completed(futs):
                     account(fut.result())
             except KeyboardInterrupt:
