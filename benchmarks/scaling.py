@@ -14,7 +14,9 @@ process's (manifest, input checks, noise record).  Printed per size:
   reaped descendant, i.e. *per worker*, not summed) and of the main process
   (``RUSAGE_SELF``) [MB]; target <= 400 MB per worker on a 1200^2 field and
   <= 2 GB on 16000^2;
-* peak RSS of the demo generation.
+* peak RSS of the demo generation.  The generator builds the field in memory
+  (~200 bytes per pixel): a size it cannot build in the available memory is
+  skipped with a message (16000^2 needs ~50 GB).
 
 Then the 2-worker speed-up on ``--parallel-size``: wall time of the
 ``simulate`` call with 1 vs 2 workers, through the process pool
@@ -44,6 +46,20 @@ import time
 from pathlib import Path
 
 MB = 1024.0 ** 2
+#: Peak memory of the demo generation per pixel [bytes] (measured: 3.2 GB at 4000^2).
+GEN_BYTES_PER_PIXEL = 200
+
+
+def _available_memory() -> float | None:
+    """MemAvailable of /proc/meminfo [bytes], None where there is none."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return 1024.0 * float(line.split()[1])
+    except OSError:
+        pass
+    return None
 
 
 # --------------------------------------------------------------------------
@@ -169,6 +185,14 @@ def main(argv=None):
             if need > 0.8 * free:
                 print(f"{size}^2: skipped, needs ~{need / 1e9:.1f} GB on disk, "
                       f"{free / 1e9:.1f} GB free in {tmp_root}")
+                continue
+            # glaciar.demo.make_demo_images builds the field in memory (float64 scenes and
+            # FFTs): ~200 bytes per pixel at its peak (3.2 GB at 4000^2).
+            gen = GEN_BYTES_PER_PIXEL * size * size
+            avail = _available_memory()
+            if avail is not None and gen > 0.8 * avail:
+                print(f"{size}^2: skipped, generating the demo field needs ~{gen / 1e9:.0f} GB "
+                      f"of memory, {avail / 1e9:.0f} GB available")
                 continue
             b = _spawn(["--child", "build", "--size", str(size), "--out", str(sdir / "survey"),
                         *common])
