@@ -21,11 +21,13 @@ report, the fit's 7 columns by projection), measured in the same run on a store 
 scaled linearly to the task counts above; the memory figure is the rows' in-memory
 size scaled the same way.
 
-``run_fit``'s LF products (V_eff(M_UV) and the photometric transfer matrices,
-:func:`glaciar.pipeline.selection_file.add_lf_products`) are switched off here: the
-transfer matrices are built from per-source rows (``read_columns``), which this store
-does not hold; at 213 M sources they would need the same treatment as the counts
-(per-task histograms of the measured magnitude stored beside the rows).
+Each part's footer also holds its tasks' histograms of the measured detection-band
+magnitude (:func:`glaciar.store.task_histogram` columns; m_obs = m + 0.05 + 0.3 N(0, 1)
+for the recovered sources), from which ``run_fit``'s LF products build the photometric
+transfer matrices (:func:`glaciar.pipeline.selection_file.add_lf_products`, timed apart
+inside the fit; V_eff(M_UV) is skipped: the manifest records no injection SED).  Today's
+transfer matrices read the rows' measured magnitudes: the "today" figure is the fit's
+projected row read, scaled.
 
 The fit's process first reads the counts once on its own (to time reading apart from
 ``run_fit``, which reads them again); its peak RSS covers both.  Each measurement runs
@@ -58,6 +60,7 @@ MAG_VALUES = np.round(24.0 + 0.25 * np.arange(20), 4)
 N_PER_TASK = 100
 DEPTH_SPREAD = 0.2          # [mag] within a field
 DEPTH_REF = 27.4
+OBS_COLUMN = C.band_column("mag", "f160w")     #: the measured detection-band magnitude
 
 
 def _c(m_rel, z):
@@ -84,8 +87,32 @@ def _manifest(fields, n_iter):
             "area_arcmin2": {f: 4.0 for f in fields}, "depth_area": edges}
 
 
+def _task_histograms(rng, field, z, mags, its, k_rec, k_sel) -> pd.DataFrame:
+    """Per-task m_obs histograms (:func:`glaciar.store.task_histogram` columns) of tasks whose
+    recovered and selected totals are ``k_rec``, ``k_sel``: m_obs = m + 0.05 + 0.3 N(0, 1)."""
+    from glaciar.tables import MOBS_BIN_FAINT, mobs_lattice_index
+
+    n_t = len(mags)
+    t = np.repeat(np.arange(n_t), N_PER_TASK)
+    j = np.tile(np.arange(N_PER_TASK), n_t)
+    rec = j < k_rec[t]
+    sel = j < k_sel[t]                      # selected sources are recovered ones
+    m_obs = mags[t] + 0.05 + 0.3 * rng.standard_normal(t.size)
+    b = np.where(rec, mobs_lattice_index(m_obs), MOBS_BIN_FAINT).astype(np.int64)
+    code = t * 1024 + np.where(b == MOBS_BIN_FAINT, 1023, b)   # lattice bins < 1023 here
+    u, inv = np.unique(code, return_inverse=True)
+    tu, bu = u // 1024, u % 1024
+    return pd.DataFrame({
+        C.COL_FIELD: field, C.COL_Z: z, C.COL_MAG: mags[tu], C.COL_ITERATION: its[tu],
+        S.HIST_MIN_KEY: np.round(mags[tu] / S.COUNTS_MAG_RESOLUTION),
+        S.HIST_MOBS_BIN: np.where(bu == 1023, MOBS_BIN_FAINT, bu).astype(np.int32),
+        S.COUNT_N: np.bincount(inv), S.COUNT_K_REC: np.bincount(inv, weights=rec).astype(np.int64),
+        S.COUNT_K_SEL: np.bincount(inv, weights=sel).astype(np.int64)})
+
+
 def write_counts_store(run_dir: Path, n_fields: int, n_iter: int, seed: int = 1) -> int:
-    """A compacted store of counts (no rows) drawn from the known surface; returns tasks."""
+    """A compacted store of counts and m_obs histograms (no rows) drawn from the known
+    surface; returns tasks."""
     import pyarrow as pa
 
     rng = np.random.default_rng(seed)
@@ -124,7 +151,11 @@ def write_counts_store(run_dir: Path, n_fields: int, n_iter: int, seed: int = 1)
             tasks = [[S.task_filename(f, float(z), float(a), int(b)),
                       S.task_key(f, float(z), float(a), int(b)), N_PER_TASK]
                      for a, b in zip(mm, it)]
-            S.write_part(run_dir, f, float(z), empty, tasks, counts, C.COL_MAG_INPUT)
+            k_rec_t = np.bincount(t_idx, weights=k_rec, minlength=len(mm)).astype(np.int64)
+            k_sel_t = np.bincount(t_idx, weights=k_sel, minlength=len(mm)).astype(np.int64)
+            hist = _task_histograms(rng, f, float(z), mm, it, k_rec_t, k_sel_t)
+            S.write_part(run_dir, f, float(z), empty, tasks, counts, C.COL_MAG_INPUT,
+                         hist=hist, obs_column=OBS_COLUMN)
             n_tasks += len(tasks)
     S.write_manifest(run_dir, _manifest(fields, n_iter))
     return n_tasks
@@ -266,8 +297,17 @@ def main(argv=None):
         from glaciar.pipeline.fit import run_fit
         from glaciar.pipeline.inputs import fit_inputs
         import glaciar.pipeline.selection_file as sfm
-        # The transfer matrices read per-source rows (none here): left out, see the docstring.
-        sfm.add_lf_products = lambda *a, **k: None
+        # The transfer matrices come from the parts' m_obs histograms (no rows here): timed.
+        lf = sfm.add_lf_products
+
+        def timed(run_dir, manifest, fits, **kw):
+            t = time.perf_counter()
+            lf(run_dir, manifest, fits, **kw)
+            out["transfer_s"] = time.perf_counter() - t
+            out["n_transfer"] = sum(f.transfer_matrix is not None for f in fits)
+            out["transfer_sources"] = max(int(f.transfer_matrix.counts[0].sum()) for f in fits
+                                          if f.transfer_matrix is not None)
+        sfm.add_lf_products = timed
         t = time.perf_counter()
         d = fit_inputs({str(big)!r}, "mag_input", 0.01)
         cells = d.cells(0.01, {DEPTH_REF}, "mag_input")
@@ -281,6 +321,11 @@ def main(argv=None):
         out["n_sources"] = s["n_sources"]
         out["converged"] = s["converged"]
         out["m50_0"] = s["parameters"].get("m50_0", {{}}).get("median")
+    """)
+    hist = _measure(f"""
+        from glaciar.store import read_current_histograms
+        h, _ = read_current_histograms({str(big)!r})
+        out["groups"] = len(h)
     """)
     report = _measure(f"""
         from glaciar.cli import main
@@ -332,6 +377,11 @@ def main(argv=None):
           f"{today_read['fit_bytes_per_row'] * N_PER_TASK * n_big / 2**20:24.0f}  (fit's 7 columns in memory)")
     print(f"{'  reading counts alone [s] / RSS [MB]':38s} {read['wall_s']:17.1f} / {read['rss_mb']:4.0f}"
           f"   ({read['groups']} merged groups; {fit['cells']} cells)")
+    print(f"{'  transfer matrices (histograms) [s]':38s} {fit['transfer_s']:24.1f} "
+          f"{per_task_fit * n_big:24.0f}  (reading rows alone; {fit['n_transfer']} matrices, "
+          f"{fit['transfer_sources']} sources)")
+    print(f"{'  reading histograms alone [s] / RSS [MB]':38s} {hist['wall_s']:17.1f} / "
+          f"{hist['rss_mb']:4.0f}   ({hist['groups']} merged histogram rows)")
     print(f"{'report, ' + str(n_rep) + ' tasks: wall [s]':38s} {report['wall_s']:24.1f} "
           f"{per_task_rep * n_rep:24.1f}  (read + summary only)")
     print(f"{'  peak RSS [MB]':38s} {report['rss_mb']:24.0f} "

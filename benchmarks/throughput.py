@@ -21,7 +21,7 @@ per injected source (``time.process_time``):
 
 Usage::
 
-    python benchmarks/throughput.py [--size 1200] [--tasks 10] [--n 100] [--z 8] [--mag 26]
+    python benchmarks/throughput.py [--size 1200] [--tasks 10] [--n 100] [--z 8] [--mag 24 26 28] [--profile]
 """
 from __future__ import annotations
 
@@ -35,6 +35,7 @@ import sep
 
 import glaciar.engine.task as task_module
 from glaciar.config import load_config
+from glaciar.constants import STATUS_NOT_DETECTED
 from glaciar.demo import build_demo_survey
 from glaciar.engine.measure import measure_injected
 from glaciar.engine.windows import pack_windows
@@ -129,117 +130,122 @@ def floor_and_full(a, windows):
     return t_floor, t_full, win
 
 
+def measure_mag(opt, mag, tmp):
+    """Time ``opt.tasks`` tasks at one magnitude; returns a dict of CPU seconds and counts."""
+    t0 = time.perf_counter()
+    path = build_demo_survey(tmp, shape=(opt.size, opt.size), seed=opt.seed, n_galaxies=opt.n,
+                             n_iterations=opt.tasks + 1, z_values=(opt.z,), mag_values=(mag,))
+    t_build = time.perf_counter() - t0
+    if opt.clean_style is not None:
+        import yaml
+        raw = yaml.safe_load(open(path))
+        raw.setdefault("detection", {})["CLEAN_STYLE"] = opt.clean_style
+        with open(path, "w") as fh:
+            yaml.safe_dump(raw, fh)
+    cfg = load_config(path)
+    t0 = time.process_time()
+    ctx = build_field_context(cfg, Survey.from_config(cfg), cfg.survey.fields[0])
+    t_ctx = time.process_time() - t0
+    specs = plan_tasks(cfg)
+    seed = cfg.simulation.seed
+
+    real = task_module.measure_injected
+    rec = {}
+    has_diag = "diagnostics" in inspect.signature(real).parameters
+
+    def recording(*args, **kwargs):
+        diag = {}
+        if has_diag:
+            kwargs = dict(kwargs, diagnostics=diag)
+        t = time.process_time()
+        out = real(*args, **kwargs)
+        rec["t_measure"] = time.process_time() - t
+        rec["args"], rec["kwargs"], rec["diag"] = args, kwargs, diag
+        return out
+
+    task_module.measure_injected = recording
+    r = dict(t_pipe=0.0, t_meas=0.0, t_floor=0.0, t_full=0.0, n_src=0, n_det=0, rounds=[], areas=[],
+             t_build=t_build, t_ctx=t_ctx, ctx=ctx, prof=None)
+    try:
+        task_module.run_task(ctx, specs[0], seed)                 # warm-up
+        if opt.profile:
+            import cProfile
+            r["prof"] = cProfile.Profile()
+        for spec in specs[1:opt.tasks + 1]:
+            if r["prof"] is not None:
+                r["prof"].enable()
+            t = time.process_time()
+            table = task_module.run_task(ctx, spec, seed)
+            r["t_pipe"] += time.process_time() - t
+            if r["prof"] is not None:
+                r["prof"].disable()
+            r["t_meas"] += rec["t_measure"]
+            r["n_src"] += len(table)
+            r["n_det"] += int(np.sum(table["status"].to_numpy() != STATUS_NOT_DETECTED))
+            a = _bind(rec["args"], rec["kwargs"])
+            # (an engine without diagnostics: the floor uses the minimum windows)
+            windows = rec["diag"].get("window", np.zeros((len(table), 4), dtype=np.int64))
+            f, g, win = floor_and_full(a, windows)
+            r["t_floor"] += f
+            r["t_full"] += g
+            r["rounds"].append(rec["diag"].get("rounds", 0))
+            r["areas"].append((win[:, 1] - win[:, 0]) * (win[:, 3] - win[:, 2]))
+            rec.clear()
+    finally:
+        task_module.measure_injected = real
+    return r
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=1200, help="image side [pixels] (default 1200)")
-    ap.add_argument("--tasks", type=int, default=10, help="timed tasks (default 10)")
+    ap.add_argument("--tasks", type=int, default=10, help="timed tasks per magnitude (default 10)")
     ap.add_argument("--n", type=int, default=100, help="injected sources per task (default 100)")
     ap.add_argument("--z", type=float, default=8.0, help="redshift of the injected sources (default 8)")
-    ap.add_argument("--mag", type=float, default=26.0, help="F160W magnitude [AB] (default 26)")
+    ap.add_argument("--mag", type=float, nargs="+", default=[24.0, 26.0, 28.0],
+                    help="F160W magnitudes [AB], one row each (default 24 26 28)")
     ap.add_argument("--seed", type=int, default=3, help="seed of the demo images (default 3)")
     ap.add_argument("--profile", action="store_true", help="also print a cProfile of the timed tasks")
+    ap.add_argument("--sort", default="tottime", help="cProfile sort key (default tottime)")
+    ap.add_argument("--top", type=int, default=25, help="cProfile rows printed (default 25)")
     ap.add_argument("--clean-style", default=None,
                     help="DetectionParams.clean_style (default: the configuration's, i.e. glaciar's default)")
     opt = ap.parse_args(argv)
 
-    with tempfile.TemporaryDirectory(prefix="glaciar-throughput-") as tmp:
-        t0 = time.perf_counter()
-        path = build_demo_survey(tmp, shape=(opt.size, opt.size), seed=opt.seed, n_galaxies=opt.n,
-                                 n_iterations=opt.tasks + 1, z_values=(opt.z,), mag_values=(opt.mag,))
-        t_build = time.perf_counter() - t0
-        cfg = load_config(path)
-        t0 = time.process_time()
-        if opt.clean_style is not None:
-            import yaml
-            raw = yaml.safe_load(open(path))
-            raw.setdefault("detection", {})["CLEAN_STYLE"] = opt.clean_style
-            with open(path, "w") as fh:
-                yaml.safe_dump(raw, fh)
-            cfg = load_config(path)
-        ctx = build_field_context(cfg, Survey.from_config(cfg), cfg.survey.fields[0])
-        t_ctx = time.process_time() - t0
-        specs = plan_tasks(cfg)
-        seed = cfg.simulation.seed
-
-        real = task_module.measure_injected
-        rec = {}
-
-        has_diag = "diagnostics" in inspect.signature(real).parameters
-
-        def recording(*args, **kwargs):
-            diag = {}
-            if has_diag:
-                kwargs = dict(kwargs, diagnostics=diag)
-            t = time.process_time()
-            out = real(*args, **kwargs)
-            rec["t_measure"] = time.process_time() - t
-            rec["args"], rec["kwargs"], rec["diag"] = args, kwargs, diag
-            return out
-
-        task_module.measure_injected = recording
-        try:
-            task_module.run_task(ctx, specs[0], seed)                 # warm-up
-            t_pipe = t_meas = t_floor = t_full = 0.0
-            n_src = 0
-            rounds, areas = [], []
-            prof = None
-            if opt.profile:
-                import cProfile
-                prof = cProfile.Profile()
-            for spec in specs[1:opt.tasks + 1]:
-                if prof is not None:
-                    prof.enable()
-                t = time.process_time()
-                table = task_module.run_task(ctx, spec, seed)
-                t_pipe += time.process_time() - t
-                if prof is not None:
-                    prof.disable()
-                t_meas += rec["t_measure"]
-                n_src += len(table)
-                a = _bind(rec["args"], rec["kwargs"])
-                # (an engine without diagnostics: the floor uses the minimum windows)
-                windows = rec["diag"].get("window", np.zeros((len(table), 4), dtype=np.int64))
-                f, g, win = floor_and_full(a, windows)
-                t_floor += f
-                t_full += g
-                rounds.append(rec["diag"].get("rounds", 0))
-                areas.append((win[:, 1] - win[:, 0]) * (win[:, 3] - win[:, 2]))
-                rec.clear()
-        finally:
-            task_module.measure_injected = real
-
-    ms = lambda t: 1e3 * t / n_src  # noqa: E731
-    area = np.concatenate(areas)
-    nb = len(ctx.bands)
-    print(f"glaciar throughput: {opt.size}x{opt.size} px demo field, {nb} bands "
+    rows = []
+    for mag in opt.mag:
+        with tempfile.TemporaryDirectory(prefix="glaciar-throughput-") as tmp:
+            rows.append((mag, measure_mag(opt, mag, tmp)))
+    ctx = rows[0][1]["ctx"]
+    print(f"glaciar throughput: {opt.size}x{opt.size} px demo field, {len(ctx.bands)} bands "
           f"({', '.join(ctx.bands)}; detection {ctx.detection_band}), {opt.tasks} tasks x {opt.n} sources "
-          f"= {n_src} injected at z = {opt.z:g}, m = {opt.mag:g}")
-    print(f"(demo build {t_build:.1f} s wall; field context {t_ctx:.2f} s CPU, once per field and worker)")
+          f"per magnitude at z = {opt.z:g}")
+    print(f"(field context {rows[0][1]['t_ctx']:.2f} s CPU, once per field and worker, not in the per-source "
+          f"figures; ms = CPU milliseconds per injected source, ratios from this run)")
     print()
-    rows = [
-        ("pipeline: run_task, whole task", ms(t_pipe)),
-        ("  of which measure_injected", ms(t_meas)),
-        ("  of which draws, stamps, injection, selection", ms(t_pipe - t_meas)),
-        ("floor: 1 tiled sep.extract + sum_circle", ms(t_floor)),
-        (f"full frame: sep.extract {opt.size}^2 + sum_circle", ms(t_full)),
-    ]
-    print(f"{'':48s} {'ms CPU/source':>14s} {'sources/CPU-s':>14s}")
-    for name, v in rows:
-        print(f"{name:48s} {v:14.3f} {1e3 / v if v > 0 else float('inf'):14.0f}")
+    hdr = (f"{'m':>5s} {'detected':>8s} {'pipeline':>9s} {'measure':>8s} {'rest':>7s} {'floor':>7s} "
+           f"{'full':>7s} {'pipe/floor':>10s} {'meas/floor':>10s} {'vs GLACiAR':>10s} {'rounds':>6s} "
+           f"{'median win':>10s}")
+    print(hdr)
+    for mag, r in rows:
+        ms = lambda t: 1e3 * t / r["n_src"]  # noqa: E731
+        area = np.concatenate(r["areas"])
+        print(f"{mag:5.1f} {r['n_det'] / r['n_src']:8.0%} {ms(r['t_pipe']):9.3f} {ms(r['t_meas']):8.3f} "
+              f"{ms(r['t_pipe'] - r['t_meas']):7.3f} {ms(r['t_floor']):7.3f} {ms(r['t_full']):7.3f} "
+              f"{r['t_pipe'] / r['t_floor']:10.2f} {r['t_meas'] / r['t_floor']:10.2f} "
+              f"{GLACIAR_MS_PER_SOURCE / ms(r['t_pipe']):9.1f}x {np.mean(r['rounds']):6.1f} "
+              f"{np.median(area):10.0f}")
     print()
-    print(f"{'ratio pipeline / floor':48s} {t_pipe / t_floor:14.2f}   (target <= 2)")
-    print(f"{'ratio measure_injected / floor':48s} {t_meas / t_floor:14.2f}")
-    print(f"{'ratio full frame / floor':48s} {t_full / t_floor:14.2f}")
-    print(f"{'speed-up vs GLACiAR (18 ms/source), pipeline':48s} {GLACIAR_MS_PER_SOURCE / ms(t_pipe):14.1f}x  "
-          f"(target >= 100x, i.e. <= 0.18 ms)")
-    print(f"{'speed-up vs GLACiAR, measure_injected alone':48s} {GLACIAR_MS_PER_SOURCE / ms(t_meas):14.1f}x")
-    print()
-    print(f"detection windows (last round, >= {MIN_WINDOW}^2 for the floor): median {np.median(area):.0f} px, "
-          f"mean {area.mean():.0f} px, 90 % {np.percentile(area, 90):.0f} px; "
-          f"extraction rounds per task: {np.mean(rounds):.1f}")
+    print("pipeline: run_task (draws, stamps, injection, detection, classification, photometry, selection);")
+    print("measure: measure_injected alone; rest = pipeline - measure; floor: 1 tiled sep.extract of the last")
+    print(f"windows (>= {MIN_WINDOW}^2) + sum_circle per aperture and band; full: sep.extract of the whole image "
+          f"+ sum_circle;")
+    print("targets (issue 11): pipe/floor <= 2, >= 25x GLACiAR's 18 ms/source at m = 26.")
     if opt.profile:
         import pstats
-        pstats.Stats(prof).sort_stats("tottime").print_stats(25)
+        for mag, r in rows:
+            print(f"\n---- cProfile, m = {mag:g}")
+            pstats.Stats(r["prof"]).sort_stats(opt.sort).print_stats(opt.top)
 
 
 if __name__ == "__main__":

@@ -82,6 +82,9 @@ COL_DEPTH = "depth_local"
 DEPTH_NSIGMA = 5.0                   #: the depth is a DEPTH_NSIGMA-sigma aperture limit
 DEPTH_APERTURE_RADIUS_FWHM = 1.0     #: aperture radius of the local depth [detection PSF FWHM]
 DEPTH_BIN_MAG = 0.05                 #: bin width of the per-field area-by-depth histograms [mag]
+#: Width of the measured-magnitude bins of the transfer matrices, and of the global lattice
+#: (anchored at 0 mag) of the per-task histograms of the measured magnitude [mag].
+TRANSFER_MOBS_STEP = 0.2
 
 
 def band_column(quantity: str, band: str) -> str:

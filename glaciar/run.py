@@ -30,7 +30,8 @@ from .engine.classify import ClassificationParams
 from .engine.coadd import coadd
 from .engine.context import R_EFF_LOG_STEP, FieldContext
 from .engine.depth import depth_area_histogram, local_depth_map
-from .engine.noise import CorrelatedNoise, empty_aperture_scatter, weight_rescale_factor
+from .engine.noise import (CorrelatedNoise, empty_aperture_scatter, empty_sky_distance,
+                           weight_rescale_factor)
 from .engine.selection import compile_selection
 from .engine.positions import placement_capacity
 from .engine.task import TaskSpec, draw_task_sources, field_key, run_task
@@ -168,33 +169,52 @@ _EMPTY_SKY_MARGIN_PIX = 3
 
 
 def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: np.ndarray,
-                     segmap: np.ndarray) -> CorrelatedNoise:
+                     segmap: np.ndarray, sky: dict | None = None) -> CorrelatedNoise:
     """The correlated-noise model of one band of a field, from empty apertures.
 
     Empty sky: pixels with data, more than a few pixels from every source the
     detection band finds in the original image. Aperture positions come from a
     generator keyed by the field and band names only (not the run's seed): the
     model is a measurement of the image, the same in every run and worker.
+
+    ``sky``: an empty dict shared by the calls for the bands of one field (same
+    ``segmap``); it keeps the dilated source mask and the last empty-sky distance
+    map, so bands with the same usable pixels pay for one distance transform.
     """
     from scipy import ndimage
 
-    usable = np.isfinite(rms) & ~ndimage.binary_dilation(
-        segmap > 0, iterations=_EMPTY_SKY_MARGIN_PIX)
+    sky = {} if sky is None else sky
+    if "sources" not in sky:
+        sky["sources"] = ndimage.binary_dilation(segmap > 0, iterations=_EMPTY_SKY_MARGIN_PIX)
+    usable = np.isfinite(rms) & ~sky["sources"]
+    if "usable" not in sky or not np.array_equal(sky["usable"], usable):
+        sky["usable"], sky["distance"] = usable, empty_sky_distance(usable)
     seq = np.random.SeedSequence([field_key(field), field_key(band)])
     npix, ratio, n = empty_aperture_scatter(base, rms, usable, cfg.noise.empty_aperture_radii_pix,
                                             cfg.noise.n_empty_apertures,
-                                            np.random.default_rng(seq))
+                                            np.random.default_rng(seq), distance=sky["distance"])
     if len(npix) < 2:
         return CorrelatedNoise()        # too little empty sky to say: no correction
     return CorrelatedNoise.fit(npix, ratio, n)
 
 
-def field_noise_record(cfg: Config, survey: Survey, field: str) -> dict:
+def field_noise_record(cfg: Config, survey: Survey, field: str,
+                       ctx: FieldContext | None = None) -> dict:
     """How each band's noise of a field is used, for the run's manifest.
 
     Per band: the WEIGHT_TYPE, the MAP_WEIGHT rescaling factor (1 otherwise),
     the empty-aperture table r(N) and whether it is applied to the errors.
+    ``ctx``: the field's context, if built (without a stacked detection image its
+    noise maps and models are the ones measured here: nothing is measured twice).
     """
+    if ctx is not None and cfg.survey.detection_image is None:
+        out = {}
+        for b in cfg.survey.bands:
+            from_background = survey.noise_path(field, b.name) is None or \
+                cfg.detection.weight_type == "background"
+            out[b.name] = _noise_entry(cfg, survey, field, b.name, ctx.rms[b.name],
+                                       from_background, ctx.measured_noise[b.name])
+        return out
     params = _detection_params(cfg)
     footprint = survey.footprint(field)
     det = cfg.survey.detection_band
@@ -205,18 +225,23 @@ def field_noise_record(cfg: Config, survey: Survey, field: str) -> dict:
     base_det, rms_det, _ = pixels[det]
     reference = reference_extraction(base_det, rms_det, params, float(cfg.survey.band(det).zeropoint),
                                      mask=~footprint)
+    sky: dict = {}
     for b, (base, rms, from_background) in pixels.items():
-        scale = 1.0
-        if cfg.detection.weight_type == "map_weight" and not from_background:
-            raw = survey.rms(field, b)
-            ok = np.isfinite(rms) & np.isfinite(raw) & (raw > 0)
-            scale = float(np.median(rms[ok] / raw[ok])) if ok.any() else float("nan")
-        model = correlated_noise(cfg, field, b, base, rms, reference.segmap)
-        out[b] = {"weight_type": cfg.detection.weight_type or
-                  ("background" if from_background else f"absolute {cfg.survey.noise_type} map"),
-                  "weight_scale": scale, "correlated": model.to_dict(),
-                  "applied": _applies(cfg, model)}
+        model = correlated_noise(cfg, field, b, base, rms, reference.segmap, sky)
+        out[b] = _noise_entry(cfg, survey, field, b, rms, from_background, model)
     return out
+
+
+def _noise_entry(cfg: Config, survey: Survey, field: str, band: str, rms: np.ndarray,
+                 from_background: bool, model: CorrelatedNoise) -> dict:
+    scale = 1.0
+    if cfg.detection.weight_type == "map_weight" and not from_background:
+        raw = survey.rms(field, band)
+        ok = np.isfinite(rms) & np.isfinite(raw) & (raw > 0)
+        scale = float(np.median(rms[ok] / raw[ok])) if ok.any() else float("nan")
+    return {"weight_type": cfg.detection.weight_type or
+            ("background" if from_background else f"absolute {cfg.survey.noise_type} map"),
+            "weight_scale": scale, "correlated": model.to_dict(), "applied": _applies(cfg, model)}
 
 
 def _applies(cfg: Config, model: CorrelatedNoise) -> bool:
@@ -241,6 +266,9 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         bases[b.name], rms[b.name], _ = band_pixels(survey, field, b.name, footprint, params,
                                                     cfg.detection.weight_type,
                                                     background=backgrounds if b.name == det else None)
+        # The context holds its own background-subtracted copies: the survey's cached
+        # images would only double the memory (at this peak and in every task after it).
+        survey.release_pixels(field, (b.name,))
     zps = {b.name: float(b.zeropoint) for b in cfg.survey.bands}
     gains = {b.name: (None if b.gain is None else float(b.gain)) for b in cfg.survey.bands}
     coadd_bands, coadd_method, det_image_rms = (), "ivw", None
@@ -254,8 +282,10 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
                                          zps[det], mask=mask, photometry=(bases[det], rms[det]))
     else:
         reference = reference_extraction(bases[det], rms[det], params, zps[det], mask=mask)
-    noise_models = {b: correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap)
+    sky: dict = {}
+    noise_models = {b: correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap, sky)
                     for b in bands}
+    del sky
     depth, _ = field_depth(rms[det], zps[det], psfs[det])
     model = population.SourceModel(**cfg.source.model_dump())
     cache = TemplateCache(psfs, enclosed_fraction=model.stamp_flux_fraction)
@@ -274,6 +304,7 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         selection=selection, enclosed_fraction=model.stamp_flux_fraction,
         isolation_fraction=cfg.simulation.isolation_fraction,
         noise_models={b: m for b, m in noise_models.items() if _applies(cfg, m)},
+        measured_noise=noise_models,
         coadd_bands=coadd_bands, coadd_method=coadd_method, detection_image_rms=det_image_rms,
         detection_background=backgrounds[det])
 
@@ -371,6 +402,17 @@ def _context(cfg_dict: dict, base_dir: str, cfg_hash: str, field: str) -> FieldC
     return ctx
 
 
+def _context_of(cfg: Config, survey: Survey, field: str) -> FieldContext:
+    """The field's context from the main process's config, under :func:`_context`'s key."""
+    key = (config_hash(cfg), str(cfg.base_dir), field)
+    ctx = _CONTEXTS.get(key)
+    if ctx is None:
+        _CONTEXTS.clear()
+        ctx = build_field_context(cfg, survey, field)
+        _CONTEXTS[key] = ctx
+    return ctx
+
+
 def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed: int,
                specs: list[TaskSpec], mode: str = "windowed") -> list[tuple[str, int, float]]:
     """Run a chunk of tasks of one field and write each task's file; return (name, rows, seconds)."""
@@ -382,7 +424,9 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
         name = spec_filename(spec)
         # The task's counts go in its file's footer, keyed on the fit's magnitude covariate.
         mag_column = C.COL_M_UV if ctx.magnitude_type == "absolute" else C.COL_MAG_INPUT
-        write_task_table(run_dir, name, table, key=spec_key(spec), mag_column=mag_column)
+        # And the histograms of the measured detection-band magnitude (transfer matrices).
+        write_task_table(run_dir, name, table, key=spec_key(spec), mag_column=mag_column,
+                         obs_column=C.band_column("mag", ctx.detection_band))
         done.append((name, len(table), time.process_time() - t0))
     return done
 
@@ -400,22 +444,32 @@ def _chunks(specs: list[TaskSpec], n_workers: int) -> list[list[TaskSpec]]:
     return out
 
 
-def _depth_area(cfg: Config, survey: Survey, field: str) -> dict:
+def _depth_area(cfg: Config, survey: Survey, field: str, ctx: FieldContext | None = None) -> dict:
     """The manifest's footprint area by local depth of one field (one FFT; main process only).
 
     Warns when the depth comes from sep's background RMS (no noise map): once
     per field and run, here, rather than in every worker that builds the field.
+    ``ctx``: the field's context, if built (its depth map is this one).
     """
     det = cfg.survey.detection_band
     band = cfg.survey.band(det)
     pixscale = survey.pixel_scale_arcsec(field)
-    _, rms, from_background = band_pixels(survey, field, det, survey.footprint(field),
-                                          _detection_params(cfg), cfg.detection.weight_type)
+    if ctx is not None:
+        from_background = survey.noise_path(field, det) is None or \
+            cfg.detection.weight_type == "background"
+    else:
+        _, rms, from_background = band_pixels(survey, field, det, survey.footprint(field),
+                                              _detection_params(cfg), cfg.detection.weight_type)
     if from_background:
         warnings.warn(f"field {field!r}: no noise map for the detection band {det!r}; its local "
                       "depth (column depth_local, manifest depth_area) comes from sep's background "
                       "RMS mesh", UserWarning)
-    depth, radius_pix = field_depth(rms, float(band.zeropoint), _band_psf(cfg, band, pixscale))
+    psf = _band_psf(cfg, band, pixscale)
+    if ctx is not None:
+        depth = ctx.depth
+        radius_pix = C.DEPTH_APERTURE_RADIUS_FWHM * measure_fwhm(psf, 1.0)
+    else:
+        depth, radius_pix = field_depth(rms, float(band.zeropoint), psf)
     edges, area = depth_area_histogram(depth, pixscale, C.DEPTH_BIN_MAG)
     return {"band": det, "nsigma": C.DEPTH_NSIGMA, "aperture_radius_arcsec": radius_pix * pixscale,
             "rms_source": "background" if from_background else "noise_map",
@@ -739,6 +793,14 @@ def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
         pixscale[f] = ps
         area[f] = float(survey.footprint(f).sum()) * ps ** 2 / 3600.0
     settings = store_settings(cfg)
+    depth_area, noise = {}, {}
+    for f in cfg.survey.fields:
+        # The field's context is built here once, in this process: the depth and noise
+        # records read it, a serial run's tasks use it (glaciar.run._context), and forked
+        # pool workers inherit it instead of measuring the field again.
+        ctx = _context_of(cfg, survey, f)
+        depth_area[f] = _depth_area(cfg, survey, f, ctx)
+        noise[f] = field_noise_record(cfg, survey, f, ctx)
     return {
         "store_format": C.STORE_FORMAT,
         "glaciar_version": __version__,
@@ -763,8 +825,8 @@ def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
         "pixel_scale_arcsec": pixscale,
         "area_arcmin2": area,
         "area_arcmin2_total": float(sum(area.values())),
-        "depth_area": {f: _depth_area(cfg, survey, f) for f in cfg.survey.fields},
-        "noise": {f: field_noise_record(cfg, survey, f) for f in cfg.survey.fields},
+        "depth_area": depth_area,
+        "noise": noise,
         "detection_z_limit": detection_z_limit(cfg),
     }
 
@@ -1108,6 +1170,10 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
             try:
                 futs = [ex.submit(_run_chunk, cfg_dict, base_dir, cfg_hash, str(run_dir), seed, ch, mode)
                         for ch in chunks]
+                # The workers exist now (a forked pool starts them all at the first
+                # submission, with this process's field context): this process runs no
+                # task, so it lets its copy go.
+                _CONTEXTS.clear()
                 for fut in cf.as_completed(futs):
                     account(fut.result())
             except KeyboardInterrupt:

@@ -64,6 +64,13 @@ def _file_key(path: Path) -> tuple:
     return (str(path), st.st_mtime_ns, st.st_size)
 
 
+def _file_key_or_none(path: Path) -> tuple:
+    try:
+        return _file_key(path)
+    except OSError:          # a missing file has nothing cached
+        return (str(path), None, None)
+
+
 def _cached(key: tuple, build):
     with _CACHE_LOCK:
         if key in _CACHE:
@@ -301,6 +308,24 @@ class Survey:
         self.shape(field)
         path = self.science_path(field, band)
         return _cached(("science",) + _file_key(path), lambda: _read_array(path))
+
+    def release_pixels(self, field: str, bands=None) -> None:
+        """Drop this process's cached science and noise arrays of ``field`` (masks stay).
+
+        For a caller that has made its own arrays from them (the field context
+        holds background-subtracted copies): the cached ones would double the
+        memory of every task that follows. A later call reads the file again.
+        ``bands``: only these (default: every band).
+        """
+        keys = set()
+        for b in (self.bands if bands is None else bands):
+            keys.add(("science",) + _file_key_or_none(self.science_path(field, b)))
+            noise = self.noise_path(field, b)
+            if noise is not None:
+                keys.add(("rms", self.config.survey.noise_type) + _file_key_or_none(noise))
+        with _CACHE_LOCK:
+            for k in keys:
+                _CACHE.pop(k, None)
 
     def rms(self, field: str, band: str) -> np.ndarray | None:
         """Per-pixel noise RMS [image units], read-only (cached); None without a noise map.

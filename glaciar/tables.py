@@ -40,7 +40,9 @@ from . import constants as C
 from .store import atomic_write_bytes, atomic_write_text, field_file_prefix
 
 __all__ = ["summary_table", "box_summary_table", "write_summaries", "region_file", "STATUS_COLUMNS",
-           "TransferMatrix", "transfer_matrix", "slice_edges", "TRANSFER_KINDS"]
+           "TransferMatrix", "transfer_matrix", "slice_edges", "TRANSFER_KINDS",
+           "transfer_from_histograms", "mobs_lattice_index", "mobs_lattice_edge",
+           "MOBS_BIN_FAINT", "MOBS_BIN_BRIGHT"]
 
 #: summary column of each status code
 STATUS_COLUMNS = {code: f"n_status_{code}" if code >= 0 else f"n_status_m{-code}"
@@ -235,8 +237,7 @@ def write_regions(rows: pd.DataFrame, out_dir) -> list[Path]:
 # --------------------------------------------------------------------------
 # Photometric transfer function p(m_obs | m_in, z)
 # --------------------------------------------------------------------------
-#: Width of the measured-magnitude bins of the transfer matrices [mag].
-TRANSFER_MOBS_STEP = 0.2
+TRANSFER_MOBS_STEP = C.TRANSFER_MOBS_STEP
 #: Width of the input-magnitude (and redshift) slices when the injections are not on a
 #: grid (more distinct values than TRANSFER_MAX_UNIQUE) [mag, z].
 TRANSFER_MIN_STEP = 0.25
@@ -249,6 +250,33 @@ TRANSFER_MOBS_MARGIN = 1.5
 TRANSFER_DRAWS = 100
 #: The two matrices: entry 0 of the last axis is "not recovered" or "not selected".
 TRANSFER_KINDS = ("recovered", "selected")
+#: Overflow bins of the m_obs lattice (int32 extremes): NaN or +inf measured magnitude (flux
+#: <= 0) and sources not recovered in the faint one, -inf in the bright one.
+MOBS_BIN_FAINT = np.iinfo(np.int32).max
+MOBS_BIN_BRIGHT = np.iinfo(np.int32).min
+
+
+def mobs_lattice_edge(b) -> np.ndarray:
+    """Lower edge [mag] of lattice bin ``b`` of the measured magnitude: ``b * TRANSFER_MOBS_STEP``
+    rounded to 1e-6 mag, as :func:`transfer_matrix` rounds its default edges."""
+    return np.round(np.asarray(b, float) * TRANSFER_MOBS_STEP, 6)
+
+
+def mobs_lattice_index(m_obs) -> np.ndarray:
+    """Index ``b`` of the lattice bin [edge(b), edge(b + 1)) holding each measured magnitude.
+
+    The global lattice of ``TRANSFER_MOBS_STEP`` anchored at 0 mag (:func:`mobs_lattice_edge`);
+    NaN and +inf give ``MOBS_BIN_FAINT``, -inf ``MOBS_BIN_BRIGHT`` (int32).
+    """
+    m = np.asarray(m_obs, float)
+    fin = np.isfinite(m)
+    lim = float(MOBS_BIN_FAINT - 2)
+    b = np.floor(np.clip(np.where(fin, m, 0.0) / TRANSFER_MOBS_STEP, -lim, lim))
+    # floor(m / step) can miss by one against the rounded edges: correct both ways.
+    b = np.where(m < mobs_lattice_edge(b), b - 1, b)
+    b = np.where(m >= mobs_lattice_edge(b + 1), b + 1, b)
+    out = np.where(fin, b, np.where(m == -np.inf, MOBS_BIN_BRIGHT, MOBS_BIN_FAINT))
+    return out.astype(np.int32)
 
 
 @dataclass(frozen=True)
@@ -361,17 +389,7 @@ def transfer_matrix(z, m_in, m_obs, recovered, selected, *, z_edges=None, m_in_e
         raise ValueError("transfer_matrix: no sources")
     if np.any(sel & ~rec):
         raise ValueError("transfer_matrix: a selected source must be recovered")
-    ze = slice_edges(z, TRANSFER_Z_STEP) if z_edges is None else np.asarray(z_edges, float)
-    me = slice_edges(m_in, TRANSFER_MIN_STEP) if m_in_edges is None else np.asarray(m_in_edges, float)
-    if m_obs_edges is None:
-        lo = np.floor((me[0] - TRANSFER_MOBS_MARGIN) / TRANSFER_MOBS_STEP) * TRANSFER_MOBS_STEP
-        hi = np.ceil((me[-1] + TRANSFER_MOBS_MARGIN) / TRANSFER_MOBS_STEP) * TRANSFER_MOBS_STEP
-        inner = np.round(np.arange(lo, hi + TRANSFER_MOBS_STEP / 2, TRANSFER_MOBS_STEP), 6)
-    else:
-        inner = np.asarray(m_obs_edges, float)
-    for name, e in (("z_edges", ze), ("m_in_edges", me), ("m_obs_edges", inner)):
-        if e.ndim != 1 or len(e) < 2 or not np.all(np.isfinite(e)) or np.any(np.diff(e) <= 0):
-            raise ValueError(f"transfer_matrix: {name} must be >= 2 finite increasing values")
+    ze, me, inner = _transfer_edges(z, m_in, z_edges, m_in_edges, m_obs_edges)
     oe = np.concatenate([[-np.inf], inner, [np.inf]])
     n_z, n_in, n_obs = len(ze) - 1, len(me) - 1, len(oe) - 1
     iz = np.searchsorted(ze, z, side="right") - 1
@@ -385,6 +403,30 @@ def transfer_matrix(z, m_in, m_obs, recovered, selected, *, z_edges=None, m_in_e
         entry = np.where(flag, 1 + io, 0)
         flat = np.ravel_multi_index((iz[inside], im[inside], entry[inside]), (n_z, n_in, 1 + n_obs))
         counts[k] = np.bincount(flat, minlength=n_z * n_in * (1 + n_obs)).reshape(n_z, n_in, 1 + n_obs)
+    zsum = np.bincount(iz[inside], weights=z[inside], minlength=n_z)
+    zn = np.bincount(iz[inside], minlength=n_z)
+    return _transfer_result(counts, ze, me, oe, zsum, zn, n_draws, seed)
+
+
+def _transfer_edges(z, m_in, z_edges, m_in_edges, m_obs_edges):
+    """(z, m_in, finite inner m_obs) edges: given, or the defaults of :func:`transfer_matrix`."""
+    ze = slice_edges(z, TRANSFER_Z_STEP) if z_edges is None else np.asarray(z_edges, float)
+    me = slice_edges(m_in, TRANSFER_MIN_STEP) if m_in_edges is None else np.asarray(m_in_edges, float)
+    if m_obs_edges is None:
+        lo = np.floor((me[0] - TRANSFER_MOBS_MARGIN) / TRANSFER_MOBS_STEP) * TRANSFER_MOBS_STEP
+        hi = np.ceil((me[-1] + TRANSFER_MOBS_MARGIN) / TRANSFER_MOBS_STEP) * TRANSFER_MOBS_STEP
+        inner = np.round(np.arange(lo, hi + TRANSFER_MOBS_STEP / 2, TRANSFER_MOBS_STEP), 6)
+    else:
+        inner = np.asarray(m_obs_edges, float)
+    for name, e in (("z_edges", ze), ("m_in_edges", me), ("m_obs_edges", inner)):
+        if e.ndim != 1 or len(e) < 2 or not np.all(np.isfinite(e)) or np.any(np.diff(e) <= 0):
+            raise ValueError(f"transfer_matrix: {name} must be >= 2 finite increasing values")
+    return ze, me, inner
+
+
+def _transfer_result(counts, ze, me, oe, zsum, zn, n_draws, seed) -> TransferMatrix:
+    """The :class:`TransferMatrix` of ``counts``: normalised rows, draws, mean z per slice."""
+    n_obs = len(oe) - 1
     tot = counts.sum(axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         matrix = np.where(tot > 0, counts / np.maximum(tot, 1), np.nan)
@@ -395,9 +437,91 @@ def transfer_matrix(z, m_in, m_obs, recovered, selected, *, z_edges=None, m_in_e
     with np.errstate(invalid="ignore", divide="ignore"):
         draws = g / g.sum(axis=-1, keepdims=True)
     draws[:, tot[..., 0] == 0] = np.nan
-    zsum = np.bincount(iz[inside], weights=z[inside], minlength=n_z)
-    zn = np.bincount(iz[inside], minlength=n_z)
     with np.errstate(invalid="ignore", divide="ignore"):
         z_mean = np.where(zn > 0, zsum / np.maximum(zn, 1), np.nan)
     return TransferMatrix(kinds=TRANSFER_KINDS, z_edges=ze, z_mean=z_mean, m_in_edges=me,
                           m_obs_edges=oe, counts=counts, matrix=matrix, draws=draws, alpha=alpha)
+
+
+def transfer_from_histograms(z, m_in_key, mobs_bin, n, k_recovered, k_selected, *, z_edges=None,
+                             m_in_edges=None, m_obs_edges=None, n_draws: int = TRANSFER_DRAWS,
+                             seed=0) -> TransferMatrix:
+    """:func:`transfer_matrix` from stored histograms of the measured magnitude (no rows).
+
+    The histograms are :func:`glaciar.store.task_histogram` rows (any sum of
+    them): per (z, input-magnitude key, m_obs lattice bin) the number of
+    sources and of recovered and selected ones.  The result equals
+    :func:`transfer_matrix` on the rows (same counts; same draws for the
+    same seed) when each input magnitude is its key's value
+    (``m_in_key * COUNTS_MAG_RESOLUTION``, true for a magnitude grid on that
+    resolution) or the ``m_in_edges`` fall between keys, and the m_obs edges
+    are lattice edges (:func:`mobs_lattice_edge`; the defaults are); the mean z
+    of a slice agrees to rounding.  Otherwise an input magnitude is binned
+    by its key's value (to ``COUNTS_MAG_RESOLUTION``).
+
+    Parameters
+    ----------
+    z : array_like (K,)
+        Input redshift of each histogram row.
+    m_in_key : array_like (K,)
+        ``round(mag_input / COUNTS_MAG_RESOLUTION)`` (NaN: non-finite input magnitude).
+    mobs_bin : array_like of int (K,)
+        :func:`mobs_lattice_index` of the measured magnitude (``MOBS_BIN_FAINT`` for
+        sources not recovered).
+    n, k_recovered, k_selected : array_like of int (K,)
+        Sources, recovered, selected.
+    z_edges, m_in_edges, m_obs_edges, n_draws, seed
+        As :func:`transfer_matrix`; ``m_obs_edges`` must be lattice edges.
+
+    Returns
+    -------
+    TransferMatrix
+
+    Raises
+    ------
+    ValueError
+        No sources, a selected count above the recovered one, or m_obs edges off the lattice.
+    """
+    from .store import COUNTS_MAG_RESOLUTION
+
+    z = np.asarray(z, float)
+    key = np.asarray(m_in_key, float)
+    b = np.asarray(mobs_bin, np.int64)
+    n = np.asarray(n, np.int64)
+    k_rec = np.asarray(k_recovered, np.int64)
+    k_sel = np.asarray(k_selected, np.int64)
+    if not (len(key) == len(b) == len(n) == len(k_rec) == len(k_sel) == len(z)):
+        raise ValueError("transfer_from_histograms: z, m_in_key, mobs_bin, n, k_recovered and "
+                         "k_selected must have the same length")
+    if n.sum() == 0:
+        raise ValueError("transfer_matrix: no sources")
+    if np.any(k_sel > k_rec) or np.any(k_rec > n):
+        raise ValueError("transfer_matrix: a selected source must be recovered")
+    # The key's value rounded as slice_edges rounds the rows' values (grid values agree exactly).
+    m_in = np.round(key * COUNTS_MAG_RESOLUTION, 6)
+    ze, me, inner = _transfer_edges(z, m_in, z_edges, m_in_edges, m_obs_edges)
+    lat = np.round(inner / TRANSFER_MOBS_STEP)
+    if np.any(np.abs(mobs_lattice_edge(lat) - inner) > 1e-9):
+        raise ValueError(f"transfer_from_histograms: m_obs_edges must be multiples of "
+                         f"{TRANSFER_MOBS_STEP} mag (the stored lattice)")
+    oe = np.concatenate([[-np.inf], inner, [np.inf]])
+    n_z, n_in, n_obs = len(ze) - 1, len(me) - 1, len(oe) - 1
+    iz = np.searchsorted(ze, z, side="right") - 1
+    im = np.searchsorted(me, m_in, side="right") - 1
+    inside = (iz >= 0) & (iz < n_z) & (im >= 0) & (im < n_in) & np.isfinite(m_in)
+    # Lattice bin b lies wholly in output bin searchsorted(lattice edges, b): the overflow
+    # sentinels land in the open end bins.
+    io = np.searchsorted(lat.astype(np.int64), b, side="right")
+    counts = np.zeros((len(TRANSFER_KINDS), n_z, n_in, 1 + n_obs), np.int64)
+    size = n_z * n_in * (1 + n_obs)
+    iz, im, io = iz[inside], im[inside], io[inside]
+    for k, kk in enumerate((k_rec[inside], k_sel[inside])):
+        hit = np.ravel_multi_index((iz, im, 1 + io), (n_z, n_in, 1 + n_obs))
+        miss = np.ravel_multi_index((iz, im, np.zeros_like(io)), (n_z, n_in, 1 + n_obs))
+        # Integer sums as float64 are exact below 2**53 sources.
+        flat = (np.bincount(hit, weights=kk, minlength=size)
+                + np.bincount(miss, weights=n[inside] - kk, minlength=size))
+        counts[k] = np.rint(flat).astype(np.int64).reshape(n_z, n_in, 1 + n_obs)
+    zsum = np.bincount(iz, weights=z[inside] * n[inside], minlength=n_z)
+    zn = np.bincount(iz, weights=n[inside], minlength=n_z)
+    return _transfer_result(counts, ze, me, oe, zsum, zn, n_draws, seed)

@@ -110,9 +110,11 @@ def test_glaciar_fit_products_from_a_run(small_run):
     import json
 
     from glaciar import constants as C
-    from glaciar.store import read_current_results
+    from glaciar.store import read_current_histograms, read_current_results
 
     cfg, run = small_run
+    # The simulated run stores m_obs histograms: the matrices below come from them, not rows.
+    assert read_current_histograms(run) is not None
     manifest = json.loads((run / C.MANIFEST_NAME).read_text())
     rows = read_current_results(run)
     mdl = SurfaceModel.for_data(rows[C.COL_Z], rows[C.COL_MAG_INPUT])

@@ -13,6 +13,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from glaciar.constants import STATUS_NOT_DETECTED
 from glaciar.engine.classify import ClassificationParams
 from glaciar.engine.detect import DetectionParams, measure_background
 from glaciar.engine.measure import measure_injected, reference_extraction
@@ -72,6 +73,20 @@ def test_scene_rejects_malformed_stamp():
 N = 240
 
 
+def _assert_same_columns(got, want, what):
+    """Every output column equal (floats to 1e-9 relative, NaN where NaN); detection_id is
+    a label of one call's extraction, not comparable."""
+    for c in got:
+        if c == "detection_id":
+            continue
+        a, b = got[c], want[c]
+        if a.dtype.kind == "f":
+            same = (np.isnan(a) & np.isnan(b)) | (np.abs(a - b) <= 1e-9 * np.abs(b))
+        else:
+            same = a == b
+        assert same.all(), (what, c, a[~same], b[~same])
+
+
 @pytest.fixture(scope="module")
 def small_field():
     rng = np.random.default_rng(4)
@@ -116,25 +131,113 @@ def test_results_do_not_depend_on_first_window_size(small_field):
         diag = {}
         p = dataclasses.replace(params, initial_window=first)
         w = measure_injected(det, params=p, diagnostics=diag, **kw)
-        for c in w:
-            if c == "detection_id":
-                continue
-            a, b = w[c], full[c]
-            if a.dtype.kind == "f":
-                same = (np.isnan(a) & np.isnan(b)) | (np.abs(a - b) <= 1e-9 * np.abs(b))
-            else:
-                same = a == b
-            assert same.all(), (first, c, a[~same], b[~same])
+        _assert_same_columns(w, full, first)
         win = diag["window"]
         ix, iy = np.floor(xs + 0.5), np.floor(ys + 0.5)
         assert win.shape == (xs.size, 4)
         assert np.all((win[:, 0] <= iy) & (iy < win[:, 1]) & (win[:, 2] <= ix) & (ix < win[:, 3]))
         assert np.all((win[:, 0] >= 0) & (win[:, 1] <= N) & (win[:, 2] >= 0) & (win[:, 3] <= N))
-        # no window is smaller than the first one unless clipped by the image edge
+        # no window is smaller than the first one unless clipped by the image edge, or the
+        # source was found undetectable before any extraction (early exit): its window is
+        # then the search box plus the filter's reach, and it is not detected
         side = np.minimum(win[:, 1] - win[:, 0], win[:, 3] - win[:, 2])
         inner = (win[:, 0] > 0) & (win[:, 1] < N) & (win[:, 2] > 0) & (win[:, 3] < N)
+        early = side == ClassificationParams().search_box + 2 * (params.filter_halfwidth + 1)
+        assert np.all(w["status"][early] == STATUS_NOT_DETECTED)
+        inner &= ~early
         assert np.all(side[inner] >= first)
         seen_rounds.add(diag["rounds"])
     # a 9-pixel first window cannot hold these sources: windows really grew
     assert max(seen_rounds) > 1
     assert np.any(full["status"] >= 0)
+
+
+def test_early_exit_is_exact_and_only_skips_sources_without_above_threshold_pixels(small_field):
+    """Skipping undetectable sources changes no value; skipped sources really have no
+    above-threshold pixel in their search box according to plain sep on the whole image."""
+    import sep
+
+    sub, rms, params, ref, xs, ys, flux, stamps = small_field
+    # faint sources (many are below threshold everywhere) beside the fixture's
+    faint = [(y0, x0, t, 0.02 * f) for y0, x0, t, f in stamps]
+    det = Scene(sub, faint)
+    kw = dict(det_rms=rms, band_scenes={"h": det}, band_rms={"h": rms}, x=xs, y=ys,
+              input_flux_det=0.02 * flux, input_mag_det=25.0 - 2.5 * np.log10(0.02 * flux), reference=ref,
+              params=params, classification=ClassificationParams(), zeropoints={"h": 25.0},
+              gains={"h": None}, detection_band="h")
+    d_on, d_off = {}, {}
+    on = measure_injected(det, early_exit=True, diagnostics=d_on, **kw)
+    off = measure_injected(det, early_exit=False, diagnostics=d_off, **kw)
+    _assert_same_columns(on, off, "early exit")
+    side = d_on["window"][:, 1] - d_on["window"][:, 0]
+    skipped = side == ClassificationParams().search_box + 2 * (params.filter_halfwidth + 1)
+    assert 0 < skipped.sum() < xs.size          # the test exercises both branches
+    # independent: sep's segmentation of the whole injected image, every region kept
+    # (minarea 1, no deblending), marks exactly its above-threshold pixels
+    img = det.full().astype(np.float32)
+    sep.set_extract_pixstack(img.size + 1024)
+    _, seg = sep.extract(img, params.detect_thresh, err=rms.astype(np.float32), minarea=1,
+                         filter_kernel=params.filter_kernel, filter_type=params.filter_type, deblend_cont=1.0,
+                         clean=False, segmentation_map=True)
+    h = ClassificationParams().search_box // 2
+    ix, iy = np.floor(xs + 0.5).astype(int), np.floor(ys + 0.5).astype(int)
+    for i in range(xs.size):
+        box = seg[max(iy[i] - h, 0):iy[i] + h + 1, max(ix[i] - h, 0):ix[i] + h + 1]
+        if skipped[i]:
+            assert not box.any(), i
+            assert on["status"][i] == STATUS_NOT_DETECTED
+    # and sources with such a pixel were not skipped
+    assert all(seg[max(iy[i] - h, 0):iy[i] + h + 1, max(ix[i] - h, 0):ix[i] + h + 1].any()
+               for i in np.flatnonzero(~skipped))
+
+
+def test_initial_windows_hold_the_neighbours_a_source_may_touch():
+    from glaciar.engine.windows import _OWN_HALF, ObjectBoxes, initial_windows
+
+    params = DetectionParams()
+    margin = params.filter_halfwidth + 1
+    pad = margin + 4
+    r = params.initial_window // 2
+    x = np.array([100.2, 300.0, 500.0, 700.0])
+    y = np.array([100.0, 300.0, 500.0, 700.0])
+    # object 0: its region box meets source 0's own box (not its search box): the region must fit
+    # object 1: its region box covers source 1's search box: its Kron/AUTO box must fit
+    # object 2: far from everything
+    region = np.array([[100 + _OWN_HALF - 2, 160, 90, 110],
+                       [290, 310, 295, 305],
+                       [900, 910, 900, 910]])
+    need = np.array([[95, 170, 80, 120],
+                     [200, 380, 250, 330],
+                     [880, 930, 880, 930]])
+    win = initial_windows(x, y, (1000, 1000), params, 3, margin, ObjectBoxes.build(region, need, (1000, 1000)))
+    sq = lambda c: (c - r, c + r + 1)  # noqa: E731
+    np.testing.assert_array_equal(win[0], [sq(100)[0], 160 + pad, sq(100)[0], sq(100)[1]])
+    np.testing.assert_array_equal(win[1], [200 - pad, 380 + pad, 250 - pad, 330 + pad])
+    np.testing.assert_array_equal(win[2], [*sq(500), *sq(500)])
+    np.testing.assert_array_equal(win[3], [*sq(700), *sq(700)])
+    # without the reference boxes: the squares; clipped to the image; capped at max_window
+    plain = initial_windows(np.array([3.0]), np.array([998.0]), (1000, 1000), params, 3, margin)
+    np.testing.assert_array_equal(plain[0], [998 - r, 1000, 0, 3 + r + 1])
+    huge = initial_windows(x[1:2], y[1:2], (5000, 5000), dataclasses.replace(params, max_window=101), 3, margin,
+                           ObjectBoxes.build(region[1:2], [[0, 4000, 0, 4000]], (5000, 5000)))
+    assert huge[0, 1] - huge[0, 0] == 101 and huge[0, 3] - huge[0, 2] == 101
+
+
+def test_object_boxes_candidates_hold_every_meeting_box():
+    """The grid index returns every object whose box meets a query box (brute force)."""
+    from glaciar.engine.windows import ObjectBoxes
+
+    rng = np.random.default_rng(5)
+    shape = (700, 900)
+    y0, x0 = rng.integers(-20, 700, 300), rng.integers(-20, 900, 300)
+    region = np.stack([y0, y0 + rng.integers(1, 200, 300), x0, x0 + rng.integers(1, 120, 300)], axis=1)
+    ob = ObjectBoxes.build(region, region, shape, cell=50)
+    qy, qx = rng.integers(0, 700, 400), rng.integers(0, 900, 400)
+    q = np.stack([qy - 10, qy + 11, qx - 3, qx + 4], axis=1)
+    si, oi = ob.candidates(q)
+    got = set(zip(si.tolist(), oi.tolist()))
+    meet = ((region[None, :, 0] < q[:, None, 1]) & (region[None, :, 1] > q[:, None, 0])
+            & (region[None, :, 2] < q[:, None, 3]) & (region[None, :, 3] > q[:, None, 2]))
+    want = set(zip(*[v.tolist() for v in np.nonzero(meet)]))
+    assert want <= got
+    assert len(got) < 0.2 * q.shape[0] * region.shape[0]       # an index, not all pairs

@@ -57,6 +57,8 @@ class FieldContext:
     isolation_fraction: float
     #: band -> CorrelatedNoise applied to photometric errors (bands where it does not apply absent)
     noise_models: dict = dc_field(default_factory=dict)
+    #: band -> CorrelatedNoise measured on the field, every band (the manifest's noise record)
+    measured_noise: dict = dc_field(default_factory=dict)
     #: Bands stacked into the detection image (empty: the detection band's image), the
     #: stack (glaciar.engine.coadd) and its RMS map.
     coadd_bands: tuple = ()

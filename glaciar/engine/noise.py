@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["weight_rescale_factor", "empty_aperture_scatter", "CorrelatedNoise",
+__all__ = ["weight_rescale_factor", "empty_aperture_scatter", "empty_sky_distance", "CorrelatedNoise",
            "DEFAULT_EMPTY_APERTURE_RADII_PIX", "MIN_EMPTY_APERTURES"]
 
 #: Radii of the empty apertures [pixels]: from ~3 pixels (the scale of a
@@ -96,9 +96,22 @@ def _robust_sigma(x: np.ndarray) -> float:
     return float(sigma)
 
 
+def empty_sky_distance(usable: np.ndarray) -> np.ndarray:
+    """Distance [pixels] of every pixel to the nearest unusable one (outside the image counts).
+
+    The ``distance`` argument of :func:`empty_aperture_scatter`: bands of a field
+    that share one ``usable`` mask can share it (one Euclidean distance transform,
+    the costliest full-frame step, per field instead of per band).
+    """
+    usable = np.asarray(usable, dtype=bool)
+    # Outside the image counts as unusable: pad before the distance transform.
+    return ndimage.distance_transform_edt(np.pad(usable, 1))[1:-1, 1:-1]
+
+
 def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarray,
                            radii_pix=DEFAULT_EMPTY_APERTURE_RADII_PIX, n_per_radius: int = 1000,
-                           rng: np.random.Generator | None = None
+                           rng: np.random.Generator | None = None,
+                           distance: np.ndarray | None = None
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Measured over predicted scatter of sums in random empty circular apertures.
 
@@ -117,6 +130,8 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         Apertures per radius (fewer where the empty sky does not hold them).
     rng : numpy.random.Generator
         Source of the aperture positions (deterministic for a seed).
+    distance : ndarray, optional
+        :func:`empty_sky_distance` of this ``usable`` mask, if already computed.
 
     Returns
     -------
@@ -141,25 +156,33 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
     """
     rng = np.random.default_rng() if rng is None else rng
     usable = np.asarray(usable, dtype=bool)
-    var = np.where(usable, np.asarray(rms, np.float64) ** 2, 0.0)
-    data = np.where(usable, np.asarray(image, np.float64), 0.0)
-    # Outside the image counts as unusable: pad before the distance transform.
-    dist = ndimage.distance_transform_edt(np.pad(usable, 1))[1:-1, 1:-1]
+    image, rms = np.asarray(image), np.asarray(rms)
+    dist = empty_sky_distance(usable) if distance is None else np.asarray(distance)
+    if dist.shape != usable.shape:
+        raise ValueError(f"distance has shape {dist.shape}, usable {usable.shape}")
+    nx = usable.shape[1]
+    flat_dist = dist.reshape(-1)
+    radii = [float(r) for r in radii_pix]
+    # Candidate centres (flat indices, ascending) for the smallest radius; every larger
+    # radius keeps a subset of them, in the same order: one full-frame pass, not one per radius.
+    candidates = np.flatnonzero(flat_dist > min(radii) + 1.0) if radii else np.empty(0, np.intp)
     out_n, out_r, out_k = [], [], []
-    for r in radii_pix:
+    for r in radii:
         k = int(np.ceil(r))
         dy, dx = np.mgrid[-k:k + 1, -k:k + 1]
         inside = dy ** 2 + dx ** 2 < r * r
         dy, dx = dy[inside], dx[inside]
-        yy, xx = np.nonzero(dist > r + 1.0)
-        if yy.size < MIN_EMPTY_APERTURES:
+        centres = candidates[flat_dist[candidates] > r + 1.0]
+        if centres.size < MIN_EMPTY_APERTURES:
             continue
-        pick = rng.choice(yy.size, size=min(n_per_radius, yy.size), replace=False)
+        pick = rng.choice(centres.size, size=min(n_per_radius, centres.size), replace=False)
         # Centred on pixels, whole pixels: every aperture of a radius holds the same pattern.
-        iy = yy[pick][:, None] + dy[None, :]
-        ix = xx[pick][:, None] + dx[None, :]
-        s = data[iy, ix].sum(axis=1)
-        v = var[iy, ix].sum(axis=1)
+        iy = centres[pick][:, None] // nx + dy[None, :]
+        ix = centres[pick][:, None] % nx + dx[None, :]
+        # Only the aperture pixels are converted to float64 (no full-frame copies).
+        ok = usable[iy, ix]
+        s = np.where(ok, image[iy, ix].astype(np.float64), 0.0).sum(axis=1)
+        v = np.where(ok, rms[iy, ix].astype(np.float64) ** 2, 0.0).sum(axis=1)
         good = np.isfinite(s) & (v > 0)
         if good.sum() < MIN_EMPTY_APERTURES:
             continue

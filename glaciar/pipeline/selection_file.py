@@ -397,12 +397,15 @@ def add_lf_products(run_dir, manifest: dict, fits_list: list[SelectionFunction],
                     cosmology=None, seed=0) -> None:
     """Attach the injections' SED, V_eff(M_UV) and the transfer matrices to each fit.
 
-    Reads the per-source rows with :func:`glaciar.pipeline.inputs.read_columns`
-    (input and measured detection-band magnitudes and the flags); fits named by
-    a field use that field's rows, the pooled fit ("all") every listed field's.
-    V_eff(M_UV) is left out (with the reason in ``fit_info["veffmuv"]``) when
-    the fit has no area or no redshift range; the transfer matrices when the
-    rows have no measured magnitude.
+    The transfer matrices come from the per-task histograms of the measured
+    magnitude stored in the footers (:func:`glaciar.store.read_current_histograms`,
+    no row read) when every task has them, else from the per-source rows
+    (:func:`glaciar.pipeline.inputs.read_columns`: input and measured
+    detection-band magnitudes and the flags); fits named by a field use that
+    field's sources, the pooled fit ("all") every listed field's.  V_eff(M_UV)
+    is left out (with the reason in ``fit_info["veffmuv"]``) when the fit has
+    no area or no redshift range; the transfer matrices when the store has no
+    measured magnitude.
 
     Parameters
     ----------
@@ -419,14 +422,11 @@ def add_lf_products(run_dir, manifest: dict, fits_list: list[SelectionFunction],
 
     from .. import constants as C
     from ..galaxy.population import get_cosmology
-    from ..tables import transfer_matrix
-    from .inputs import read_columns
 
     sed = injection_sed(run_dir, manifest)
     det = manifest.get("detection_band")
     obs_col = C.band_column("mag", det) if det else None
-    want = [C.COL_FIELD, C.COL_Z, C.COL_MAG_INPUT, C.COL_RECOVERED, C.COL_SELECTED]
-    df = read_columns(run_dir, want + ([obs_col] if obs_col else []))
+    transfer = _transfer_source(run_dir, obs_col)
     listed = [str(f) for f in (manifest.get("fields") or [])]
     for i, sf in enumerate(fits_list):
         sf.sed = sed
@@ -450,19 +450,59 @@ def add_lf_products(run_dir, manifest: dict, fits_list: list[SelectionFunction],
                                         cosmology=str(getattr(cosmo, "name", cosmo)))
             except ValueError as exc:
                 sf.fit_info["veffmuv"] = f"none: {exc}"[:60]
-        if obs_col is None or obs_col not in df.columns or C.COL_MAG_INPUT not in df.columns:
-            continue
-        rows = df
-        if C.COL_FIELD in df.columns:
+        if transfer is not None:
             keep = ([sf.field] if sf.field != "all" else listed) or None
-            if keep:
-                rows = df[df[C.COL_FIELD].astype(str).isin(keep)]
+            tm = transfer(keep, [int(seed), i])
+            if tm is not None:
+                sf.transfer_matrix = tm
+
+
+def _transfer_source(run_dir, obs_col):
+    """``f(fields or None, seed) -> TransferMatrix or None`` over the store, or None.
+
+    From the stored histograms when every current task has them for
+    ``obs_col``; else from the rows (None when they lack the columns).
+    """
+    from .. import constants as C
+    from ..store import (COUNT_K_REC, COUNT_K_SEL, COUNT_N, HIST_MIN_KEY, HIST_MOBS_BIN,
+                         read_current_histograms)
+    from ..tables import transfer_from_histograms, transfer_matrix
+    from .inputs import read_columns
+
+    if obs_col is None:
+        return None
+    got = read_current_histograms(run_dir)
+    if got is not None and got[1] == obs_col:
+        hist = got[0]
+
+        def from_hist(keep, seed):
+            h = hist
+            if keep and C.COL_FIELD in h.columns:
+                h = h[h[C.COL_FIELD].astype(str).isin(keep)]
+            if not int(h[COUNT_N].sum()):
+                return None
+            return transfer_from_histograms(
+                h[C.COL_Z].to_numpy(float), h[HIST_MIN_KEY].to_numpy(float),
+                h[HIST_MOBS_BIN].to_numpy(), h[COUNT_N].to_numpy(), h[COUNT_K_REC].to_numpy(),
+                h[COUNT_K_SEL].to_numpy(), seed=seed)
+        return from_hist
+
+    want = [C.COL_FIELD, C.COL_Z, C.COL_MAG_INPUT, C.COL_RECOVERED, C.COL_SELECTED, obs_col]
+    df = read_columns(run_dir, want)
+    if obs_col not in df.columns or C.COL_MAG_INPUT not in df.columns:
+        return None
+
+    def from_rows(keep, seed):
+        rows = df
+        if keep and C.COL_FIELD in df.columns:
+            rows = df[df[C.COL_FIELD].astype(str).isin(keep)]
         if not len(rows):
-            continue
-        sf.transfer_matrix = transfer_matrix(
+            return None
+        return transfer_matrix(
             rows[C.COL_Z].to_numpy(float), rows[C.COL_MAG_INPUT].to_numpy(float),
             rows[obs_col].to_numpy(float), rows[C.COL_RECOVERED].to_numpy(bool),
-            rows[C.COL_SELECTED].to_numpy(bool), seed=[int(seed), i])
+            rows[C.COL_SELECTED].to_numpy(bool), seed=seed)
+    return from_rows
 
 
 def read(path, field: str | None = None) -> SelectionFunction:

@@ -1,0 +1,259 @@
+"""Mosaic independence, memory and parallel efficiency (issue 11, points 4-6).
+
+For each image side in ``--sizes`` the embedded 4-band demo survey is generated
+(in a child process, into a temporary directory on disk) and the same tasks
+(``--tasks`` x ``--n`` sources at ``--z``, ``--mag``) are simulated through
+:func:`glaciar.run.simulate` in another child process, with a one-worker
+process pool so that the worker's memory is seen apart from the main
+process's (manifest, input checks, noise record).  Printed per size:
+
+* whole-process CPU per injected source: :func:`glaciar.run.process_cpu_seconds`
+  (the child's own CPU plus its reaped pool worker, field set-up included), and
+  its ratio to the smallest size (target: within 1.3x);
+* peak RSS of the pool worker (``RUSAGE_CHILDREN.ru_maxrss``: the largest
+  reaped descendant, i.e. *per worker*, not summed) and of the main process
+  (``RUSAGE_SELF``) [MB]; target <= 400 MB per worker on a 1200^2 field and
+  <= 2 GB on 16000^2;
+* peak RSS of the demo generation.  The generator builds the field in memory
+  (~200 bytes per pixel): a size it cannot build in the available memory is
+  skipped with a message (16000^2 needs ~50 GB).
+
+Then the 2-worker speed-up on ``--parallel-size``: wall time of the
+``simulate`` call with 1 vs 2 workers, through the process pool
+(``workers=1`` runs in-process) and through a Dask ``LocalCluster`` (1 vs 2
+worker processes, 1 thread each; cluster start-up not timed).  Target >= 1.8x
+on an otherwise idle machine; the load average at the start is printed since a
+shared machine makes this figure meaningless.
+
+Ratios are from one run; absolute times are noisy on a shared machine.
+
+Usage::
+
+    python benchmarks/scaling.py [--sizes 1000,4000[,16000]] [--tasks 30] [--n 100]
+                                 [--z 8] [--mag 26] [--parallel-size 1000] [--no-parallel]
+                                 [--tmp DIR]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+MB = 1024.0 ** 2
+#: Peak memory of the demo generation per pixel [bytes] (measured: 3.2 GB at 4000^2).
+GEN_BYTES_PER_PIXEL = 200
+
+
+def _available_memory() -> float | None:
+    """MemAvailable of /proc/meminfo [bytes], None where there is none."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return 1024.0 * float(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
+# --------------------------------------------------------------------------
+# Child processes (each measures its own peak RSS)
+# --------------------------------------------------------------------------
+def _maxrss_bytes(who) -> float:
+    import resource
+
+    # Linux reports ru_maxrss in KiB (macOS in bytes).
+    k = 1 if sys.platform == "darwin" else 1024
+    return float(resource.getrusage(who).ru_maxrss) * k
+
+
+def _child_build(opt) -> dict:
+    import resource
+
+    from glaciar.demo import build_demo_survey
+
+    t0 = time.perf_counter()
+    path = build_demo_survey(opt.out, shape=(opt.size, opt.size), seed=opt.seed, n_galaxies=opt.n,
+                             n_iterations=opt.tasks, z_values=(opt.z,), mag_values=(opt.mag,))
+    return {"config": str(path), "wall_s": time.perf_counter() - t0,
+            "rss_mb": _maxrss_bytes(resource.RUSAGE_SELF) / MB}
+
+
+def _child_run(opt) -> dict:
+    import concurrent.futures as cf
+    import resource
+
+    from glaciar.config import load_config
+    from glaciar.run import process_cpu_seconds, simulate
+
+    cfg = load_config(opt.config)
+    out = {}
+    c0 = process_cpu_seconds()
+    t0 = time.perf_counter()
+    if opt.executor == "pool1":
+        # A one-worker pool: the worker's peak RSS is measured apart from this process's.
+        ex = cf.ProcessPoolExecutor(max_workers=1)
+        try:
+            stats = simulate(cfg, opt.out, executor=ex, progress=False)
+        finally:
+            ex.shutdown(wait=True)
+    elif opt.executor.startswith("dask"):
+        import distributed
+
+        nw = int(opt.executor[4:])
+        with distributed.LocalCluster(n_workers=nw, threads_per_worker=1, processes=True,
+                                      dashboard_address=None) as lc, \
+                distributed.Client(lc) as client:
+            client.run(lambda: None)               # every worker is up before timing
+            t0 = time.perf_counter()
+            stats = simulate(cfg, opt.out, executor=client.get_executor(), progress=False)
+            out["wall_s"] = time.perf_counter() - t0
+    else:
+        stats = simulate(cfg, opt.out, workers=int(opt.executor), progress=False)
+    out.setdefault("wall_s", time.perf_counter() - t0)
+    out["cpu_s"] = process_cpu_seconds() - c0
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    out["main_cpu_s"] = own.ru_utime + own.ru_stime
+    out["worker_cpu_s"] = kids.ru_utime + kids.ru_stime
+    out["n_sources"] = int(stats["n_sources"])
+    out["n_run"] = int(stats["n_run"])
+    out["main_rss_mb"] = _maxrss_bytes(resource.RUSAGE_SELF) / MB
+    out["worker_rss_mb"] = _maxrss_bytes(resource.RUSAGE_CHILDREN) / MB
+    return out
+
+
+def _spawn(args: list[str]) -> dict:
+    """Run this script as a child with ``args``; return the JSON it prints last."""
+    proc = subprocess.run([sys.executable, __file__, *args], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"child {' '.join(args)} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+# --------------------------------------------------------------------------
+# Driver
+# --------------------------------------------------------------------------
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", default="1000,4000",
+                    help="comma-separated image sides [pixels] (default 1000,4000; add 16000)")
+    ap.add_argument("--tasks", type=int, default=30, help="tasks per size (default 30)")
+    ap.add_argument("--n", type=int, default=100, help="sources per task (default 100)")
+    ap.add_argument("--z", type=float, default=8.0, help="redshift (default 8)")
+    ap.add_argument("--mag", type=float, default=26.0, help="F160W magnitude [AB] (default 26)")
+    ap.add_argument("--seed", type=int, default=3, help="seed of the demo images (default 3)")
+    ap.add_argument("--parallel-size", type=int, default=1000,
+                    help="image side of the 1 vs 2 worker comparison (default 1000)")
+    ap.add_argument("--no-parallel", action="store_true", help="skip the 1 vs 2 worker comparison")
+    ap.add_argument("--no-dask", action="store_true", help="skip the Dask LocalCluster comparison")
+    ap.add_argument("--tmp", default=None, help="directory for the surveys (default: system temp)")
+    # internal: child-process modes
+    ap.add_argument("--child", choices=("build", "run"), help=argparse.SUPPRESS)
+    ap.add_argument("--size", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--out", help=argparse.SUPPRESS)
+    ap.add_argument("--config", help=argparse.SUPPRESS)
+    ap.add_argument("--executor", default="pool1", help=argparse.SUPPRESS)
+    opt = ap.parse_args(argv)
+
+    if opt.child == "build":
+        print(json.dumps(_child_build(opt)))
+        return
+    if opt.child == "run":
+        print(json.dumps(_child_run(opt)))
+        return
+
+    sizes = [int(s) for s in opt.sizes.split(",") if s.strip()]
+    common = ["--tasks", str(opt.tasks), "--n", str(opt.n), "--z", str(opt.z), "--mag", str(opt.mag),
+              "--seed", str(opt.seed)]
+    load = os.getloadavg()
+    print(f"glaciar scaling: demo survey (4 bands), {opt.tasks} tasks x {opt.n} sources at "
+          f"z = {opt.z:g}, m = {opt.mag:g}; load average at start {load[0]:.1f} "
+          f"on {os.cpu_count()} CPUs")
+    tmp_root = tempfile.mkdtemp(prefix="glaciar-scaling-", dir=opt.tmp)
+    try:
+        rows = []
+        for size in sizes:
+            sdir = Path(tmp_root) / f"s{size}"
+            free = shutil.disk_usage(tmp_root).free
+            need = 2 * 4 * 4 * size * size            # science + weight, 4 bands, float32
+            if need > 0.8 * free:
+                print(f"{size}^2: skipped, needs ~{need / 1e9:.1f} GB on disk, "
+                      f"{free / 1e9:.1f} GB free in {tmp_root}")
+                continue
+            # glaciar.demo.make_demo_images builds the field in memory (float64 scenes and
+            # FFTs): ~200 bytes per pixel at its peak (3.2 GB at 4000^2).
+            gen = GEN_BYTES_PER_PIXEL * size * size
+            avail = _available_memory()
+            if avail is not None and gen > 0.8 * avail:
+                print(f"{size}^2: skipped, generating the demo field needs ~{gen / 1e9:.0f} GB "
+                      f"of memory, {avail / 1e9:.0f} GB available")
+                continue
+            b = _spawn(["--child", "build", "--size", str(size), "--out", str(sdir / "survey"),
+                        *common])
+            r = _spawn(["--child", "run", "--config", b["config"], "--out", str(sdir / "run"),
+                        "--executor", "pool1", *common])
+            rows.append((size, b, r))
+            shutil.rmtree(sdir / "run", ignore_errors=True)
+            if size != opt.parallel_size:
+                shutil.rmtree(sdir, ignore_errors=True)
+            print(f"  {size}^2 done: {1e3 * r['cpu_s'] / max(r['n_sources'], 1):.2f} ms CPU/source, "
+                  f"worker {r['worker_rss_mb']:.0f} MB", flush=True)
+
+        print()
+        print(f"{'side':>7s} {'sources':>8s} {'ms CPU/src':>11s} {'ratio':>6s} {'main ms':>8s} "
+              f"{'worker ms':>10s} {'ratio':>6s} {'worker RSS MB':>14s} {'main RSS MB':>12s} "
+              f"{'gen RSS MB':>11s} {'gen wall s':>11s}")
+        base = base_w = None
+        for size, b, r in rows:
+            n = max(r["n_sources"], 1)
+            ms, ms_main, ms_w = (1e3 * r[k] / n for k in ("cpu_s", "main_cpu_s", "worker_cpu_s"))
+            base, base_w = base or ms, base_w or ms_w
+            print(f"{size:>7d} {r['n_sources']:>8d} {ms:>11.2f} {ms / base:>6.2f} {ms_main:>8.2f} "
+                  f"{ms_w:>10.2f} {ms_w / base_w:>6.2f} {r['worker_rss_mb']:>14.0f} "
+                  f"{r['main_rss_mb']:>12.0f} {b['rss_mb']:>11.0f} {b['wall_s']:>11.1f}")
+        print("(ms CPU/src: glaciar.run.process_cpu_seconds of simulate per injected source, main "
+              "process + its 1-worker pool, set-up included, and its ratio to the first size "
+              "(target <= 1.3); main ms / worker ms: the two parts (the main process checks the "
+              "inputs and measures the field for the manifest; the forked worker inherits that "
+              "and runs the tasks); worker RSS: peak of the pool worker, target <= 400 MB at "
+              "1200^2, <= 2 GB at 16000^2; main RSS: peak of the main process)")
+
+        if not opt.no_parallel:
+            size = opt.parallel_size
+            sdir = Path(tmp_root) / f"s{size}"
+            cfg_path = sdir / "survey" / "demo.yaml"
+            if not cfg_path.exists():
+                _spawn(["--child", "build", "--size", str(size), "--out", str(sdir / "survey"),
+                        *common])
+            print()
+            print(f"1 vs 2 workers on {size}^2 (wall time of simulate, same tasks, fresh run "
+                  f"directory each; load average now {os.getloadavg()[0]:.1f}):")
+            kinds = [("process pool", "1", "2")]
+            if not opt.no_dask:
+                try:
+                    import distributed  # noqa: F401
+                    kinds.append(("Dask LocalCluster", "dask1", "dask2"))
+                except ImportError:
+                    print("  (distributed not installed: Dask comparison skipped)")
+            for name, one, two in kinds:
+                walls = []
+                for i, ex in enumerate((one, two)):
+                    run_dir = sdir / f"run_{ex}"
+                    r = _spawn(["--child", "run", "--config", str(cfg_path), "--out", str(run_dir),
+                                "--executor", ex, *common])
+                    shutil.rmtree(run_dir, ignore_errors=True)
+                    walls.append(r["wall_s"])
+                print(f"  {name:18s} 1 worker {walls[0]:7.1f} s   2 workers {walls[1]:7.1f} s   "
+                      f"speed-up {walls[0] / walls[1]:5.2f}x  (target >= 1.8)")
+    finally:
+        shutil.rmtree(tmp_root, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
