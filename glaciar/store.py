@@ -267,7 +267,7 @@ def task_counts(rows: pd.DataFrame, mag_column: str) -> pd.DataFrame:
     ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
     m = rows[mag_column].to_numpy(float)
     dep = rows[COL_DEPTH].to_numpy(float) if COL_DEPTH in rows.columns else np.full(len(rows), np.nan)
-    g = pd.DataFrame({c: rows[c].to_numpy() for c in ids})
+    g = {c: rows[c].to_numpy() for c in ids}     # a dict: column-wise DataFrame building is slow
     g[COUNT_MAG_KEY] = np.where(np.isfinite(m), np.round(m / COUNTS_MAG_RESOLUTION), np.nan)
     g[COUNT_DEPTH_KEY] = np.where(np.isfinite(dep), np.floor(dep / DEPTH_BIN_MAG), np.nan)
     g[COUNT_N] = np.ones(len(rows), np.int64)
@@ -286,21 +286,48 @@ def task_counts(rows: pd.DataFrame, mag_column: str) -> pd.DataFrame:
     return _group_sums(g, keys)
 
 
-def _group_sums(g: pd.DataFrame, keys: list) -> pd.DataFrame:
-    """Counts summed per ``keys``: ints and sums added, extremes kept; an all-NaN sum stays NaN."""
+def _groups(g: pd.DataFrame, keys: list):
+    """Group of each row by ``keys`` (sorted as pandas' groupby(sort=True, dropna=False):
+    lexicographic, NaN last) and one row of each group; numpy only, for a task's few
+    rows pandas' groupby machinery costs ~10 ms."""
     import numpy as np
 
-    grouped = g.groupby(keys, sort=True, dropna=False)
-    sums = [c for c in g.columns if c not in keys and (c == COUNT_N or c.startswith(
-        ("k_", "n_status_", "sum_")))]
-    out = grouped[sums].sum()
+    n = len(np.asarray(g[keys[0]])) if keys else len(g)
+    if not keys:
+        return np.zeros(n, dtype=np.int64), np.zeros(min(n, 1), dtype=np.int64)
+    codes = np.empty((n, len(keys)), dtype=np.int64)
+    for j, k in enumerate(keys):
+        codes[:, j] = np.unique(np.asarray(g[k]), return_inverse=True)[1].ravel()
+    _, first, inverse = np.unique(codes, axis=0, return_index=True, return_inverse=True)
+    return inverse.ravel(), first
+
+
+def _group_sums(g, keys: list) -> pd.DataFrame:
+    """Counts summed per ``keys``: ints and sums added, extremes kept; an all-NaN sum stays NaN.
+
+    ``g``: a DataFrame or a dict of column arrays."""
+    import numpy as np
+
+    grp, first = _groups(g, keys)
+    ng = first.size
+    out = {k: np.asarray(g[k])[first] for k in keys}
+    sums = [c for c in g if c not in keys and (c == COUNT_N or c.startswith(("k_", "n_status_", "sum_")))]
+    for c in sums:
+        v = np.asarray(g[c])
+        if v.dtype.kind in "iub":
+            out[c] = np.bincount(grp, weights=v, minlength=ng).astype(np.int64)
+        else:       # NaN skipped, as pandas' sum
+            out[c] = np.bincount(grp, weights=np.nan_to_num(v.astype(float), nan=0.0), minlength=ng)
     for c, lo, hi in ((COUNT_SUM_MAG, COUNT_MAG_MIN, COUNT_MAG_MAX),
                       (COUNT_SUM_DEPTH, COUNT_DEPTH_MIN, COUNT_DEPTH_MAX)):
-        out[lo] = grouped[lo].min()
-        out[hi] = grouped[hi].max()
+        vlo, vhi = np.asarray(g[lo], dtype=float), np.asarray(g[hi], dtype=float)
+        mn, mx = np.full(ng, np.nan), np.full(ng, np.nan)
+        np.fmin.at(mn, grp, vlo)          # fmin/fmax skip NaN; an all-NaN group stays NaN
+        np.fmax.at(mx, grp, vhi)
+        out[lo], out[hi] = mn, mx
         # Unknown depth (NaN) in every source of a group: the sum stays NaN, not 0.
-        out[c] = np.where(np.isnan(out[lo].to_numpy(float)), np.nan, out[c].to_numpy(float))
-    return out.reset_index()
+        out[c] = np.where(np.isnan(mn), np.nan, out[c])
+    return pd.DataFrame(out)
 
 
 def _has_hist_columns(columns, obs_column: str) -> bool:
@@ -344,7 +371,7 @@ def task_histogram(rows: pd.DataFrame, obs_column: str) -> pd.DataFrame:
     ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
     m_in = rows[COL_MAG_INPUT].to_numpy(float)
     rec = rows[COL_RECOVERED].to_numpy().astype(bool)
-    g = pd.DataFrame({c: rows[c].to_numpy() for c in ids})
+    g = {c: rows[c].to_numpy() for c in ids}
     g[HIST_MIN_KEY] = np.where(np.isfinite(m_in), np.round(m_in / COUNTS_MAG_RESOLUTION), np.nan)
     b = mobs_lattice_index(rows[obs_column].to_numpy(float))
     g[HIST_MOBS_BIN] = np.where(rec, b, MOBS_BIN_FAINT).astype(np.int32)
@@ -354,11 +381,16 @@ def task_histogram(rows: pd.DataFrame, obs_column: str) -> pd.DataFrame:
     return _hist_sums(g, ids)
 
 
-def _hist_sums(g: pd.DataFrame, ids: list) -> pd.DataFrame:
-    """Histogram rows summed per (ids, m_in key, m_obs bin)."""
+def _hist_sums(g, ids: list) -> pd.DataFrame:
+    """Histogram rows summed per (ids, m_in key, m_obs bin); ``g`` a DataFrame or dict of arrays."""
+    import numpy as np
+
     keys = list(ids) + [HIST_MIN_KEY, HIST_MOBS_BIN]
-    out = g.groupby(keys, sort=True, dropna=False)[[COUNT_N, COUNT_K_REC, COUNT_K_SEL]].sum()
-    return out.reset_index()
+    grp, first = _groups(g, keys)
+    out = {k: np.asarray(g[k])[first] for k in keys}
+    for c in (COUNT_N, COUNT_K_REC, COUNT_K_SEL):
+        out[c] = np.bincount(grp, weights=np.asarray(g[c]), minlength=first.size).astype(np.int64)
+    return pd.DataFrame(out)
 
 
 #: Counts columns in the order :func:`task_counts` writes them (after the identity columns).

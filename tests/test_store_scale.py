@@ -295,3 +295,43 @@ def test_truncated_part_and_task_file_are_redone_on_resume(tiny_cfg, tmp_path):
         stats = simulate(cfg, run, workers=1, progress=False)
     assert stats["n_run"] == 1
     pd.testing.assert_frame_equal(_sorted(read_results(run)), ref)
+
+
+def test_task_counts_equal_a_pandas_groupby_of_the_rows():
+    """The numpy grouping behind the footer counts and histograms equals pandas' groupby
+    (sorted keys, NaN keys their own group, NaN skipped in sums, all-NaN extremes NaN)."""
+    from glaciar import store as S
+
+    rng = np.random.default_rng(0)
+    for trial in range(12):
+        n = int(rng.integers(1, 300))
+        rows = pd.DataFrame({
+            "field": rng.choice(["a", "b"], n).astype(object),
+            "z": rng.choice([7.0, 8.0, np.nan] if trial % 2 else [7.0, 8.0], n),
+            "mag": rng.choice([26.0, 27.5], n), "iteration": rng.integers(0, 3, n),
+            "mag_input": np.where(rng.random(n) < 0.1, np.nan, rng.normal(26, 1, n)),
+            "depth_local": np.where(rng.random(n) < 0.2, np.nan, rng.normal(27, 0.3, n)),
+            "recovered": rng.random(n) < 0.5, "status": rng.integers(-3, 3, n).astype(np.int8),
+            "mag_f160w": np.where(rng.random(n) < 0.2, np.inf, rng.normal(26, 1, n))})
+        rows["selected"] = rows["recovered"] & (rng.random(n) < 0.5)
+        got = S.task_counts(rows, "mag_input")
+        keys = ["field", "z", "mag", "iteration", S.COUNT_MAG_KEY, S.COUNT_DEPTH_KEY]
+        r = rows.assign(**{S.COUNT_MAG_KEY: np.round(rows["mag_input"] / S.COUNTS_MAG_RESOLUTION),
+                           S.COUNT_DEPTH_KEY: np.floor(rows["depth_local"] / C.DEPTH_BIN_MAG)})
+        gb = r.groupby(keys, sort=True, dropna=False)
+        want = gb.agg(n=("recovered", "size"), k_recovered=("recovered", "sum"), k_selected=("selected", "sum"),
+                      sum_mag=("mag_input", "sum"), mag_min=("mag_input", "min"),
+                      depth_min=("depth_local", "min"), depth_max=("depth_local", "max")).reset_index()
+        for c in keys:
+            np.testing.assert_array_equal(got[c].to_numpy(), want[c].to_numpy(), err_msg=c)
+        for c in ("n", "k_recovered", "k_selected"):
+            np.testing.assert_array_equal(got[c].to_numpy(), want[c].to_numpy(), err_msg=c)
+        for c in ("mag_min", "depth_min", "depth_max"):
+            np.testing.assert_array_equal(got[c].to_numpy(), want[c].to_numpy(), err_msg=c)
+        s = np.where(np.isnan(want["mag_min"]), np.nan, want["sum_mag"])
+        np.testing.assert_allclose(got["sum_mag"].to_numpy(), s, rtol=1e-12)
+        h = S.task_histogram(rows, "mag_f160w")
+        assert h[S.COUNT_N].sum() == n and h[S.COUNT_K_SEL].sum() == rows["selected"].sum()
+        ids = ["field", "z", "mag", "iteration"]
+        np.testing.assert_array_equal(h.groupby(ids, dropna=False)[S.COUNT_N].sum().to_numpy(),
+                                      rows.groupby(ids, dropna=False).size().to_numpy())
