@@ -295,9 +295,7 @@ def _groups(g, keys: list):
     never sort strings."""
     import numpy as np
 
-    n = len(np.asarray(g[keys[0]])) if keys else len(g)
-    if not keys:
-        return np.zeros(n, dtype=np.int64), np.zeros(min(n, 1), dtype=np.int64)
+    n = len(np.asarray(g[keys[0]]))        # callers always group by at least one key
     combined = np.zeros(n, dtype=np.int64)
     span = 1
     for k in keys:

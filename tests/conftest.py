@@ -23,6 +23,26 @@ tests.  Tests never write into a shared run: they copy it first (without its loc
 import numpy as np
 import pytest
 
+def _assert_same_outputs(got, want, what):
+    """Every ``measure_injected`` output column equal (floats to 1e-9 relative, NaN where
+    NaN, others exactly); ``detection_id`` is a label of one extraction, not comparable."""
+    for c in got:
+        if c == "detection_id":
+            continue
+        a, b = got[c], want[c]
+        if a.dtype.kind == "f":
+            same = (np.isnan(a) & np.isnan(b)) | (np.abs(a - b) <= 1e-9 * np.abs(b))
+        else:
+            same = a == b
+        assert same.all(), (what, c, np.flatnonzero(~same), a[~same], b[~same])
+
+
+@pytest.fixture
+def assert_same_outputs():
+    """:func:`_assert_same_outputs`, for tests comparing two ways of measuring."""
+    return _assert_same_outputs
+
+
 #: (rows, cols) slices of the deep quadrant of ``deep_corner_survey``.
 DEEP_CORNER_SHAPE = (400, 400)
 DEEP_CORNER_QUADRANT = (slice(0, 200), slice(0, 200))

@@ -31,8 +31,9 @@ from glaciar.engine.classify import ClassificationParams, classify, footprint_ov
 from glaciar.engine.detect import DetectionError, DetectionParams, _sep_extract, detection_rms, sanitize
 from glaciar.engine.scene import Scene
 from glaciar.engine.segmentation import sep_segmentation
-from glaciar.engine.windows import (Canvas, MeasureContext, ObjectBoxes, SegmentedBatch, ellipse_half_extent,
-                                    safe_shape, segment_full, segment_windowed, window_groups)
+from glaciar.engine.windows import (Canvas, MeasureContext, ObjectBoxes, SegmentedBatch, ellipse_boxes,
+                                    ellipse_half_extent, safe_shape, segment_full, segment_windowed,
+                                    window_groups)
 
 __all__ = ["FieldReference", "reference_extraction", "measure_injected", "output_columns"]
 
@@ -159,14 +160,11 @@ def _reference_boxes(data, err, nodata, seg, geo, a, b, th, scale, params):
     obj_comp = np.zeros(n + 1, dtype=np.int64)
     obj_comp[seg.ravel()[pix]] = comp.ravel()[pix]
     region = cb[obj_comp[1:]]
-    x, y = geo["x"], geo["y"]
     need = region.copy()
-    for r in (np.full(n, 6.0), np.nan_to_num(scale, nan=0.0)):
-        dy, dx = ellipse_half_extent(a, b, th, r)
-        need[:, 0] = np.minimum(need[:, 0], np.floor(y - dy).astype(np.int64) - 1)
-        need[:, 1] = np.maximum(need[:, 1], np.ceil(y + dy).astype(np.int64) + 2)
-        need[:, 2] = np.minimum(need[:, 2], np.floor(x - dx).astype(np.int64) - 1)
-        need[:, 3] = np.maximum(need[:, 3], np.ceil(x + dx).astype(np.int64) + 2)
+    for r in (np.full(n, 6.0), np.nan_to_num(scale, nan=0.0)):    # the boxes _analyse checks
+        box = ellipse_boxes(geo["x"], geo["y"], *ellipse_half_extent(a, b, th, r))
+        need[:, 0::2] = np.minimum(need[:, 0::2], box[:, 0::2])
+        need[:, 1::2] = np.maximum(need[:, 1::2], box[:, 1::2])
     return region, need
 
 

@@ -92,7 +92,8 @@ from glaciar.engine.scene import Scene
 from glaciar.engine.segmentation import isolate_region
 
 __all__ = ["MeasureContext", "SegmentedBatch", "Canvas", "segment_windowed", "segment_full", "pack_windows",
-           "safe_shape", "window_groups", "ellipse_half_extent", "initial_windows", "undetectable", "ObjectBoxes"]
+           "safe_shape", "window_groups", "ellipse_half_extent", "initial_windows", "undetectable", "ObjectBoxes",
+           "ellipse_boxes"]
 
 _EIGHT = np.ones((3, 3), dtype=bool)   # sep/SExtractor regions are 8-connected
 _MAX_CANVAS_PIXELS = 600_000           # keep one sep call's buffers small
@@ -443,7 +444,7 @@ def initial_windows(x, y, shape, params: DetectionParams, search_box: int, margi
         # the local-background annulus must fit too: start from a window that holds it
         r = max(r, params.backphoto_thick + 16)
     rects = np.stack([iy - r, iy + r + 1, ix - r, ix + r + 1], axis=1)
-    if objects is not None and len(objects.region) and ix.size:
+    if objects is not None and len(objects) and ix.size:
         h = search_box // 2
         c = _OWN_HALF
         big = np.int64(2 ** 40)
@@ -587,6 +588,18 @@ class Canvas:
         data[bad] = 0.0
         rms[bad] = 0.0
         return data, rms, bad
+
+
+def ellipse_boxes(x, y, dy, dx, grow=0):
+    """Integer boxes (y0, y1, x0, x1) [pixels], shape (N, 4), holding every pixel an ellipse
+    of half extents (dy, dx) about (x, y) can touch, ``grow`` pixels more on each side.
+
+    The margin the exactness checks of :func:`_analyse` use: one pixel below
+    the floor, and an exclusive upper bound two pixels above the ceiling."""
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    return np.stack([np.floor(y - dy).astype(np.int64) - 1 - grow, np.ceil(y + dy).astype(np.int64) + 2 + grow,
+                     np.floor(x - dx).astype(np.int64) - 1 - grow, np.ceil(x + dx).astype(np.int64) + 2 + grow],
+                    axis=1).reshape(-1, 4)
 
 
 def ellipse_half_extent(a, b, theta, r):
@@ -785,9 +798,8 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     a, b, th = safe_shape(tab["a"][label], tab["b"][label], tab["theta"][label])
     if not full:
         dy6, dx6 = ellipse_half_extent(a, b, th, 6.0)
-        for i in np.flatnonzero(det):
-            bb = (int(np.floor(ys[i] - dy6[i])) - 1, int(np.ceil(ys[i] + dy6[i])) + 2,
-                  int(np.floor(xs[i] - dx6[i])) - 1, int(np.ceil(xs[i] + dx6[i])) + 2)
+        ii = np.flatnonzero(det)
+        for i, bb in zip(ii.tolist(), ellipse_boxes(xs[ii], ys[ii], dy6[ii], dx6[ii]).tolist()):
             if not check(i, *bb):
                 fail(i)
             room(i, *bb)
@@ -812,9 +824,8 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
         if params.backphoto_type == "local":
             sbox = phot.segment_boxes(pix, lab_pix, W_cv, nl)
             _, annulus = phot.local_background_boxes(sbox[label], params.backphoto_thick, ctx.shape)
-        for i in np.flatnonzero(det):
-            bb = (int(np.floor(ys[i] - dya[i])) - 1 - grow_px, int(np.ceil(ys[i] + dya[i])) + 2 + grow_px,
-                  int(np.floor(xs[i] - dxa[i])) - 1 - grow_px, int(np.ceil(xs[i] + dxa[i])) + 2 + grow_px)
+        ii = np.flatnonzero(det)
+        for i, bb in zip(ii.tolist(), ellipse_boxes(xs[ii], ys[ii], dya[ii], dxa[ii], grow_px).tolist()):
             if not check(i, *bb):
                 fail(i)
             room(i, *bb)
