@@ -31,7 +31,7 @@ import numpy as np
 
 from glaciar.engine import clean as cl
 from glaciar.engine.detect import DetectionParams, _sep_extract, detection_rms, sanitize
-from glaciar.engine.windows import pack_windows
+from glaciar.engine.windows import label_boxes, pack_windows
 
 __all__ = ["TaskClean", "task_clean", "influence_boxes", "stamp_boxes"]
 
@@ -373,13 +373,12 @@ def task_clean(det_scene, det_rms, params: DetectionParams, ref=None, mask=None,
     dmask |= seg > 0
     comp, ncomp = ndimage.label(dmask, structure=np.ones((3, 3), dtype=bool))
     H, W = cshape
-    slices = ndimage.find_objects(comp)
-    nc = len(slices)
+    nc = int(ncomp)
     empty_tc = TaskClean(params, ref, usable, widened, [], np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
                          shape, isolated)
     if nc == 0:
         return empty_tc
-    cbox = np.array([(s[0].start, s[0].stop, s[1].start, s[1].stop) for s in slices], dtype=np.int64)
+    cbox = label_boxes(comp, nc)[1:]
     # which window each region lies in (windows are separated by gaps wider than 1 pixel)
     win = np.full(cshape, -1, dtype=np.int64)
     for k, (y0, y1, x0, x1) in enumerate(rects.tolist()):

@@ -93,7 +93,7 @@ from glaciar.engine.segmentation import isolate_region
 
 __all__ = ["MeasureContext", "SegmentedBatch", "Canvas", "segment_windowed", "segment_full", "pack_windows",
            "safe_shape", "window_groups", "ellipse_half_extent", "initial_windows", "undetectable", "ObjectBoxes",
-           "ellipse_boxes"]
+           "ellipse_boxes", "label_boxes"]
 
 _EIGHT = np.ones((3, 3), dtype=bool)   # sep/SExtractor regions are 8-connected
 _MAX_CANVAS_PIXELS = 600_000           # keep one sep call's buffers small
@@ -590,6 +590,33 @@ class Canvas:
         return data, rms, bad
 
 
+def label_boxes(labels, n):
+    """Bounding boxes of the labels 1..n of a label image, shape (n + 1, 4).
+
+    Row ``c`` is (y0, y1, x0, x1) of label ``c`` (exclusive upper bounds, as
+    ``scipy.ndimage.find_objects`` gives them); row 0 and labels without a
+    pixel are zeros.  Same boxes as ``find_objects``, but ~5-15x faster on
+    canvases holding ~1000 small noise regions (its per-label cost dominated
+    the exactness checks), and no Python loop over the labels.
+    """
+    lab2 = np.asarray(labels)
+    flat = lab2.ravel()
+    pix = np.flatnonzero(flat)
+    cb = np.zeros((int(n) + 1, 4), dtype=np.int64)
+    if pix.size == 0:
+        return cb
+    lab = flat[pix]
+    rows, cols = np.divmod(pix, lab2.shape[1])
+    big = np.int64(2 ** 40)
+    cb[:, 0::2], cb[:, 1::2] = big, -big
+    np.minimum.at(cb[:, 0], lab, rows)
+    np.maximum.at(cb[:, 1], lab, rows + 1)
+    np.minimum.at(cb[:, 2], lab, cols)
+    np.maximum.at(cb[:, 3], lab, cols + 1)
+    cb[cb[:, 1] < 0] = 0
+    return cb
+
+
 def ellipse_boxes(x, y, dy, dx, grow=0):
     """Integer boxes (y0, y1, x0, x1) [pixels], shape (N, 4), holding every pixel an ellipse
     of half extents (dy, dx) about (x, y) can touch, ``grow`` pixels more on each side.
@@ -656,9 +683,7 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     nzpix = np.flatnonzero(seg)
     seg2comp[seg.ravel()[nzpix]] = comp.ravel()[nzpix]
     segs_per_comp = np.bincount(seg2comp[1:], minlength=ncomp + 1)
-    cb = np.zeros((ncomp + 1, 4), dtype=np.int64)
-    for c, sl in enumerate(ndimage.find_objects(comp), start=1):
-        cb[c] = (sl[0].start, sl[0].stop, sl[1].start, sl[1].stop)
+    cb = label_boxes(comp, ncomp)
 
     # ---- per-source window geometry on the canvas
     k = src_win
