@@ -19,3 +19,48 @@ def test_label_boxes_equal_find_objects():
         assert np.all(cb[0] == 0)
         for c, sl in enumerate(ndimage.find_objects(comp), start=1):
             assert tuple(cb[c]) == (sl[0].start, sl[0].stop, sl[1].start, sl[1].stop)
+
+
+def _stamp_ctx(templates, x, y, rms=1.0, shape=(200, 200)):
+    from types import SimpleNamespace
+
+    from glaciar.engine.detect import DetectionParams
+    return SimpleNamespace(x=np.asarray(x, float), y=np.asarray(y, float), shape=shape,
+                           det_rms=np.full(shape, rms), params=DetectionParams(), templates=templates,
+                           margin=DetectionParams().filter_halfwidth + 1)
+
+
+def test_stamp_half_sizes_follow_the_gaussian_width():
+    """A bright circular Gaussian of sigma s: the above-threshold second moments give a -> s
+    (the part below threshold carries a negligible share of the weight), so the
+    predicted half-size is ceil(6 s + slack) + margin."""
+    from glaciar.engine import windows as W
+
+    h = 40
+    yy, xx = np.mgrid[-h:h + 1, -h:h + 1]
+    out = []
+    for s in (1.5, 3.0, 5.0):
+        g = np.exp(-(xx ** 2 + yy ** 2) / (2 * s * s))
+        g /= g.sum()
+        out.append((100 - h, 100 - h, g, 1e9))
+    ctx = _stamp_ctx(out + [None, (100 - h, 100 - h, g, 1e-9)], [100.0] * 5, [100.0] * 5)
+    half = W.stamp_half_sizes(ctx)
+    for k, s in enumerate((1.5, 3.0, 5.0)):
+        lo = int(np.ceil(6 * 0.99 * s + W._STAMP_SLACK)) + ctx.margin
+        hi = int(np.ceil(6 * s + W._STAMP_SLACK)) + ctx.margin
+        assert lo <= half[k] <= hi
+    assert half[3] == 0 and half[4] == 0          # no template; nothing above threshold
+
+
+def test_initial_windows_hold_the_predicted_half_size():
+    from glaciar.engine.detect import DetectionParams
+    from glaciar.engine.windows import initial_windows
+
+    params = DetectionParams()
+    x = np.array([100.0, 100.0, 3.0])
+    y = np.array([100.0, 150.0, 3.0])
+    win = initial_windows(x, y, (400, 400), params, 3, 3, own_half=np.array([0, 35, 35]))
+    r = params.initial_window // 2
+    assert tuple(win[0]) == (100 - r, 101 + r, 100 - r, 101 + r)
+    assert tuple(win[1]) == (150 - 35, 186, 100 - 35, 136)
+    assert tuple(win[2]) == (0, 39, 0, 39)         # clipped to the image

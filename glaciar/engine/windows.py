@@ -61,9 +61,12 @@ Speed without changing answers
 Each shortcut below only decides *how much* is computed, never a result
 (``tests/test_windowed.py``, ``tests/test_windowed_batching.py``):
 
-* the first window is ``DetectionParams.initial_window`` (41 px: most sources
-  are exact after one extraction); a side whose required box reaches the
-  window edge grows by half the window, other sides just enough;
+* the first window is ``DetectionParams.initial_window`` (41 px: most faint
+  sources are exact after one extraction), or larger where the source's own
+  stamp predicts a larger Kron box (:func:`stamp_half_sizes`: bright sources
+  skip a second round), or where original objects nearby ask for it; a side
+  whose required box reaches the window edge grows by half the window, other
+  sides just enough;
 * canvases are built by :meth:`Scene.paste_windows` (one overlap search per
   canvas, stamps added where windows read them);
 * a task-wide CLEAN's outcome is computed once per task and read by every
@@ -93,7 +96,7 @@ from glaciar.engine.segmentation import isolate_region
 
 __all__ = ["MeasureContext", "SegmentedBatch", "Canvas", "segment_windowed", "segment_full", "pack_windows",
            "safe_shape", "window_groups", "ellipse_half_extent", "initial_windows", "undetectable", "ObjectBoxes",
-           "ellipse_boxes", "label_boxes"]
+           "ellipse_boxes", "label_boxes", "stamp_half_sizes"]
 
 _EIGHT = np.ones((3, 3), dtype=bool)   # sep/SExtractor regions are 8-connected
 _MAX_CANVAS_PIXELS = 600_000           # keep one sep call's buffers small
@@ -103,6 +106,10 @@ REMOVED = np.int32(2 ** 31 - 1)        #: label of pixels whose object CLEAN rem
 # (a ~ 1.5-3 px at the demo's limit) spans ~20-35 px.  Only sizes first windows; on the
 # demo field it cut measurement CPU by 6-14 % at m = 24-28 against no neighbour look-up.
 _OWN_HALF = 10
+# First windows from the source's own stamp (:func:`stamp_half_sizes`) hold 6 a + this
+# [pixels] (+ margin): the 75th percentile of the required half-size on the demo field at
+# m = 24-26.  8-14 gave the same CPU within the noise; without it, m = 24 took ~1.2x longer.
+_STAMP_SLACK = 11.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -265,7 +272,7 @@ def segment_windowed(ctx: MeasureContext, finish: Callable[[MeasureContext, Segm
     Returns the last windows ((N, 4) image y0, y1, x0, x1) and the number of rounds."""
     n = ctx.x.size
     rects = initial_windows(ctx.x, ctx.y, ctx.shape, ctx.params, ctx.cls.search_box, ctx.margin,
-                            ctx.ref_objects)
+                            ctx.ref_objects, own_half=stamp_half_sizes(ctx))
     pending = np.arange(n)
     if early_exit and n:
         skip, boxes = undetectable(ctx)
@@ -401,8 +408,50 @@ def undetectable(ctx: MeasureContext):
     return skip, boxes
 
 
+def stamp_half_sizes(ctx: MeasureContext):
+    """Half-size [pixels] of a first window predicted from each source's own stamp, shape (N,).
+
+    sep's Kron check box is the 6 a ellipse of the detection, and the regions
+    its edge touches add a few pixels (:func:`_analyse`).  ``a`` is estimated
+    from the noiseless detection-band template (``ctx.templates``): the
+    intensity-weighted second moments of its pixels above DETECT_THRESH times
+    the RMS at the source (no filter, no noise: a guess).  On the demo field
+    the required half-size was 6 a + 8 px at the median and 6 a + 11 px at the
+    75th percentile for m = 24-26 sources; the window holds 6 a + 11 px
+    plus the exact-zone margin.  0 where there is no template or fewer
+    than DETECT_MINAREA pixels above threshold (the default first window).
+    Only sizes first windows (any window gives the same answer): bright
+    sources then need no second round (at m = 24 on the demo field, 92 %
+    of them did with the default 41 px).
+    """
+    n = ctx.x.size
+    half = np.zeros(n, dtype=np.int64)
+    ny, nx = ctx.shape
+    ix, iy = input_pixel(ctx.x, ctx.y)
+    iy, ix = np.clip(iy, 0, ny - 1), np.clip(ix, 0, nx - 1)
+    rms = np.asarray(ctx.det_rms[iy, ix], dtype=np.float64)
+    thresh = float(ctx.params.detect_thresh)
+    minarea = int(ctx.params.detect_minarea)
+    for i, t in enumerate(ctx.templates):
+        if t is None or not (rms[i] > 0) or not t[3] > 0:
+            continue
+        data = t[2]
+        # above threshold in the unit template: data * flux > thresh * rms
+        yy, xx = np.nonzero(data > thresh * rms[i] / t[3])
+        if yy.size < minarea:
+            continue
+        w = data[yy, xx]
+        sw = w.sum()
+        mx, my = (w @ xx) / sw, (w @ yy) / sw
+        dx, dy = xx - mx, yy - my
+        x2, y2, xy = (w @ (dx * dx)) / sw, (w @ (dy * dy)) / sw, (w @ (dx * dy)) / sw
+        a = np.sqrt(0.5 * (x2 + y2) + np.sqrt(0.25 * (x2 - y2) ** 2 + xy * xy))
+        half[i] = int(np.ceil(6.0 * a + _STAMP_SLACK)) + ctx.margin
+    return half
+
+
 def initial_windows(x, y, shape, params: DetectionParams, search_box: int, margin: int,
-                    objects: "ObjectBoxes | None" = None):
+                    objects: "ObjectBoxes | None" = None, own_half=None):
     """First detection window of each source (y0, y1, x0, x1 image pixels), shape (N, 4).
 
     A square of ``params.initial_window`` pixels around the source, widened
@@ -436,6 +485,9 @@ def initial_windows(x, y, shape, params: DetectionParams, search_box: int, margi
     objects : ObjectBoxes or None
         Original objects' boxes (:class:`glaciar.engine.measure.FieldReference`);
         None: squares only.
+    own_half : ndarray of int (N,), optional
+        Per source, a larger half-size predicted from its own stamp
+        (:func:`stamp_half_sizes`); the square is at least this.
     """
     ny, nx = shape
     ix, iy = input_pixel(x, y)
@@ -443,6 +495,8 @@ def initial_windows(x, y, shape, params: DetectionParams, search_box: int, margi
     if params.backphoto_type == "local":
         # the local-background annulus must fit too: start from a window that holds it
         r = max(r, params.backphoto_thick + 16)
+    if own_half is not None:
+        r = np.maximum(r, np.minimum(np.asarray(own_half, dtype=np.int64), params.max_window // 2))
     rects = np.stack([iy - r, iy + r + 1, ix - r, ix + r + 1], axis=1)
     if objects is not None and len(objects) and ix.size:
         h = search_box // 2
