@@ -80,6 +80,8 @@ Each shortcut below only decides *how much* is computed, never a result
 """
 from __future__ import annotations
 
+import math
+import weakref
 from dataclasses import dataclass
 from typing import Callable, Mapping
 
@@ -435,19 +437,45 @@ def stamp_half_sizes(ctx: MeasureContext):
     for i, t in enumerate(ctx.templates):
         if t is None or not (rms[i] > 0) or not t[3] > 0:
             continue
-        data = t[2]
-        # above threshold in the unit template: data * flux > thresh * rms
-        yy, xx = np.nonzero(data > thresh * rms[i] / t[3])
-        if yy.size < minarea:
+        neg, cum = _stamp_profile(t[2])
+        # pixels above threshold in the unit template: data * flux > thresh * rms
+        k = int(neg.searchsorted(-thresh * rms[i] / t[3], side="left"))
+        if k < max(minarea, 1):
             continue
-        w = data[yy, xx]
-        sw = w.sum()
-        mx, my = (w @ xx) / sw, (w @ yy) / sw
-        dx, dy = xx - mx, yy - my
-        x2, y2, xy = (w @ (dx * dx)) / sw, (w @ (dy * dy)) / sw, (w @ (dx * dy)) / sw
-        a = np.sqrt(0.5 * (x2 + y2) + np.sqrt(0.25 * (x2 - y2) ** 2 + xy * xy))
-        half[i] = int(np.ceil(6.0 * a + _STAMP_SLACK)) + ctx.margin
+        s0, sx, sy, sxx, syy, sxy = cum[:, k - 1].tolist()
+        sx, sy, sxx, syy, sxy = sx / s0, sy / s0, sxx / s0, syy / s0, sxy / s0
+        x2, y2, xy = sxx - sx * sx, syy - sy * sy, sxy - sx * sy
+        a = math.sqrt(max(0.5 * (x2 + y2) + math.sqrt(0.25 * (x2 - y2) ** 2 + xy * xy), 0.0))
+        half[i] = int(math.ceil(6.0 * a + _STAMP_SLACK)) + ctx.margin
     return half
+
+
+_PROFILES: dict = {}
+
+
+def _stamp_profile(data):
+    """A stamp's pixel values negated, in increasing order, and the running sums (weights, w x, w y,
+    w x^2, w y^2, w x y) along that order, shape (6, size): the moments of the pixels above
+    any threshold are one look-up.  Cached per array (templates are shared, read-only
+    arrays of the template cache); an entry goes when its array does."""
+    key = id(data)
+    hit = _PROFILES.get(key)
+    if hit is not None and hit[0]() is data:
+        return hit[1], hit[2]
+    v = np.asarray(data, dtype=np.float64).ravel()
+    order = np.argsort(-v, kind="stable")
+    vs = v[order]
+    yy, xx = np.divmod(order, data.shape[1])
+    xx, yy = xx.astype(np.float64), yy.astype(np.float64)
+    w = np.maximum(vs, 0.0)
+    cum = np.cumsum(np.stack([w, w * xx, w * yy, w * xx * xx, w * yy * yy, w * xx * yy]), axis=1)
+    neg = -vs
+    try:
+        ref = weakref.ref(data, lambda _r, k=key: _PROFILES.pop(k, None))
+    except TypeError:                       # not weak-referenceable: not cached
+        return neg, cum
+    _PROFILES[key] = (ref, neg, cum)
+    return neg, cum
 
 
 def initial_windows(x, y, shape, params: DetectionParams, search_box: int, margin: int,
