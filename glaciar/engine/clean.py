@@ -104,23 +104,29 @@ def sep_filter(data, kernel) -> np.ndarray:
         sep's order (kernel row-major); pixels outside the image contribute
         nothing.
     """
-    data = np.ascontiguousarray(data, dtype=np.float32)
+    data = np.asarray(data, dtype=np.float32)
     k = sep_kernel(kernel)
     ch, cw = k.shape
     H, W = data.shape
-    out = np.zeros((H, W), dtype=np.float32)
+    # The image in a zero frame, as one flat array: every kernel tap is then one
+    # contiguous multiply-add over all pixels (rows of width W + cw - 1, whose last
+    # cw - 1 columns are discarded), ~2x faster than 2-d slices.  Taps outside the
+    # image read zeros, so each sum is sep's (outside pixels skipped) plus exact
+    # zeros, in the same order: the same float32 bits.
+    hy, hx = ch // 2, cw // 2
+    Wp = W + cw - 1
+    P = np.zeros((H + ch, Wp), dtype=np.float32)       # one spare row for the last taps
+    P[hy:hy + H, hx:hx + W] = data
+    flat = P.ravel()
+    n = H * Wp
+    out = np.zeros(n, dtype=np.float32)
+    tmp = np.empty(n, dtype=np.float32)
     for cy in range(ch):
-        dy = cy - ch // 2
-        ys0, ys1 = max(0, -dy), min(H, H - dy)
-        if ys1 <= ys0:
-            continue
         for cx in range(cw):
-            dx = cx - cw // 2
-            xs0, xs1 = max(0, -dx), min(W, W - dx)
-            if xs1 <= xs0:
-                continue
-            out[ys0:ys1, xs0:xs1] += k[cy, cx] * data[ys0 + dy:ys1 + dy, xs0 + dx:xs1 + dx]
-    return out
+            off = cy * Wp + cx
+            np.multiply(flat[off:off + n], k[cy, cx], out=tmp)
+            out += tmp
+    return np.ascontiguousarray(out.reshape(H, Wp)[:, :W])
 
 
 def threshold_map(err, nodata, detect_thresh) -> np.ndarray:
