@@ -94,3 +94,22 @@ def test_sep_filter_equals_the_pixel_loop_bit_for_bit():
         got = sep_filter(data, kern)
         assert got.dtype == np.float32 and got.shape == shape and got.flags.c_contiguous
         assert np.array_equal(got, _filter_loop(data, sep_kernel(kern)))
+
+
+def test_pack_windows_places_disjoint_rectangles_with_gaps():
+    from glaciar.engine.windows import pack_windows
+
+    rng = np.random.default_rng(7)
+    for k, gap in ((1, 3), (7, 2), (100, 3), (60, 4)):
+        h = rng.integers(5, 80, k)
+        w = rng.integers(5, 80, k)
+        oy, ox, shape = pack_windows(h, w, gap)
+        # every rectangle, grown by the gap, inside the canvas and disjoint from the others
+        occ = np.zeros(shape, dtype=np.int64)
+        for i in range(k):
+            assert oy[i] >= gap and ox[i] >= gap
+            assert oy[i] + h[i] + gap <= shape[0] and ox[i] + w[i] + gap <= shape[1]
+            occ[oy[i]:oy[i] + h[i] + gap, ox[i]:ox[i] + w[i] + gap] += 1
+        assert occ.max() == 1
+        # no worse than one shelf row of the widest width per rectangle
+        assert shape[0] * shape[1] <= ((h + gap).max() + gap) * (np.sum(w + gap) + gap)

@@ -557,25 +557,47 @@ def initial_windows(x, y, shape, params: DetectionParams, search_box: int, margi
 
 
 def pack_windows(heights, widths, gap):
-    """Shelf-pack rectangles; returns (y offsets, x offsets, canvas shape)."""
-    k = len(heights)
-    order = np.argsort(-np.asarray(heights), kind="stable")
-    area = float(np.sum((np.asarray(heights) + gap) * (np.asarray(widths) + gap)))
-    width = int(max(np.max(widths) + 2 * gap, np.sqrt(area) * 1.1))
+    """Shelf-pack rectangles; returns (y offsets, x offsets, canvas shape).
+
+    Rectangles go, tallest first, left to right on shelves of a given width,
+    each with ``gap`` blank pixels around it.  A few shelf widths about the
+    square root of the total area are tried and the smallest canvas kept
+    (its width trimmed to the rectangles it holds): every whole-canvas pass
+    (sep, the filter, labelling, band canvases) costs in proportion to the
+    canvas area, and one fixed width left ~20 % of it blank.
+    """
+    h = np.asarray(heights, dtype=np.int64).ravel()
+    w = np.asarray(widths, dtype=np.int64).ravel()
+    k = h.size
+    order = np.argsort(-h, kind="stable")
+    area = float(np.sum((h + gap) * (w + gap)))
+    wmin = int(np.max(w)) + 2 * gap if k else 2 * gap
+    hl, wl = h[order].tolist(), w[order].tolist()
+    best = None
+    for f in (0.85, 0.95, 1.0, 1.05, 1.1, 1.2, 1.35):
+        width = int(max(wmin, np.sqrt(area) * f))
+        oy, ox = [0] * k, [0] * k
+        y = x = gap
+        shelf = used = 0
+        for j in range(k):
+            hj, wj = hl[j], wl[j]
+            if x + wj + gap > width and x > gap:
+                y += shelf + gap
+                x = gap
+                shelf = 0
+            oy[j], ox[j] = y, x
+            x += wj + gap
+            used = max(used, x)
+            shelf = max(shelf, hj)
+        shape = (int(y + shelf + gap), int(max(used, 2 * gap)))
+        if best is None or shape[0] * shape[1] < best[2][0] * best[2][1]:
+            best = (oy, ox, shape)
     oy = np.zeros(k, dtype=np.int64)
     ox = np.zeros(k, dtype=np.int64)
-    y = x = gap
-    shelf = 0
-    for i in order:
-        h, w = int(heights[i]), int(widths[i])
-        if x + w + gap > width and x > gap:
-            y += shelf + gap
-            x = gap
-            shelf = 0
-        oy[i], ox[i] = y, x
-        x += w + gap
-        shelf = max(shelf, h)
-    return oy, ox, (int(y + shelf + gap), int(width))
+    if k:
+        oy[order], ox[order] = best[0], best[1]
+        return oy, ox, best[2]
+    return oy, ox, (int(2 * gap), int(2 * gap))
 
 
 class Canvas:
