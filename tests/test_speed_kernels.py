@@ -113,3 +113,21 @@ def test_pack_windows_places_disjoint_rectangles_with_gaps():
         assert occ.max() == 1
         # no worse than one shelf row of the widest width per rectangle
         assert shape[0] * shape[1] <= ((h + gap).max() + gap) * (np.sum(w + gap) + gap)
+
+
+def test_resample_matrix_equals_a_fresh_spline_through_the_cumulative():
+    """The cached spline per input size gives the matrix a spline built on the spot gives."""
+    from scipy.interpolate import CubicSpline
+
+    from glaciar.galaxy.psf import _resample_matrix
+
+    rng = np.random.default_rng(3)
+    for n in (5, 17, 41, 17):
+        new_edges = np.sort(rng.uniform(-3.0, n + 3.0, n + 1))
+        edges = np.arange(-2.5, n + 2.5)
+        cum = np.zeros((edges.size, n))
+        cum[3:3 + n] = np.tril(np.ones((n, n)))
+        cum[3 + n:] = 1.0
+        ref = np.diff(CubicSpline(edges, cum, axis=0, bc_type="clamped")(np.clip(new_edges, edges[0], edges[-1])),
+                      axis=0)
+        assert np.array_equal(_resample_matrix(n, new_edges), ref)
