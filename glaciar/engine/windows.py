@@ -81,7 +81,6 @@ Each shortcut below only decides *how much* is computed, never a result
 from __future__ import annotations
 
 import math
-import weakref
 from dataclasses import dataclass
 from typing import Callable, Mapping
 
@@ -112,6 +111,7 @@ _OWN_HALF = 10
 # [pixels] (+ margin): the 75th percentile of the required half-size on the demo field at
 # m = 24-26.  8-14 gave the same CPU within the noise; without it, m = 24 took ~1.2x longer.
 _STAMP_SLACK = 11.0
+_STAMP_CROP = 16          # half-size of the template cut-outs stamp_half_sizes reads first
 
 
 @dataclass(frozen=True, eq=False)
@@ -434,48 +434,75 @@ def stamp_half_sizes(ctx: MeasureContext):
     rms = np.asarray(ctx.det_rms[iy, ix], dtype=np.float64)
     thresh = float(ctx.params.detect_thresh)
     minarea = int(ctx.params.detect_minarea)
-    for i, t in enumerate(ctx.templates):
-        if t is None or not (rms[i] > 0) or not t[3] > 0:
-            continue
-        neg, cum = _stamp_profile(t[2])
-        # pixels above threshold in the unit template: data * flux > thresh * rms
-        k = int(neg.searchsorted(-thresh * rms[i] / t[3], side="left"))
-        if k < max(minarea, 1):
-            continue
-        s0, sx, sy, sxx, syy, sxy = cum[:, k - 1].tolist()
-        sx, sy, sxx, syy, sxy = sx / s0, sy / s0, sxx / s0, syy / s0, sxy / s0
-        x2, y2, xy = sxx - sx * sx, syy - sy * sy, sxy - sx * sy
-        a = math.sqrt(max(0.5 * (x2 + y2) + math.sqrt(0.25 * (x2 - y2) ** 2 + xy * xy), 0.0))
-        half[i] = int(math.ceil(6.0 * a + _STAMP_SLACK)) + ctx.margin
+    use = [i for i, t in enumerate(ctx.templates) if t is not None and rms[i] > 0 and t[3] > 0]
+    if not use:
+        return half
+    idx = np.array(use, dtype=np.int64)
+    # pixels above threshold in the unit template: data * flux > thresh * rms
+    tval = thresh * rms[idx] / np.array([ctx.templates[i][3] for i in use], dtype=np.float64)
+    # All sources at once on central cut-outs of the templates (zero-padded); those with
+    # above-threshold pixels on the cut-out's border are redone alone on larger ones.
+    h = _STAMP_CROP
+    side = 2 * h + 1
+    stack = np.zeros((idx.size, side, side))
+    for r, i in enumerate(use):
+        data = ctx.templates[i][2]
+        ny_, nx_ = data.shape
+        cy, cx = (ny_ - 1) // 2, (nx_ - 1) // 2
+        y0, y1, x0, x1 = max(cy - h, 0), min(cy + h + 1, ny_), max(cx - h, 0), min(cx + h + 1, nx_)
+        stack[r, y0 - cy + h:y1 - cy + h, x0 - cx + h:x1 - cx + h] = data[y0:y1, x0:x1]
+    m = stack > tval[:, None, None]
+    border = m[:, 0].any(axis=1) | m[:, -1].any(axis=1) | m[:, :, 0].any(axis=1) | m[:, :, -1].any(axis=1)
+    w = np.where(m, stack, 0.0)
+    npix = m.sum(axis=(1, 2))
+    c = np.arange(side, dtype=np.float64) - h
+    sw = w.sum(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        wy, wx = w.sum(axis=2), w.sum(axis=1)            # (K, side) marginals
+        mx, my = (wx @ c) / sw, (wy @ c) / sw
+        x2 = (wx @ (c * c)) / sw - mx * mx
+        y2 = (wy @ (c * c)) / sw - my * my
+        xy = np.einsum("kyx,y,x->k", w, c, c) / sw - mx * my
+        a = np.sqrt(np.maximum(0.5 * (x2 + y2) + np.sqrt(0.25 * (x2 - y2) ** 2 + xy * xy), 0.0))
+    for r, i in enumerate(use):
+        if border[r]:
+            ar = _above_threshold_a(ctx.templates[i][2], tval[r], minarea)
+        elif npix[r] >= max(minarea, 1):
+            ar = float(a[r])
+        else:
+            ar = None
+        if ar is not None:
+            half[i] = int(math.ceil(6.0 * ar + _STAMP_SLACK)) + ctx.margin
     return half
 
 
-_PROFILES: dict = {}
+def _above_threshold_a(data, t, minarea):
+    """Semi-major axis [pixels] from the intensity-weighted second moments of the pixels of
+    ``data`` above ``t``; None if fewer than ``minarea``.
 
-
-def _stamp_profile(data):
-    """A stamp's pixel values negated, in increasing order, and the running sums (weights, w x, w y,
-    w x^2, w y^2, w x y) along that order, shape (6, size): the moments of the pixels above
-    any threshold are one look-up.  Cached per array (templates are shared, read-only
-    arrays of the template cache); an entry goes when its array does."""
-    key = id(data)
-    hit = _PROFILES.get(key)
-    if hit is not None and hit[0]() is data:
-        return hit[1], hit[2]
-    v = np.asarray(data, dtype=np.float64).ravel()
-    order = np.argsort(-v, kind="stable")
-    vs = v[order]
-    yy, xx = np.divmod(order, data.shape[1])
+    Templates are sized for their wings (n = 4 stamps reach ~180 px), while the
+    pixels above a detection threshold sit near the centre: a central cut-out is
+    read, doubled while pixels on its border are above ``t``."""
+    ny, nx = data.shape
+    cy, cx = (ny - 1) // 2, (nx - 1) // 2
+    h = 2 * _STAMP_CROP
+    while True:
+        y0, y1, x0, x1 = max(cy - h, 0), min(cy + h + 1, ny), max(cx - h, 0), min(cx + h + 1, nx)
+        m = data[y0:y1, x0:x1] > t
+        if (y0 == 0 and y1 == ny and x0 == 0 and x1 == nx) or not (
+                m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any()):
+            break
+        h *= 2
+    yy, xx = np.nonzero(m)
+    if yy.size < max(minarea, 1):
+        return None
+    w = data[y0:y1, x0:x1][yy, xx]
+    sw = w.sum()
     xx, yy = xx.astype(np.float64), yy.astype(np.float64)
-    w = np.maximum(vs, 0.0)
-    cum = np.cumsum(np.stack([w, w * xx, w * yy, w * xx * xx, w * yy * yy, w * xx * yy]), axis=1)
-    neg = -vs
-    try:
-        ref = weakref.ref(data, lambda _r, k=key: _PROFILES.pop(k, None))
-    except TypeError:                       # not weak-referenceable: not cached
-        return neg, cum
-    _PROFILES[key] = (ref, neg, cum)
-    return neg, cum
+    mx, my = (w @ xx) / sw, (w @ yy) / sw
+    dx, dy = xx - mx, yy - my
+    x2, y2, xy = (w @ (dx * dx)) / sw, (w @ (dy * dy)) / sw, (w @ (dx * dy)) / sw
+    return math.sqrt(max(0.5 * (x2 + y2) + math.sqrt(0.25 * (x2 - y2) ** 2 + xy * xy), 0.0))
 
 
 def initial_windows(x, y, shape, params: DetectionParams, search_box: int, margin: int,
