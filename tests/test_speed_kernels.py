@@ -131,3 +131,21 @@ def test_resample_matrix_equals_a_fresh_spline_through_the_cumulative():
         ref = np.diff(CubicSpline(edges, cum, axis=0, bc_type="clamped")(np.clip(new_edges, edges[0], edges[-1])),
                       axis=0)
         assert np.array_equal(_resample_matrix(n, new_edges), ref)
+
+
+def test_template_convolution_with_a_kept_raw_transform_equals_fftconvolve():
+    """The template cache reuses a raw stamp's FFT across PSF offsets: bit for bit
+    scipy.signal.fftconvolve(raw, psf, "full"), the first time and from the kept transform."""
+    from scipy.signal import fftconvolve
+
+    from glaciar.galaxy.templates import TemplateCache
+
+    rng = np.random.default_rng(5)
+    psf0 = rng.random((15, 15))
+    cache = TemplateCache({"b": psf0 / psf0.sum()})
+    for raw_shape, psf_shape in (((23, 23), (15, 15)), ((57, 41), (15, 15)), ((57, 41), (21, 19))):
+        raw = rng.random(raw_shape)
+        for _ in range(2):
+            psf = rng.random(psf_shape)
+            got = cache._convolve(raw, psf, ("raw", raw_shape))
+            assert np.array_equal(got, fftconvolve(raw, psf, mode="full"))

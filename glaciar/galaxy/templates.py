@@ -38,6 +38,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from scipy import fft as sp_fft
 from scipy.signal import fftconvolve
 
 from .psf import normalize_psf, shift_psf
@@ -230,10 +231,25 @@ class TemplateCache:
             psf = self._shifted[key] = _readonly(shift_psf(self._psf(band), dx, dy))
         return psf
 
-    def _convolve(self, raw: np.ndarray, psf: np.ndarray) -> np.ndarray:
+    def _convolve(self, raw: np.ndarray, psf: np.ndarray, raw_key=None) -> np.ndarray:
         self._counts["convolutions"] += 1
         # "full": the stamp grows by the PSF so no convolved light is lost.
-        return _readonly(fftconvolve(raw, psf, mode="full"))
+        if raw_key is None:
+            return _readonly(fftconvolve(raw, psf, mode="full"))
+        # scipy.signal.fftconvolve's steps for real 2-d inputs in "full" mode, with the
+        # raw stamp's transform kept in the LRU: one raw shape is convolved with
+        # subpixel^2 shifted PSFs per band, and its FFT was a third of each convolution.
+        # Same transforms, same product, same inverse: the same bits
+        # (tests/test_speed_kernels.py compares with fftconvolve).
+        shape = (raw.shape[0] + psf.shape[0] - 1, raw.shape[1] + psf.shape[1] - 1)
+        fshape = [sp_fft.next_fast_len(n, True) for n in shape]
+        key = ("rawfft",) + tuple(raw_key) + tuple(fshape)
+        sp1 = self._get(key)
+        if sp1 is None:
+            sp1 = _readonly(sp_fft.rfftn(raw, fshape, axes=[0, 1]))
+            self._put(key, sp1)
+        ret = sp_fft.irfftn(sp1 * sp_fft.rfftn(psf, fshape, axes=[0, 1]), fshape, axes=[0, 1])
+        return _readonly(ret[:shape[0], :shape[1]].copy())
 
     # ------------------------------------------------------------------
     def render(self, band: str, n: float, axis_ratio: float, position_angle: float,
@@ -303,7 +319,7 @@ class TemplateCache:
                 self._put(raw_key, raw)
             else:
                 self._counts["render_hits"] += 1
-            data = self._convolve(raw, self._shifted_psf(band, ox / s, oy / s))
+            data = self._convolve(raw, self._shifted_psf(band, ox / s, oy / s), raw_key)
             # The sum is kept beside the array: summing a large n = 4 stamp on every
             # hit would cost more than the look-up itself.
             entry = _Convolved(data, float(data.sum()))
