@@ -1261,19 +1261,25 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
 def _setup_parallelism(workers: int, executor: cf.Executor | None) -> str | cf.Executor | None:
     """Where :func:`_open_run`'s side steps run (:class:`_SetupJobs`).
 
-    With the run's own pool of forked workers (>= 2 processes will run), a
-    forked helper; with an executor, that executor; serially otherwise (one
-    worker: the steps would only compete with this process for the CPU).
+    A forked helper when >= 2 worker processes will run and forking is the
+    default (the run's own pool, or a caller's process pool: submitting to it
+    now would fork its workers before the field context exists, which they then
+    inherit no longer); another executor (Dask) itself; serially otherwise (one
+    worker: the steps would only compete with this process for the CPU; threads
+    share one interpreter).
     """
-    if executor is not None:
-        return executor
     import multiprocessing
 
     method = multiprocessing.get_start_method(allow_none=True) or \
         multiprocessing.get_all_start_methods()[0]        # the default, without fixing it
-    if workers >= 2 and method == "fork":
-        return "fork"
-    return None
+    if isinstance(executor, cf.ProcessPoolExecutor):
+        workers = getattr(executor, "_max_workers", 2)
+        executor = None
+    if isinstance(executor, cf.ThreadPoolExecutor):
+        return None
+    if executor is not None:
+        return executor
+    return "fork" if workers >= 2 and method == "fork" else None
 
 
 def process_cpu_seconds(children: bool = True) -> float:
