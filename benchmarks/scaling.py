@@ -115,7 +115,8 @@ def _child_run(opt) -> dict:
                 distributed.Client(lc) as client:
             client.run(lambda: None)               # every worker is up before timing
             t0 = time.perf_counter()
-            stats = simulate(cfg, opt.out, executor=client.get_executor(), progress=False)
+            stats = simulate(cfg, opt.out, executor=client.get_executor(), workers=nw,
+                             progress=False)
             out["wall_s"] = time.perf_counter() - t0
     else:
         stats = simulate(cfg, opt.out, workers=int(opt.executor), progress=False)

@@ -888,8 +888,8 @@ def _check_same_store(run_dir: Path, old: dict, manifest: dict, items: list[Inpu
                                      "(content differs); use another --out")
 
 
-def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor | None = None
-              ) -> tuple[dict, RunLock]:
+def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor | None = None,
+              warm: int = 1) -> tuple[dict, RunLock]:
     """Validate everything, then create or update the run directory under its lock.
 
     Every check (inputs, store identity, lock) runs before anything is
@@ -900,7 +900,8 @@ def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor
     ``parallel``: where the set-up steps that need neither the checked inputs'
     results nor the field's context run while this process checks the inputs
     and measures the field (:class:`_SetupJobs`): None (here, in order),
-    ``"fork"`` (a forked helper process) or an executor (the run's own).
+    ``"fork"`` (a forked helper process) or an executor (the run's own, of
+    which ``warm`` workers are asked to import glaciar meanwhile).
     """
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
@@ -921,7 +922,7 @@ def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor
     cache = _load_fingerprint_cache(run_dir) if run_dir.is_dir() else {}
     cache_before = json.dumps(cache, sort_keys=True)
     survey = Survey.from_config(cfg)
-    with _SetupJobs(cfg, survey, cache, parallel) as jobs:
+    with _SetupJobs(cfg, survey, cache, parallel, warm) as jobs:
         if not jobs.in_background:
             inputs = jobs.inputs()
             jobs.preflight()        # before the field is measured: a field nothing fits fails fast
@@ -1039,13 +1040,15 @@ class _SetupJobs:
     in one forked helper process started after the file-existence check and
     reaped at the end: its CPU counts in :func:`process_cpu_seconds`); or an
     executor (the z limit only, on one of the run's workers, which then also
-    imports glaciar before its first task; the checks and the preflight read
-    images, which a worker otherwise reads once, for its tasks).  Errors and
+    imports glaciar before its first task, and ``warm - 1`` jobs that only
+    import it, for other workers; the checks and the preflight read images,
+    which a worker otherwise reads once, for its tasks).  Errors and
     warnings are raised here; the input check's error first.  Nothing is
     written either way.
     """
 
-    def __init__(self, cfg: Config, survey: Survey, cache: dict, where: str | cf.Executor | None):
+    def __init__(self, cfg: Config, survey: Survey, cache: dict, where: str | cf.Executor | None,
+                 warm: int = 1):
         self._cfg, self._survey, self._cache = cfg, survey, cache
         self._own = self._job = self.z_limit = None
         self._steps: tuple[str, ...] = ()
@@ -1067,6 +1070,10 @@ class _SetupJobs:
         else:
             self._steps = ("z_limit",)
             self._job = where.submit(_setup_job, *args, self._steps)
+            # Spawned workers import glaciar when their first job arrives (~1 s each): jobs
+            # that only import it let up to ``warm`` workers do that now, beside the set-up.
+            for _ in range(max(0, warm - 1)):
+                where.submit(_preimport)
         self.z_limit = _Later(self._step, "z_limit")
 
     def _step(self, name: str):
@@ -1195,11 +1202,13 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
         the same directory is refused.
     workers : int
         Number of worker processes (>= 1; 1: run in this process).  Workers die
-        with this process.
+        with this process.  With ``executor``: how many of its workers to have
+        import glaciar while this process checks the inputs (default 1).
     seed : int, optional
         Overrides ``simulation.seed`` (>= 0).
     executor : concurrent.futures.Executor, optional
-        Any executor (e.g. a Dask ``Client.get_executor()``); overrides ``workers``.
+        Any executor (e.g. a Dask ``Client.get_executor()``): it runs the tasks instead of a
+        pool of ``workers`` processes.
     progress : bool
         Show a progress bar with ETA.
     mode : {"windowed", "full"}
@@ -1244,7 +1253,8 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
     if max_tasks is not None:
         max_tasks = _check_count("max_tasks", max_tasks, 0)
     c0, t0 = process_cpu_seconds(), time.perf_counter()
-    _, lock = _open_run(cfg, run_dir, seed, parallel=_setup_parallelism(workers, executor))
+    _, lock = _open_run(cfg, run_dir, seed, parallel=_setup_parallelism(workers, executor),
+                        warm=workers)
     try:
         stats = _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode,
                                  max_tasks, tqdm, t0)
