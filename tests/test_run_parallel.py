@@ -143,3 +143,28 @@ def test_executor_workers_cpu_is_counted(survey_copy, tmp_path):
     own = simulate(cfg, tmp_path / "own", workers=2, progress=False, max_tasks=2)
     assert own["remote_cpu_seconds"] == 0.0
     assert own["process_cpu_seconds"] >= 0.95 * own["cpu_seconds"] > 0
+
+
+@fork_only
+def test_a_callers_fork_pool_still_inherits_the_field_context(survey_copy, tmp_path, monkeypatch):
+    """No set-up step goes to a caller's process pool: its workers fork after the field is
+    measured and build no context of their own."""
+    import os
+
+    import glaciar.run as run
+
+    cfg = load_config(survey_copy)
+    run._CONTEXTS.clear()
+    log = tmp_path / "builds.txt"
+    real = run.build_field_context
+
+    def counting(*args, **kwargs):
+        with open(log, "a") as fh:
+            fh.write(f"{os.getpid()}\n")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(run, "build_field_context", counting)
+    with cf.ProcessPoolExecutor(max_workers=2) as ex:
+        stats = simulate(cfg, tmp_path / "run", executor=ex, progress=False, max_tasks=2)
+    assert stats["n_run"] == 2
+    assert log.read_text().split() == [str(os.getpid())]
