@@ -431,17 +431,42 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
     return done
 
 
+#: Guided scheduling: each chunk holds 1 / (this x workers) of the tasks not yet chunked.
+_GUIDED_CHUNK_DIVISOR = 4
+
+
 def _chunks(specs: list[TaskSpec], n_workers: int) -> list[list[TaskSpec]]:
-    """Group consecutive tasks of the same (field, z) so a worker renders each template once."""
+    """Cut the ordered tasks into chunks of one (field, z) each, large ones first.
+
+    Guided self-scheduling: a chunk takes ``1 / (4 x n_workers)`` of the tasks
+    not yet chunked, so the first chunks are large (few submissions) and the
+    last ones single tasks, which the workers share as they free up: the run's
+    tail is about one task, not one chunk.  A chunk never spans two (field, z)
+    pairs, so a worker renders a chunk's templates once (a process caches them
+    across chunks too), and the plan's field order is kept (one field's
+    context per process at a time).
+    """
     groups: dict = {}
     for s in specs:
         groups.setdefault((s.field_index, s.z_index), []).append(s)
-    size = max(1, math.ceil(len(specs) / max(1, 4 * n_workers)))
+    divisor = _GUIDED_CHUNK_DIVISOR * max(1, n_workers)
+    remaining = len(specs)
     out = []
     for g in groups.values():
-        for i in range(0, len(g), size):
-            out.append(g[i:i + size])
+        i = 0
+        while i < len(g):
+            chunk = g[i:i + max(1, math.ceil(remaining / divisor))]
+            out.append(chunk)
+            i += len(chunk)
+            remaining -= len(chunk)
     return out
+
+
+def _run_chunk_measured(*args) -> tuple[list[tuple[str, int, float]], int, float]:
+    """:func:`_run_chunk`, and the worker's pid and process CPU [s] it used (set-up included)."""
+    c0 = process_cpu_seconds(children=False)
+    done = _run_chunk(*args)
+    return done, os.getpid(), process_cpu_seconds(children=False) - c0
 
 
 def _depth_area(cfg: Config, survey: Survey, field: str, ctx: FieldContext | None = None) -> dict:
@@ -785,7 +810,8 @@ def detection_z_limit(cfg: Config, z_max: float = 30.0) -> float | None:
     return round(hi, 3)
 
 
-def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
+def _manifest(cfg: Config, survey: Survey, seed: int, z_limit=None) -> dict:
+    """The run's manifest; ``z_limit``: a future of :func:`detection_z_limit` (None: computed here)."""
     area = {}
     pixscale = {}
     for f in cfg.survey.fields:
@@ -827,7 +853,7 @@ def _manifest(cfg: Config, survey: Survey, seed: int) -> dict:
         "area_arcmin2_total": float(sum(area.values())),
         "depth_area": depth_area,
         "noise": noise,
-        "detection_z_limit": detection_z_limit(cfg),
+        "detection_z_limit": detection_z_limit(cfg) if z_limit is None else z_limit.result(),
     }
 
 
@@ -862,13 +888,20 @@ def _check_same_store(run_dir: Path, old: dict, manifest: dict, items: list[Inpu
                                      "(content differs); use another --out")
 
 
-def _open_run(cfg: Config, run_dir: Path, seed: int) -> tuple[dict, RunLock]:
+def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor | None = None,
+              warm: int = 1) -> tuple[dict, RunLock]:
     """Validate everything, then create or update the run directory under its lock.
 
     Every check (inputs, store identity, lock) runs before anything is
     created or modified: a refused start leaves an existing run directory
     byte-identical and creates no new one.  Returns the manifest and the held
     lock (the caller releases it).
+
+    ``parallel``: where the set-up steps that need neither the checked inputs'
+    results nor the field's context run while this process checks the inputs
+    and measures the field (:class:`_SetupJobs`): None (here, in order),
+    ``"fork"`` (a forked helper process) or an executor (the run's own, of
+    which ``warm`` workers are asked to import glaciar meanwhile).
     """
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
@@ -889,13 +922,21 @@ def _open_run(cfg: Config, run_dir: Path, seed: int) -> tuple[dict, RunLock]:
     cache = _load_fingerprint_cache(run_dir) if run_dir.is_dir() else {}
     cache_before = json.dumps(cache, sort_keys=True)
     survey = Survey.from_config(cfg)
-    inputs = check_inputs(cfg, survey, cache)
+    with _SetupJobs(cfg, survey, cache, parallel, warm) as jobs:
+        if not jobs.in_background:
+            inputs = jobs.inputs()
+            jobs.preflight()        # before the field is measured: a field nothing fits fails fast
+        try:
+            manifest = _manifest(cfg, survey, seed, z_limit=jobs.z_limit)
+        except Exception:
+            if jobs.in_background:  # an unusable input or an empty field explains the failure
+                jobs.inputs()
+                jobs.preflight()
+            raise
+        if jobs.in_background:
+            inputs = jobs.inputs()
+            jobs.preflight()
     items = input_files(cfg)
-    for message in placement_preflight(cfg, survey):
-        if "no source fits" in message:
-            raise ValueError(message)
-        warnings.warn(message, UserWarning)
-    manifest = _manifest(cfg, survey, seed)
     manifest["inputs"] = inputs
     if old is not None and finished:
         _check_same_store(run_dir, old, manifest, items, finished)
@@ -934,6 +975,145 @@ def _open_run(cfg: Config, run_dir: Path, seed: int) -> tuple[dict, RunLock]:
         lock.release()
         raise
     return manifest, lock
+
+
+def _setup_job(cfg_dict: dict, base_dir: str, steps: tuple[str, ...], cache: dict | None = None):
+    """Set-up steps of a run in another process: ``({step: result}, warnings)``.
+
+    ``steps``: any of ``"check"`` (:func:`check_inputs` with the fingerprint
+    ``cache``: the result is ``(inputs, cache)``), ``"preflight"``
+    (:func:`placement_preflight`'s messages) and ``"z_limit"``
+    (:func:`detection_z_limit`), run in that order; the first to fail raises.
+    The warnings come back as ``(message, category)`` pairs for the run's own
+    process to raise.
+    """
+    cfg = config_from_dict(cfg_dict, base_dir)
+    out = {}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        survey = Survey.from_config(cfg) if {"check", "preflight"} & set(steps) else None
+        for step in steps:
+            if step == "check":
+                cache = {} if cache is None else cache
+                out[step] = (check_inputs(cfg, survey, cache), cache)
+            elif step == "preflight":
+                out[step] = placement_preflight(cfg, survey)
+            elif step == "z_limit":
+                out[step] = detection_z_limit(cfg)
+            else:
+                raise ValueError(f"unknown set-up step {step!r}")
+    return out, [(str(w.message), w.category) for w in caught]
+
+
+class _Later:
+    """A future computed when its result is first asked for."""
+
+    def __init__(self, fn, *args):
+        self._call, self._done, self._value = (fn, args), False, None
+
+    def result(self):
+        if not self._done:
+            fn, args = self._call
+            self._value, self._done = fn(*args), True
+        return self._value
+
+
+def _preimport() -> None:
+    """Import what measuring a field needs (before forking: the children share the modules)."""
+    import astropy.cosmology  # noqa: F401
+    import astropy.io.fits  # noqa: F401
+    import astropy.wcs  # noqa: F401
+
+
+class _SetupJobs:
+    """A run's set-up steps that do not need the field's context, beside the one that does.
+
+    :func:`check_inputs` (fingerprints and reads every input file),
+    :func:`placement_preflight` (reads the footprints, draws sources) and
+    :func:`detection_z_limit` (a bisection over the SED) are pure functions of
+    the configuration and the input files: where ``where`` allows, they run,
+    exactly as they would here, while this process measures the field for the
+    manifest (:func:`_open_run`), the rest of a run's serial start.
+
+    ``where``: None (serial: each runs here, in the order above, when its
+    result is asked for, before the field is measured); ``"fork"`` (all three,
+    in one forked helper process started after the file-existence check and
+    reaped at the end: its CPU counts in :func:`process_cpu_seconds`); or an
+    executor (the z limit only, on one of the run's workers, which then also
+    imports glaciar before its first task, and ``warm - 1`` jobs that only
+    import it, for other workers; the checks and the preflight read images,
+    which a worker otherwise reads once, for its tasks).  Errors and
+    warnings are raised here; the input check's error first.  Nothing is
+    written either way.
+    """
+
+    def __init__(self, cfg: Config, survey: Survey, cache: dict, where: str | cf.Executor | None,
+                 warm: int = 1):
+        self._cfg, self._survey, self._cache = cfg, survey, cache
+        self._own = self._job = self.z_limit = None
+        self._steps: tuple[str, ...] = ()
+        self.in_background = where == "fork"        #: the checks run beside the field's measurement
+        self._results: dict = {}
+        if where is None:
+            return
+        args = (config_to_dict(cfg), str(cfg.base_dir))
+        if where == "fork":
+            import multiprocessing
+
+            check_files(cfg)           # missing files: the one-line error at once, as serially
+            _preimport()               # this process needs them too: imported once, before the fork
+            self._own = cf.ProcessPoolExecutor(
+                max_workers=1, mp_context=multiprocessing.get_context("fork"),
+                initializer=_worker_init, initargs=(os.getpid(),))
+            self._steps = ("check", "preflight", "z_limit")
+            self._job = self._own.submit(_setup_job, *args, self._steps, dict(cache))
+        else:
+            self._steps = ("z_limit",)
+            self._job = where.submit(_setup_job, *args, self._steps)
+            # Spawned workers import glaciar when their first job arrives (~1 s each): jobs
+            # that only import it let up to ``warm`` workers do that now, beside the set-up.
+            for _ in range(max(0, warm - 1)):
+                where.submit(_preimport)
+        self.z_limit = _Later(self._step, "z_limit")
+
+    def _step(self, name: str):
+        if name in self._steps and not self._results:
+            results, caught = self._job.result()
+            self._results = results
+            for message, category in caught:
+                warnings.warn(message, category)
+        if name in self._results:
+            return self._results[name]
+        if name == "check":
+            return check_inputs(self._cfg, self._survey, self._cache), self._cache
+        if name == "preflight":
+            return placement_preflight(self._cfg, self._survey)
+        return detection_z_limit(self._cfg)
+
+    def inputs(self) -> dict:
+        """:func:`check_inputs`'s result (raises its error); updates the fingerprint cache."""
+        inputs, cache = self._step("check")
+        if cache is not self._cache:
+            self._cache.clear()
+            self._cache.update(cache)
+        return inputs
+
+    def preflight(self) -> None:
+        """Raise the preflight's error (no source fits a field) or warn its messages."""
+        for message in self._step("preflight"):
+            if "no source fits" in message:
+                raise ValueError(message)
+            warnings.warn(message, UserWarning)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if self._own is not None:
+            if exc_type is not None:
+                _terminate_workers(self._own)
+            self._own.shutdown(wait=True, cancel_futures=True)
+        return False
 
 
 def prepare_run_dir(cfg: Config, run_dir: Path, seed: int) -> dict:
@@ -1022,11 +1202,13 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
         the same directory is refused.
     workers : int
         Number of worker processes (>= 1; 1: run in this process).  Workers die
-        with this process.
+        with this process.  With ``executor``: how many of its workers to have
+        import glaciar while this process checks the inputs (default 1).
     seed : int, optional
         Overrides ``simulation.seed`` (>= 0).
     executor : concurrent.futures.Executor, optional
-        Any executor (e.g. a Dask ``Client.get_executor()``); overrides ``workers``.
+        Any executor (e.g. a Dask ``Client.get_executor()``): it runs the tasks instead of a
+        pool of ``workers`` processes.
     progress : bool
         Show a progress bar with ETA.
     mode : {"windowed", "full"}
@@ -1037,9 +1219,15 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
     Returns
     -------
     dict
-        ``n_tasks``, ``n_done_before``, ``n_run``, ``n_sources``, ``cpu_seconds`` (inside the
-        tasks), ``process_cpu_seconds`` (this process and its pool workers, set-up and
-        scheduling included; not remote Dask workers), ``wall_seconds``.
+        ``n_tasks``, ``n_done_before``, ``n_run``, ``n_sources``; ``cpu_seconds`` [s]: inside
+        the tasks (a worker's field set-up counted in its first task); ``process_cpu_seconds``
+        [s]: this process and its pool workers, set-up, scheduling and compaction included (with
+        ``executor``: this process plus its workers' CPU during their chunks, their imports
+        excepted); ``wall_seconds`` [s]: the whole call, of which ``setup_seconds`` (inputs
+        checked, field measured, manifest written: before the first task is submitted) and
+        ``task_seconds`` (first submission to last result; the rest is the final compaction);
+        ``remote_cpu_seconds`` [s]: the part of ``process_cpu_seconds`` measured in the
+        workers of ``executor`` (0 without one).
 
     Raises
     ------
@@ -1064,24 +1252,53 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
         raise ValueError(f"mode: expected 'windowed' or 'full', got {mode!r}")
     if max_tasks is not None:
         max_tasks = _check_count("max_tasks", max_tasks, 0)
-    c0 = process_cpu_seconds()
-    _, lock = _open_run(cfg, run_dir, seed)
+    c0, t0 = process_cpu_seconds(), time.perf_counter()
+    _, lock = _open_run(cfg, run_dir, seed, parallel=_setup_parallelism(workers, executor),
+                        warm=workers)
     try:
         stats = _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode,
-                                 max_tasks, tqdm)
+                                 max_tasks, tqdm, t0)
     finally:
         lock.release()
     # Whole-process CPU: this process (checks, manifest, scheduling) and its pool workers
-    # (reaped at the pool's shutdown, field set-up included); remote Dask workers are not seen.
-    stats["process_cpu_seconds"] = process_cpu_seconds() - c0
+    # (reaped at the pool's shutdown, field set-up included); with another executor its
+    # workers' CPU inside the chunks (tasks and field set-up; not their imports).
+    stats["process_cpu_seconds"] = process_cpu_seconds() - c0 + stats["remote_cpu_seconds"]
+    stats["wall_seconds"] = time.perf_counter() - t0
     return stats
 
 
-def process_cpu_seconds() -> float:
-    """CPU [s] used so far by this process and its terminated (reaped) child processes."""
+def _setup_parallelism(workers: int, executor: cf.Executor | None) -> str | cf.Executor | None:
+    """Where :func:`_open_run`'s side steps run (:class:`_SetupJobs`).
+
+    A forked helper when >= 2 worker processes will run and forking is the
+    default (the run's own pool, or a caller's process pool: submitting to it
+    now would fork its workers before the field context exists, which they then
+    inherit no longer); another executor (Dask) itself; serially otherwise (one
+    worker: the steps would only compete with this process for the CPU; threads
+    share one interpreter).
+    """
+    import multiprocessing
+
+    method = multiprocessing.get_start_method(allow_none=True) or \
+        multiprocessing.get_all_start_methods()[0]        # the default, without fixing it
+    if isinstance(executor, cf.ProcessPoolExecutor):
+        workers = getattr(executor, "_max_workers", 2)
+        executor = None
+    if isinstance(executor, cf.ThreadPoolExecutor):
+        return None
+    if executor is not None:
+        return executor
+    return "fork" if workers >= 2 and method == "fork" else None
+
+
+def process_cpu_seconds(children: bool = True) -> float:
+    """CPU [s] used so far by this process and (``children``) its terminated (reaped) child processes."""
     import resource
 
     own = resource.getrusage(resource.RUSAGE_SELF)
+    if not children:
+        return own.ru_utime + own.ru_stime
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
@@ -1130,7 +1347,8 @@ def placement_preflight(cfg: Config, survey: Survey) -> list[str]:
     return out
 
 
-def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_tasks, tqdm):
+def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_tasks, tqdm,
+                     t_start):
     specs = plan_tasks(cfg)
     wanted = {spec_filename(s): spec_key(s) for s in specs}
     finished = verified_task_names(run_dir, wanted, quarantine=True)
@@ -1143,8 +1361,8 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
     cfg_hash = config_hash(cfg)
     n_workers = 1 if executor is None and workers <= 1 else max(1, workers)
     chunks = _chunks(pending, n_workers)
-    stats = {"n_tasks": len(specs), "n_done_before": n_done_before, "n_run": 0, "n_sources": 0, "cpu_seconds": 0.0}
-    t0 = time.perf_counter()
+    stats = {"n_tasks": len(specs), "n_done_before": n_done_before, "n_run": 0, "n_sources": 0,
+             "cpu_seconds": 0.0, "remote_cpu_seconds": 0.0}
     bar = tqdm(total=len(pending), unit="task", disable=not progress, desc="simulate")
 
     def account(result):
@@ -1159,6 +1377,7 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
             compact(run_dir, min_tasks=COMPACT_EVERY)
     account.compactions = 0
 
+    t0 = time.perf_counter()
     try:
         if executor is None and n_workers == 1:
             for ch in chunks:
@@ -1168,14 +1387,19 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
             ex = executor or cf.ProcessPoolExecutor(max_workers=n_workers, initializer=_worker_init,
                                                     initargs=(os.getpid(),))
             try:
-                futs = [ex.submit(_run_chunk, cfg_dict, base_dir, cfg_hash, str(run_dir), seed, ch, mode)
-                        for ch in chunks]
+                futs = [ex.submit(_run_chunk_measured, cfg_dict, base_dir, cfg_hash, str(run_dir),
+                                  seed, ch, mode) for ch in chunks]
                 # The workers exist now (a forked pool starts them all at the first
                 # submission, with this process's field context): this process runs no
                 # task, so it lets its copy go.
                 _CONTEXTS.clear()
                 for fut in cf.as_completed(futs):
-                    account(fut.result())
+                    done, pid, cpu = fut.result()
+                    # Our own pool's workers are reaped (RUSAGE_CHILDREN) and a thread's CPU
+                    # is this process's: only other executors' processes are added.
+                    if not own and pid != os.getpid():
+                        stats["remote_cpu_seconds"] += cpu
+                    account(done)
             except KeyboardInterrupt:
                 if own:
                     _terminate_workers(ex)
@@ -1185,8 +1409,9 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
                     ex.shutdown(wait=True, cancel_futures=True)
     finally:
         bar.close()
+    stats["setup_seconds"] = t0 - t_start
+    stats["task_seconds"] = time.perf_counter() - t0
     compact(run_dir, min_tasks=COMPACT_EVERY)
-    stats["wall_seconds"] = time.perf_counter() - t0
     return stats
 
 
