@@ -131,7 +131,7 @@ def field_depth(rms: np.ndarray, zeropoint: float, psf: np.ndarray) -> tuple[np.
     """
     radius_pix = C.DEPTH_APERTURE_RADIUS_FWHM * measure_fwhm(psf, 1.0)
     valid = np.isfinite(rms) & (rms > 0)
-    return local_depth_map(rms, valid, zeropoint, radius_pix, nsigma=C.DEPTH_NSIGMA), radius_pix
+    return local_depth_map(rms, None, zeropoint, radius_pix, nsigma=C.DEPTH_NSIGMA), radius_pix
 
 
 def _detection_params(cfg: Config) -> DetectionParams:
