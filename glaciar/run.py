@@ -130,7 +130,7 @@ def field_depth(rms: np.ndarray, zeropoint: float, psf: np.ndarray) -> tuple[np.
         That aperture radius [image pixels].
     """
     radius_pix = C.DEPTH_APERTURE_RADIUS_FWHM * measure_fwhm(psf, 1.0)
-    valid = np.isfinite(rms) & (rms > 0)
+    # valid=None: the footprint is where the rms is finite and > 0, taken tile by tile.
     return local_depth_map(rms, None, zeropoint, radius_pix, nsigma=C.DEPTH_NSIGMA), radius_pix
 
 
