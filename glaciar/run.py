@@ -30,8 +30,8 @@ from .engine.classify import ClassificationParams
 from .engine.coadd import coadd
 from .engine.context import R_EFF_LOG_STEP, FieldContext
 from .engine.depth import depth_area_histogram, local_depth_map
-from .engine.noise import (CorrelatedNoise, empty_aperture_scatter, empty_sky_distance,
-                           weight_rescale_factor)
+from .engine.noise import (CorrelatedNoise, distance_cap, empty_aperture_scatter,
+                           empty_sky_distance, weight_rescale_factor)
 from .engine.selection import compile_selection
 from .engine.positions import placement_capacity
 from .engine.task import TaskSpec, draw_task_sources, field_key, run_task
@@ -188,7 +188,9 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
         sky["sources"] = ndimage.binary_dilation(segmap > 0, iterations=_EMPTY_SKY_MARGIN_PIX)
     usable = np.isfinite(rms) & ~sky["sources"]
     if "usable" not in sky or not np.array_equal(sky["usable"], usable):
-        sky["usable"], sky["distance"] = usable, empty_sky_distance(usable)
+        # Capped just beyond the largest aperture: exact for the apertures, tiled (bounded memory).
+        sky["usable"], sky["distance"] = usable, empty_sky_distance(
+            usable, cap=distance_cap(cfg.noise.empty_aperture_radii_pix))
     seq = np.random.SeedSequence([field_key(field), field_key(band)])
     npix, ratio, n = empty_aperture_scatter(base, rms, usable, cfg.noise.empty_aperture_radii_pix,
                                             cfg.noise.n_empty_apertures,

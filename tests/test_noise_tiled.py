@@ -1,0 +1,55 @@
+"""Field set-up by tiles: the empty-sky distance map (glaciar.engine.noise.empty_sky_distance).
+
+Reference: the whole-image Euclidean distance transform (scipy, one call), and
+the brute-force nearest unusable pixel for a few pixels.
+"""
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from glaciar.engine.noise import (DEFAULT_EMPTY_APERTURE_RADII_PIX, distance_cap,
+                                  empty_aperture_scatter, empty_sky_distance)
+
+
+def _mask(shape=(97, 83), seed=0):
+    rng = np.random.default_rng(seed)
+    usable = rng.uniform(size=shape) > 0.004
+    usable[40:60, 10:30] = False                     # a large hole: distances up to ~40 px
+    usable = ~ndimage.binary_dilation(~usable, iterations=1)
+    return usable
+
+
+@pytest.mark.parametrize("rows", [1, 4, 13, 200])
+def test_capped_tiled_distance_is_the_capped_whole_image_one(rows):
+    usable = _mask()
+    whole = ndimage.distance_transform_edt(np.pad(usable, 1))[1:-1, 1:-1]
+    for cap in (3.7, 13.2):
+        d = empty_sky_distance(usable, cap=cap, tile_rows=rows)
+        assert np.array_equal(d, np.minimum(whole, cap))
+        assert d.max() == cap                        # some pixels are farther than the cap
+    # Independent: brute-force distance to the nearest unusable pixel (the border counts).
+    ys, xs = np.nonzero(usable)
+    pad = np.pad(usable, 1)
+    zy, zx = np.nonzero(~pad)
+    d = empty_sky_distance(usable, cap=13.2, tile_rows=rows)
+    for y, x in zip(ys[::701], xs[::701]):
+        brute = np.sqrt(np.min((zy - 1 - y) ** 2 + (zx - 1 - x) ** 2))
+        assert d[y, x] == min(brute, 13.2)
+
+
+def test_empty_aperture_scatter_unchanged_by_the_capped_map():
+    rng = np.random.default_rng(3)
+    usable = _mask((120, 110), seed=2)
+    img = rng.standard_normal(usable.shape).astype(np.float32)
+    rms = np.full(usable.shape, 1.0, np.float32)
+    radii = DEFAULT_EMPTY_APERTURE_RADII_PIX
+    uncapped = empty_sky_distance(usable)
+    capped = empty_sky_distance(usable, cap=distance_cap(radii), tile_rows=7)
+    outs = [empty_aperture_scatter(img, rms, usable, radii, 150, np.random.default_rng(5), distance=d)
+            for d in (uncapped, capped, None)]
+    for out in outs[1:]:
+        for a, b in zip(outs[0], out):
+            assert np.array_equal(a, b)
+    assert outs[0][0].size >= 5                      # several radii measured
+    with pytest.raises(ValueError, match="cap"):
+        empty_sky_distance(usable, cap=0.0)
