@@ -53,3 +53,31 @@ def test_empty_aperture_scatter_unchanged_by_the_capped_map():
     assert outs[0][0].size >= 5                      # several radii measured
     with pytest.raises(ValueError, match="cap"):
         empty_sky_distance(usable, cap=0.0)
+
+
+def test_sep_extraction_with_a_small_first_pixel_stack_is_unchanged(monkeypatch):
+    """A pixel stack too small for the image's objects retries with the image area:
+    the catalogue and segmentation are those of the whole-area stack."""
+    import sep
+
+    from glaciar.engine import detect
+    from glaciar.engine.detect import DetectionParams
+
+    rng = np.random.default_rng(1)
+    img = rng.standard_normal((150, 140)).astype(np.float32)
+    yy, xx = np.mgrid[:150, :140]
+    for y, x, f in ((40, 30, 60.0), (100, 90, 200.0), (70, 120, 30.0)):
+        img += f * np.exp(-((yy - y) ** 2 + (xx - x) ** 2) / (2 * 4.0 ** 2))
+    err = np.ones_like(img)
+    nodata = np.zeros(img.shape, bool)
+    params = DetectionParams()
+    want_cat, want_seg = detect._sep_extract(img, err, nodata, params, True)
+    stacks = []
+    real = sep.set_extract_pixstack
+    monkeypatch.setattr(detect.sep, "set_extract_pixstack", lambda n: (stacks.append(n), real(n)))
+    monkeypatch.setattr(detect, "PIXSTACK_START", 64)
+    cat, seg = detect._sep_extract(img, err, nodata, params, True)
+    assert stacks == [64, img.size + 1024]           # overflowed, retried with the image area
+    assert np.array_equal(seg, want_seg) and len(want_cat) >= 3
+    for name in ("x", "y", "flux", "a", "b", "theta", "npix"):
+        assert np.array_equal(cat[name], want_cat[name])
