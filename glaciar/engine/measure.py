@@ -108,6 +108,15 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         ``params.phot_autoparams``; neighbours masked).
     """
     backend = params.backend if backend is None else backend
+    if backend == "sep" and params.clean_style != "region":
+        # sanitize is idempotent, so the segmentation may sanitize the inputs itself: the
+        # copies the photometry needs are made after its full-frame peak, not during it.
+        prod = sep_segmentation(det_image_sub, det_rms, params, mask=mask)
+        cat = prod.cat[np.flatnonzero(prod.owner == np.arange(len(prod.owner)))] if len(prod.cat) else prod.cat
+        data, err, nodata = sanitize(det_image_sub, det_rms, mask)
+        geo = {f: np.asarray(getattr(prod, f), dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}
+        return _reference_photometry(data, err, nodata, prod.seg, geo, params, zeropoint, mask, photometry,
+                                     cat, prod)
     data, err, nodata = sanitize(det_image_sub, det_rms, mask)
     if backend == "sep" and params.clean_style == "region":
         # CLEAN within regions: the reference is a plain full-frame sep run with
@@ -115,10 +124,7 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         cat, seg = _sep_extract(data, detection_rms(err, nodata, params), nodata, params, params.clean)
         geo = {f: np.asarray(cat[f], dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}
         return _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, photometry, cat, None)
-    if backend == "sep":
-        prod = sep_segmentation(data, err, params, mask=nodata)
-        cat = prod.cat[np.flatnonzero(prod.owner == np.arange(len(prod.owner)))] if len(prod.cat) else prod.cat
-    elif backend == "source-extractor":
+    if backend == "source-extractor":
         from glaciar.engine.sextractor_backend import sextractor_segmentation
         prod = sextractor_segmentation(data, err, params, mask=nodata)
         cat = None

@@ -1,7 +1,11 @@
-"""Field set-up by tiles: the empty-sky distance map (glaciar.engine.noise.empty_sky_distance).
+"""Field set-up with bounded memory gives the same answers.
 
-Reference: the whole-image Euclidean distance transform (scipy, one call), and
-the brute-force nearest unusable pixel for a few pixels.
+* the empty-sky distance map by tiles (glaciar.engine.noise.empty_sky_distance):
+  against the whole-image Euclidean distance transform (scipy, one call) and the
+  brute-force nearest unusable pixel;
+* sep's pixel stack started small: against the whole-area stack;
+* the reference extraction sanitizing after the segmentation: against the
+  segmentation of pre-sanitized inputs (sanitize is idempotent).
 """
 import numpy as np
 import pytest
@@ -81,3 +85,33 @@ def test_sep_extraction_with_a_small_first_pixel_stack_is_unchanged(monkeypatch)
     assert np.array_equal(seg, want_seg) and len(want_cat) >= 3
     for name in ("x", "y", "flux", "a", "b", "theta", "npix"):
         assert np.array_equal(cat[name], want_cat[name])
+
+
+def test_sanitize_is_idempotent_and_the_reference_extraction_unchanged():
+    from glaciar.engine.detect import DetectionParams, sanitize
+    from glaciar.engine.measure import reference_extraction
+    from glaciar.engine.segmentation import sep_segmentation
+
+    rng = np.random.default_rng(2)
+    img = rng.standard_normal((120, 130)).astype(np.float32)
+    yy, xx = np.mgrid[:120, :130]
+    for y, x, f in ((30, 30, 40.0), (34, 40, 25.0), (90, 100, 80.0)):     # a blend and a single
+        img += f * np.exp(-((yy - y) ** 2 + (xx - x) ** 2) / (2 * 3.0 ** 2))
+    img[5, 7] = np.nan
+    rms = np.full(img.shape, 1.0, np.float32)
+    rms[60, 61] = np.inf
+    mask = np.zeros(img.shape, bool)
+    mask[:, :4] = True
+    once = sanitize(img, rms, mask)
+    twice = sanitize(*once)
+    for a, b in zip(once, twice):
+        assert np.array_equal(a, b)
+    params = DetectionParams()
+    ref = reference_extraction(img, rms, params, 25.0, mask=mask)
+    # The former order: segmentation of the sanitized arrays (so, by idempotence, this call).
+    former = reference_extraction(once[0], once[1], params, 25.0, mask=once[2])
+    assert np.array_equal(sep_segmentation(*once[:2], params, mask=once[2]).seg,
+                          sep_segmentation(img, rms, params, mask=mask).seg)
+    assert ref.segmap.max() >= 3
+    assert np.array_equal(ref.segmap, former.segmap)
+    assert np.array_equal(ref.flux, former.flux) and np.array_equal(ref.mag, former.mag, equal_nan=True)
