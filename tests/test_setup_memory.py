@@ -158,3 +158,23 @@ def test_reference_boxes_by_row_tiles_equal_the_full_frame_definition(monkeypatc
             got = tuple(int(v) for v in tiled.objects.region[i - 1])
             assert got == want, (rows, i)
         assert np.array_equal(tiled.objects.need, ref.objects.need)
+
+
+def test_empty_aperture_centres_by_chunks_are_unchanged(monkeypatch):
+    """Candidate centres taken by chunks of 37 pixels (int32): the same apertures as at once."""
+    from glaciar.engine import noise
+
+    rng = np.random.default_rng(8)
+    usable = _mask((80, 90), seed=4)
+    img = rng.standard_normal(usable.shape).astype(np.float32)
+    rms = np.full(usable.shape, 1.0, np.float32)
+    radii = (0.5, 2.2, 4.2, 8.2)
+    whole = noise.empty_aperture_scatter(img, rms, usable, radii, 120, np.random.default_rng(1))
+    flat = empty_sky_distance(usable).ravel()
+    monkeypatch.setattr(noise, "_CHUNK", 37)
+    got = noise._indices_beyond(flat, 3.2, np.int32)
+    assert got.dtype == np.int32 and np.array_equal(got, np.flatnonzero(flat > 3.2))
+    assert np.array_equal(noise._keep_beyond(flat, got, 5.2), np.flatnonzero(flat > 5.2))
+    chunked = noise.empty_aperture_scatter(img, rms, usable, radii, 120, np.random.default_rng(1))
+    for a, b in zip(whole, chunked):
+        assert np.array_equal(a, b)

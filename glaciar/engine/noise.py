@@ -148,6 +148,23 @@ def empty_sky_distance(usable: np.ndarray, cap: float | None = None,
     return out
 
 
+#: Elements per chunk of :func:`_indices_beyond` and :func:`_keep_beyond`.
+_CHUNK = 1 << 22
+
+
+def _indices_beyond(flat_dist: np.ndarray, limit: float, dtype) -> np.ndarray:
+    """``np.flatnonzero(flat_dist > limit)`` as ``dtype``, by chunks (no full-frame temporaries)."""
+    parts = [(np.flatnonzero(flat_dist[s:s + _CHUNK] > limit) + s).astype(dtype)
+             for s in range(0, flat_dist.size, _CHUNK)]
+    return np.concatenate(parts) if parts else np.empty(0, dtype)
+
+
+def _keep_beyond(flat_dist: np.ndarray, among: np.ndarray, limit: float) -> np.ndarray:
+    """``among[flat_dist[among] > limit]`` (order kept), by chunks."""
+    parts = [c[flat_dist[c] > limit] for c in (among[s:s + _CHUNK] for s in range(0, among.size, _CHUNK))]
+    return np.concatenate(parts) if parts else among[:0]
+
+
 def distance_cap(radii_pix) -> float:
     """Smallest :func:`empty_sky_distance` cap that leaves :func:`empty_aperture_scatter` exact.
 
@@ -218,14 +235,17 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
     flat_dist = dist.reshape(-1)
     # Candidate centres (flat indices, ascending) for the smallest radius; every larger
     # radius keeps a subset of them, in the same order: one full-frame pass, not one per radius.
-    candidates = np.flatnonzero(flat_dist > min(radii) + 1.0) if radii else np.empty(0, np.intp)
+    # Chunked, and int32 where the image allows it: no full-frame temporaries (same indices).
+    index_dtype = np.int32 if flat_dist.size < 2 ** 31 else np.int64
+    candidates = _indices_beyond(flat_dist, min(radii) + 1.0, index_dtype) if radii else \
+        np.empty(0, index_dtype)
     out_n, out_r, out_k = [], [], []
     for r in radii:
         k = int(np.ceil(r))
         dy, dx = np.mgrid[-k:k + 1, -k:k + 1]
         inside = dy ** 2 + dx ** 2 < r * r
         dy, dx = dy[inside], dx[inside]
-        centres = candidates[flat_dist[candidates] > r + 1.0]
+        centres = _keep_beyond(flat_dist, candidates, r + 1.0)
         if centres.size < MIN_EMPTY_APERTURES:
             continue
         pick = rng.choice(centres.size, size=min(n_per_radius, centres.size), replace=False)
