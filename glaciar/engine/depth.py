@@ -78,8 +78,8 @@ def disk_pixel_weights(radius_pix: float) -> np.ndarray:
     return np.clip(w, 0.0, 1.0)
 
 
-#: Pixels per row tile of :func:`local_depth_map` (~40 bytes of work arrays per tile pixel).
-DEPTH_TILE_PIXELS = 1 << 22
+#: Pixels per row tile of :func:`local_depth_map` (~60 bytes of work arrays per tile pixel).
+DEPTH_TILE_PIXELS = 1 << 21
 #: Largest aperture footprint [pixels of the weight array] summed directly; larger ones by FFT.
 _DIRECT_MAX_TAPS = 441
 
