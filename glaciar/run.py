@@ -7,9 +7,12 @@ of a prepared :class:`FieldContext` and a :class:`~glaciar.engine.task.TaskSpec`
 from __future__ import annotations
 
 import concurrent.futures as cf
+import dataclasses
+import hashlib
 import json
 import math
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -28,6 +31,7 @@ from .engine.detect import DetectionParams, builtin_filter, measure_background, 
 from .engine.measure import reference_extraction
 from .engine.classify import ClassificationParams
 from .engine.coadd import coadd
+from .engine import fieldcache
 from .engine.context import R_EFF_LOG_STEP, FieldContext
 from .engine.depth import depth_area_histogram, local_depth_map
 from .engine.noise import (CorrelatedNoise, empty_aperture_scatter, empty_sky_distance,
@@ -43,7 +47,7 @@ from .store import (RunLock, StoreMismatchError, StoreWarning, atomic_write_text
                     COMPACT_EVERY, compact, field_file_prefix, file_fingerprint, finished_task_names, manifest_text,
                     read_manifest, store_format, task_filename, task_key, verified_task_names,
                     write_manifest, write_task_table)
-from .survey import Survey
+from .survey import Survey, clear_cache as clear_survey_cache
 
 __all__ = ["FieldContext", "band_pixels", "build_field_context", "field_depth", "plan_tasks", "simulate",
            "prepare_run_dir", "input_files", "check_inputs", "store_settings", "InputError",
@@ -249,28 +253,54 @@ def _applies(cfg: Config, model: CorrelatedNoise) -> bool:
     return mode == "on" or (mode == "auto" and not model.is_identity(cfg.noise.identity_tolerance))
 
 
-def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext:
-    """Read a field's images once, measure backgrounds, extract the original image, set up caches."""
+def _field_settings(cfg: Config, survey: Survey, field: str) -> tuple[dict, dict]:
+    """The context fields that follow from the configuration (no pixel is read), and the PSFs.
+
+    Everything of a :class:`FieldContext` but its measured fields
+    (:attr:`FieldContext.MEASURED`): what a process that opens a field cache
+    (:func:`open_field_context`) sets up itself.
+    """
     bands = tuple(b.name for b in cfg.survey.bands)
     det = cfg.survey.detection_band
-    jd = bands.index(det)
     pixscale = survey.pixel_scale_arcsec(field)
-    params = _detection_params(cfg)
+    psfs = {b.name: _band_psf(cfg, b, pixscale) for b in cfg.survey.bands}
+    model = population.SourceModel(**cfg.source.model_dump())
+    settings = dict(
+        field=field, bands=bands, detection_band=det, detection_index=bands.index(det),
+        shape=survey.shape(field), pixel_scale_arcsec=pixscale,
+        zeropoints={b.name: float(b.zeropoint) for b in cfg.survey.bands},
+        gains={b.name: (None if b.gain is None else float(b.gain)) for b in cfg.survey.bands},
+        filters=[_resolve_filter(b.filter, cfg.base_dir) for b in cfg.survey.bands],
+        cache=TemplateCache(psfs, enclosed_fraction=model.stamp_flux_fraction),
+        isolation_margin_pix=int(math.ceil(2.0 * max(measure_fwhm(p, 1.0) for p in psfs.values()))),
+        source_model=model, cosmology=population.get_cosmology(model.cosmology),
+        magnitude_type=cfg.grid.magnitude_type, n_galaxies=cfg.simulation.n_galaxies,
+        detection_params=_detection_params(cfg),
+        classification_params=ClassificationParams(**cfg.classification.model_dump()),
+        selection=compile_selection(cfg.selection) if cfg.selection else None,
+        enclosed_fraction=model.stamp_flux_fraction,
+        isolation_fraction=cfg.simulation.isolation_fraction)
+    return settings, psfs
+
+
+def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext:
+    """Read a field's images once, measure backgrounds, extract the original image, set up caches."""
+    settings, psfs = _field_settings(cfg, survey, field)
+    bands = settings["bands"]
+    det = cfg.survey.detection_band
+    params = settings["detection_params"]
     footprint = survey.footprint(field)
     mask = ~footprint
     bases, rms = {}, {}
-    psfs = {}
     backgrounds = {}
     for b in cfg.survey.bands:
-        psfs[b.name] = _band_psf(cfg, b, pixscale)
         bases[b.name], rms[b.name], _ = band_pixels(survey, field, b.name, footprint, params,
                                                     cfg.detection.weight_type,
                                                     background=backgrounds if b.name == det else None)
         # The context holds its own background-subtracted copies: the survey's cached
         # images would only double the memory (at this peak and in every task after it).
         survey.release_pixels(field, (b.name,))
-    zps = {b.name: float(b.zeropoint) for b in cfg.survey.bands}
-    gains = {b.name: (None if b.gain is None else float(b.gain)) for b in cfg.survey.bands}
+    zps = settings["zeropoints"]
     coadd_bands, coadd_method, det_image_rms = (), "ivw", None
     if cfg.survey.detection_image is not None:
         coadd_bands = cfg.survey.detection_image.coadd
@@ -287,26 +317,69 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
                     for b in bands}
     del sky
     depth, _ = field_depth(rms[det], zps[det], psfs[det])
-    model = population.SourceModel(**cfg.source.model_dump())
-    cache = TemplateCache(psfs, enclosed_fraction=model.stamp_flux_fraction)
-    margin = int(math.ceil(2.0 * max(measure_fwhm(p, 1.0) for p in psfs.values())))
-    selection = compile_selection(cfg.selection) if cfg.selection else None
     return FieldContext(
-        field=field, bands=bands, detection_band=det, detection_index=jd,
-        shape=survey.shape(field), pixel_scale_arcsec=pixscale, zeropoints=zps, gains=gains,
-        filters=[_resolve_filter(b.filter, cfg.base_dir) for b in cfg.survey.bands],
-        bases=bases, rms=rms, mask=mask, footprint=footprint, depth=depth, reference=reference,
-        cache=cache,
-        isolation_margin_pix=margin, source_model=model, cosmology=population.get_cosmology(model.cosmology),
-        magnitude_type=cfg.grid.magnitude_type, n_galaxies=cfg.simulation.n_galaxies,
-        detection_params=params,
-        classification_params=ClassificationParams(**cfg.classification.model_dump()),
-        selection=selection, enclosed_fraction=model.stamp_flux_fraction,
-        isolation_fraction=cfg.simulation.isolation_fraction,
+        **settings, bases=bases, rms=rms, mask=mask, footprint=footprint,
+        footprint_count=int(np.count_nonzero(footprint)), depth=depth, reference=reference,
         noise_models={b: m for b, m in noise_models.items() if _applies(cfg, m)},
         measured_noise=noise_models,
         coadd_bands=coadd_bands, coadd_method=coadd_method, detection_image_rms=det_image_rms,
         detection_background=backgrounds[det])
+
+
+def open_field_context(cfg: Config, survey: Survey, field: str, path) -> FieldContext:
+    """A field's context from its cache directory (:func:`save_field_context`): the measured
+    arrays memory-mapped read-only, the rest set up from the configuration (no image read)."""
+    settings, _ = _field_settings(cfg, survey, field)
+    items, maps = fieldcache.load(path)
+    return FieldContext(**settings, **items, _trimmer=fieldcache.Trimmer(maps))
+
+
+def save_field_context(ctx: FieldContext, path) -> FieldContext:
+    """Write a context's measured fields to ``path`` (unless a cache is there already) and
+    return the context with them memory-mapped from it (the in-memory arrays can go)."""
+    if not fieldcache.exists(path):
+        fieldcache.save(ctx.measured(), path)
+    items, maps = fieldcache.load(path)
+    return dataclasses.replace(ctx, **items, _trimmer=fieldcache.Trimmer(maps))
+
+
+def _context_dir(run_dir, cfg_hash: str, field: str) -> Path | None:
+    """Cache directory of a field's context in a run (None: no manifest yet).
+
+    Keyed on everything the measurement depends on: the config's hash, the field,
+    the run's input files (size and BLAKE2b, from the manifest), glaciar's version
+    and the cache's format; a changed config or input gets a new directory.
+    """
+    manifest = read_manifest(run_dir)
+    if manifest is None:
+        return None
+    ident = json.dumps({"format": fieldcache.FORMAT, "glaciar": __version__, "config": cfg_hash,
+                        "field": field, "inputs": manifest.get("inputs") or {}}, sort_keys=True)
+    return Path(run_dir) / C.CONTEXT_DIRNAME / hashlib.sha256(ident.encode("utf-8")).hexdigest()[:24]
+
+
+def _prepare_context_cache(run_dir: Path, cfg: Config, cfg_hash: str, fields) -> None:
+    """Before tasks run (lock held, no worker yet): remove caches of other configs or inputs
+    and half-written ones, and put the context this process built (for the manifest) on disk,
+    so its tasks, forked workers and spawned workers all map the same files."""
+    keep = {_context_dir(run_dir, cfg_hash, f) for f in cfg.survey.fields}
+    root = Path(run_dir) / C.CONTEXT_DIRNAME
+    if root.is_dir():
+        for entry in root.iterdir():
+            if entry not in keep:
+                shutil.rmtree(entry, ignore_errors=True)
+    for key, ctx in list(_CONTEXTS.items()):
+        if key[0] == cfg_hash and key[2] in fields:
+            _CONTEXTS[key] = save_field_context(ctx, _context_dir(run_dir, cfg_hash, key[2]))
+            # The masks the build left in the survey's cache: forked workers would inherit them.
+            clear_survey_cache()
+
+
+def _finish_context_cache(run_dir: Path, complete: bool) -> None:
+    """A run with no task left pending removes its field caches; an unfinished one keeps them
+    for its resume (they are as large as the images)."""
+    if complete:
+        shutil.rmtree(Path(run_dir) / C.CONTEXT_DIRNAME, ignore_errors=True)
 
 
 def box_cells(cfg: Config) -> list[dict]:
@@ -391,13 +464,23 @@ def spec_key(spec: TaskSpec) -> str:
 _CONTEXTS: dict = {}
 
 
-def _context(cfg_dict: dict, base_dir: str, cfg_hash: str, field: str) -> FieldContext:
+def _context(cfg_dict: dict, base_dir: str, cfg_hash: str, field: str,
+             run_dir: str | None = None) -> FieldContext:
+    """The field's context in this process: kept from an earlier call, opened from the run's
+    field cache, or built (and then cached for the other workers)."""
     key = (cfg_hash, base_dir, field)
     ctx = _CONTEXTS.get(key)
     if ctx is None:
         cfg = config_from_dict(cfg_dict, base_dir)
         _CONTEXTS.clear()          # one field at a time per process bounds memory
-        ctx = build_field_context(cfg, Survey.from_config(cfg), field)
+        path = None if run_dir is None else _context_dir(run_dir, cfg_hash, field)
+        survey = Survey.from_config(cfg)
+        if path is not None and fieldcache.exists(path):
+            ctx = open_field_context(cfg, survey, field, path)
+        else:
+            ctx = build_field_context(cfg, survey, field)
+            if path is not None:
+                ctx = save_field_context(ctx, path)
         _CONTEXTS[key] = ctx
     return ctx
 
@@ -419,8 +502,10 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
     done = []
     for spec in specs:
         t0 = time.process_time()
-        ctx = _context(cfg_dict, base_dir, cfg_hash, spec.field)
+        ctx = _context(cfg_dict, base_dir, cfg_hash, spec.field, run_dir)
         table = run_task(ctx, spec, seed, mode=mode)
+        # Mapped image pages the task touched stay resident until dropped (bounded RSS).
+        fieldcache.trim(ctx)
         name = spec_filename(spec)
         # The task's counts go in its file's footer, keyed on the fit's magnitude covariate.
         mag_column = C.COL_M_UV if ctx.magnitude_type == "absolute" else C.COL_MAG_INPUT
@@ -1141,6 +1226,7 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
     cfg_dict = config_to_dict(cfg)
     base_dir = str(cfg.base_dir)
     cfg_hash = config_hash(cfg)
+    _prepare_context_cache(run_dir, cfg, cfg_hash, {s.field for s in pending})
     n_workers = 1 if executor is None and workers <= 1 else max(1, workers)
     chunks = _chunks(pending, n_workers)
     stats = {"n_tasks": len(specs), "n_done_before": n_done_before, "n_run": 0, "n_sources": 0, "cpu_seconds": 0.0}
@@ -1186,6 +1272,7 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
     finally:
         bar.close()
     compact(run_dir, min_tasks=COMPACT_EVERY)
+    _finish_context_cache(run_dir, n_done_before + stats["n_run"] == len(specs))
     stats["wall_seconds"] = time.perf_counter() - t0
     return stats
 
