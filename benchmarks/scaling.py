@@ -121,6 +121,7 @@ def _child_run(opt) -> dict:
     own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     out["main_cpu_s"] = own.ru_utime + own.ru_stime
     out["worker_cpu_s"] = kids.ru_utime + kids.ru_stime
+    out["task_cpu_s"] = float(stats["cpu_seconds"])     # inside run_task + writing, all workers
     out["n_sources"] = int(stats["n_sources"])
     out["n_run"] = int(stats["n_run"])
     out["main_rss_mb"] = _maxrss_bytes(resource.RUSAGE_SELF) / MB
@@ -207,21 +208,24 @@ def main(argv=None):
 
         print()
         print(f"{'side':>7s} {'sources':>8s} {'ms CPU/src':>11s} {'ratio':>6s} {'main ms':>8s} "
-              f"{'worker ms':>10s} {'ratio':>6s} {'worker RSS MB':>14s} {'main RSS MB':>12s} "
-              f"{'gen RSS MB':>11s} {'gen wall s':>11s}")
-        base = base_w = None
+              f"{'worker ms':>10s} {'ratio':>6s} {'task ms':>8s} {'ratio':>6s} "
+              f"{'worker RSS MB':>14s} {'main RSS MB':>12s} {'gen RSS MB':>11s} {'gen wall s':>11s}")
+        base = base_w = base_t = None
         for size, b, r in rows:
             n = max(r["n_sources"], 1)
-            ms, ms_main, ms_w = (1e3 * r[k] / n for k in ("cpu_s", "main_cpu_s", "worker_cpu_s"))
-            base, base_w = base or ms, base_w or ms_w
+            ms, ms_main, ms_w, ms_t = (1e3 * r[k] / n for k in
+                                       ("cpu_s", "main_cpu_s", "worker_cpu_s", "task_cpu_s"))
+            base, base_w, base_t = base or ms, base_w or ms_w, base_t or ms_t
             print(f"{size:>7d} {r['n_sources']:>8d} {ms:>11.2f} {ms / base:>6.2f} {ms_main:>8.2f} "
-                  f"{ms_w:>10.2f} {ms_w / base_w:>6.2f} {r['worker_rss_mb']:>14.0f} "
-                  f"{r['main_rss_mb']:>12.0f} {b['rss_mb']:>11.0f} {b['wall_s']:>11.1f}")
+                  f"{ms_w:>10.2f} {ms_w / base_w:>6.2f} {ms_t:>8.2f} {ms_t / base_t:>6.2f} "
+                  f"{r['worker_rss_mb']:>14.0f} {r['main_rss_mb']:>12.0f} {b['rss_mb']:>11.0f} "
+                  f"{b['wall_s']:>11.1f}")
         print("(ms CPU/src: glaciar.run.process_cpu_seconds of simulate per injected source, main "
               "process + its 1-worker pool, set-up included, and its ratio to the first size "
               "(target <= 1.3); main ms / worker ms: the two parts (the main process checks the "
-              "inputs and measures the field for the manifest; the forked worker inherits that "
-              "and runs the tasks); worker RSS: peak of the pool worker, target <= 400 MB at "
+              "inputs, measures the field for the manifest and writes its field cache; the forked "
+              "worker maps that cache and runs the tasks); task ms: CPU inside the tasks (run_task "
+              "and the task file), target within 1.3x of the first size; worker RSS: peak of the pool worker, target <= 400 MB at "
               "1200^2, <= 2 GB at 16000^2; main RSS: peak of the main process)")
 
         if not opt.no_parallel:

@@ -500,19 +500,24 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
                specs: list[TaskSpec], mode: str = "windowed") -> list[tuple[str, int, float]]:
     """Run a chunk of tasks of one field and write each task's file; return (name, rows, seconds)."""
     done = []
-    for spec in specs:
-        t0 = time.process_time()
-        ctx = _context(cfg_dict, base_dir, cfg_hash, spec.field, run_dir)
-        table = run_task(ctx, spec, seed, mode=mode)
-        # Mapped image pages the task touched stay resident until dropped (bounded RSS).
-        fieldcache.trim(ctx)
-        name = spec_filename(spec)
-        # The task's counts go in its file's footer, keyed on the fit's magnitude covariate.
-        mag_column = C.COL_M_UV if ctx.magnitude_type == "absolute" else C.COL_MAG_INPUT
-        # And the histograms of the measured detection-band magnitude (transfer matrices).
-        write_task_table(run_dir, name, table, key=spec_key(spec), mag_column=mag_column,
-                         obs_column=C.band_column("mag", ctx.detection_band))
-        done.append((name, len(table), time.process_time() - t0))
+    ctx = None
+    try:
+        for spec in specs:
+            t0 = time.process_time()
+            ctx = _context(cfg_dict, base_dir, cfg_hash, spec.field, run_dir)
+            # Image pages the tasks touch stay resident while mapped: dropped past a budget.
+            fieldcache.trim(ctx, watch=True)
+            table = run_task(ctx, spec, seed, mode=mode)
+            name = spec_filename(spec)
+            # The task's counts go in its file's footer, keyed on the fit's magnitude covariate.
+            mag_column = C.COL_M_UV if ctx.magnitude_type == "absolute" else C.COL_MAG_INPUT
+            # And the histograms of the measured detection-band magnitude (transfer matrices).
+            write_task_table(run_dir, name, table, key=spec_key(spec), mag_column=mag_column,
+                             obs_column=C.band_column("mag", ctx.detection_band))
+            done.append((name, len(table), time.process_time() - t0))
+    finally:
+        if ctx is not None:
+            fieldcache.trim(ctx, watch=False)
     return done
 
 
