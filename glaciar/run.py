@@ -49,7 +49,8 @@ from .store import (RunLock, StoreMismatchError, StoreWarning, atomic_write_text
                     write_manifest, write_task_table)
 from .survey import Survey, clear_cache as clear_survey_cache
 
-__all__ = ["FieldContext", "band_pixels", "build_field_context", "field_depth", "plan_tasks", "simulate",
+__all__ = ["FieldContext", "band_pixels", "build_field_context", "open_field_context",
+           "save_field_context", "field_depth", "plan_tasks", "simulate",
            "prepare_run_dir", "input_files", "check_inputs", "store_settings", "InputError",
            "R_EFF_LOG_STEP"]
 
@@ -336,10 +337,20 @@ def open_field_context(cfg: Config, survey: Survey, field: str, path) -> FieldCo
 
 def save_field_context(ctx: FieldContext, path) -> FieldContext:
     """Write a context's measured fields to ``path`` (unless a cache is there already) and
-    return the context with them memory-mapped from it (the in-memory arrays can go)."""
-    if not fieldcache.exists(path):
-        fieldcache.save(ctx.measured(), path)
-    items, maps = fieldcache.load(path)
+    return the context with them memory-mapped from it (the in-memory arrays can go).
+
+    If the cache cannot be written (e.g. the disk is full), warns and returns ``ctx``
+    unchanged: the run goes on with the field in memory (forked workers inherit it,
+    spawned ones measure it again).
+    """
+    try:
+        if not fieldcache.exists(path):
+            fieldcache.save(ctx.measured(), path)
+        items, maps = fieldcache.load(path)
+    except OSError as exc:
+        warnings.warn(f"{path}: field cache not written ({exc}); the field's arrays stay in "
+                      "memory", UserWarning)
+        return ctx
     return dataclasses.replace(ctx, **items, _trimmer=fieldcache.Trimmer(maps))
 
 

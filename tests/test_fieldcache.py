@@ -245,3 +245,13 @@ def test_a_task_touches_only_pages_under_its_windows(tmp_path):
         frac = {k: v / sizes[k] for k, v in got.items()}
         assert max(frac.values()) < 0.4, frac
         assert sum(got.values()) < 0.25 * sum(sizes[k] for k in got)
+
+
+def test_unwritable_cache_keeps_the_field_in_memory(small_survey, tmp_path):
+    cfg = load_config(small_survey)
+    ctx = run.build_field_context(cfg, Survey.from_config(cfg), cfg.survey.fields[0])
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    with pytest.warns(UserWarning, match="field cache not written"):
+        same = run.save_field_context(ctx, blocker / "ctx")
+    assert same is ctx and same._trimmer is None
