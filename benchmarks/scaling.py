@@ -10,6 +10,8 @@ process's (manifest, input checks, noise record).  Printed per size:
 * whole-process CPU per injected source: :func:`glaciar.run.process_cpu_seconds`
   (the child's own CPU plus its reaped pool worker, field set-up included), and
   its ratio to the smallest size (target: within 1.3x);
+* CPU per source inside the tasks (``simulate``'s ``cpu_seconds``) and its ratio
+  to the smallest size (target: within 1.3x);
 * peak RSS of the pool worker (``RUSAGE_CHILDREN.ru_maxrss``: the largest
   reaped descendant, i.e. *per worker*, not summed) and of the main process
   (``RUSAGE_SELF``) [MB]; target <= 400 MB per worker on a 1200^2 field and
@@ -31,7 +33,12 @@ Usage::
 
     python benchmarks/scaling.py [--sizes 1000,4000[,16000]] [--tasks 30] [--n 100]
                                  [--z 8] [--mag 26] [--parallel-size 1000] [--no-parallel]
-                                 [--tmp DIR]
+                                 [--tmp DIR] [--map-budget-mb MB]
+
+``--map-budget-mb`` sets the resident budget of a worker's memory-mapped field
+cache (:data:`glaciar.engine.fieldcache.RESIDENT_BUDGET_BYTES`): with a budget
+below the field's maps (e.g. 256 MB at 4000^2), pages are dropped during the
+run as on a 16000^2 mosaic, which shows what the bound costs in task CPU.
 """
 from __future__ import annotations
 
@@ -93,6 +100,11 @@ def _child_run(opt) -> dict:
     from glaciar.run import process_cpu_seconds, simulate
 
     cfg = load_config(opt.config)
+    if opt.map_budget_mb is not None:
+        from glaciar.engine import fieldcache
+
+        # Set before simulate opens the field cache: forked workers inherit it.
+        fieldcache.RESIDENT_BUDGET_BYTES = int(opt.map_budget_mb * MB)
     out = {}
     c0 = process_cpu_seconds()
     t0 = time.perf_counter()
@@ -154,6 +166,9 @@ def main(argv=None):
     ap.add_argument("--no-parallel", action="store_true", help="skip the 1 vs 2 worker comparison")
     ap.add_argument("--no-dask", action="store_true", help="skip the Dask LocalCluster comparison")
     ap.add_argument("--tmp", default=None, help="directory for the surveys (default: system temp)")
+    ap.add_argument("--map-budget-mb", type=float, default=None,
+                    help="resident budget of a worker's mapped field cache [MB] (default: "
+                         "glaciar.engine.fieldcache.RESIDENT_BUDGET_BYTES)")
     # internal: child-process modes
     ap.add_argument("--child", choices=("build", "run"), help=argparse.SUPPRESS)
     ap.add_argument("--size", type=int, help=argparse.SUPPRESS)
@@ -197,8 +212,9 @@ def main(argv=None):
                 continue
             b = _spawn(["--child", "build", "--size", str(size), "--out", str(sdir / "survey"),
                         *common])
+            budget = [] if opt.map_budget_mb is None else ["--map-budget-mb", str(opt.map_budget_mb)]
             r = _spawn(["--child", "run", "--config", b["config"], "--out", str(sdir / "run"),
-                        "--executor", "pool1", *common])
+                        "--executor", "pool1", *budget, *common])
             rows.append((size, b, r))
             shutil.rmtree(sdir / "run", ignore_errors=True)
             if size != opt.parallel_size:

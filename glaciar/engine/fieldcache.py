@@ -218,9 +218,9 @@ class Trimmer:
     reader is safe: read-only file pages are read again on the next touch).
     """
 
-    def __init__(self, maps, budget: int = RESIDENT_BUDGET_BYTES, period: float = 0.02):
+    def __init__(self, maps, budget: int | None = None, period: float = 0.02):
         self.maps = tuple(maps)
-        self.budget = int(budget)
+        self.budget = int(RESIDENT_BUDGET_BYTES if budget is None else budget)
         self.period = float(period)
         self.mapped = sum(len(m) for m in self.maps)
         self.baseline = _file_resident_bytes()
