@@ -218,7 +218,7 @@ class Trimmer:
     reader is safe: read-only file pages are read again on the next touch).
     """
 
-    def __init__(self, maps, budget: int | None = None, period: float = 0.02):
+    def __init__(self, maps, budget: int | None = None, period: float = 0.01):
         self.maps = tuple(maps)
         self.budget = int(RESIDENT_BUDGET_BYTES if budget is None else budget)
         self.period = float(period)
