@@ -255,3 +255,28 @@ def test_unwritable_cache_keeps_the_field_in_memory(small_survey, tmp_path):
     with pytest.warns(UserWarning, match="field cache not written"):
         same = run.save_field_context(ctx, blocker / "ctx")
     assert same is ctx and same._trimmer is None
+
+
+def _child_trims(trimmer, array, queue):
+    before = trimmer()                           # as _run_chunk, before its first task
+    queue.put((before, float(array.sum()), trimmer(), trimmer.releases))
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="fork and /proc/self/statm")
+def test_forked_child_trims_with_its_own_lock(tmp_path):
+    """A worker forked while the parent held the trimmer's lock still trims (own lock)."""
+    import multiprocessing
+
+    path = fieldcache.save({"a": np.ones((32 << 20) // 8)}, tmp_path / "c")
+    got, maps = fieldcache.load(path)
+    trimmer = fieldcache.Trimmer(maps, budget=4 << 20)
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    with trimmer._lock:                          # held at the fork
+        child = ctx.Process(target=_child_trims, args=(trimmer, got["a"], queue))
+        child.start()
+    before, total, trimmed, releases = queue.get(timeout=60)
+    child.join(60)
+    assert child.exitcode == 0
+    assert not before and total == (32 << 20) // 8 and trimmed and releases == 1
+    assert trimmer.releases == 0                 # the parent's count is its own

@@ -225,12 +225,22 @@ class Trimmer:
         self.mapped = sum(len(m) for m in self.maps)
         self.baseline = _file_resident_bytes()
         self.releases = 0
+        self._pid = os.getpid()
         self._lock = threading.Lock()
         self._watcher: tuple | None = None          # (pid, thread, stop event)
+
+    def _forked(self) -> None:
+        """In a child forked after the maps were opened: its own lock and baseline."""
+        if os.getpid() != self._pid:
+            self._pid = os.getpid()
+            self._lock = threading.Lock()           # a lock copied by fork may be held
+            self._watcher = None                    # threads do not survive a fork
+            self.baseline = _file_resident_bytes()
 
     def __call__(self) -> bool:
         if not self.maps:
             return False
+        self._forked()
         with self._lock:
             now = _file_resident_bytes()
             if now is not None and self.baseline is not None and now - self.baseline <= self.budget:
@@ -245,11 +255,10 @@ class Trimmer:
         maps exceed the budget; True if one runs.  :meth:`unwatch` stops it."""
         if self.mapped <= self.budget or _file_resident_bytes() is None:
             return False
+        self._forked()
         pid = os.getpid()
-        if self._watcher is not None and self._watcher[0] == pid and self._watcher[1].is_alive():
+        if self._watcher is not None and self._watcher[1].is_alive():
             return True
-        if self._watcher is not None and self._watcher[0] != pid:
-            self._lock = threading.Lock()           # a lock copied by fork may be held
         stop = threading.Event()
         thread = threading.Thread(target=_watch, args=(weakref.ref(self), stop, self.period),
                                   daemon=True, name="glaciar-fieldcache-trim")
