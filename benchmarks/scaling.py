@@ -16,9 +16,12 @@ process's (manifest, input checks, noise record).  Printed per size:
   reaped descendant, i.e. *per worker*, not summed) and of the main process
   (``RUSAGE_SELF``) [MB]; target <= 400 MB per worker on a 1200^2 field and
   <= 2 GB on 16000^2;
-* peak RSS of the demo generation.  The generator builds the field in memory
-  (~200 bytes per pixel): a size it cannot build in the available memory is
-  skipped with a message (16000^2 needs ~50 GB).
+* peak RSS and wall time of the demo generation.  Up to
+  ``glaciar.demo.strips.STRIP_MIN_PIXELS`` (2048^2) the generator builds the field
+  in memory (~200 bytes per pixel); above, it streams it into the FITS files by
+  strips of rows (~1.4 GB at any size: 1.2 GB at 4000^2, 1.3 GB at 8000^2,
+  1.4 GB at 16000^2, measured).  A size whose generation would not fit in the
+  available memory, or whose files would not fit on disk, is skipped with a message.
 
 Then the 2-worker speed-up on ``--parallel-size``: wall time of the
 ``simulate`` call with 1 vs 2 workers, through the process pool
@@ -53,8 +56,19 @@ import time
 from pathlib import Path
 
 MB = 1024.0 ** 2
-#: Peak memory of the demo generation per pixel [bytes] (measured: 3.2 GB at 4000^2).
+#: Peak memory of the whole-image demo generation per pixel [bytes] (measured: 3.2 GB at 4000^2).
 GEN_BYTES_PER_PIXEL = 200
+#: Peak memory of the strip-by-strip generation [bytes] (measured 1.2-1.4 GB, 4000^2-16000^2).
+GEN_STRIP_BYTES = 1.6e9
+
+
+def _generation_memory(size: int) -> float:
+    """Expected peak memory [bytes] of generating the size^2 demo survey."""
+    from glaciar.demo.strips import STRIP_MIN_PIXELS
+
+    if size * size > STRIP_MIN_PIXELS:
+        return GEN_STRIP_BYTES
+    return GEN_BYTES_PER_PIXEL * size * size
 
 
 def _available_memory() -> float | None:
@@ -202,16 +216,17 @@ def main(argv=None):
                 print(f"{size}^2: skipped, needs ~{need / 1e9:.1f} GB on disk, "
                       f"{free / 1e9:.1f} GB free in {tmp_root}")
                 continue
-            # glaciar.demo.make_demo_images builds the field in memory (float64 scenes and
-            # FFTs): ~200 bytes per pixel at its peak (3.2 GB at 4000^2).
-            gen = GEN_BYTES_PER_PIXEL * size * size
+            # Small fields are built in memory (~200 bytes per pixel), large ones by strips.
+            gen = _generation_memory(size)
             avail = _available_memory()
             if avail is not None and gen > 0.8 * avail:
-                print(f"{size}^2: skipped, generating the demo field needs ~{gen / 1e9:.0f} GB "
-                      f"of memory, {avail / 1e9:.0f} GB available")
+                print(f"{size}^2: skipped, generating the demo field needs ~{gen / 1e9:.1f} GB "
+                      f"of memory, {avail / 1e9:.1f} GB available")
                 continue
             b = _spawn(["--child", "build", "--size", str(size), "--out", str(sdir / "survey"),
                         *common])
+            print(f"  {size}^2 generated: {b['wall_s']:.0f} s wall, peak RSS {b['rss_mb']:.0f} MB",
+                  flush=True)
             budget = [] if opt.map_budget_mb is None else ["--map-budget-mb", str(opt.map_budget_mb)]
             r = _spawn(["--child", "run", "--config", b["config"], "--out", str(sdir / "run"),
                         "--executor", "pool1", *budget, *common])

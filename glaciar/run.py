@@ -34,8 +34,8 @@ from .engine.coadd import coadd
 from .engine import fieldcache
 from .engine.context import R_EFF_LOG_STEP, FieldContext
 from .engine.depth import depth_area_histogram, local_depth_map
-from .engine.noise import (CorrelatedNoise, empty_aperture_scatter, empty_sky_distance,
-                           weight_rescale_factor)
+from .engine.noise import (CorrelatedNoise, distance_cap, empty_aperture_scatter,
+                           empty_sky_distance, weight_rescale_factor)
 from .engine.selection import compile_selection
 from .engine.positions import placement_capacity
 from .engine.task import TaskSpec, draw_task_sources, field_key, run_task
@@ -100,7 +100,10 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
     if noise is not None:
         valid &= np.isfinite(noise) & (noise > 0)
     bkg, bkg_rms = measure_background(img, ~valid, params)
-    base = np.where(valid, img - bkg, 0.0).astype(np.float32)
+    # In place on the difference (a new array): one full-frame temporary less than np.where.
+    base = np.subtract(img, bkg)
+    base[~valid] = 0.0
+    base = base.astype(np.float32, copy=False)
     if background is not None:
         background[band] = np.asarray(bkg, dtype=np.float32)
     from_background = noise is None or weight_type == "background"
@@ -110,7 +113,8 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
         r = noise * weight_rescale_factor(bkg_rms, noise, valid)
     else:
         r = noise
-    r = np.where(valid, np.asarray(r, dtype=np.float32), np.float32(np.inf)).astype(np.float32)
+    r = np.where(valid, np.asarray(r, dtype=np.float32), np.float32(np.inf)).astype(np.float32,
+                                                                                     copy=False)
     return base, r, from_background
 
 
@@ -135,8 +139,8 @@ def field_depth(rms: np.ndarray, zeropoint: float, psf: np.ndarray) -> tuple[np.
         That aperture radius [image pixels].
     """
     radius_pix = C.DEPTH_APERTURE_RADIUS_FWHM * measure_fwhm(psf, 1.0)
-    valid = np.isfinite(rms) & (rms > 0)
-    return local_depth_map(rms, valid, zeropoint, radius_pix, nsigma=C.DEPTH_NSIGMA), radius_pix
+    # valid=None: the footprint is where the rms is finite and > 0, taken tile by tile.
+    return local_depth_map(rms, None, zeropoint, radius_pix, nsigma=C.DEPTH_NSIGMA), radius_pix
 
 
 def _detection_params(cfg: Config) -> DetectionParams:
@@ -193,7 +197,9 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
         sky["sources"] = ndimage.binary_dilation(segmap > 0, iterations=_EMPTY_SKY_MARGIN_PIX)
     usable = np.isfinite(rms) & ~sky["sources"]
     if "usable" not in sky or not np.array_equal(sky["usable"], usable):
-        sky["usable"], sky["distance"] = usable, empty_sky_distance(usable)
+        # Capped just beyond the largest aperture: exact for the apertures, tiled (bounded memory).
+        sky["usable"], sky["distance"] = usable, empty_sky_distance(
+            usable, cap=distance_cap(cfg.noise.empty_aperture_radii_pix))
     seq = np.random.SeedSequence([field_key(field), field_key(band)])
     npix, ratio, n = empty_aperture_scatter(base, rms, usable, cfg.noise.empty_aperture_radii_pix,
                                             cfg.noise.n_empty_apertures,

@@ -13,6 +13,8 @@ from astropy.io import fits
 from astropy.wcs import WCS
 
 from glaciar.demo import sky as demo_sky
+from glaciar.demo import strips as demo_strips
+from glaciar.demo import survey as demo_survey
 from glaciar.demo import (DEMO_BANDS, DEMO_BANDS_SPEC, DEMO_FIELD, build_demo_survey,
                           drizzle_noise_kernel, make_demo_images)
 from glaciar.galaxy.psf import moffat_psf, read_psf
@@ -347,3 +349,146 @@ def test_psf_files_carry_their_pixel_scale(survey):
         spec = DEMO_BANDS_SPEC[b]
         assert np.allclose(psf, moffat_psf(spec.psf_fwhm_arcsec, expected, beta=2.5,
                                            size=spec.psf_size), rtol=0, atol=1e-12)
+
+
+# --------------------------------------------------------------------------
+# the strip path (large mosaics), forced on small fields
+# --------------------------------------------------------------------------
+STRIP_SHAPE = (230, 200)
+STRIP_ROWS = 23                    # 10 strips: galaxies, PSF wings and noise cross their seams
+
+
+def _assemble(strips, shape=STRIP_SHAPE):
+    """Whole images from iter_demo_strips' strips, checking they tile the rows once, in order."""
+    science, weight, edges = {b: [] for b in DEMO_BANDS}, {b: [] for b in DEMO_BANDS}, []
+    for y0, y1, s, w in strips:
+        edges.append((y0, y1))
+        for b in DEMO_BANDS:
+            assert s[b].dtype == np.float32 and s[b].shape == (y1 - y0, shape[1])
+            science[b].append(s[b])
+            weight[b].append(w[b])
+    assert edges[0][0] == 0 and edges[-1][1] == shape[0]
+    assert all(a[1] == b[0] for a, b in zip(edges, edges[1:]))
+    return ({b: np.concatenate(v) for b, v in science.items()},
+            {b: np.concatenate(v) for b, v in weight.items()})
+
+
+@pytest.fixture(scope="module")
+def strip_noise_survey(tmp_path_factory, request):
+    """A source-free survey written by build_demo_survey through the strip path."""
+    mp = pytest.MonkeyPatch()
+    request.addfinalizer(mp.undo)
+    mp.setattr(demo_strips, "STRIP_MIN_PIXELS", 0)
+    mp.setattr(demo_strips, "STRIP_PIXELS", STRIP_ROWS * STRIP_SHAPE[1])
+    out = tmp_path_factory.mktemp("strips")
+    path = build_demo_survey(out, shape=STRIP_SHAPE, seed=21, source_density_arcmin2=0.0, n_stars=0)
+    images = {"science": {}, "weight": {}}
+    for b in DEMO_BANDS:
+        for kind, name in (("science", "drz"), ("weight", "wht")):
+            images[kind][b] = fits.getdata(out / "images" / f"{DEMO_FIELD}_{b}_{name}.fits")
+    return path, images
+
+
+@pytest.mark.parametrize("band", DEMO_BANDS)
+def test_strip_path_noise_matches_weight_maps(strip_noise_survey, band):
+    path, images = strip_noise_survey
+    z, valid = _normalised_noise(images, band)
+    assert valid.sum() > 30000
+    assert np.std(z[valid]) == pytest.approx(1.0, rel=0.03)
+    # Drizzle correlation along y also across the strip seams (rows y0 - 1, y0): the
+    # independent expectation rho(1) = 2t / (1 + 2t^2) of test_ir_noise_is_correlated_like_drizzle.
+    spec = DEMO_BANDS_SPEC[band]
+    d = spec.pixfrac * spec.native_pixel_arcsec / 0.08
+    t = max(d - 1.0, 0.0) / 2.0
+    rho = 2 * t / (1 + 2 * t * t)
+    both_y = valid[1:, :] & valid[:-1, :]
+    assert np.mean((z[1:, :] * z[:-1, :])[both_y]) == pytest.approx(rho, abs=0.03)
+    seams = np.arange(STRIP_ROWS, STRIP_SHAPE[0], STRIP_ROWS)
+    pairs = (z[seams] * z[seams - 1])[valid[seams] & valid[seams - 1]]
+    assert pairs.size > 1000
+    assert np.mean(pairs) == pytest.approx(rho, abs=4.0 / math.sqrt(pairs.size))
+
+
+def test_strip_path_files_and_config(strip_noise_survey):
+    path, images = strip_noise_survey
+    base = path.parent
+    assert not list(base.rglob("*.tmp"))
+    cfg = yaml.safe_load(path.read_text())
+    assert cfg["simulation"]["seed"] == 21
+    for b in DEMO_BANDS:
+        with fits.open(base / "images" / f"{DEMO_FIELD}_{b}_drz.fits") as hdul:
+            assert len(hdul) == 1 and hdul[0].data.shape == STRIP_SHAPE
+            assert hdul[0].header["MAGZPT"] == DEMO_BANDS_SPEC[b].zeropoint
+            assert WCS(hdul[0].header).pixel_shape == (STRIP_SHAPE[1], STRIP_SHAPE[0])
+        assert (base / "psf" / f"psf_{b}.fits").is_file()
+    # The same weights as the whole-image generator (elementwise maps, bit for bit).
+    whole = make_demo_images(STRIP_SHAPE, seed=21, source_density_arcmin2=0.0, n_stars=0)
+    for b in DEMO_BANDS:
+        assert np.array_equal(images["weight"][b], whole["weight"][b])
+
+
+def test_strip_writer_bytes_equal_whole_image_writer(tmp_path):
+    """The streamed FITS file is the file the whole-image writer produces."""
+    data = np.random.default_rng(0).standard_normal((97, 61)).astype(np.float32)
+    header = demo_survey._image_header(data.shape, "f125w", 0.08, "science")
+    w = demo_survey._FitsRowWriter(tmp_path / "x.fits", data.shape, header)
+    for y0 in range(0, 97, 10):
+        w.write(data[y0:y0 + 10])
+    w.commit()
+    assert (tmp_path / "x.fits").read_bytes() == demo_survey._fits_bytes(data, header)
+    # An interrupted write leaves nothing behind.
+    w = demo_survey._FitsRowWriter(tmp_path / "y.fits", data.shape, header)
+    w.write(data[:10])
+    w.discard()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.fits"]
+
+
+def test_strip_path_source_fluxes_match_truth():
+    """Box sums of isolated sources in the strip-built images = catalogue flux (zeropoints)."""
+    shape = (360, 340)
+    info, strips = demo_strips.iter_demo_strips(shape, seed=9, n_galaxies=6, n_stars=3,
+                                                noise_scale=1e-4, strip_rows=STRIP_ROWS)
+    science, weight = _assemble(strips, shape)
+    t = info["truth"]
+    x, y = np.asarray(t["x"]), np.asarray(t["y"])
+    # Box: the 5 r_e truncated profile (+ rounding) plus the 61-px rendering PSF's half-width.
+    half = np.ceil(5.0 * np.asarray(t["r_eff_pix"])).astype(int) + 2 + 30
+    valid = weight["f160w"] > 0
+    checked = 0
+    for i in range(len(t)):
+        ya, yb = int(round(y[i])) - half[i], int(round(y[i])) + half[i] + 1
+        xa, xb = int(round(x[i])) - half[i], int(round(x[i])) + half[i] + 1
+        if ya < 0 or xa < 0 or yb > shape[0] or xb > shape[1] or not valid[ya:yb, xa:xb].all():
+            continue
+        others = np.delete(np.arange(len(t)), i)
+        near = (np.abs(x[others] - x[i]) < half[i] + half[others]) & \
+               (np.abs(y[others] - y[i]) < half[i] + half[others])
+        if near.any():
+            continue
+        for b in DEMO_BANDS:
+            spec = DEMO_BANDS_SPEC[b]
+            flux = 10 ** (-0.4 * (t[f"mag_{b}"][i] - spec.zeropoint))
+            measured = float(np.sum(science[b][ya:yb, xa:xb], dtype=np.float64))
+            # Shot noise of the box sum (exposure >= 1/3 of nominal), and the Moffat wing
+            # beyond the 61-px rendering PSF's normalisation (< 1e-3).
+            tol = 5.0 * math.sqrt(flux / (spec.exptime_s / 3.0)) + 1e-3 * flux
+            assert measured == pytest.approx(flux, abs=tol), (i, b)
+        checked += 1
+    assert checked >= 2
+
+
+def test_strip_path_is_the_whole_image_field():
+    """Same catalogue and weights bit for bit, science within float32 rounding (FFT order)."""
+    kw = dict(seed=9, n_galaxies=25, n_stars=4, noise_scale=np.linspace(0.5, 2.0, 230 * 200).reshape(230, 200))
+    whole = make_demo_images(STRIP_SHAPE, **kw)
+    info, strips = demo_strips.iter_demo_strips(STRIP_SHAPE, strip_rows=STRIP_ROWS, **kw)
+    science, weight = _assemble(strips)
+    for col in whole["truth"].colnames:
+        a, b = np.asarray(whole["truth"][col]), np.asarray(info["truth"][col])
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), col
+    for b in DEMO_BANDS:
+        assert np.array_equal(weight[b], whole["weight"][b])
+        assert info["rms_nominal"][b] == whole["rms_nominal"][b]
+        assert np.allclose(science[b], whole["science"][b], rtol=2e-7, atol=1e-7 * whole["model"][b].max())
+    with pytest.raises(ValueError, match="strip_rows"):
+        demo_strips.iter_demo_strips(STRIP_SHAPE, strip_rows=0)

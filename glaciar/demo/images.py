@@ -62,19 +62,7 @@ def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
     """
     from scipy.signal import fftconvolve
 
-    from ..galaxy.psf import moffat_psf
-
-    ny, nx = (int(v) for v in shape)
-    if ny < 64 or nx < 64:
-        raise ValueError(f"demo shape must be at least 64 x 64 pixels, got {shape!r}")
-    if not pixel_scale_arcsec > 0:
-        raise ValueError(f"pixel_scale_arcsec must be > 0, got {pixel_scale_arcsec!r}")
-    if n_stars < 0 or (n_galaxies is not None and n_galaxies < 0):
-        raise ValueError("n_galaxies and n_stars must be >= 0")
-    if not 0 <= source_density_arcmin2 <= _MAX_DENSITY_ARCMIN2:
-        raise ValueError(f"source_density_arcmin2 must be in [0, {_MAX_DENSITY_ARCMIN2:g}] "
-                         f"(denser fields are confusion-limited), got {source_density_arcmin2!r}")
-    shape = (ny, nx)
+    shape = _check_arguments(shape, pixel_scale_arcsec, source_density_arcmin2, n_galaxies, n_stars)
     noise_scale = _check_noise_scale(noise_scale, shape)
     streams = np.random.SeedSequence(int(seed)).spawn(1 + 2 * len(DEMO_BANDS))
     rng_pop = np.random.default_rng(streams[0])
@@ -110,33 +98,99 @@ def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
         spec = DEMO_BANDS_SPEC[b]
         rng_noise = np.random.default_rng(streams[1 + 2 * k])
         rng_poisson = np.random.default_rng(streams[2 + 2 * k])
-        psf_image = moffat_psf(spec.psf_fwhm_arcsec, pixel_scale_arcsec, beta=DEMO_MOFFAT_BETA,
-                               size=_RENDER_PSF_SIZE)
+        psf_image, kernel_1d, rms_nominal = _band_setup(b, pixel_scale_arcsec)
         model = fftconvolve(intrinsic[b], psf_image, mode="same")
-        kernel_1d = _drizzle_kernel_1d(spec.native_pixel_arcsec, spec.pixfrac, pixel_scale_arcsec)
-        kernel = np.outer(kernel_1d, kernel_1d)
-        rms_nominal = _pixel_rms_for_depth(spec, psf_image, kernel, pixel_scale_arcsec)
-        e = exposure[b]
-        has_data = e > 0
-        weight = np.zeros(shape)
-        # Scaling after the nominal expressions keeps noise_scale = 1 bit-identical to no scale.
-        weight[has_data] = e[has_data] / rms_nominal ** 2 / noise_scale[has_data] ** 2
-        rms = np.zeros(shape)
-        rms[has_data] = rms_nominal / np.sqrt(e[has_data]) * noise_scale[has_data]
-        science = model + rms * _correlated_unit_noise(rng_noise, shape, kernel_1d)
-        # Source shot noise with the local exposure time (white: a simplification).
-        shot_var = np.zeros(shape)
-        shot_var[has_data] = np.clip(model[has_data], 0.0, None) / (spec.exptime_s * e[has_data])
-        science += np.sqrt(shot_var) * rng_poisson.standard_normal(shape)
-        science[~has_data] = 0.0
-        out["science"][b] = science.astype(np.float32)
-        out["weight"][b] = weight.astype(np.float32)
+        science, weight = _band_pixels(model, exposure[b], rms_nominal, noise_scale,
+                                       _correlated_unit_noise(rng_noise, shape, kernel_1d),
+                                       rng_poisson, spec.exptime_s)
+        out["science"][b] = science
+        out["weight"][b] = weight
         out["model"][b] = model
         out["rms_nominal"][b] = float(rms_nominal)
-        out["psf"][b] = moffat_psf(spec.psf_fwhm_arcsec, spec.psf_pixel_scale_arcsec,
-                                   beta=DEMO_MOFFAT_BETA, size=spec.psf_size)
+        out["psf"][b] = _psf_file_image(b)
         out["psf_pixel_scale_arcsec"][b] = spec.psf_pixel_scale_arcsec
     return out
+
+
+def _band_setup(band: str, pixel_scale_arcsec: float):
+    """A band's rendering PSF (at the image scale), 1-D drizzle kernel and nominal pixel RMS."""
+    from ..galaxy.psf import moffat_psf
+
+    spec = DEMO_BANDS_SPEC[band]
+    psf_image = moffat_psf(spec.psf_fwhm_arcsec, pixel_scale_arcsec, beta=DEMO_MOFFAT_BETA,
+                           size=_RENDER_PSF_SIZE)
+    kernel_1d = _drizzle_kernel_1d(spec.native_pixel_arcsec, spec.pixfrac, pixel_scale_arcsec)
+    rms_nominal = _pixel_rms_for_depth(spec, psf_image, np.outer(kernel_1d, kernel_1d),
+                                       pixel_scale_arcsec)
+    return psf_image, kernel_1d, rms_nominal
+
+
+def _psf_file_image(band: str) -> np.ndarray:
+    """The PSF written to the band's PSF file (at its own pixel scale)."""
+    from ..galaxy.psf import moffat_psf
+
+    spec = DEMO_BANDS_SPEC[band]
+    return moffat_psf(spec.psf_fwhm_arcsec, spec.psf_pixel_scale_arcsec, beta=DEMO_MOFFAT_BETA,
+                      size=spec.psf_size)
+
+
+def _check_arguments(shape, pixel_scale_arcsec, source_density_arcmin2, n_galaxies,
+                     n_stars) -> tuple[int, int]:
+    """Validate :func:`make_demo_images`' arguments; the shape as a tuple of ints."""
+    ny, nx = (int(v) for v in shape)
+    if ny < 64 or nx < 64:
+        raise ValueError(f"demo shape must be at least 64 x 64 pixels, got {shape!r}")
+    if not pixel_scale_arcsec > 0:
+        raise ValueError(f"pixel_scale_arcsec must be > 0, got {pixel_scale_arcsec!r}")
+    if n_stars < 0 or (n_galaxies is not None and n_galaxies < 0):
+        raise ValueError("n_galaxies and n_stars must be >= 0")
+    if not 0 <= source_density_arcmin2 <= _MAX_DENSITY_ARCMIN2:
+        raise ValueError(f"source_density_arcmin2 must be in [0, {_MAX_DENSITY_ARCMIN2:g}] "
+                         f"(denser fields are confusion-limited), got {source_density_arcmin2!r}")
+    return ny, nx
+
+
+def _band_pixels(model: np.ndarray, exposure: np.ndarray, rms_nominal: float,
+                 noise_scale: np.ndarray, unit_noise: np.ndarray, rng_poisson: np.random.Generator,
+                 exptime_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """One band's science and weight pixels from its noiseless scene (whole image or a strip).
+
+    Parameters
+    ----------
+    model : ndarray, float64
+        Noiseless PSF-convolved scene [e-/s].
+    exposure : ndarray
+        Relative exposure (0 = no data), same shape.
+    rms_nominal : float
+        Per-pixel sky RMS at relative exposure 1 [e-/s].
+    noise_scale : ndarray
+        Sky-RMS multiplier, same shape.
+    unit_noise : ndarray
+        Unit-variance (correlated) sky noise, same shape.
+    rng_poisson : numpy.random.Generator
+        Draws the source shot noise (``model.size`` normals, row-major).
+    exptime_s : float
+        Exposure time at relative exposure 1 [s].
+
+    Returns
+    -------
+    science, weight : float32 ndarrays [e-/s], [(e-/s)^-2]; 0 where there are no data.
+    """
+    shape = model.shape
+    e = exposure
+    has_data = e > 0
+    weight = np.zeros(shape)
+    # Scaling after the nominal expressions keeps noise_scale = 1 bit-identical to no scale.
+    weight[has_data] = e[has_data] / rms_nominal ** 2 / noise_scale[has_data] ** 2
+    rms = np.zeros(shape)
+    rms[has_data] = rms_nominal / np.sqrt(e[has_data]) * noise_scale[has_data]
+    science = model + rms * unit_noise
+    # Source shot noise with the local exposure time (white: a simplification).
+    shot_var = np.zeros(shape)
+    shot_var[has_data] = np.clip(model[has_data], 0.0, None) / (exptime_s * e[has_data])
+    science += np.sqrt(shot_var) * rng_poisson.standard_normal(shape)
+    science[~has_data] = 0.0
+    return science.astype(np.float32), weight.astype(np.float32)
 
 
 def _check_noise_scale(noise_scale, shape: tuple[int, int]) -> np.ndarray:

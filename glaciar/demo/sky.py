@@ -18,10 +18,16 @@ from .bands import (DEMO_BANDS, _COLOUR_SCATTER_MAG, _COUNT_BREAK_MAG, _COUNT_SL
 _TILT_DEG = 4.0          # detector footprint tilted against the north-up drizzle grid
 
 
-def _coverage(shape: tuple[int, int]) -> np.ndarray:
-    """Fraction of the three dithered exposures covering each pixel (0, 1/3, 2/3, 1)."""
+def _coverage(shape: tuple[int, int], rows: tuple[int, int] | None = None) -> np.ndarray:
+    """Fraction of the three dithered exposures covering each pixel (0, 1/3, 2/3, 1).
+
+    ``rows = (y0, y1)`` computes only image rows ``y0 <= y < y1`` of the field of
+    ``shape`` (every pixel's value is elementwise, so a strip equals the same rows of
+    the whole map bit for bit).
+    """
     ny, nx = shape
-    yy = np.arange(ny, dtype=np.float64)[:, None] - 0.5 * (ny - 1)
+    y0, y1 = (0, ny) if rows is None else rows
+    yy = np.arange(y0, y1, dtype=np.float64)[:, None] - 0.5 * (ny - 1)
     xx = np.arange(nx, dtype=np.float64)[None, :] - 0.5 * (nx - 1)
     c, s = math.cos(math.radians(_TILT_DEG)), math.sin(math.radians(_TILT_DEG))
     dither = 0.015 * np.array([[0.0, 0.0], [1.0, 0.5], [-0.5, 1.0]]) * min(ny, nx)
@@ -29,7 +35,7 @@ def _coverage(shape: tuple[int, int]) -> np.ndarray:
     # Half sides such that every tilted exposure fits inside the image with the margin.
     half_x = (0.5 * nx - margin - np.abs(dither[:, 0]).max()) / (c + s)
     half_y = (0.5 * ny - margin - np.abs(dither[:, 1]).max()) / (c + s)
-    coverage = np.zeros(shape)
+    coverage = np.zeros((y1 - y0, nx))
     for dx, dy in dither:
         u = (xx - dx) * c + (yy - dy) * s
         v = -(xx - dx) * s + (yy - dy) * c
@@ -37,10 +43,15 @@ def _coverage(shape: tuple[int, int]) -> np.ndarray:
     return coverage / len(dither)
 
 
-def _relative_exposure(coverage: np.ndarray, band: str) -> np.ndarray:
-    """Relative exposure map of ``band`` (1 = the nominal depth; 0 = no data), deterministic."""
-    ny, nx = coverage.shape
-    yy = np.arange(ny, dtype=np.float64)[:, None] - 0.5 * (ny - 1)
+def _relative_exposure(coverage: np.ndarray, band: str, shape: tuple[int, int] | None = None,
+                       row0: int = 0) -> np.ndarray:
+    """Relative exposure map of ``band`` (1 = the nominal depth; 0 = no data), deterministic.
+
+    ``coverage`` may be the strip of rows ``row0 ...`` of a field of ``shape``
+    (:func:`_coverage` with ``rows``); the result is then the same strip of the whole map.
+    """
+    ny, nx = coverage.shape if shape is None else shape
+    yy = np.arange(row0, row0 + coverage.shape[0], dtype=np.float64)[:, None] - 0.5 * (ny - 1)
     xx = np.arange(nx, dtype=np.float64)[None, :] - 0.5 * (nx - 1)
     # Smooth exposure gradient (flat-field / pixel-area / pointing differences), +-~12 %.
     xh, yh = xx / (0.5 * nx), yy / (0.5 * ny)
@@ -84,18 +95,83 @@ def _sample_counts_magnitudes(rng: np.random.Generator, n: int) -> np.ndarray:
     return mag
 
 
-def _draw_population(rng: np.random.Generator, footprint: np.ndarray, n_galaxies: int,
+class _ArrayFootprint:
+    """The footprint's pixels in row-major order (``np.nonzero``'s), from the whole boolean map."""
+
+    def __init__(self, footprint: np.ndarray):
+        self._fy, self._fx = np.nonzero(footprint)
+        self.size = int(self._fy.size)
+        # Stars keep 3 pixels off the low edges (their PSF files are centred on a pixel).
+        self._inner = np.flatnonzero((self._fy > 2) & (self._fx > 2))
+        self.n_inner = int(self._inner.size)
+
+    def pixels(self, k):
+        """(y, x) of the footprint pixels of row-major ranks ``k``."""
+        return self._fy[k], self._fx[k]
+
+    def inner_pixels(self, j):
+        """(y, x) of the inner (y > 2 and x > 2) footprint pixels of ranks ``j`` among those."""
+        return self.pixels(self._inner[j])
+
+
+class _RowFootprint:
+    """As :class:`_ArrayFootprint` without ever holding the whole map.
+
+    ``rows(y0, y1)`` returns the footprint's rows ``y0 <= y < y1`` (bool); the
+    per-row pixel counts are taken once, strip by strip, and a rank is located
+    by its row (cumulative counts) and recomputing that row: the same pixels as
+    ``np.nonzero`` of the whole map, so the population drawn from it is the same.
+    """
+
+    def __init__(self, rows, ny: int, strip_rows: int):
+        self._rows, self._ny, self._strip = rows, int(ny), int(strip_rows)
+        counts, inner = np.zeros(ny, np.int64), np.zeros(ny, np.int64)
+        for y0 in range(0, ny, self._strip):
+            m = rows(y0, min(y0 + self._strip, ny))
+            counts[y0:y0 + m.shape[0]] = m.sum(axis=1)
+            inner[y0:y0 + m.shape[0]] = m[:, 3:].sum(axis=1)
+        inner[:3] = 0
+        self._cum, self._cum_inner = np.cumsum(counts), np.cumsum(inner)
+        self.size = int(self._cum[-1]) if ny else 0
+        self.n_inner = int(self._cum_inner[-1]) if ny else 0
+
+    def _locate(self, k, cum, first_col: int):
+        k = np.asarray(k, dtype=np.int64)
+        y = np.searchsorted(cum, k, side="right")
+        offset = k - np.concatenate([[0], cum])[y]
+        x = np.zeros(k.shape, dtype=np.int64)
+        for y0 in np.unique(y // self._strip) * self._strip:
+            in_strip = (y >= y0) & (y < y0 + self._strip)
+            m = self._rows(int(y0), min(int(y0) + self._strip, self._ny))
+            for yy in np.unique(y[in_strip]):
+                sel = y == yy
+                cols = np.flatnonzero(m[yy - y0])
+                x[sel] = cols[cols >= first_col][offset[sel]]
+        return y, x
+
+    def pixels(self, k):
+        return self._locate(k, self._cum, 0)
+
+    def inner_pixels(self, j):
+        return self._locate(j, self._cum_inner, 3)
+
+
+def _draw_population(rng: np.random.Generator, footprint, n_galaxies: int,
                      n_stars: int, pixel_scale_arcsec: float):
-    """Catalogue of the injected real population (galaxies first, then stars)."""
+    """Catalogue of the injected real population (galaxies first, then stars).
+
+    ``footprint``: the boolean map, or a :class:`_RowFootprint` (same draws, same catalogue).
+    """
     from astropy.table import Table
 
-    fy, fx = np.nonzero(footprint)
-    if fy.size == 0:
+    fp = footprint if hasattr(footprint, "pixels") else _ArrayFootprint(footprint)
+    if fp.size == 0:
         raise ValueError("demo field has an empty footprint; use a larger shape")
     # Galaxies: uniform inside the footprint, continuous sub-pixel positions.
-    pick = rng.integers(0, fy.size, size=n_galaxies)
-    gx = fx[pick] + rng.uniform(-0.5, 0.5, size=n_galaxies)
-    gy = fy[pick] + rng.uniform(-0.5, 0.5, size=n_galaxies)
+    pick = rng.integers(0, fp.size, size=n_galaxies)
+    py, px = fp.pixels(pick)
+    gx = px + rng.uniform(-0.5, 0.5, size=n_galaxies)
+    gy = py + rng.uniform(-0.5, 0.5, size=n_galaxies)
     mag_h = _sample_counts_magnitudes(rng, n_galaxies)
     fractions = np.array([t[1] for t in _SED_TYPES])
     sed = rng.choice(len(_SED_TYPES), size=n_galaxies, p=fractions / fractions.sum())
@@ -121,9 +197,10 @@ def _draw_population(rng: np.random.Generator, footprint: np.ndarray, n_galaxies
 
     # Stars: on pixel centres (so a star is exactly the PSF sampled on the grid), the first
     # two bright, the rest faint; colours of G-M dwarfs.
-    keep = np.flatnonzero((fy > 2) & (fx > 2))
-    pick = rng.choice(keep, size=n_stars, replace=False) if n_stars else np.zeros(0, int)
-    sx, sy = fx[pick].astype(float), fy[pick].astype(float)
+    # (rng.choice of the n_inner ranks draws what rng.choice of the array of them draws.)
+    pick = rng.choice(fp.n_inner, size=n_stars, replace=False) if n_stars else np.zeros(0, int)
+    sy, sx = fp.inner_pixels(pick)
+    sx, sy = sx.astype(float), sy.astype(float)
     n_bright = min(2, n_stars)
     star_h = np.concatenate([rng.uniform(18.0, 19.5, n_bright), rng.uniform(20.0, 24.5, n_stars - n_bright)])
     v_minus_h = rng.uniform(0.6, 2.5, n_stars)

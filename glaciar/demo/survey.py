@@ -1,11 +1,17 @@
 """The demo survey on disk: FITS images, PSF files and a configuration.
 
-:func:`build_demo_survey` writes what :func:`~glaciar.demo.images.make_demo_images` builds.
+:func:`build_demo_survey` writes what :func:`~glaciar.demo.images.make_demo_images` builds;
+above ``strips.STRIP_MIN_PIXELS`` it streams the same field strip by strip
+(:func:`~glaciar.demo.strips.iter_demo_strips`) into the FITS files, so a 16000^2
+survey is written with bounded memory.
 """
 from __future__ import annotations
 
 import io
 import math
+import os
+import tempfile
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +19,7 @@ import numpy as np
 from .bands import (DEMO_BANDS, DEMO_BANDS_SPEC, DEMO_CONFIG_NAME, DEMO_FIELD, DEMO_MOFFAT_BETA,
                     DEMO_PIXEL_SCALE_ARCSEC, _CRVAL_DEG)
 from .images import make_demo_images
+from . import strips as _strips
 
 
 def _image_header(shape: tuple[int, int], band: str, pixel_scale_arcsec: float, kind: str,
@@ -59,6 +66,85 @@ def _fits_bytes(data: np.ndarray, header) -> bytes:
     buf = io.BytesIO()
     fits.PrimaryHDU(data=data, header=header).writeto(buf)
     return buf.getvalue()
+
+
+def _stream_header(shape: tuple[int, int], header):
+    """The primary header :func:`_fits_bytes` writes for float32 data of ``shape``, without the data."""
+    from astropy.io import fits
+
+    ny, nx = shape
+    h = fits.PrimaryHDU(data=np.zeros((1, 1), np.float32), header=header).header
+    h["NAXIS1"], h["NAXIS2"] = int(nx), int(ny)
+    return h
+
+
+class _FitsRowWriter:
+    """A float32 primary-HDU FITS file written by strips of rows, then renamed into place.
+
+    ``write(rows)`` appends rows (top to bottom, as the image is stored); ``commit()``
+    after the last row makes the file appear at ``path`` (atomic rename; the same bytes
+    as :func:`_fits_bytes` of the whole image); ``discard()`` removes the temporary file.
+    """
+
+    def __init__(self, path: Path, shape: tuple[int, int], header):
+        from astropy.io import fits
+
+        from ..store import _umask
+
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, self._tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp",
+                                         dir=self.path.parent)
+        os.close(fd)                 # an empty file: StreamingHDU writes it as a new one
+        os.chmod(self._tmp, 0o666 & ~_umask())
+        self._hdu = fits.StreamingHDU(self._tmp, _stream_header(shape, header))
+        self._done = False
+
+    def write(self, rows: np.ndarray) -> None:
+        self._hdu.write(np.ascontiguousarray(rows, dtype=np.float32))
+
+    def commit(self) -> None:
+        self._hdu.close()
+        with open(self._tmp, "rb") as fh:
+            os.fsync(fh.fileno())
+        os.replace(self._tmp, self.path)
+        self._done = True
+
+    def discard(self) -> None:
+        if self._done:
+            return
+        try:
+            self._hdu.close()
+        except Exception:            # incomplete data: astropy complains; the file goes anyway
+            pass
+        try:
+            os.unlink(self._tmp)
+        except FileNotFoundError:
+            pass
+
+
+def _write_images_by_strips(out_dir: Path, field: str, shape, seed, source_density_arcmin2,
+                            n_stars, noise_scale) -> dict:
+    """Stream the demo images into their FITS files; returns :func:`iter_demo_strips`' info."""
+    info, strips = _strips.iter_demo_strips(shape, seed=seed,
+                                            source_density_arcmin2=source_density_arcmin2,
+                                            n_stars=n_stars, field=field, noise_scale=noise_scale)
+    shape = tuple(int(v) for v in shape)
+    writers = {}
+    with ExitStack() as stack:
+        for b in DEMO_BANDS:
+            for kind, name in (("science", "drz"), ("weight", "wht")):
+                w = _FitsRowWriter(out_dir / "images" / f"{field}_{b}_{name}.fits", shape,
+                                   _image_header(shape, b, DEMO_PIXEL_SCALE_ARCSEC, kind, field))
+                writers[kind, b] = w
+                stack.callback(w.discard)
+        for _, _, science, weight in strips:
+            for b in DEMO_BANDS:
+                writers["science", b].write(science[b])
+                writers["weight", b].write(weight[b])
+        for w in writers.values():
+            w.commit()
+    return info
 
 
 def _config_dumper():
@@ -133,16 +219,23 @@ def build_demo_survey(out_dir, *, shape: tuple[int, int] = (1000, 1000), seed: i
     if int(n_galaxies) < 1 or int(n_iterations) < 1:
         raise ValueError(f"n_galaxies and n_iterations must be >= 1, got {n_galaxies}, {n_iterations}")
     out_dir = Path(out_dir)
-    demo = make_demo_images(shape, seed=seed, source_density_arcmin2=source_density_arcmin2,
-                            n_stars=n_stars, field=field, noise_scale=noise_scale)
-    image_shape = demo["science"][DEMO_BANDS[0]].shape
-
+    image_shape = tuple(int(v) for v in shape)
+    if image_shape[0] * image_shape[1] > _strips.STRIP_MIN_PIXELS:
+        # Large mosaics: the same field streamed by strips (bounded memory; equal to the
+        # whole-image one up to FFT rounding, see glaciar.demo.strips).
+        demo = _write_images_by_strips(out_dir, field, image_shape, seed, source_density_arcmin2,
+                                       n_stars, noise_scale)
+    else:
+        demo = make_demo_images(shape, seed=seed, source_density_arcmin2=source_density_arcmin2,
+                                n_stars=n_stars, field=field, noise_scale=noise_scale)
+        image_shape = demo["science"][DEMO_BANDS[0]].shape
+        for b in DEMO_BANDS:
+            for kind, name in (("science", "drz"), ("weight", "wht")):
+                atomic_write_bytes(out_dir / "images" / f"{field}_{b}_{name}.fits",
+                                   _fits_bytes(demo[kind][b],
+                                               _image_header(image_shape, b, DEMO_PIXEL_SCALE_ARCSEC,
+                                                             kind, field)))
     for b in DEMO_BANDS:
-        for kind, name in (("science", "drz"), ("weight", "wht")):
-            atomic_write_bytes(out_dir / "images" / f"{field}_{b}_{name}.fits",
-                               _fits_bytes(demo[kind][b], _image_header(image_shape, b,
-                                                                        DEMO_PIXEL_SCALE_ARCSEC, kind,
-                                                                        field)))
         ph = fits.Header()
         ph["PIXSCALE"] = (demo["psf_pixel_scale_arcsec"][b], "[arcsec/pixel]")
         ph["FILTER"] = b.upper()

@@ -78,23 +78,32 @@ def disk_pixel_weights(radius_pix: float) -> np.ndarray:
     return np.clip(w, 0.0, 1.0)
 
 
+#: Pixels per row tile of :func:`local_depth_map` (~60 bytes of work arrays per tile pixel).
+DEPTH_TILE_PIXELS = 1 << 21
+#: Largest aperture footprint [pixels of the weight array] summed directly; larger ones by FFT.
+_DIRECT_MAX_TAPS = 441
+
+
 def local_depth_map(rms, valid, zeropoint: float, aperture_radius_pix: float,
-                    nsigma: float = C.DEPTH_NSIGMA) -> np.ndarray:
+                    nsigma: float = C.DEPTH_NSIGMA, tile_rows: int | None = None) -> np.ndarray:
     """Limiting magnitude in a circular aperture centred on every pixel.
 
     Parameters
     ----------
     rms : ndarray, shape (ny, nx)
         Per-pixel noise RMS [image units]; read only where ``valid`` (it may be
-        inf or NaN elsewhere).
-    valid : ndarray of bool, shape (ny, nx)
-        The footprint: pixels with data and a finite, positive RMS.
+        inf or NaN elsewhere).  Any float dtype; read by row tiles (a memory map is fine).
+    valid : ndarray of bool, shape (ny, nx), or None
+        The footprint: pixels with data and a finite, positive RMS.  None: the
+        pixels whose ``rms`` is finite and > 0.
     zeropoint : float
         AB zeropoint of the image units [mag].
     aperture_radius_pix : float
         Aperture radius [pixels].
     nsigma : float
         The limit is ``nsigma`` times the aperture noise.
+    tile_rows : int, optional
+        Rows per tile (default: :data:`DEPTH_TILE_PIXELS` / nx, at least 1).
 
     Returns
     -------
@@ -102,32 +111,69 @@ def local_depth_map(rms, valid, zeropoint: float, aperture_radius_pix: float,
         ``zeropoint - 2.5 log10(nsigma * sigma_ap)`` [AB mag], with
         ``sigma_ap^2 = (sum of the aperture weights) x (weighted mean of rms^2
         over the valid pixels in the aperture)``; NaN where not ``valid``.
-        Both weighted sums are FFT convolutions; their relative rounding error
-        is ~1e-13 of the largest rms^2 in the image.
-    """
-    from scipy.signal import fftconvolve
 
-    rms = np.asarray(rms, dtype=np.float64)
-    valid = np.asarray(valid, dtype=bool)
-    if rms.shape != valid.shape or rms.ndim != 2:
-        raise ValueError(f"rms and valid must be 2-D arrays of one shape, got {rms.shape} and {valid.shape}")
+    Notes
+    -----
+    The two weighted sums are taken by row tiles that carry the aperture's
+    half-width ``h`` of rows beyond them (zero beyond the image edge: no data),
+    so memory is bounded by the tile, not the image.  For apertures of up to
+    :data:`_DIRECT_MAX_TAPS` weights (radius <= 10 pixels) each pixel's sums are
+    direct float64 sums of its own (2h + 1)^2 products, in one order: the map is
+    the same bit for bit whatever the tiling, with relative rounding ~1e-15.
+    Larger apertures are summed by FFT per tile (relative rounding ~1e-13 of the
+    largest rms^2 of the tile).
+    """
+    rms_in = rms if hasattr(rms, "shape") else np.asarray(rms)
+    valid_in = None if valid is None else (valid if hasattr(valid, "shape") else np.asarray(valid))
+    if rms_in.ndim != 2 or (valid_in is not None and valid_in.shape != rms_in.shape):
+        raise ValueError(f"rms and valid must be 2-D arrays of one shape, got {rms_in.shape} and "
+                         f"{None if valid_in is None else valid_in.shape}")
     if not (float(nsigma) > 0 and math.isfinite(float(zeropoint))):
         raise ValueError(f"need nsigma > 0 and a finite zeropoint, got {nsigma!r}, {zeropoint!r}")
-    bad = valid & ~(np.isfinite(rms) & (rms > 0))
-    if bad.any():
-        raise ValueError(f"{int(bad.sum())} valid pixels have a non-finite or non-positive rms")
     w = disk_pixel_weights(aperture_radius_pix)
-    depth = np.full(rms.shape, np.nan, dtype=np.float32)
-    if not valid.any():
-        return depth
-    var = np.where(valid, rms * rms, 0.0)
-    # Zero padding beyond the image edge counts as "no data", like the mask.
-    num = fftconvolve(var, w, mode="same")
-    den = fftconvolve(valid.astype(np.float64), w, mode="same")
-    # A valid pixel has den >= its own weight (1 for r >= 1/sqrt(2)), far above FFT rounding.
-    sigma2 = w.sum() * num[valid] / den[valid]
-    depth[valid] = zeropoint - 2.5 * np.log10(float(nsigma) * np.sqrt(sigma2))
+    h = w.shape[0] // 2
+    ny, nx = rms_in.shape
+    rows = max(1, DEPTH_TILE_PIXELS // max(nx, 1)) if tile_rows is None else int(tile_rows)
+    if rows < 1:
+        raise ValueError(f"tile_rows must be >= 1, got {tile_rows!r}")
+    depth = np.full((ny, nx), np.nan, dtype=np.float32)
+    w_sum, n_bad = w.sum(), 0
+    for y0 in range(0, ny, rows):
+        y1 = min(y0 + rows, ny)
+        a, b = max(y0 - h, 0), min(y1 + h, ny)
+        r = np.asarray(rms_in[a:b], dtype=np.float64)
+        ok = np.isfinite(r) & (r > 0)
+        v = ok if valid_in is None else np.asarray(valid_in[a:b], dtype=bool)
+        inner = slice(y0 - a, y1 - a)
+        n_bad += int(np.count_nonzero(v[inner] & ~ok[inner]))
+        if n_bad or not v[inner].any():
+            continue
+        var = np.where(v, r * r, 0.0)
+        num = _aperture_sum(var, w)[inner]
+        den = _aperture_sum(v.astype(np.float64), w)[inner]
+        vi = v[inner]
+        # A valid pixel has den >= its own weight (1 for r >= 1/sqrt(2)), far above rounding.
+        sigma2 = w_sum * num[vi] / den[vi]
+        tile = depth[y0:y1]
+        tile[vi] = zeropoint - 2.5 * np.log10(float(nsigma) * np.sqrt(sigma2))
+    if n_bad:
+        raise ValueError(f"{n_bad} valid pixels have a non-finite or non-positive rms")
     return depth
+
+
+def _aperture_sum(values: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``sum_k w_k values[p + k]`` at every pixel p (w centred), zero beyond the array.
+
+    Beyond the array is the image edge, or rows of a tile's halo whose own sums are not used.
+    """
+    if w.size <= _DIRECT_MAX_TAPS:
+        from scipy.ndimage import correlate
+
+        return correlate(values, w, mode="constant", cval=0.0)
+    from scipy.signal import fftconvolve
+
+    # The disk is symmetric: convolution = correlation.
+    return fftconvolve(values, w, mode="same")
 
 
 def depth_area_histogram(depth_map, pixel_scale_arcsec: float,

@@ -450,23 +450,35 @@ def measure_background(image, mask, params: DetectionParams):
         raise DetectionError(f"sep background estimation failed: {exc}") from exc
 
 
+#: First size of sep's pixel stack [pixels] (see :func:`_sep_extract`): images up to
+#: ~2000^2 get their whole area at once, as before; larger ones a stack this big first.
+PIXSTACK_START = 1 << 22
+
+
 def _sep_extract(data, err, nodata, params: DetectionParams, clean: bool):
     """sep.extract on sanitized float32 arrays, with limits raised and errors wrapped."""
     # The pixel stack must hold every pixel of the open objects; it cannot exceed
     # the image area.  sep initialises the whole stack on every call, so a stack
-    # much larger than the image costs time.
-    sep.set_extract_pixstack(int(max(data.size + 1024, 4096)))
-    sep.set_sub_object_limit(int(params.sub_object_limit))
-    try:
-        cat, seg = sep.extract(
-            data, float(params.detect_thresh), err=err, mask=nodata,
-            minarea=int(params.detect_minarea),
-            filter_kernel=params.filter_kernel, filter_type=params.filter_type,
-            deblend_nthresh=int(params.deblend_nthresh), deblend_cont=float(params.deblend_mincont),
-            clean=bool(clean), clean_param=float(params.clean_param), segmentation_map=True)
-    except Exception as exc:
-        raise DetectionError(f"sep extraction failed: {exc}") from exc
-    return cat, seg.astype(np.int32, copy=False)
+    # much larger than the image costs time, and on a large mosaic memory (~26 bytes
+    # per stack pixel): it starts at PIXSTACK_START pixels and only a full stack
+    # (sep's error, nothing returned) retries with the image area.  The stack is a
+    # buffer: the result does not depend on its size.
+    full = int(max(data.size + 1024, 4096))
+    for stack in dict.fromkeys((min(full, PIXSTACK_START), full)):
+        sep.set_extract_pixstack(stack)
+        sep.set_sub_object_limit(int(params.sub_object_limit))
+        try:
+            cat, seg = sep.extract(
+                data, float(params.detect_thresh), err=err, mask=nodata,
+                minarea=int(params.detect_minarea),
+                filter_kernel=params.filter_kernel, filter_type=params.filter_type,
+                deblend_nthresh=int(params.deblend_nthresh), deblend_cont=float(params.deblend_mincont),
+                clean=bool(clean), clean_param=float(params.clean_param), segmentation_map=True)
+        except Exception as exc:
+            if stack < full and "pixel buffer full" in str(exc):
+                continue
+            raise DetectionError(f"sep extraction failed: {exc}") from exc
+        return cat, seg.astype(np.int32, copy=False)
 
 
 def extract(image_sub, err, params: DetectionParams, mask=None):

@@ -108,6 +108,15 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         ``params.phot_autoparams``; neighbours masked).
     """
     backend = params.backend if backend is None else backend
+    if backend == "sep" and params.clean_style != "region":
+        # sanitize is idempotent, so the segmentation may sanitize the inputs itself: the
+        # copies the photometry needs are made after its full-frame peak, not during it.
+        prod = sep_segmentation(det_image_sub, det_rms, params, mask=mask)
+        cat = prod.cat[np.flatnonzero(prod.owner == np.arange(len(prod.owner)))] if len(prod.cat) else prod.cat
+        data, err, nodata = sanitize(det_image_sub, det_rms, mask)
+        geo = {f: np.asarray(getattr(prod, f), dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}
+        return _reference_photometry(data, err, nodata, prod.seg, geo, params, zeropoint, mask, photometry,
+                                     cat, prod)
     data, err, nodata = sanitize(det_image_sub, det_rms, mask)
     if backend == "sep" and params.clean_style == "region":
         # CLEAN within regions: the reference is a plain full-frame sep run with
@@ -115,10 +124,7 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         cat, seg = _sep_extract(data, detection_rms(err, nodata, params), nodata, params, params.clean)
         geo = {f: np.asarray(cat[f], dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}
         return _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, photometry, cat, None)
-    if backend == "sep":
-        prod = sep_segmentation(data, err, params, mask=nodata)
-        cat = prod.cat[np.flatnonzero(prod.owner == np.arange(len(prod.owner)))] if len(prod.cat) else prod.cat
-    elif backend == "source-extractor":
+    if backend == "source-extractor":
         from glaciar.engine.sextractor_backend import sextractor_segmentation
         prod = sextractor_segmentation(data, err, params, mask=nodata)
         cat = None
@@ -147,18 +153,42 @@ def _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, 
     return FieldReference(seg, flux, mag, cat, prod, ObjectBoxes.build(region_box, need_box, seg.shape))
 
 
+#: Pixels per row tile of the reference's full-frame mask work (:func:`_reference_boxes`).
+REFERENCE_TILE_PIXELS = 1 << 22
+
+
+def _row_tiles(shape, halo: int):
+    """(y0, y1, a, b): row tiles [y0, y1) of ``REFERENCE_TILE_PIXELS`` and their rows [a, b)
+    with ``halo`` more rows on each side inside the image."""
+    ny, nx = shape
+    rows = max(1, REFERENCE_TILE_PIXELS // max(nx, 1))
+    for y0 in range(0, ny, rows):
+        y1 = min(y0 + rows, ny)
+        yield y0, y1, max(y0 - halo, 0), min(y1 + halo, ny)
+
+
 def _reference_boxes(data, err, nodata, seg, geo, a, b, th, scale, params):
     """Region box and Kron/AUTO-widened box of every original object (see :class:`FieldReference`)."""
     n = geo["x"].size
-    dmask = _clean.detection_mask(np.asarray(data, dtype=np.float32), detection_rms(err, nodata, params),
-                                  nodata, params)[0] | (seg > 0)
+    # sep's detection mask or the segmentation, by row tiles: the filter (and the filtered
+    # rms) reads the kernel's half-height of rows around a pixel, so a tile with that halo
+    # gives its rows' mask bit for bit, without full-frame filtered images.
+    dmask = np.empty(seg.shape, dtype=bool)
+    for y0, y1, ya, yb in _row_tiles(seg.shape, params.filter_halfwidth):
+        d, e, nd = np.asarray(data[ya:yb], dtype=np.float32), err[ya:yb], nodata[ya:yb]
+        m = _clean.detection_mask(d, detection_rms(e, nd, params), nd, params)[0]
+        np.logical_or(m[y0 - ya:y1 - ya], seg[y0:y1] > 0, out=dmask[y0:y1])
     comp, ncomp = ndimage.label(dmask, structure=np.ones((3, 3), dtype=bool))
+    del dmask
     cb = np.zeros((ncomp + 1, 4), dtype=np.int64)
     for c, sl in enumerate(ndimage.find_objects(comp), start=1):
         cb[c] = (sl[0].start, sl[0].stop, sl[1].start, sl[1].stop)
-    pix = np.flatnonzero(seg)
     obj_comp = np.zeros(n + 1, dtype=np.int64)
-    obj_comp[seg.ravel()[pix]] = comp.ravel()[pix]
+    # Row-major, tile by tile: the same assignments in the same order as over the flat image.
+    for y0, y1, _, _ in _row_tiles(seg.shape, 0):
+        s, c = seg[y0:y1], comp[y0:y1]
+        on = s > 0
+        obj_comp[s[on]] = c[on]
     region = cb[obj_comp[1:]]
     need = region.copy()
     for r in (np.full(n, 6.0), np.nan_to_num(scale, nan=0.0)):    # the boxes _analyse checks

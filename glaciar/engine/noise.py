@@ -32,7 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["weight_rescale_factor", "empty_aperture_scatter", "empty_sky_distance", "CorrelatedNoise",
+__all__ = ["weight_rescale_factor", "empty_aperture_scatter", "empty_sky_distance", "distance_cap",
+           "CorrelatedNoise",
            "DEFAULT_EMPTY_APERTURE_RADII_PIX", "MIN_EMPTY_APERTURES"]
 
 #: Radii of the empty apertures [pixels]: from ~3 pixels (the scale of a
@@ -96,16 +97,81 @@ def _robust_sigma(x: np.ndarray) -> float:
     return float(sigma)
 
 
-def empty_sky_distance(usable: np.ndarray) -> np.ndarray:
+#: Pixels per row tile of :func:`empty_sky_distance` with a ``cap`` (~35 bytes of work per pixel).
+DISTANCE_TILE_PIXELS = 1 << 22
+
+
+def empty_sky_distance(usable: np.ndarray, cap: float | None = None,
+                       tile_rows: int | None = None) -> np.ndarray:
     """Distance [pixels] of every pixel to the nearest unusable one (outside the image counts).
 
     The ``distance`` argument of :func:`empty_aperture_scatter`: bands of a field
     that share one ``usable`` mask can share it (one Euclidean distance transform,
     the costliest full-frame step, per field instead of per band).
+
+    Parameters
+    ----------
+    usable : ndarray of bool, shape (ny, nx)
+    cap : float, optional
+        Return ``min(distance, cap)``, computed by row tiles that carry
+        ``ceil(cap) + 1`` rows beyond them: a pixel within ``cap`` of an unusable
+        pixel has it inside its tile, so its distance is the whole-image one bit
+        for bit, and a farther pixel's is > ``cap`` in its tile too.  Memory is
+        bounded by the tile (the whole-image transform takes ~33 bytes per pixel)
+        besides the float64 result.  None: the whole image at once, uncapped.
+    tile_rows : int, optional
+        Rows per tile with a ``cap`` (default :data:`DISTANCE_TILE_PIXELS` / nx).
+
+    Returns
+    -------
+    ndarray, float64, shape (ny, nx)
     """
     usable = np.asarray(usable, dtype=bool)
-    # Outside the image counts as unusable: pad before the distance transform.
-    return ndimage.distance_transform_edt(np.pad(usable, 1))[1:-1, 1:-1]
+    if cap is None:
+        # Outside the image counts as unusable: pad before the distance transform.
+        return ndimage.distance_transform_edt(np.pad(usable, 1))[1:-1, 1:-1]
+    if not float(cap) > 0:
+        raise ValueError(f"distance cap must be > 0 pixels, got {cap!r}")
+    ny, nx = usable.shape
+    rows = max(1, DISTANCE_TILE_PIXELS // max(nx, 1)) if tile_rows is None else int(tile_rows)
+    if rows < 1:
+        raise ValueError(f"tile_rows must be >= 1, got {tile_rows!r}")
+    halo = int(np.ceil(float(cap))) + 1
+    out = np.empty((ny, nx))
+    for y0 in range(0, ny, rows):
+        y1 = min(y0 + rows, ny)
+        a, b = max(y0 - halo, 0), min(y1 + halo, ny)
+        # Unusable border only where the tile meets the image's edge (and at both sides).
+        top, bottom = int(a == 0), int(b == ny)
+        d = ndimage.distance_transform_edt(np.pad(usable[a:b], ((top, bottom), (1, 1))))
+        np.minimum(d[top + y0 - a:top + y1 - a, 1:-1], float(cap), out=out[y0:y1])
+    return out
+
+
+#: Elements per chunk of :func:`_indices_beyond` and :func:`_keep_beyond`.
+_CHUNK = 1 << 22
+
+
+def _indices_beyond(flat_dist: np.ndarray, limit: float, dtype) -> np.ndarray:
+    """``np.flatnonzero(flat_dist > limit)`` as ``dtype``, by chunks (no full-frame temporaries)."""
+    parts = [(np.flatnonzero(flat_dist[s:s + _CHUNK] > limit) + s).astype(dtype)
+             for s in range(0, flat_dist.size, _CHUNK)]
+    return np.concatenate(parts) if parts else np.empty(0, dtype)
+
+
+def _keep_beyond(flat_dist: np.ndarray, among: np.ndarray, limit: float) -> np.ndarray:
+    """``among[flat_dist[among] > limit]`` (order kept), by chunks."""
+    parts = [c[flat_dist[c] > limit] for c in (among[s:s + _CHUNK] for s in range(0, among.size, _CHUNK))]
+    return np.concatenate(parts) if parts else among[:0]
+
+
+def distance_cap(radii_pix) -> float:
+    """Smallest :func:`empty_sky_distance` cap that leaves :func:`empty_aperture_scatter` exact.
+
+    An aperture of radius r needs distance > r + 1; any cap above the largest r + 1
+    keeps every comparison the uncapped distance would make.
+    """
+    return max(float(r) for r in radii_pix) + 2.0
 
 
 def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarray,
@@ -131,7 +197,8 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
     rng : numpy.random.Generator
         Source of the aperture positions (deterministic for a seed).
     distance : ndarray, optional
-        :func:`empty_sky_distance` of this ``usable`` mask, if already computed.
+        :func:`empty_sky_distance` of this ``usable`` mask, if already computed
+        (capped at no less than :func:`distance_cap` of ``radii_pix``).
 
     Returns
     -------
@@ -157,22 +224,28 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
     rng = np.random.default_rng() if rng is None else rng
     usable = np.asarray(usable, dtype=bool)
     image, rms = np.asarray(image), np.asarray(rms)
-    dist = empty_sky_distance(usable) if distance is None else np.asarray(distance)
+    radii = [float(r) for r in radii_pix]
+    if distance is None:
+        distance = empty_sky_distance(usable, cap=distance_cap(radii)) if radii else \
+            np.zeros(usable.shape)
+    dist = np.asarray(distance)
     if dist.shape != usable.shape:
         raise ValueError(f"distance has shape {dist.shape}, usable {usable.shape}")
     nx = usable.shape[1]
     flat_dist = dist.reshape(-1)
-    radii = [float(r) for r in radii_pix]
     # Candidate centres (flat indices, ascending) for the smallest radius; every larger
     # radius keeps a subset of them, in the same order: one full-frame pass, not one per radius.
-    candidates = np.flatnonzero(flat_dist > min(radii) + 1.0) if radii else np.empty(0, np.intp)
+    # Chunked, and int32 where the image allows it: no full-frame temporaries (same indices).
+    index_dtype = np.int32 if flat_dist.size < 2 ** 31 else np.int64
+    candidates = _indices_beyond(flat_dist, min(radii) + 1.0, index_dtype) if radii else \
+        np.empty(0, index_dtype)
     out_n, out_r, out_k = [], [], []
     for r in radii:
         k = int(np.ceil(r))
         dy, dx = np.mgrid[-k:k + 1, -k:k + 1]
         inside = dy ** 2 + dx ** 2 < r * r
         dy, dx = dy[inside], dx[inside]
-        centres = candidates[flat_dist[candidates] > r + 1.0]
+        centres = _keep_beyond(flat_dist, candidates, r + 1.0)
         if centres.size < MIN_EMPTY_APERTURES:
             continue
         pick = rng.choice(centres.size, size=min(n_per_radius, centres.size), replace=False)
