@@ -341,6 +341,36 @@ def open_field_context(cfg: Config, survey: Survey, field: str, path) -> FieldCo
     return FieldContext(**settings, **items, _trimmer=fieldcache.Trimmer(maps))
 
 
+def _cache_items(ctx: FieldContext) -> dict:
+    """A context's measured fields as its cache stores them.
+
+    When the field's mapped arrays exceed a worker's resident budget
+    (:data:`glaciar.engine.fieldcache.RESIDENT_BUDGET_BYTES`: their pages will be
+    dropped and faulted in again during the run), the images the engine reads by
+    window (images, RMS maps, mask, reference segmentation) are stored as tiles: a window then faults
+    in the tiles under it rather than a file block per row (benchmarks/window_reads.py).
+    Smaller fields stay row-major (their pages stay resident, a plain slice is cheapest).
+    """
+    items = ctx.measured()
+    arrays = [a for a in (*ctx.bases.values(), *ctx.rms.values(), ctx.mask, ctx.footprint,
+                          ctx.depth, getattr(ctx.reference, "segmap", None),
+                          ctx.detection_image_rms, ctx.detection_background)
+              if isinstance(a, np.ndarray)]
+    if sum(a.nbytes for a in arrays) <= fieldcache.RESIDENT_BUDGET_BYTES:
+        return items
+
+    def tiled(a):
+        return fieldcache.Tiled(a) if isinstance(a, np.ndarray) and a.ndim == 2 else a
+
+    items["bases"] = {b: tiled(a) for b, a in ctx.bases.items()}
+    items["rms"] = {b: tiled(a) for b, a in ctx.rms.items()}
+    items["mask"] = tiled(ctx.mask)
+    items["detection_image_rms"] = tiled(ctx.detection_image_rms)
+    if isinstance(getattr(ctx.reference, "segmap", None), np.ndarray):
+        items["reference"] = dataclasses.replace(ctx.reference, segmap=tiled(ctx.reference.segmap))
+    return items
+
+
 def save_field_context(ctx: FieldContext, path) -> FieldContext:
     """Write a context's measured fields to ``path`` (unless a cache is there already) and
     return the context with them memory-mapped from it (the in-memory arrays can go).
@@ -351,7 +381,7 @@ def save_field_context(ctx: FieldContext, path) -> FieldContext:
     """
     try:
         if not fieldcache.exists(path):
-            fieldcache.save(ctx.measured(), path)
+            fieldcache.save(_cache_items(ctx), path)
         items, maps = fieldcache.load(path)
     except OSError as exc:
         warnings.warn(f"{path}: field cache not written ({exc}); the field's arrays stay in "

@@ -157,6 +157,69 @@ def test_opened_context_equals_the_built_one(small_survey, tmp_path, monkeypatch
         assert_same_outputs(run_task(mapped, spec, 3), want, "mapped")
 
 
+def test_tiled_context_gives_the_same_rows(small_survey, tmp_path, monkeypatch, assert_same_outputs):
+    """A field whose maps exceed the resident budget is cached as tiles: same arrays, same rows
+    (windowed and full-frame detection)."""
+    from glaciar.engine.task import TaskSpec, run_task
+
+    monkeypatch.setattr(fieldcache, "RESIDENT_BUDGET_BYTES", 0)
+    monkeypatch.setattr(fieldcache, "MMAP_MIN_BYTES", 1)
+    cfg = load_config(small_survey)
+    survey = Survey.from_config(cfg)
+    field = cfg.survey.fields[0]
+    built = run.build_field_context(cfg, survey, field)
+    tiled = run.save_field_context(built, tmp_path / "ctx")
+    det = cfg.survey.detection_band
+    assert isinstance(tiled.bases[det], fieldcache.TiledArray)
+    assert isinstance(tiled.reference.segmap, fieldcache.TiledArray)
+    assert isinstance(tiled.mask, fieldcache.TiledArray)
+    assert isinstance(tiled.depth, np.memmap)         # read at points only: row-major
+    for b in built.bands:
+        np.testing.assert_array_equal(np.asarray(tiled.bases[b]), built.bases[b])
+        np.testing.assert_array_equal(np.asarray(tiled.rms[b]), built.rms[b])
+    np.testing.assert_array_equal(np.asarray(tiled.reference.segmap), built.reference.segmap)
+    for it, mode in ((0, "windowed"), (1, "windowed"), (0, "full")):
+        spec = TaskSpec(field=field, field_index=0, z_index=0, mag_index=0, iteration=it,
+                        z=8.0, mag=26.0)
+        assert_same_outputs(run_task(tiled, spec, 3, mode=mode), run_task(built, spec, 3, mode=mode),
+                            f"tiled {mode}")
+
+
+@pytest.mark.parametrize("shape,tile", [((300, 257), 128), ((128, 128), 128), ((1, 5), 16),
+                                        ((37, 1), 8)])
+def test_tiled_array_indexes_like_the_array(tmp_path, shape, tile):
+    rng = np.random.default_rng(sum(shape))
+    want = rng.normal(size=shape).astype(">f4")
+    path = fieldcache.save({"a": fieldcache.Tiled(want, tile), "m": fieldcache.Tiled(want > 0, tile)},
+                           tmp_path / "c")
+    items, maps = fieldcache.load(path)
+    a, m = items["a"], items["m"]
+    want = want.astype(np.float32)
+    assert a.shape == shape and a.dtype == np.float32 and a.ndim == 2 and len(a) == shape[0]
+    np.testing.assert_array_equal(np.asarray(a), want)
+    np.testing.assert_array_equal(np.asarray(m), want > 0)
+    # the tiles start at a 64 kB boundary of the file (one fault-around block per float32 tile)
+    assert a.tiles.offset % fieldcache.TILE_ALIGN == 0 and not a.tiles.flags.writeable
+    ny, nx = shape
+    for _ in range(200):
+        y0, y1 = np.sort(rng.integers(-ny - 3, ny + 3, 2))
+        x0, x1 = np.sort(rng.integers(-nx - 3, nx + 3, 2))
+        np.testing.assert_array_equal(a[y0:y1, x0:x1], want[y0:y1, x0:x1])
+        np.testing.assert_array_equal(m[y0:y1, x0:x1], (want > 0)[y0:y1, x0:x1])
+        np.testing.assert_array_equal(a[y0:, :x1], want[y0:, :x1])
+        iy, ix = rng.integers(-ny, ny, (4, 3)), rng.integers(-nx, nx, 3)
+        np.testing.assert_array_equal(a[iy, ix], want[iy, ix])
+        i, j = int(rng.integers(-ny, ny)), int(rng.integers(-nx, nx))
+        assert a[i, j] == want[i, j] and a[np.int64(i), j] == want[i, j]
+        np.testing.assert_array_equal(a[i], want[i])
+        np.testing.assert_array_equal(a[i, x0:x1], want[i, x0:x1])
+        np.testing.assert_array_equal(a[y0:y1, j], want[y0:y1, j])
+    np.testing.assert_array_equal(a[::2, ::-1], want[::2, ::-1])       # through the whole frame
+    with pytest.raises(IndexError):
+        a[np.array([ny]), np.array([0])]
+    fieldcache.release(maps)
+
+
 def test_run_keeps_its_cache_while_tasks_are_pending(small_survey, tmp_path):
     cfg = load_config(small_survey)
     out = tmp_path / "run"

@@ -37,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["save", "load", "exists", "release", "Trimmer", "trim", "FORMAT", "MMAP_MIN_BYTES",
-           "RESIDENT_BUDGET_BYTES"]
+__all__ = ["save", "load", "exists", "release", "Trimmer", "trim", "TiledArray", "FORMAT",
+           "MMAP_MIN_BYTES", "RESIDENT_BUDGET_BYTES", "TILE"]
 
 #: Version of the on-disk layout (part of a cache's key: a new layout never reads an old one).
 FORMAT = 1
@@ -48,6 +48,14 @@ MMAP_MIN_BYTES = 1 << 20
 #: ~300 MB of code and working memory a worker stays near 1.1 GB (target: 2 GB on 16000^2),
 #: while a 4000^2 4-band field (~0.9 GB of maps) is seldom trimmed (each trim costs refaults).
 RESIDENT_BUDGET_BYTES = 768 << 20
+#: Side [pixels] of the square tiles of a tiled 2-d array (:class:`TiledArray`): a float32
+#: tile is 64 kB, the kernel's fault-around block, so a window faults in the tiles under it.
+TILE = 128
+#: Tiles start at a multiple of this file offset [bytes] (the .npy header is padded to it), so
+#: that a 64 kB tile is one fault-around block, not two.
+TILE_ALIGN = 1 << 16
+#: Largest .npy header np.load is allowed to read for a tiled file (its padding included).
+_MAX_HEADER = 1 << 17
 #: Name of the JSON description inside a cache directory.
 INDEX_NAME = "index.json"
 
@@ -64,7 +72,56 @@ _CLASSES = frozenset({
 # --------------------------------------------------------------------------
 # Writing
 # --------------------------------------------------------------------------
+def _write_tiled(arr: np.ndarray, path: Path, tile: int) -> None:
+    """Write a 2-d array as a 4-d .npy ``[ty, tx, tile, tile]`` (edge tiles zero-padded),
+    its data at a multiple of :data:`TILE_ALIGN`; one row of tiles in memory at a time."""
+    ny, nx = arr.shape
+    nty, ntx = -(-ny // tile), -(-nx // tile)
+    dtype = arr.dtype if arr.dtype.isnative else arr.dtype.newbyteorder("=")
+    shape = (nty, ntx, tile, tile)
+    header = repr({"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
+                   "shape": shape})
+    # Format 2.0: magic (6) + version (2) + uint32 length (4) + header ending in "\n".
+    total = -(-(12 + len(header) + 1) // TILE_ALIGN) * TILE_ALIGN
+    header = header + " " * (total - 12 - len(header) - 1) + "\n"
+    with open(path, "wb") as fh:
+        fh.write(np.lib.format.magic(2, 0))
+        fh.write(np.uint32(len(header)).astype("<u4").tobytes())
+        fh.write(header.encode("latin1"))
+        row = np.zeros((tile, ntx * tile), dtype=dtype)
+        for ty in range(nty):
+            y0, y1 = ty * tile, min((ty + 1) * tile, ny)
+            row[:y1 - y0, :nx] = arr[y0:y1]
+            if y1 - y0 < tile:
+                row[y1 - y0:] = 0
+            fh.write(np.ascontiguousarray(
+                row.reshape(tile, ntx, tile).transpose(1, 0, 2)).tobytes())
+
+
+class Tiled:
+    """Marks a 2-d array that :func:`save` stores as tiles (read back as a :class:`TiledArray`)."""
+
+    __slots__ = ("array", "tile")
+
+    def __init__(self, array, tile: int = TILE):
+        self.array = array
+        self.tile = int(tile)
+
+
 def _encode(obj, directory: Path, names: list) -> dict:
+    if isinstance(obj, Tiled):
+        arr = obj.array
+        if isinstance(arr, TiledArray):
+            arr = np.asarray(arr)
+        if arr.ndim != 2 or arr.dtype.hasobject:
+            raise TypeError(f"field cache: only 2-d numeric arrays are tiled (got {arr.dtype}, "
+                            f"{arr.ndim}-d)")
+        name = f"a{len(names):04d}.npy"
+        names.append(name)
+        _write_tiled(arr, directory / name, obj.tile)
+        return {"tiled": name, "shape": [int(n) for n in arr.shape]}
+    if isinstance(obj, TiledArray):
+        return _encode(Tiled(obj, obj.tile), directory, names)
     if isinstance(obj, np.ndarray):
         if obj.dtype.hasobject:
             raise TypeError(f"field cache: arrays of Python objects are not stored (dtype {obj.dtype})")
@@ -129,6 +186,12 @@ def save(items: dict, directory) -> Path:
 # Reading
 # --------------------------------------------------------------------------
 def _decode(node: dict, directory: Path, maps: list):
+    if "tiled" in node:
+        tiles = np.load(directory / node["tiled"], mmap_mode="r", allow_pickle=False,
+                        max_header_size=_MAX_HEADER)
+        if isinstance(tiles, np.memmap):
+            maps.append(tiles._mmap)
+        return TiledArray(tiles, tuple(node["shape"]))
     if "npy" in node:
         path = directory / node["npy"]
         arr = np.load(path, mmap_mode="r", allow_pickle=False)
@@ -173,6 +236,114 @@ def load(directory) -> tuple[dict, tuple]:
 def exists(directory) -> bool:
     """A complete cache is at ``directory``."""
     return (Path(directory) / INDEX_NAME).is_file()
+
+
+# --------------------------------------------------------------------------
+# Tiled arrays
+# --------------------------------------------------------------------------
+class TiledArray:
+    """Read-only 2-d array stored as square tiles ``tiles[ty, tx, row, col]``.
+
+    Indexing returns what the same index of the plain array returns (always a
+    new array, never a view): ``a[y0:y1, x0:x1]`` (steps of 1, negative and
+    out-of-range bounds as numpy clips them) copies the tiles under the window
+    only; ``a[iy, ix]`` with integer arrays (any broadcastable shapes) or
+    integers gathers single pixels; a row ``a[i]`` or ``a[i, x0:x1]`` too.
+    ``np.asarray(a)`` assembles the whole frame (rare full-frame users such as
+    ``mode="full"``); any other index goes through it.
+
+    Why: on a memory map of a row-major image each window row faults in a
+    64 kB block of the file, a whole row of a 16000-pixel float32 image; a tile
+    of 128 x 128 float32 pixels is one such block.
+    """
+
+    __array_priority__ = 10.0
+
+    def __init__(self, tiles: np.ndarray, shape: tuple[int, int]):
+        if tiles.ndim != 4 or tiles.shape[2] != tiles.shape[3]:
+            raise ValueError(f"tiles must have shape (ty, tx, t, t), got {tiles.shape}")
+        self.tiles = tiles
+        self.tile = int(tiles.shape[2])
+        self.shape = (int(shape[0]), int(shape[1]))
+        if tiles.shape[0] * self.tile < self.shape[0] or tiles.shape[1] * self.tile < self.shape[1]:
+            raise ValueError(f"tiles {tiles.shape} do not cover shape {self.shape}")
+        self.dtype = tiles.dtype
+        self.ndim = 2
+        self.size = self.shape[0] * self.shape[1]
+        self.itemsize = tiles.dtype.itemsize
+        self.nbytes = self.size * self.itemsize
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __repr__(self) -> str:
+        return f"TiledArray(shape={self.shape}, dtype={self.dtype}, tile={self.tile})"
+
+    def _window(self, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+        out = np.empty((max(y1 - y0, 0), max(x1 - x0, 0)), dtype=self.dtype)
+        if y1 <= y0 or x1 <= x0:
+            return out
+        t, tiles = self.tile, self.tiles
+        tx0, tx1 = x0 // t, (x1 - 1) // t + 1
+        for ty in range(y0 // t, (y1 - 1) // t + 1):
+            top = ty * t
+            r0, r1 = max(y0, top) - top, min(y1, top + t) - top
+            dst = out[top + r0 - y0:top + r1 - y0]
+            for tx in range(tx0, tx1):
+                left = tx * t
+                c0, c1 = max(x0, left) - left, min(x1, left + t) - left
+                dst[:, left + c0 - x0:left + c1 - x0] = tiles[ty, tx, r0:r1, c0:c1]
+        return out
+
+    def _points(self, iy, ix) -> np.ndarray:
+        iy, ix = np.broadcast_arrays(np.asarray(iy), np.asarray(ix))
+        ny, nx = self.shape
+        if iy.size and (iy.min() < -ny or iy.max() >= ny or ix.min() < -nx or ix.max() >= nx):
+            raise IndexError(f"index out of bounds for an array of shape {self.shape}")
+        iy = np.where(iy < 0, iy + ny, iy)
+        ix = np.where(ix < 0, ix + nx, ix)
+        t = self.tile
+        return np.array(self.tiles[iy // t, ix // t, iy % t, ix % t])
+
+    def __getitem__(self, key):
+        if type(key) is not tuple:
+            key = (key,)
+        if len(key) == 1:
+            key = (key[0], slice(None))
+        if len(key) == 2:
+            ky, kx = key
+            sy, sx = isinstance(ky, slice), isinstance(kx, slice)
+            if (sy and sx and ky.step in (None, 1) and kx.step in (None, 1)):
+                y0, y1, _ = ky.indices(self.shape[0])
+                x0, x1, _ = kx.indices(self.shape[1])
+                return self._window(y0, y1, x0, x1)
+            iy_int = isinstance(ky, (int, np.integer))
+            ix_int = isinstance(kx, (int, np.integer))
+            if iy_int and ix_int:
+                return self._points(ky, kx)[()]
+            if (iy_int and sx and kx.step in (None, 1)) or (ix_int and sy and ky.step in (None, 1)):
+                n = self.shape[0] if iy_int else self.shape[1]
+                i = int(ky if iy_int else kx)
+                if not -n <= i < n:
+                    raise IndexError(f"index {i} out of bounds for an array of shape {self.shape}")
+                i += n if i < 0 else 0
+                if iy_int:
+                    x0, x1, _ = kx.indices(self.shape[1])
+                    return self._window(i, i + 1, x0, x1)[0]
+                y0, y1, _ = ky.indices(self.shape[0])
+                return self._window(y0, y1, i, i + 1)[:, 0]
+            if not (sy or sx or ky is None or kx is None or ky is Ellipsis or kx is Ellipsis):
+                ay, ax = np.asarray(ky), np.asarray(kx)
+                if ay.dtype.kind in "iu" and ax.dtype.kind in "iu":
+                    return self._points(ay, ax)
+        return np.asarray(self)[key]
+
+    def __array__(self, dtype=None, copy=None):
+        out = self._window(0, self.shape[0], 0, self.shape[1])
+        return out if dtype is None else out.astype(dtype, copy=False)
+
+    def astype(self, dtype, copy: bool = True):
+        return np.asarray(self).astype(dtype, copy=copy)
 
 
 # --------------------------------------------------------------------------
