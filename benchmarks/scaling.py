@@ -36,12 +36,15 @@ Usage::
 
     python benchmarks/scaling.py [--sizes 1000,4000[,16000]] [--tasks 30] [--n 100]
                                  [--z 8] [--mag 26] [--parallel-size 1000] [--no-parallel]
-                                 [--tmp DIR] [--map-budget-mb MB]
+                                 [--tmp DIR] [--map-budget-mb MB] [--no-tiles]
 
 ``--map-budget-mb`` sets the resident budget of a worker's memory-mapped field
 cache (:data:`glaciar.engine.fieldcache.RESIDENT_BUDGET_BYTES`): with a budget
 below the field's maps (e.g. 256 MB at 4000^2), pages are dropped during the
-run as on a 16000^2 mosaic, which shows what the bound costs in task CPU.
+run as on a 16000^2 mosaic, which shows what the bound costs in task CPU.  A field
+whose maps exceed that budget is cached as 128 x 128 tiles (a window read faults in
+the tiles under it, not a file block per row); ``--no-tiles`` keeps it row-major,
+for comparison.
 """
 from __future__ import annotations
 
@@ -119,6 +122,10 @@ def _child_run(opt) -> dict:
 
         # Set before simulate opens the field cache: forked workers inherit it.
         fieldcache.RESIDENT_BUDGET_BYTES = int(opt.map_budget_mb * MB)
+    if opt.no_tiles:
+        from glaciar.engine import fieldcache
+
+        fieldcache.TILED_CACHE = False
     out = {}
     c0 = process_cpu_seconds()
     t0 = time.perf_counter()
@@ -183,6 +190,8 @@ def main(argv=None):
     ap.add_argument("--map-budget-mb", type=float, default=None,
                     help="resident budget of a worker's mapped field cache [MB] (default: "
                          "glaciar.engine.fieldcache.RESIDENT_BUDGET_BYTES)")
+    ap.add_argument("--no-tiles", action="store_true",
+                    help="keep the field cache row-major on large fields (no tiles; for comparison)")
     # internal: child-process modes
     ap.add_argument("--child", choices=("build", "run"), help=argparse.SUPPRESS)
     ap.add_argument("--size", type=int, help=argparse.SUPPRESS)
@@ -228,6 +237,8 @@ def main(argv=None):
             print(f"  {size}^2 generated: {b['wall_s']:.0f} s wall, peak RSS {b['rss_mb']:.0f} MB",
                   flush=True)
             budget = [] if opt.map_budget_mb is None else ["--map-budget-mb", str(opt.map_budget_mb)]
+            if opt.no_tiles:
+                budget.append("--no-tiles")
             r = _spawn(["--child", "run", "--config", b["config"], "--out", str(sdir / "run"),
                         "--executor", "pool1", *budget, *common])
             rows.append((size, b, r))

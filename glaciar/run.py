@@ -290,23 +290,57 @@ def _field_settings(cfg: Config, survey: Survey, field: str) -> tuple[dict, dict
     return settings, psfs
 
 
+#: A field whose images and RMS maps (float32, every band) exceed this [bytes] is measured
+#: with each finished full-frame array spilled to disk (glaciar.engine.fieldcache.spill):
+#: the measuring process then holds one step's work arrays, not the whole context
+#: (~45 bytes per pixel for 4 bands, 11 GB on a 16000^2 mosaic).
+SPILL_MIN_BYTES = 1 << 30
+
+
 def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext:
-    """Read a field's images once, measure backgrounds, extract the original image, set up caches."""
+    """Read a field's images once, measure backgrounds, extract the original image, set up caches.
+
+    On a large field (:data:`SPILL_MIN_BYTES`) every finished full-frame array is
+    moved to an unnamed temporary file and memory-mapped (same values): the
+    context's arrays are then read-only maps.
+    """
     settings, psfs = _field_settings(cfg, survey, field)
     bands = settings["bands"]
     det = cfg.survey.detection_band
     params = settings["detection_params"]
-    footprint = survey.footprint(field)
-    mask = ~footprint
+    ny, nx = settings["shape"]
+    spilled: list = []
+
+    def keep(a):
+        """``a`` itself, or on a large field ``a`` on disk (its pages dropped until read)."""
+        if not isinstance(a, np.ndarray) or 8 * len(bands) * ny * nx <= SPILL_MIN_BYTES:
+            return a
+        m = fieldcache.spill(a)
+        spilled.append(m._mmap)
+        return m
+
+    def drop():
+        # Mapped pages the last step read: resident in this process until dropped.
+        fieldcache.release(spilled)
+
+    footprint = keep(survey.footprint(field))
+    mask = keep(~footprint)
     bases, rms = {}, {}
     backgrounds = {}
     for b in cfg.survey.bands:
-        bases[b.name], rms[b.name], _ = band_pixels(survey, field, b.name, footprint, params,
-                                                    cfg.detection.weight_type,
-                                                    background=backgrounds if b.name == det else None)
+        base, noise, _ = band_pixels(survey, field, b.name, footprint, params,
+                                     cfg.detection.weight_type,
+                                     background=backgrounds if b.name == det else None)
+        bases[b.name], rms[b.name] = keep(base), keep(noise)
+        del base, noise
         # The context holds its own background-subtracted copies: the survey's cached
         # images would only double the memory (at this peak and in every task after it).
         survey.release_pixels(field, (b.name,))
+        drop()
+    backgrounds = {k: keep(v) for k, v in backgrounds.items()}
+    if spilled:
+        # The survey's cached footprint/mask arrays: the context has its own (on disk).
+        clear_survey_cache()
     zps = settings["zeropoints"]
     coadd_bands, coadd_method, det_image_rms = (), "ivw", None
     if cfg.survey.detection_image is not None:
@@ -314,16 +348,23 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         coadd_method = cfg.survey.detection_image.method
         det_image, det_image_rms = coadd([bases[b] for b in coadd_bands],
                                          [rms[b] for b in coadd_bands], coadd_method)
-        det_image_rms = det_image_rms.astype(np.float32)
+        det_image_rms = keep(det_image_rms.astype(np.float32))
         reference = reference_extraction(det_image.astype(np.float32), det_image_rms, params,
                                          zps[det], mask=mask, photometry=(bases[det], rms[det]))
+        del det_image
     else:
         reference = reference_extraction(bases[det], rms[det], params, zps[det], mask=mask)
+    if spilled and isinstance(getattr(reference, "segmap", None), np.ndarray):
+        reference = dataclasses.replace(reference, segmap=keep(reference.segmap))
+    drop()
     sky: dict = {}
     noise_models = {b: correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap, sky)
                     for b in bands}
     del sky
+    drop()
     depth, _ = field_depth(rms[det], zps[det], psfs[det])
+    depth = keep(depth)
+    drop()
     return FieldContext(
         **settings, bases=bases, rms=rms, mask=mask, footprint=footprint,
         footprint_count=int(np.count_nonzero(footprint)), depth=depth, reference=reference,
@@ -356,7 +397,8 @@ def _cache_items(ctx: FieldContext) -> dict:
                           ctx.depth, getattr(ctx.reference, "segmap", None),
                           ctx.detection_image_rms, ctx.detection_background)
               if isinstance(a, np.ndarray)]
-    if sum(a.nbytes for a in arrays) <= fieldcache.RESIDENT_BUDGET_BYTES:
+    if not fieldcache.TILED_CACHE or \
+            sum(a.nbytes for a in arrays) <= fieldcache.RESIDENT_BUDGET_BYTES:
         return items
 
     def tiled(a):

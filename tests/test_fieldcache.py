@@ -220,6 +220,35 @@ def test_tiled_array_indexes_like_the_array(tmp_path, shape, tile):
     fieldcache.release(maps)
 
 
+def test_spilled_build_equals_the_in_memory_one(small_survey, tmp_path, monkeypatch,
+                                                assert_same_outputs):
+    """A large field is measured with its finished arrays on disk (unnamed files): same arrays,
+    same rows, and no file left in the scratch directory."""
+    from glaciar.engine.task import TaskSpec, run_task
+
+    cfg = load_config(small_survey)
+    field = cfg.survey.fields[0]
+    built = run.build_field_context(cfg, Survey.from_config(cfg), field)
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    monkeypatch.setattr(run, "SPILL_MIN_BYTES", 0)
+    monkeypatch.setattr(fieldcache, "SCRATCH_DIR", str(scratch))
+    spilled = run.build_field_context(cfg, Survey.from_config(cfg), field)
+    assert list(scratch.iterdir()) == []
+    det = cfg.survey.detection_band
+    assert isinstance(spilled.bases[det], np.memmap) and isinstance(spilled.depth, np.memmap)
+    assert isinstance(spilled.reference.segmap, np.memmap)
+    for b in built.bands:
+        np.testing.assert_array_equal(spilled.bases[b], built.bases[b])
+        np.testing.assert_array_equal(spilled.rms[b], built.rms[b])
+    for name in ("mask", "footprint", "depth", "detection_background"):
+        np.testing.assert_array_equal(getattr(spilled, name), getattr(built, name))
+    np.testing.assert_array_equal(spilled.reference.segmap, built.reference.segmap)
+    assert spilled.measured_noise == built.measured_noise
+    spec = TaskSpec(field=field, field_index=0, z_index=0, mag_index=0, iteration=0, z=8.0, mag=26.0)
+    assert_same_outputs(run_task(spilled, spec, 3), run_task(built, spec, 3), "spilled")
+
+
 def test_run_keeps_its_cache_while_tasks_are_pending(small_survey, tmp_path):
     cfg = load_config(small_survey)
     out = tmp_path / "run"

@@ -24,6 +24,7 @@ the first rename wins and the other copy is removed.
 """
 from __future__ import annotations
 
+import atexit
 import dataclasses
 import importlib
 import json
@@ -37,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["save", "load", "exists", "release", "Trimmer", "trim", "TiledArray", "FORMAT",
+__all__ = ["save", "load", "exists", "release", "Trimmer", "trim", "TiledArray", "Tiled", "spill", "FORMAT",
            "MMAP_MIN_BYTES", "RESIDENT_BUDGET_BYTES", "TILE"]
 
 #: Version of the on-disk layout (part of a cache's key: a new layout never reads an old one).
@@ -48,6 +49,9 @@ MMAP_MIN_BYTES = 1 << 20
 #: ~300 MB of code and working memory a worker stays near 1.1 GB (target: 2 GB on 16000^2),
 #: while a 4000^2 4-band field (~0.9 GB of maps) is seldom trimmed (each trim costs refaults).
 RESIDENT_BUDGET_BYTES = 768 << 20
+#: Store the windowed images of a field larger than the resident budget as tiles
+#: (glaciar.run's field cache); False keeps every array row-major (for comparisons).
+TILED_CACHE = True
 #: Side [pixels] of the square tiles of a tiled 2-d array (:class:`TiledArray`): a float32
 #: tile is 64 kB, the kernel's fault-around block, so a window faults in the tiles under it.
 TILE = 128
@@ -56,6 +60,10 @@ TILE = 128
 TILE_ALIGN = 1 << 16
 #: Largest .npy header np.load is allowed to read for a tiled file (its padding included).
 _MAX_HEADER = 1 << 17
+#: Rows copied at a time [bytes] when a cache array is written (mapped pages dropped after each).
+COPY_BLOCK_BYTES = 64 << 20
+#: Directory of :func:`spill`'s temporary files (None: the system temp directory).
+SCRATCH_DIR = None
 #: Name of the JSON description inside a cache directory.
 INDEX_NAME = "index.json"
 
@@ -72,6 +80,68 @@ _CLASSES = frozenset({
 # --------------------------------------------------------------------------
 # Writing
 # --------------------------------------------------------------------------
+def _maps_of(*arrays) -> list:
+    """The mmap objects behind memory-mapped arrays (views of np.load/np.memmap maps)."""
+    out = []
+    for a in arrays:
+        while a is not None:
+            m = getattr(a, "_mmap", None)
+            if m is not None:
+                out.append(m)
+                break
+            a = getattr(a, "base", None)
+    return out
+
+
+def _copy_rows(src: np.ndarray, out: np.ndarray) -> None:
+    """``out[...] = src`` by blocks of rows (~:data:`COPY_BLOCK_BYTES`), dropping the mapped
+    pages of both after each block: copying a mapped 16000^2 image does not make it resident."""
+    if not src.size:
+        out.flush()
+        return
+    if src.ndim == 0:
+        out[...] = src
+        out.flush()
+        return
+    row = max(1, src[0].nbytes if src.ndim > 1 else src.itemsize)
+    step = max(1, COPY_BLOCK_BYTES // row)
+    maps = _maps_of(src, out)
+    for i in range(0, src.shape[0], step):
+        out[i:i + step] = src[i:i + step]
+        if maps:
+            out.flush()
+            release(maps)
+    out.flush()
+
+
+def spill(arr: np.ndarray, directory=None) -> np.ndarray:
+    """``arr`` moved to an unnamed file: a read-only memory map of a copy written to a temporary
+    ``.npy`` in ``directory`` (default :data:`SCRATCH_DIR`, else the system temp directory).
+
+    The file is unlinked once mapped (POSIX: its space is freed when the map closes; elsewhere
+    it is removed at exit), so nothing is left behind.  Lets a process that measures a large
+    field keep each finished full-frame array on disk rather than in memory.
+    """
+    arr = np.asarray(arr)
+    fd, name = tempfile.mkstemp(prefix="glaciar-spill-", suffix=".npy",
+                                dir=directory if directory is not None else SCRATCH_DIR)
+    os.close(fd)
+    try:
+        dtype = arr.dtype if arr.dtype.isnative else arr.dtype.newbyteorder("=")
+        out = np.lib.format.open_memmap(name, mode="w+", dtype=dtype, shape=arr.shape)
+        _copy_rows(arr, out)
+        del out
+        mapped = np.load(name, mmap_mode="r", allow_pickle=False)
+    except BaseException:
+        os.unlink(name)
+        raise
+    try:
+        os.unlink(name)
+    except OSError:                     # pragma: no cover - platforms that keep mapped files
+        atexit.register(lambda: os.path.exists(name) and os.unlink(name))
+    return mapped
+
+
 def _write_tiled(arr: np.ndarray, path: Path, tile: int) -> None:
     """Write a 2-d array as a 4-d .npy ``[ty, tx, tile, tile]`` (edge tiles zero-padded),
     its data at a multiple of :data:`TILE_ALIGN`; one row of tiles in memory at a time."""
@@ -89,6 +159,7 @@ def _write_tiled(arr: np.ndarray, path: Path, tile: int) -> None:
         fh.write(np.uint32(len(header)).astype("<u4").tobytes())
         fh.write(header.encode("latin1"))
         row = np.zeros((tile, ntx * tile), dtype=dtype)
+        src_maps = _maps_of(arr)          # a mapped source: its pages dropped row by row
         for ty in range(nty):
             y0, y1 = ty * tile, min((ty + 1) * tile, ny)
             row[:y1 - y0, :nx] = arr[y0:y1]
@@ -96,6 +167,8 @@ def _write_tiled(arr: np.ndarray, path: Path, tile: int) -> None:
                 row[y1 - y0:] = 0
             fh.write(np.ascontiguousarray(
                 row.reshape(tile, ntx, tile).transpose(1, 0, 2)).tobytes())
+            if src_maps:
+                release(src_maps)
 
 
 class Tiled:
@@ -129,9 +202,7 @@ def _encode(obj, directory: Path, names: list) -> dict:
         names.append(name)
         dtype = obj.dtype if obj.dtype.isnative else obj.dtype.newbyteorder("=")
         out = np.lib.format.open_memmap(directory / name, mode="w+", dtype=dtype, shape=obj.shape)
-        if obj.size:
-            out[...] = obj
-        out.flush()
+        _copy_rows(obj, out)
         del out
         return {"npy": name}
     if isinstance(obj, np.generic):
