@@ -324,6 +324,10 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         fieldcache.release(spilled)
 
     footprint = keep(survey.footprint(field))
+    if isinstance(footprint, np.memmap):
+        # Large field: the images and validity maps the footprint read (cached by the survey,
+        # up to its 2 GiB budget) go; band_pixels reads each band again, one at a time.
+        clear_survey_cache()
     mask = keep(~footprint)
     bases, rms = {}, {}
     backgrounds = {}

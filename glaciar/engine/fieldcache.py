@@ -18,6 +18,20 @@ accumulate over a long run until the whole files were resident;
 them, the next touch is a minor fault) once more than
 :data:`RESIDENT_BUDGET_BYTES` of file-backed pages have accumulated.
 
+On a field whose maps exceed that budget, glaciar.run stores the images the
+engine reads by window (images, RMS maps, mask, reference segmentation) as
+square tiles (:class:`Tiled` on writing, :class:`TiledArray` on reading: a 4-d
+``.npy`` ``[ty, tx, 128, 128]`` whose data start at a 64 kB boundary).  A
+window read from a row-major map faults in at least a 64 kB file block per
+row (a whole row of a 16000-pixel float32 image; with the page cache's large
+folios often more); from tiles, the tiles under it.  Measured on a 16000^2
+float32 image with its pages dropped before each read (benchmarks/window_reads.py,
+loaded machine): 780 -> 93 us for a 64 px window, 2380 -> 225 us for 200 px.
+
+:func:`spill` moves a finished array of a field being measured to an unnamed
+temporary file (memory-mapped), so that measuring a large field does not
+hold the whole context in memory.
+
 The directory is written under a temporary name and renamed into place, so a
 reader sees a complete cache or none; when two processes write the same cache,
 the first rename wins and the other copy is removed.
