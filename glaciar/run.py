@@ -100,12 +100,6 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
     if noise is not None:
         valid &= np.isfinite(noise) & (noise > 0)
     bkg, bkg_rms = measure_background(img, ~valid, params)
-    # In place on the difference (a new array): one full-frame temporary less than np.where.
-    base = np.subtract(img, bkg)
-    base[~valid] = 0.0
-    base = base.astype(np.float32, copy=False)
-    if background is not None:
-        background[band] = np.asarray(bkg, dtype=np.float32)
     from_background = noise is None or weight_type == "background"
     if from_background:
         r = bkg_rms
@@ -113,8 +107,15 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
         r = noise * weight_rescale_factor(bkg_rms, noise, valid)
     else:
         r = noise
+    del bkg_rms                     # full-frame maps are dropped as soon as they are used
     r = np.where(valid, np.asarray(r, dtype=np.float32), np.float32(np.inf)).astype(np.float32,
                                                                                      copy=False)
+    # In place on the difference (a new array): one full-frame temporary less than np.where.
+    base = np.subtract(img, bkg)
+    base[~valid] = 0.0
+    base = base.astype(np.float32, copy=False)
+    if background is not None:
+        background[band] = np.asarray(bkg, dtype=np.float32)
     return base, r, from_background
 
 

@@ -3,8 +3,8 @@
 :func:`iter_demo_strips` yields the science and weight pixels of every band
 strip by strip (top to bottom), so :func:`~glaciar.demo.survey.build_demo_survey`
 can stream them into the FITS files with memory bounded by the strip size
-(a few hundred MB at 16000^2) instead of the ~200 bytes per pixel of
-:func:`~glaciar.demo.images.make_demo_images`.
+(peak RSS 1.2-1.4 GB from 4000^2 to 16000^2, measured) instead of the ~200 bytes
+per pixel of :func:`~glaciar.demo.images.make_demo_images`.
 
 It is the same field as :func:`make_demo_images` with the same seed:
 
@@ -45,7 +45,8 @@ from .sky import _RowFootprint, _coverage, _draw_population, _relative_exposure,
 #: Above this many pixels :func:`build_demo_survey` writes the images strip by strip
 #: (the whole-image generator's peak is ~200 bytes per pixel: ~0.8 GB at 2048^2).
 STRIP_MIN_PIXELS = 2048 * 2048
-#: Pixels per strip (rows = this / nx, at least 64): ~50 bytes per strip pixel at the peak.
+#: Pixels per strip (rows = this / nx, at least 64): ~250 bytes per strip pixel at the peak
+#: (four bands' scenes with the PSF's halo rows, FFT buffers, noise and output strips).
 STRIP_PIXELS = 4_000_000
 
 
