@@ -10,6 +10,8 @@ process's (manifest, input checks, noise record).  Printed per size:
 * whole-process CPU per injected source: :func:`glaciar.run.process_cpu_seconds`
   (the child's own CPU plus its reaped pool worker, field set-up included), and
   its ratio to the smallest size (target: within 1.3x);
+* CPU per source inside the tasks (``simulate``'s ``cpu_seconds``) and its ratio
+  to the smallest size (target: within 1.3x);
 * peak RSS of the pool worker (``RUSAGE_CHILDREN.ru_maxrss``: the largest
   reaped descendant, i.e. *per worker*, not summed) and of the main process
   (``RUSAGE_SELF``) [MB]; target <= 400 MB per worker on a 1200^2 field and
@@ -37,7 +39,15 @@ Usage::
 
     python benchmarks/scaling.py [--sizes 1000,4000[,16000]] [--tasks 30] [--n 100]
                                  [--z 8] [--mag 26] [--parallel-size 1000] [--no-parallel]
-                                 [--tmp DIR]
+                                 [--tmp DIR] [--map-budget-mb MB] [--no-tiles]
+
+``--map-budget-mb`` sets the resident budget of a worker's memory-mapped field
+cache (:data:`glaciar.engine.fieldcache.RESIDENT_BUDGET_BYTES`): with a budget
+below the field's maps (e.g. 256 MB at 4000^2), pages are dropped during the
+run as on a 16000^2 mosaic, which shows what the bound costs in task CPU.  A field
+whose maps exceed that budget is cached as 128 x 128 tiles (a window read faults in
+the tiles under it, not a file block per row); ``--no-tiles`` keeps it row-major,
+for comparison.
 """
 from __future__ import annotations
 
@@ -110,6 +120,15 @@ def _child_run(opt) -> dict:
     from glaciar.run import process_cpu_seconds, simulate
 
     cfg = load_config(opt.config)
+    if opt.map_budget_mb is not None:
+        from glaciar.engine import fieldcache
+
+        # Set before simulate opens the field cache: forked workers inherit it.
+        fieldcache.RESIDENT_BUDGET_BYTES = int(opt.map_budget_mb * MB)
+    if opt.no_tiles:
+        from glaciar.engine import fieldcache
+
+        fieldcache.TILED_CACHE = False
     out = {}
     c0 = process_cpu_seconds()
     t0 = time.perf_counter()
@@ -139,6 +158,7 @@ def _child_run(opt) -> dict:
     own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     out["main_cpu_s"] = own.ru_utime + own.ru_stime
     out["worker_cpu_s"] = kids.ru_utime + kids.ru_stime
+    out["task_cpu_s"] = float(stats["cpu_seconds"])     # inside run_task + writing, all workers
     out["n_sources"] = int(stats["n_sources"])
     out["setup_s"] = float(stats["setup_seconds"])      # inputs checked, field measured, manifest
     out["task_s"] = float(stats["task_seconds"])        # first submission to last result
@@ -174,6 +194,11 @@ def main(argv=None):
     ap.add_argument("--no-parallel", action="store_true", help="skip the 1 vs 2 worker comparison")
     ap.add_argument("--no-dask", action="store_true", help="skip the Dask LocalCluster comparison")
     ap.add_argument("--tmp", default=None, help="directory for the surveys (default: system temp)")
+    ap.add_argument("--map-budget-mb", type=float, default=None,
+                    help="resident budget of a worker's mapped field cache [MB] (default: "
+                         "glaciar.engine.fieldcache.RESIDENT_BUDGET_BYTES)")
+    ap.add_argument("--no-tiles", action="store_true",
+                    help="keep the field cache row-major on large fields (no tiles; for comparison)")
     # internal: child-process modes
     ap.add_argument("--child", choices=("build", "run"), help=argparse.SUPPRESS)
     ap.add_argument("--size", type=int, help=argparse.SUPPRESS)
@@ -218,8 +243,11 @@ def main(argv=None):
                         *common])
             print(f"  {size}^2 generated: {b['wall_s']:.0f} s wall, peak RSS {b['rss_mb']:.0f} MB",
                   flush=True)
+            budget = [] if opt.map_budget_mb is None else ["--map-budget-mb", str(opt.map_budget_mb)]
+            if opt.no_tiles:
+                budget.append("--no-tiles")
             r = _spawn(["--child", "run", "--config", b["config"], "--out", str(sdir / "run"),
-                        "--executor", "pool1", *common])
+                        "--executor", "pool1", *budget, *common])
             rows.append((size, b, r))
             shutil.rmtree(sdir / "run", ignore_errors=True)
             if size != opt.parallel_size:
@@ -229,21 +257,24 @@ def main(argv=None):
 
         print()
         print(f"{'side':>7s} {'sources':>8s} {'ms CPU/src':>11s} {'ratio':>6s} {'main ms':>8s} "
-              f"{'worker ms':>10s} {'ratio':>6s} {'worker RSS MB':>14s} {'main RSS MB':>12s} "
-              f"{'gen RSS MB':>11s} {'gen wall s':>11s}")
-        base = base_w = None
+              f"{'worker ms':>10s} {'ratio':>6s} {'task ms':>8s} {'ratio':>6s} "
+              f"{'worker RSS MB':>14s} {'main RSS MB':>12s} {'gen RSS MB':>11s} {'gen wall s':>11s}")
+        base = base_w = base_t = None
         for size, b, r in rows:
             n = max(r["n_sources"], 1)
-            ms, ms_main, ms_w = (1e3 * r[k] / n for k in ("cpu_s", "main_cpu_s", "worker_cpu_s"))
-            base, base_w = base or ms, base_w or ms_w
+            ms, ms_main, ms_w, ms_t = (1e3 * r[k] / n for k in
+                                       ("cpu_s", "main_cpu_s", "worker_cpu_s", "task_cpu_s"))
+            base, base_w, base_t = base or ms, base_w or ms_w, base_t or ms_t
             print(f"{size:>7d} {r['n_sources']:>8d} {ms:>11.2f} {ms / base:>6.2f} {ms_main:>8.2f} "
-                  f"{ms_w:>10.2f} {ms_w / base_w:>6.2f} {r['worker_rss_mb']:>14.0f} "
-                  f"{r['main_rss_mb']:>12.0f} {b['rss_mb']:>11.0f} {b['wall_s']:>11.1f}")
+                  f"{ms_w:>10.2f} {ms_w / base_w:>6.2f} {ms_t:>8.2f} {ms_t / base_t:>6.2f} "
+                  f"{r['worker_rss_mb']:>14.0f} {r['main_rss_mb']:>12.0f} {b['rss_mb']:>11.0f} "
+                  f"{b['wall_s']:>11.1f}")
         print("(ms CPU/src: glaciar.run.process_cpu_seconds of simulate per injected source, main "
               "process + its 1-worker pool, set-up included, and its ratio to the first size "
               "(target <= 1.3); main ms / worker ms: the two parts (the main process checks the "
-              "inputs and measures the field for the manifest; the forked worker inherits that "
-              "and runs the tasks); worker RSS: peak of the pool worker, target <= 400 MB at "
+              "inputs, measures the field for the manifest and writes its field cache; the forked "
+              "worker maps that cache and runs the tasks); task ms: CPU inside the tasks (run_task "
+              "and the task file), target within 1.3x of the first size; worker RSS: peak of the pool worker, target <= 400 MB at "
               "1200^2, <= 2 GB at 16000^2; main RSS: peak of the main process)")
 
         if not opt.no_parallel:

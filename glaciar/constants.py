@@ -113,6 +113,7 @@ RUN_CONFIG_NAME = "config.yaml"      #: the resolved config the run was made wit
 ADAPTIVE_ROUNDS_NAME = "adaptive_rounds.json"   #: the adaptive loop's log of rounds (in RUN_DIR)
 SUMMARY_DIRNAME = "summary"
 SELECTION_FUNCTION_NAME = "selection_function.fits"
+CONTEXT_DIRNAME = ".context"        #: field contexts memory-mapped by workers (glaciar.engine.fieldcache)
 LOCK_NAME = ".lock"                  #: advisory lock of the run writing into the directory
 FINGERPRINT_CACHE_NAME = ".input_fingerprints.json"   #: input hashes by (path, size, mtime)
 #: Format of a run directory.  2: task files named by a hash of the exact task key, with the

@@ -7,9 +7,12 @@ of a prepared :class:`FieldContext` and a :class:`~glaciar.engine.task.TaskSpec`
 from __future__ import annotations
 
 import concurrent.futures as cf
+import dataclasses
+import hashlib
 import json
 import math
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -28,6 +31,7 @@ from .engine.detect import DetectionParams, builtin_filter, measure_background, 
 from .engine.measure import reference_extraction
 from .engine.classify import ClassificationParams
 from .engine.coadd import coadd
+from .engine import fieldcache
 from .engine.context import R_EFF_LOG_STEP, FieldContext
 from .engine.depth import depth_area_histogram, local_depth_map
 from .engine.noise import (CorrelatedNoise, distance_cap, empty_aperture_scatter,
@@ -43,9 +47,10 @@ from .store import (RunLock, StoreMismatchError, StoreWarning, atomic_write_text
                     COMPACT_EVERY, compact, field_file_prefix, file_fingerprint, finished_task_names, manifest_text,
                     read_manifest, store_format, task_filename, task_key, verified_task_names,
                     write_manifest, write_task_table)
-from .survey import Survey
+from .survey import Survey, clear_cache as clear_survey_cache
 
-__all__ = ["FieldContext", "band_pixels", "build_field_context", "field_depth", "plan_tasks", "simulate",
+__all__ = ["FieldContext", "band_pixels", "build_field_context", "open_field_context",
+           "save_field_context", "field_depth", "plan_tasks", "simulate",
            "prepare_run_dir", "input_files", "check_inputs", "store_settings", "InputError",
            "R_EFF_LOG_STEP"]
 
@@ -256,64 +261,219 @@ def _applies(cfg: Config, model: CorrelatedNoise) -> bool:
     return mode == "on" or (mode == "auto" and not model.is_identity(cfg.noise.identity_tolerance))
 
 
-def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext:
-    """Read a field's images once, measure backgrounds, extract the original image, set up caches."""
+def _field_settings(cfg: Config, survey: Survey, field: str) -> tuple[dict, dict]:
+    """The context fields that follow from the configuration (no pixel is read), and the PSFs.
+
+    Everything of a :class:`FieldContext` but its measured fields
+    (:attr:`FieldContext.MEASURED`): what a process that opens a field cache
+    (:func:`open_field_context`) sets up itself.
+    """
     bands = tuple(b.name for b in cfg.survey.bands)
     det = cfg.survey.detection_band
-    jd = bands.index(det)
     pixscale = survey.pixel_scale_arcsec(field)
-    params = _detection_params(cfg)
-    footprint = survey.footprint(field)
-    mask = ~footprint
+    psfs = {b.name: _band_psf(cfg, b, pixscale) for b in cfg.survey.bands}
+    model = population.SourceModel(**cfg.source.model_dump())
+    settings = dict(
+        field=field, bands=bands, detection_band=det, detection_index=bands.index(det),
+        shape=survey.shape(field), pixel_scale_arcsec=pixscale,
+        zeropoints={b.name: float(b.zeropoint) for b in cfg.survey.bands},
+        gains={b.name: (None if b.gain is None else float(b.gain)) for b in cfg.survey.bands},
+        filters=[_resolve_filter(b.filter, cfg.base_dir) for b in cfg.survey.bands],
+        cache=TemplateCache(psfs, enclosed_fraction=model.stamp_flux_fraction),
+        isolation_margin_pix=int(math.ceil(2.0 * max(measure_fwhm(p, 1.0) for p in psfs.values()))),
+        source_model=model, cosmology=population.get_cosmology(model.cosmology),
+        magnitude_type=cfg.grid.magnitude_type, n_galaxies=cfg.simulation.n_galaxies,
+        detection_params=_detection_params(cfg),
+        classification_params=ClassificationParams(**cfg.classification.model_dump()),
+        selection=compile_selection(cfg.selection) if cfg.selection else None,
+        enclosed_fraction=model.stamp_flux_fraction,
+        isolation_fraction=cfg.simulation.isolation_fraction)
+    return settings, psfs
+
+
+#: A field whose images and RMS maps (float32, every band) exceed this [bytes] is measured
+#: with each finished full-frame array spilled to disk (glaciar.engine.fieldcache.spill):
+#: the measuring process then holds one step's work arrays, not the whole context
+#: (~45 bytes per pixel for 4 bands, 11 GB on a 16000^2 mosaic).
+SPILL_MIN_BYTES = 1 << 30
+
+
+def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext:
+    """Read a field's images once, measure backgrounds, extract the original image, set up caches.
+
+    On a large field (:data:`SPILL_MIN_BYTES`) every finished full-frame array is
+    moved to an unnamed temporary file and memory-mapped (same values): the
+    context's arrays are then read-only maps.
+    """
+    settings, psfs = _field_settings(cfg, survey, field)
+    bands = settings["bands"]
+    det = cfg.survey.detection_band
+    params = settings["detection_params"]
+    ny, nx = settings["shape"]
+    spilled: list = []
+
+    def keep(a):
+        """``a`` itself, or on a large field ``a`` on disk (its pages dropped until read)."""
+        if not isinstance(a, np.ndarray) or 8 * len(bands) * ny * nx <= SPILL_MIN_BYTES:
+            return a
+        m = fieldcache.spill(a)
+        spilled.append(m._mmap)
+        return m
+
+    def drop():
+        # Mapped pages the last step read: resident in this process until dropped.
+        fieldcache.release(spilled)
+
+    footprint = keep(survey.footprint(field))
+    if isinstance(footprint, np.memmap):
+        # Large field: the images and validity maps the footprint read (cached by the survey,
+        # up to its 2 GiB budget) go; band_pixels reads each band again, one at a time.
+        clear_survey_cache()
+    mask = keep(~footprint)
     bases, rms = {}, {}
-    psfs = {}
     backgrounds = {}
     for b in cfg.survey.bands:
-        psfs[b.name] = _band_psf(cfg, b, pixscale)
-        bases[b.name], rms[b.name], _ = band_pixels(survey, field, b.name, footprint, params,
-                                                    cfg.detection.weight_type,
-                                                    background=backgrounds if b.name == det else None)
+        base, noise, _ = band_pixels(survey, field, b.name, footprint, params,
+                                     cfg.detection.weight_type,
+                                     background=backgrounds if b.name == det else None)
+        bases[b.name], rms[b.name] = keep(base), keep(noise)
+        del base, noise
         # The context holds its own background-subtracted copies: the survey's cached
         # images would only double the memory (at this peak and in every task after it).
         survey.release_pixels(field, (b.name,))
-    zps = {b.name: float(b.zeropoint) for b in cfg.survey.bands}
-    gains = {b.name: (None if b.gain is None else float(b.gain)) for b in cfg.survey.bands}
+        drop()
+    backgrounds = {k: keep(v) for k, v in backgrounds.items()}
+    if spilled:
+        # The survey's cached footprint/mask arrays: the context has its own (on disk).
+        clear_survey_cache()
+    zps = settings["zeropoints"]
     coadd_bands, coadd_method, det_image_rms = (), "ivw", None
     if cfg.survey.detection_image is not None:
         coadd_bands = cfg.survey.detection_image.coadd
         coadd_method = cfg.survey.detection_image.method
         det_image, det_image_rms = coadd([bases[b] for b in coadd_bands],
                                          [rms[b] for b in coadd_bands], coadd_method)
-        det_image_rms = det_image_rms.astype(np.float32)
+        det_image_rms = keep(det_image_rms.astype(np.float32))
         reference = reference_extraction(det_image.astype(np.float32), det_image_rms, params,
                                          zps[det], mask=mask, photometry=(bases[det], rms[det]))
+        del det_image
     else:
         reference = reference_extraction(bases[det], rms[det], params, zps[det], mask=mask)
+    if spilled and isinstance(getattr(reference, "segmap", None), np.ndarray):
+        reference = dataclasses.replace(reference, segmap=keep(reference.segmap))
+    drop()
     sky: dict = {}
     noise_models = {b: correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap, sky)
                     for b in bands}
     del sky
+    drop()
     depth, _ = field_depth(rms[det], zps[det], psfs[det])
-    model = population.SourceModel(**cfg.source.model_dump())
-    cache = TemplateCache(psfs, enclosed_fraction=model.stamp_flux_fraction)
-    margin = int(math.ceil(2.0 * max(measure_fwhm(p, 1.0) for p in psfs.values())))
-    selection = compile_selection(cfg.selection) if cfg.selection else None
+    depth = keep(depth)
+    drop()
     return FieldContext(
-        field=field, bands=bands, detection_band=det, detection_index=jd,
-        shape=survey.shape(field), pixel_scale_arcsec=pixscale, zeropoints=zps, gains=gains,
-        filters=[_resolve_filter(b.filter, cfg.base_dir) for b in cfg.survey.bands],
-        bases=bases, rms=rms, mask=mask, footprint=footprint, depth=depth, reference=reference,
-        cache=cache,
-        isolation_margin_pix=margin, source_model=model, cosmology=population.get_cosmology(model.cosmology),
-        magnitude_type=cfg.grid.magnitude_type, n_galaxies=cfg.simulation.n_galaxies,
-        detection_params=params,
-        classification_params=ClassificationParams(**cfg.classification.model_dump()),
-        selection=selection, enclosed_fraction=model.stamp_flux_fraction,
-        isolation_fraction=cfg.simulation.isolation_fraction,
+        **settings, bases=bases, rms=rms, mask=mask, footprint=footprint,
+        footprint_count=int(np.count_nonzero(footprint)), depth=depth, reference=reference,
         noise_models={b: m for b, m in noise_models.items() if _applies(cfg, m)},
         measured_noise=noise_models,
         coadd_bands=coadd_bands, coadd_method=coadd_method, detection_image_rms=det_image_rms,
         detection_background=backgrounds[det])
+
+
+def open_field_context(cfg: Config, survey: Survey, field: str, path) -> FieldContext:
+    """A field's context from its cache directory (:func:`save_field_context`): the measured
+    arrays memory-mapped read-only, the rest set up from the configuration (no image read)."""
+    settings, _ = _field_settings(cfg, survey, field)
+    items, maps = fieldcache.load(path)
+    return FieldContext(**settings, **items, _trimmer=fieldcache.Trimmer(maps))
+
+
+def _cache_items(ctx: FieldContext) -> dict:
+    """A context's measured fields as its cache stores them.
+
+    When the field's mapped arrays exceed a worker's resident budget
+    (:data:`glaciar.engine.fieldcache.RESIDENT_BUDGET_BYTES`: their pages will be
+    dropped and faulted in again during the run), the images the engine reads by
+    window (images, RMS maps, mask, reference segmentation) are stored as tiles: a window then faults
+    in the tiles under it rather than a file block per row (benchmarks/window_reads.py).
+    Smaller fields stay row-major (their pages stay resident, a plain slice is cheapest).
+    """
+    items = ctx.measured()
+    arrays = [a for a in (*ctx.bases.values(), *ctx.rms.values(), ctx.mask, ctx.footprint,
+                          ctx.depth, getattr(ctx.reference, "segmap", None),
+                          ctx.detection_image_rms, ctx.detection_background)
+              if isinstance(a, np.ndarray)]
+    if not fieldcache.TILED_CACHE or \
+            sum(a.nbytes for a in arrays) <= fieldcache.RESIDENT_BUDGET_BYTES:
+        return items
+
+    def tiled(a):
+        return fieldcache.Tiled(a) if isinstance(a, np.ndarray) and a.ndim == 2 else a
+
+    items["bases"] = {b: tiled(a) for b, a in ctx.bases.items()}
+    items["rms"] = {b: tiled(a) for b, a in ctx.rms.items()}
+    items["mask"] = tiled(ctx.mask)
+    items["detection_image_rms"] = tiled(ctx.detection_image_rms)
+    if isinstance(getattr(ctx.reference, "segmap", None), np.ndarray):
+        items["reference"] = dataclasses.replace(ctx.reference, segmap=tiled(ctx.reference.segmap))
+    return items
+
+
+def save_field_context(ctx: FieldContext, path) -> FieldContext:
+    """Write a context's measured fields to ``path`` (unless a cache is there already) and
+    return the context with them memory-mapped from it (the in-memory arrays can go).
+
+    If the cache cannot be written (e.g. the disk is full), warns and returns ``ctx``
+    unchanged: the run goes on with the field in memory (forked workers inherit it,
+    spawned ones measure it again).
+    """
+    try:
+        if not fieldcache.exists(path):
+            fieldcache.save(_cache_items(ctx), path)
+        items, maps = fieldcache.load(path)
+    except OSError as exc:
+        warnings.warn(f"{path}: field cache not written ({exc}); the field's arrays stay in "
+                      "memory", UserWarning)
+        return ctx
+    return dataclasses.replace(ctx, **items, _trimmer=fieldcache.Trimmer(maps))
+
+
+def _context_dir(run_dir, cfg_hash: str, field: str) -> Path | None:
+    """Cache directory of a field's context in a run (None: no manifest yet).
+
+    Keyed on everything the measurement depends on: the config's hash, the field,
+    the run's input files (size and BLAKE2b, from the manifest), glaciar's version
+    and the cache's format; a changed config or input gets a new directory.
+    """
+    manifest = read_manifest(run_dir)
+    if manifest is None:
+        return None
+    ident = json.dumps({"format": fieldcache.FORMAT, "glaciar": __version__, "config": cfg_hash,
+                        "field": field, "inputs": manifest.get("inputs") or {}}, sort_keys=True)
+    return Path(run_dir) / C.CONTEXT_DIRNAME / hashlib.sha256(ident.encode("utf-8")).hexdigest()[:24]
+
+
+def _prepare_context_cache(run_dir: Path, cfg: Config, cfg_hash: str, fields) -> None:
+    """Before tasks run (lock held, no worker yet): remove caches of other configs or inputs
+    and half-written ones, and put the context this process built (for the manifest) on disk,
+    so its tasks, forked workers and spawned workers all map the same files."""
+    keep = {_context_dir(run_dir, cfg_hash, f) for f in cfg.survey.fields}
+    root = Path(run_dir) / C.CONTEXT_DIRNAME
+    if root.is_dir():
+        for entry in root.iterdir():
+            if entry not in keep:
+                shutil.rmtree(entry, ignore_errors=True)
+    for key, ctx in list(_CONTEXTS.items()):
+        if key[0] == cfg_hash and key[2] in fields:
+            _CONTEXTS[key] = save_field_context(ctx, _context_dir(run_dir, cfg_hash, key[2]))
+            # The masks the build left in the survey's cache: forked workers would inherit them.
+            clear_survey_cache()
+
+
+def _finish_context_cache(run_dir: Path, complete: bool) -> None:
+    """A run with no task left pending removes its field caches; an unfinished one keeps them
+    for its resume (they are as large as the images)."""
+    if complete:
+        shutil.rmtree(Path(run_dir) / C.CONTEXT_DIRNAME, ignore_errors=True)
 
 
 def box_cells(cfg: Config) -> list[dict]:
@@ -398,13 +558,23 @@ def spec_key(spec: TaskSpec) -> str:
 _CONTEXTS: dict = {}
 
 
-def _context(cfg_dict: dict, base_dir: str, cfg_hash: str, field: str) -> FieldContext:
+def _context(cfg_dict: dict, base_dir: str, cfg_hash: str, field: str,
+             run_dir: str | None = None) -> FieldContext:
+    """The field's context in this process: kept from an earlier call, opened from the run's
+    field cache, or built (and then cached for the other workers)."""
     key = (cfg_hash, base_dir, field)
     ctx = _CONTEXTS.get(key)
     if ctx is None:
         cfg = config_from_dict(cfg_dict, base_dir)
         _CONTEXTS.clear()          # one field at a time per process bounds memory
-        ctx = build_field_context(cfg, Survey.from_config(cfg), field)
+        path = None if run_dir is None else _context_dir(run_dir, cfg_hash, field)
+        survey = Survey.from_config(cfg)
+        if path is not None and fieldcache.exists(path):
+            ctx = open_field_context(cfg, survey, field, path)
+        else:
+            ctx = build_field_context(cfg, survey, field)
+            if path is not None:
+                ctx = save_field_context(ctx, path)
         _CONTEXTS[key] = ctx
     return ctx
 
@@ -424,17 +594,24 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
                specs: list[TaskSpec], mode: str = "windowed") -> list[tuple[str, int, float]]:
     """Run a chunk of tasks of one field and write each task's file; return (name, rows, seconds)."""
     done = []
-    for spec in specs:
-        t0 = time.process_time()
-        ctx = _context(cfg_dict, base_dir, cfg_hash, spec.field)
-        table = run_task(ctx, spec, seed, mode=mode)
-        name = spec_filename(spec)
-        # The task's counts go in its file's footer, keyed on the fit's magnitude covariate.
-        mag_column = C.COL_M_UV if ctx.magnitude_type == "absolute" else C.COL_MAG_INPUT
-        # And the histograms of the measured detection-band magnitude (transfer matrices).
-        write_task_table(run_dir, name, table, key=spec_key(spec), mag_column=mag_column,
-                         obs_column=C.band_column("mag", ctx.detection_band))
-        done.append((name, len(table), time.process_time() - t0))
+    ctx = None
+    try:
+        for spec in specs:
+            t0 = time.process_time()
+            ctx = _context(cfg_dict, base_dir, cfg_hash, spec.field, run_dir)
+            # Image pages the tasks touch stay resident while mapped: dropped past a budget.
+            fieldcache.trim(ctx, watch=True)
+            table = run_task(ctx, spec, seed, mode=mode)
+            name = spec_filename(spec)
+            # The task's counts go in its file's footer, keyed on the fit's magnitude covariate.
+            mag_column = C.COL_M_UV if ctx.magnitude_type == "absolute" else C.COL_MAG_INPUT
+            # And the histograms of the measured detection-band magnitude (transfer matrices).
+            write_task_table(run_dir, name, table, key=spec_key(spec), mag_column=mag_column,
+                             obs_column=C.band_column("mag", ctx.detection_band))
+            done.append((name, len(table), time.process_time() - t0))
+    finally:
+        if ctx is not None:
+            fieldcache.trim(ctx, watch=False)
     return done
 
 
@@ -1366,6 +1543,7 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
     cfg_dict = config_to_dict(cfg)
     base_dir = str(cfg.base_dir)
     cfg_hash = config_hash(cfg)
+    _prepare_context_cache(run_dir, cfg, cfg_hash, {s.field for s in pending})
     n_workers = 1 if executor is None and workers <= 1 else max(1, workers)
     chunks = _chunks(pending, n_workers)
     stats = {"n_tasks": len(specs), "n_done_before": n_done_before, "n_run": 0, "n_sources": 0,
@@ -1419,6 +1597,7 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
     stats["setup_seconds"] = t0 - t_start
     stats["task_seconds"] = time.perf_counter() - t0
     compact(run_dir, min_tasks=COMPACT_EVERY)
+    _finish_context_cache(run_dir, n_done_before + stats["n_run"] == len(specs))
     return stats
 
 

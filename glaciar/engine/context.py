@@ -1,13 +1,17 @@
 """The engine's input: everything a task needs about one field.
 
-A :class:`FieldContext` is built once per field and worker process by
+A :class:`FieldContext` is built once per field by
 :func:`glaciar.run.build_field_context` (which reads the images); the engine
-(:func:`glaciar.engine.task.run_task`) only reads it.
+(:func:`glaciar.engine.task.run_task`) only reads it.  In a run, its measured
+arrays (:attr:`FieldContext.MEASURED`) are written once to the run's field cache
+and every process maps them read-only (:mod:`glaciar.engine.fieldcache`): the
+engine reads them by window, never whole.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field as dc_field
+from typing import ClassVar
 
 import numpy as np
 
@@ -66,7 +70,21 @@ class FieldContext:
     detection_image_rms: np.ndarray | None = None
     #: sep background map subtracted from the detection band (SATUR_LEVEL flag); None = 0
     detection_background: np.ndarray | None = None
+    #: number of True pixels of ``footprint`` (counted once: placement needs it per task)
+    footprint_count: int | None = None
     _shape_cache: dict = dc_field(default_factory=dict)
+    #: glaciar.engine.fieldcache.Trimmer of the memory maps behind the arrays (None: in memory)
+    _trimmer: object = None
+
+    #: The fields measured from the images (what :mod:`glaciar.engine.fieldcache` stores);
+    #: every other field follows from the configuration.
+    MEASURED: ClassVar[tuple] = ("bases", "rms", "mask", "footprint", "footprint_count", "depth", "reference",
+                "noise_models", "measured_noise", "coadd_bands", "coadd_method",
+                "detection_image_rms", "detection_background")
+
+    def measured(self) -> dict:
+        """The measured fields (:data:`MEASURED`) by name."""
+        return {name: getattr(self, name) for name in self.MEASURED}
 
     @staticmethod
     def quantise_r_eff(r_eff_pix):

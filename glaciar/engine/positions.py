@@ -41,6 +41,26 @@ uniformly from them -- the same distribution again; when there are none,
 placement stops.
 No loop is unbounded: asking for 10^6 sources on a field that holds 100 costs
 about 100 placements and one enumeration.
+
+Sparse placement (no full-frame array per task)
+-----------------------------------------------
+The two maps cost O(image) memory and time per task (two boolean frames), which
+on a large mosaic dwarfs the placement itself.  :func:`draw_positions` therefore
+runs the same algorithm without them while it provably makes the same decisions
+(:class:`_Sparse`): the placed boxes are kept as a list, indexed by a coarse grid
+of cells, and a candidate pixel is accepted when it lies in the footprint and no
+placed box is within the source's box (the same box-intersection rule, which for
+a box at least as large as the smallest also implies ``free``).  The only other
+decisions the maps take part in are the compaction of the candidate list
+(``n_free * 4 < pool_size``) and the ``n_free == 0`` stop.  ``n_free`` is at least
+the footprint's pixel count minus the areas (clipped to the image) of the
+placed boxes widened by the smallest half sizes; while that bound times 4 is at
+least the grid's pixel count, neither decision can be taken, so the candidate
+sequence, the accepted pixels and the random stream are those of the maps.
+As soon as the bound fails, or a source needs the exact enumeration, the maps
+are built from the placed boxes (they are a function of them) and the
+placement continues with them: the positions are identical for the same
+generator state in every case.
 """
 from __future__ import annotations
 
@@ -145,6 +165,90 @@ class _Grid:
         blocked[...] = False
 
 
+class _Sparse:
+    """The placement of :class:`_Grid` without its two maps, while provably identical.
+
+    Placed boxes are kept in lists and indexed by a grid of square cells of side
+    ``cell`` (at least the widest box, so a box or a query window meets at most
+    2 x 2 cells).  ``removed`` bounds from above the pixels :class:`_Grid` would
+    have cleared from ``free``: while ``n_footprint - removed`` is at least a
+    quarter of the grid, ``_Grid`` would neither compact its candidate list nor
+    find ``free`` empty (see the module docstring), so :meth:`exact` holds and
+    the candidates, acceptances and random draws are the same.
+    """
+
+    def __init__(self, footprint: np.ndarray, n_footprint: int, min_half_height: int,
+                 min_half_width: int, cell: int):
+        self.footprint = footprint
+        self.flat = footprint.reshape(-1)
+        self.ny, self.nx = footprint.shape
+        self.hmin = int(min_half_height)
+        self.wmin = int(min_half_width)
+        self.n_footprint = int(n_footprint)
+        self.removed = 0
+        self.cell = int(cell)
+        self.ncx = -(-self.nx // self.cell)
+        self.cells: dict[int, list[int]] = {}
+        self.boxes: list[tuple[int, int, int, int]] = []      # (y, x, h, w) in placement order
+        self.pool_size = self.ny * self.nx
+        self.batch = np.empty(0, dtype=np.int64)
+        self.cursor = 0
+        self.max_tries = _max_tries(self.ny * self.nx)
+
+    def exact(self) -> bool:
+        """True while :class:`_Grid` provably neither compacts nor runs out of free pixels."""
+        return (self.n_footprint - self.removed) * 4 >= self.pool_size > 0
+
+    def _cell_range(self, lo: int, hi: int, n: int) -> range:
+        return range(max(lo, 0) // self.cell, min(hi, n - 1) // self.cell + 1)
+
+    def _clear(self, y: int, x: int, h: int, w: int) -> bool:
+        """No placed box meets the box (h, w) at (y, x): |dy| <= h + h_k and |dx| <= w + w_k."""
+        cells = self.cells
+        for cy in self._cell_range(y - h, y + h, self.ny):
+            row = cy * self.ncx
+            for cx in self._cell_range(x - w, x + w, self.nx):
+                for k in cells.get(row + cx, ()):
+                    by, bx, bh, bw = self.boxes[k]
+                    if abs(y - by) <= h + bh and abs(x - bx) <= w + bw:
+                        return False
+        return True
+
+    def draw(self, rng: np.random.Generator, h: int, w: int) -> int:
+        """As :meth:`_Grid.draw` while :meth:`exact`; -2 after ``max_tries`` rejections (the
+        caller then enumerates on the maps)."""
+        flat, nx = self.flat, self.nx
+        for _ in range(self.max_tries):
+            if self.cursor == self.batch.size:
+                self.batch = rng.integers(0, self.pool_size, size=_BATCH)
+                self.cursor = 0
+            p = int(self.batch[self.cursor])
+            self.cursor += 1
+            # (h, w) >= the smallest half sizes, so a clear box also means "free".
+            if flat[p] and self._clear(*divmod(p, nx), h, w):
+                return p
+        return -2
+
+    def occupy(self, p: int, h: int, w: int) -> None:
+        y, x = divmod(p, self.nx)
+        k = len(self.boxes)
+        self.boxes.append((y, x, h, w))
+        for cy in self._cell_range(y - h, y + h, self.ny):
+            for cx in self._cell_range(x - w, x + w, self.nx):
+                self.cells.setdefault(cy * self.ncx + cx, []).append(k)
+        hb, wb = h + self.hmin, w + self.wmin
+        self.removed += ((min(y + hb, self.ny - 1) - max(y - hb, 0) + 1)
+                         * (min(x + wb, self.nx - 1) - max(x - wb, 0) + 1))
+
+    def dense(self) -> _Grid:
+        """The maps of the same placement (its boxes replayed), with the same candidate batch."""
+        grid = _Grid(self.footprint, self.hmin, self.wmin)
+        for y, x, h, w in self.boxes:
+            grid.occupy(y * self.nx + x, h, w)
+        grid.batch, grid.cursor = self.batch, self.cursor
+        return grid
+
+
 def _half_sizes(footprint, half_height, half_width) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     footprint = np.asarray(footprint, dtype=bool)
     if footprint.ndim != 2:
@@ -159,7 +263,8 @@ def _half_sizes(footprint, half_height, half_width) -> tuple[np.ndarray, np.ndar
 
 
 def draw_positions(rng: np.random.Generator, footprint: np.ndarray, half_height: np.ndarray,
-                   half_width: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                   half_width: np.ndarray, n_footprint: int | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Draw source centres uniformly inside a footprint, isolation boxes never intersecting.
 
     Parameters
@@ -172,6 +277,10 @@ def draw_positions(rng: np.random.Generator, footprint: np.ndarray, half_height:
         Half sizes [pixels] of each source's isolation box; the box of source i
         covers rows ``round(y_i) - half_height[i] .. round(y_i) + half_height[i]``
         and likewise columns (inclusive; it may extend beyond the image).
+    n_footprint : int, optional
+        Number of True pixels of ``footprint``, if known (e.g. a field context's
+        ``footprint_count``): saves counting them, the one full-frame pass left
+        (the placement is otherwise sparse; see the module docstring).
 
     Returns
     -------
@@ -190,19 +299,44 @@ def draw_positions(rng: np.random.Generator, footprint: np.ndarray, half_height:
     n = hh.size
     if n == 0:
         return np.empty(0), np.empty(0)
-    grid = _Grid(footprint, hh.min(), hw.min())
+    pix = _place(rng, footprint, hh, hw, n_footprint)
+    m = pix.size
+    iy, ix = np.divmod(pix, footprint.shape[1])
+    u = rng.random((2, m)) - 0.5
+    return _inside_pixel(ix + u[0], ix), _inside_pixel(iy + u[1], iy)
+
+
+def _place(rng: np.random.Generator, footprint: np.ndarray, hh: np.ndarray, hw: np.ndarray,
+           n_footprint: int | None, sparse: bool = True) -> np.ndarray:
+    """Centre pixels (flat indices) of the first m sources; sparse while provably exact."""
+    n = hh.size
+    hmin, wmin = int(hh.min()), int(hw.min())
+    grid = None
+    if sparse:
+        if n_footprint is None:
+            n_footprint = int(np.count_nonzero(footprint))
+        cell = max(16, 2 * int(max(hh.max(), hw.max())) + 1)
+        grid = _Sparse(footprint, n_footprint, hmin, wmin, cell)
+        if not grid.exact():
+            grid = grid.dense()
+    else:
+        grid = _Grid(footprint, hmin, wmin)
     pix = np.empty(n, dtype=np.int64)
     m = 0
     for k in range(n):
-        p = grid.draw(rng, int(hh[k]), int(hw[k]))
+        h, w = int(hh[k]), int(hw[k])
+        p = grid.draw(rng, h, w)
+        if p == -2:                         # sparse: max_tries rejections, enumerate exactly
+            grid = grid.dense()
+            p = grid._enumerate(rng, h, w)
         if p < 0:
             break
-        grid.occupy(p, int(hh[k]), int(hw[k]))
+        grid.occupy(p, h, w)
+        if isinstance(grid, _Sparse) and not grid.exact():
+            grid = grid.dense()
         pix[m] = p
         m += 1
-    iy, ix = np.divmod(pix[:m], footprint.shape[1])
-    u = rng.random((2, m)) - 0.5
-    return _inside_pixel(ix + u[0], ix), _inside_pixel(iy + u[1], iy)
+    return pix[:m]
 
 
 def _inside_pixel(v: np.ndarray, i: np.ndarray) -> np.ndarray:

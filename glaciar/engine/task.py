@@ -137,7 +137,8 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
 
     # Isolation boxes (most of the light + 2 PSF FWHM) decide how close two sources may sit.
     hh, hw = ctx.stamp_half_sizes(src.sersic_n, src.r_eff_pix, src.axis_ratio, src.position_angle_deg)
-    x, y = draw_positions(rng, ctx.footprint, hh, hw)
+    x, y = draw_positions(rng, ctx.footprint, hh, hw,
+                          n_footprint=getattr(ctx, "footprint_count", None))
     m = x.size
     if m < n:
         src = SourceDraws(**{k: v[:m] for k, v in src.__dict__.items()})

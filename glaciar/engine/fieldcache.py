@@ -1,0 +1,555 @@
+"""Field contexts on disk: measured arrays as ``.npy`` files that workers memory-map.
+
+A field's context (:class:`glaciar.engine.context.FieldContext`) holds full-frame
+arrays -- background-subtracted images and RMS maps of every band, masks, the
+local depth map, the reference segmentation -- about 45 bytes per pixel for 4
+bands, 11 GB on a 16000² mosaic.  The process that measures the field writes
+its measured part once (:func:`save`) as a directory of native-endian ``.npy``
+files plus a JSON description of how they nest (dataclasses, dicts, tuples,
+scalars); no pickle.  Workers open it (:func:`load`): arrays of at least
+:data:`MMAP_MIN_BYTES` are read-only memory maps (pages read on first touch
+and shared between processes through the page cache), smaller ones are read
+into memory.  A task reads windows of the maps, so what it costs in memory is
+the pages under its windows.
+
+Mapped pages count in a process's resident set while mapped and would
+accumulate over a long run until the whole files were resident;
+:func:`trim` drops them (``madvise(MADV_DONTNEED)``: the page cache keeps
+them, the next touch is a minor fault) once more than
+:data:`RESIDENT_BUDGET_BYTES` of file-backed pages have accumulated.
+
+On a field whose maps exceed that budget, glaciar.run stores the images the
+engine reads by window (images, RMS maps, mask, reference segmentation) as
+square tiles (:class:`Tiled` on writing, :class:`TiledArray` on reading: a 4-d
+``.npy`` ``[ty, tx, 128, 128]`` whose data start at a 64 kB boundary).  A
+window read from a row-major map faults in at least a 64 kB file block per
+row (a whole row of a 16000-pixel float32 image; with the page cache's large
+folios often more); from tiles, the tiles under it.  Measured on a 16000^2
+float32 image with its pages dropped before each read (benchmarks/window_reads.py,
+loaded machine): 780 -> 93 us for a 64 px window, 2380 -> 225 us for 200 px.
+
+:func:`spill` moves a finished array of a field being measured to an unnamed
+temporary file (memory-mapped), so that measuring a large field does not
+hold the whole context in memory.
+
+The directory is written under a temporary name and renamed into place, so a
+reader sees a complete cache or none; when two processes write the same cache,
+the first rename wins and the other copy is removed.
+"""
+from __future__ import annotations
+
+import atexit
+import dataclasses
+import importlib
+import json
+import mmap
+import os
+import shutil
+import tempfile
+import threading
+import weakref
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["save", "load", "exists", "release", "Trimmer", "trim", "TiledArray", "Tiled", "spill", "FORMAT",
+           "MMAP_MIN_BYTES", "RESIDENT_BUDGET_BYTES", "TILE"]
+
+#: Version of the on-disk layout (part of a cache's key: a new layout never reads an old one).
+FORMAT = 1
+#: Arrays at least this large [bytes] are memory-mapped; smaller ones (catalogues) are read.
+MMAP_MIN_BYTES = 1 << 20
+#: File-backed resident pages [bytes] a worker lets accumulate before they are dropped: with
+#: ~300 MB of code and working memory a worker stays near 1.1 GB (target: 2 GB on 16000^2),
+#: while a 4000^2 4-band field (~0.9 GB of maps) is seldom trimmed (each trim costs refaults).
+RESIDENT_BUDGET_BYTES = 768 << 20
+#: Store the windowed images of a field larger than the resident budget as tiles
+#: (glaciar.run's field cache); False keeps every array row-major (for comparisons).
+TILED_CACHE = True
+#: Side [pixels] of the square tiles of a tiled 2-d array (:class:`TiledArray`): a float32
+#: tile is 64 kB, the kernel's fault-around block, so a window faults in the tiles under it.
+TILE = 128
+#: Tiles start at a multiple of this file offset [bytes] (the .npy header is padded to it), so
+#: that a 64 kB tile is one fault-around block, not two.
+TILE_ALIGN = 1 << 16
+#: Largest .npy header np.load is allowed to read for a tiled file (its padding included).
+_MAX_HEADER = 1 << 17
+#: Rows copied at a time [bytes] when a cache array is written (mapped pages dropped after each).
+COPY_BLOCK_BYTES = 64 << 20
+#: Directory of :func:`spill`'s temporary files (None: the system temp directory).
+SCRATCH_DIR = None
+#: Name of the JSON description inside a cache directory.
+INDEX_NAME = "index.json"
+
+#: Classes a cache may rebuild (by "module:qualname"); nothing else is instantiated on load.
+_CLASSES = frozenset({
+    "glaciar.engine.measure:FieldReference",
+    "glaciar.engine.segmentation:Segmentation",
+    "glaciar.engine.clean:CleanObjects",
+    "glaciar.engine.windows:ObjectBoxes",
+    "glaciar.engine.noise:CorrelatedNoise",
+})
+
+
+# --------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------
+def _maps_of(*arrays) -> list:
+    """The mmap objects behind memory-mapped arrays (views of np.load/np.memmap maps)."""
+    out = []
+    for a in arrays:
+        while a is not None:
+            m = getattr(a, "_mmap", None)
+            if m is not None:
+                out.append(m)
+                break
+            a = getattr(a, "base", None)
+    return out
+
+
+def _copy_rows(src: np.ndarray, out: np.ndarray) -> None:
+    """``out[...] = src`` by blocks of rows (~:data:`COPY_BLOCK_BYTES`), dropping the mapped
+    pages of both after each block: copying a mapped 16000^2 image does not make it resident."""
+    if not src.size:
+        out.flush()
+        return
+    if src.ndim == 0:
+        out[...] = src
+        out.flush()
+        return
+    row = max(1, src[0].nbytes if src.ndim > 1 else src.itemsize)
+    step = max(1, COPY_BLOCK_BYTES // row)
+    maps = _maps_of(src, out)
+    for i in range(0, src.shape[0], step):
+        out[i:i + step] = src[i:i + step]
+        if maps:
+            out.flush()
+            release(maps)
+    out.flush()
+
+
+def spill(arr: np.ndarray, directory=None) -> np.ndarray:
+    """``arr`` moved to an unnamed file: a read-only memory map of a copy written to a temporary
+    ``.npy`` in ``directory`` (default :data:`SCRATCH_DIR`, else the system temp directory).
+
+    The file is unlinked once mapped (POSIX: its space is freed when the map closes; elsewhere
+    it is removed at exit), so nothing is left behind.  Lets a process that measures a large
+    field keep each finished full-frame array on disk rather than in memory.
+    """
+    arr = np.asarray(arr)
+    fd, name = tempfile.mkstemp(prefix="glaciar-spill-", suffix=".npy",
+                                dir=directory if directory is not None else SCRATCH_DIR)
+    os.close(fd)
+    try:
+        dtype = arr.dtype if arr.dtype.isnative else arr.dtype.newbyteorder("=")
+        out = np.lib.format.open_memmap(name, mode="w+", dtype=dtype, shape=arr.shape)
+        _copy_rows(arr, out)
+        del out
+        mapped = np.load(name, mmap_mode="r", allow_pickle=False)
+    except BaseException:
+        os.unlink(name)
+        raise
+    try:
+        os.unlink(name)
+    except OSError:                     # pragma: no cover - platforms that keep mapped files
+        atexit.register(lambda: os.path.exists(name) and os.unlink(name))
+    return mapped
+
+
+def _write_tiled(arr: np.ndarray, path: Path, tile: int) -> None:
+    """Write a 2-d array as a 4-d .npy ``[ty, tx, tile, tile]`` (edge tiles zero-padded),
+    its data at a multiple of :data:`TILE_ALIGN`; one row of tiles in memory at a time."""
+    ny, nx = arr.shape
+    nty, ntx = -(-ny // tile), -(-nx // tile)
+    dtype = arr.dtype if arr.dtype.isnative else arr.dtype.newbyteorder("=")
+    shape = (nty, ntx, tile, tile)
+    header = repr({"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
+                   "shape": shape})
+    # Format 2.0: magic (6) + version (2) + uint32 length (4) + header ending in "\n".
+    total = -(-(12 + len(header) + 1) // TILE_ALIGN) * TILE_ALIGN
+    header = header + " " * (total - 12 - len(header) - 1) + "\n"
+    with open(path, "wb") as fh:
+        fh.write(np.lib.format.magic(2, 0))
+        fh.write(np.uint32(len(header)).astype("<u4").tobytes())
+        fh.write(header.encode("latin1"))
+        row = np.zeros((tile, ntx * tile), dtype=dtype)
+        src_maps = _maps_of(arr)          # a mapped source: its pages dropped row by row
+        for ty in range(nty):
+            y0, y1 = ty * tile, min((ty + 1) * tile, ny)
+            row[:y1 - y0, :nx] = arr[y0:y1]
+            if y1 - y0 < tile:
+                row[y1 - y0:] = 0
+            fh.write(np.ascontiguousarray(
+                row.reshape(tile, ntx, tile).transpose(1, 0, 2)).tobytes())
+            if src_maps:
+                release(src_maps)
+
+
+class Tiled:
+    """Marks a 2-d array that :func:`save` stores as tiles (read back as a :class:`TiledArray`)."""
+
+    __slots__ = ("array", "tile")
+
+    def __init__(self, array, tile: int = TILE):
+        self.array = array
+        self.tile = int(tile)
+
+
+def _encode(obj, directory: Path, names: list) -> dict:
+    if isinstance(obj, Tiled):
+        arr = obj.array
+        if isinstance(arr, TiledArray):
+            arr = np.asarray(arr)
+        if arr.ndim != 2 or arr.dtype.hasobject:
+            raise TypeError(f"field cache: only 2-d numeric arrays are tiled (got {arr.dtype}, "
+                            f"{arr.ndim}-d)")
+        name = f"a{len(names):04d}.npy"
+        names.append(name)
+        _write_tiled(arr, directory / name, obj.tile)
+        return {"tiled": name, "shape": [int(n) for n in arr.shape]}
+    if isinstance(obj, TiledArray):
+        return _encode(Tiled(obj, obj.tile), directory, names)
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.hasobject:
+            raise TypeError(f"field cache: arrays of Python objects are not stored (dtype {obj.dtype})")
+        name = f"a{len(names):04d}.npy"
+        names.append(name)
+        dtype = obj.dtype if obj.dtype.isnative else obj.dtype.newbyteorder("=")
+        out = np.lib.format.open_memmap(directory / name, mode="w+", dtype=dtype, shape=obj.shape)
+        _copy_rows(obj, out)
+        del out
+        return {"npy": name}
+    if isinstance(obj, np.generic):
+        return {"value": obj.item()}
+    if obj is None or isinstance(obj, (bool, int, float, str)):
+        return {"value": obj}
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        cls = type(obj)
+        qual = f"{cls.__module__}:{cls.__qualname__}"
+        if qual not in _CLASSES:
+            raise TypeError(f"field cache: {qual} is not a class it stores")
+        # Fields starting with "_" are lazily built caches (e.g. a k-d tree): rebuilt on use.
+        return {"dataclass": qual, "fields": {f.name: _encode(getattr(obj, f.name), directory, names)
+                                              for f in dataclasses.fields(obj)
+                                              if not f.name.startswith("_")}}
+    if isinstance(obj, dict):
+        if not all(isinstance(k, str) for k in obj):
+            raise TypeError("field cache: dict keys must be strings")
+        return {"dict": {k: _encode(v, directory, names) for k, v in obj.items()}}
+    if isinstance(obj, (tuple, list)):
+        return {type(obj).__name__: [_encode(v, directory, names) for v in obj]}
+    raise TypeError(f"field cache: cannot store a {type(obj).__name__}")
+
+
+def save(items: dict, directory) -> Path:
+    """Write ``items`` (str -> arrays, scalars, dicts, tuples, known dataclasses) to ``directory``.
+
+    Written to a temporary sibling and renamed: an existing ``directory`` (another
+    process was faster) is kept and the new copy removed.  Returns ``directory``.
+    """
+    directory = Path(directory)
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", suffix=".tmp", dir=directory.parent))
+    try:
+        names: list = []
+        index = {"format": FORMAT, "items": _encode(dict(items), tmp, names)}
+        (tmp / INDEX_NAME).write_text(json.dumps(index, indent=1, allow_nan=True), encoding="utf-8")
+        os.chmod(tmp, 0o755)
+        try:
+            os.rename(tmp, directory)
+        except OSError:
+            if not (directory / INDEX_NAME).is_file():
+                raise
+            shutil.rmtree(tmp, ignore_errors=True)      # the same cache is already there
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return directory
+
+
+# --------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------
+def _decode(node: dict, directory: Path, maps: list):
+    if "tiled" in node:
+        tiles = np.load(directory / node["tiled"], mmap_mode="r", allow_pickle=False,
+                        max_header_size=_MAX_HEADER)
+        if isinstance(tiles, np.memmap):
+            maps.append(tiles._mmap)
+        return TiledArray(tiles, tuple(node["shape"]))
+    if "npy" in node:
+        path = directory / node["npy"]
+        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+        if arr.nbytes >= MMAP_MIN_BYTES and isinstance(arr, np.memmap):
+            maps.append(arr._mmap)
+            return arr
+        return np.array(arr)           # small: a private in-memory copy, the map closed
+    if "value" in node:
+        return node["value"]
+    if "dataclass" in node:
+        qual = node["dataclass"]
+        if qual not in _CLASSES:
+            raise ValueError(f"{directory / INDEX_NAME}: unknown class {qual!r}")
+        module, name = qual.split(":")
+        cls = getattr(importlib.import_module(module), name)
+        return cls(**{k: _decode(v, directory, maps) for k, v in node["fields"].items()})
+    if "dict" in node:
+        return {k: _decode(v, directory, maps) for k, v in node["dict"].items()}
+    if "tuple" in node:
+        return tuple(_decode(v, directory, maps) for v in node["tuple"])
+    if "list" in node:
+        return [_decode(v, directory, maps) for v in node["list"]]
+    raise ValueError(f"{directory / INDEX_NAME}: unreadable entry {sorted(node)}")
+
+
+def load(directory) -> tuple[dict, tuple]:
+    """Open a cache written by :func:`save`: ``(items, maps)``.
+
+    ``maps``: the ``mmap`` objects behind the memory-mapped arrays (for
+    :func:`trim` / :func:`release`).
+    """
+    directory = Path(directory)
+    index = json.loads((directory / INDEX_NAME).read_text(encoding="utf-8"))
+    if index.get("format") != FORMAT:
+        raise ValueError(f"{directory / INDEX_NAME}: field cache format {index.get('format')!r}, "
+                         f"expected {FORMAT}")
+    maps: list = []
+    items = _decode(index["items"], directory, maps)
+    return items, tuple(maps)
+
+
+def exists(directory) -> bool:
+    """A complete cache is at ``directory``."""
+    return (Path(directory) / INDEX_NAME).is_file()
+
+
+# --------------------------------------------------------------------------
+# Tiled arrays
+# --------------------------------------------------------------------------
+class TiledArray:
+    """Read-only 2-d array stored as square tiles ``tiles[ty, tx, row, col]``.
+
+    Indexing returns what the same index of the plain array returns (always a
+    new array, never a view): ``a[y0:y1, x0:x1]`` (steps of 1, negative and
+    out-of-range bounds as numpy clips them) copies the tiles under the window
+    only; ``a[iy, ix]`` with integer arrays (any broadcastable shapes) or
+    integers gathers single pixels; a row ``a[i]`` or ``a[i, x0:x1]`` too.
+    ``np.asarray(a)`` assembles the whole frame (rare full-frame users such as
+    ``mode="full"``); any other index goes through it.
+
+    Why: on a memory map of a row-major image each window row faults in a
+    64 kB block of the file, a whole row of a 16000-pixel float32 image; a tile
+    of 128 x 128 float32 pixels is one such block.
+    """
+
+    __array_priority__ = 10.0
+
+    def __init__(self, tiles: np.ndarray, shape: tuple[int, int]):
+        if tiles.ndim != 4 or tiles.shape[2] != tiles.shape[3]:
+            raise ValueError(f"tiles must have shape (ty, tx, t, t), got {tiles.shape}")
+        self.tiles = tiles
+        self.tile = int(tiles.shape[2])
+        self.shape = (int(shape[0]), int(shape[1]))
+        if tiles.shape[0] * self.tile < self.shape[0] or tiles.shape[1] * self.tile < self.shape[1]:
+            raise ValueError(f"tiles {tiles.shape} do not cover shape {self.shape}")
+        self.dtype = tiles.dtype
+        self.ndim = 2
+        self.size = self.shape[0] * self.shape[1]
+        self.itemsize = tiles.dtype.itemsize
+        self.nbytes = self.size * self.itemsize
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __repr__(self) -> str:
+        return f"TiledArray(shape={self.shape}, dtype={self.dtype}, tile={self.tile})"
+
+    def _window(self, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+        out = np.empty((max(y1 - y0, 0), max(x1 - x0, 0)), dtype=self.dtype)
+        if y1 <= y0 or x1 <= x0:
+            return out
+        t, tiles = self.tile, self.tiles
+        tx0, tx1 = x0 // t, (x1 - 1) // t + 1
+        for ty in range(y0 // t, (y1 - 1) // t + 1):
+            top = ty * t
+            r0, r1 = max(y0, top) - top, min(y1, top + t) - top
+            dst = out[top + r0 - y0:top + r1 - y0]
+            for tx in range(tx0, tx1):
+                left = tx * t
+                c0, c1 = max(x0, left) - left, min(x1, left + t) - left
+                dst[:, left + c0 - x0:left + c1 - x0] = tiles[ty, tx, r0:r1, c0:c1]
+        return out
+
+    def _points(self, iy, ix) -> np.ndarray:
+        iy, ix = np.broadcast_arrays(np.asarray(iy), np.asarray(ix))
+        ny, nx = self.shape
+        if iy.size and (iy.min() < -ny or iy.max() >= ny or ix.min() < -nx or ix.max() >= nx):
+            raise IndexError(f"index out of bounds for an array of shape {self.shape}")
+        iy = np.where(iy < 0, iy + ny, iy)
+        ix = np.where(ix < 0, ix + nx, ix)
+        t = self.tile
+        return np.array(self.tiles[iy // t, ix // t, iy % t, ix % t])
+
+    def __getitem__(self, key):
+        if type(key) is not tuple:
+            key = (key,)
+        if len(key) == 1:
+            key = (key[0], slice(None))
+        if len(key) == 2:
+            ky, kx = key
+            sy, sx = isinstance(ky, slice), isinstance(kx, slice)
+            if (sy and sx and ky.step in (None, 1) and kx.step in (None, 1)):
+                y0, y1, _ = ky.indices(self.shape[0])
+                x0, x1, _ = kx.indices(self.shape[1])
+                return self._window(y0, y1, x0, x1)
+            iy_int = isinstance(ky, (int, np.integer))
+            ix_int = isinstance(kx, (int, np.integer))
+            if iy_int and ix_int:
+                return self._points(ky, kx)[()]
+            if (iy_int and sx and kx.step in (None, 1)) or (ix_int and sy and ky.step in (None, 1)):
+                n = self.shape[0] if iy_int else self.shape[1]
+                i = int(ky if iy_int else kx)
+                if not -n <= i < n:
+                    raise IndexError(f"index {i} out of bounds for an array of shape {self.shape}")
+                i += n if i < 0 else 0
+                if iy_int:
+                    x0, x1, _ = kx.indices(self.shape[1])
+                    return self._window(i, i + 1, x0, x1)[0]
+                y0, y1, _ = ky.indices(self.shape[0])
+                return self._window(y0, y1, i, i + 1)[:, 0]
+            if not (sy or sx or ky is None or kx is None or ky is Ellipsis or kx is Ellipsis):
+                ay, ax = np.asarray(ky), np.asarray(kx)
+                if ay.dtype.kind in "iu" and ax.dtype.kind in "iu":
+                    return self._points(ay, ax)
+        return np.asarray(self)[key]
+
+    def __array__(self, dtype=None, copy=None):
+        out = self._window(0, self.shape[0], 0, self.shape[1])
+        return out if dtype is None else out.astype(dtype, copy=False)
+
+    def astype(self, dtype, copy: bool = True):
+        return np.asarray(self).astype(dtype, copy=copy)
+
+
+# --------------------------------------------------------------------------
+# Resident pages
+# --------------------------------------------------------------------------
+_PAGE = mmap.PAGESIZE
+_STATM = "/proc/self/statm"
+
+
+def _file_resident_bytes() -> int | None:
+    """Resident shared (file-backed) bytes of this process, or None where unknown."""
+    try:
+        with open(_STATM, "rb") as fh:
+            return int(fh.read().split()[2]) * _PAGE
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def release(maps) -> None:
+    """Drop the resident pages of ``maps`` from this process (they stay in the page cache)."""
+    advice = getattr(mmap, "MADV_DONTNEED", None)
+    if advice is None:          # pragma: no cover - platforms without madvise
+        return
+    for m in maps:
+        try:
+            m.madvise(advice)
+        except (OSError, ValueError):       # closed map
+            pass
+
+
+class Trimmer:
+    """Calls :func:`release` when file-backed resident pages grew by more than a budget.
+
+    The baseline is the resident size when the maps were opened or last
+    released (shared libraries' pages are file-backed too).  Where the resident
+    size cannot be read, every call releases.
+
+    A task on a large mosaic can touch more than the budget by itself: each
+    window row faults in a whole 64 kB block ("fault-around"), a full image row
+    at 16000 pixels of float32.  When the maps are larger than the budget,
+    :meth:`watch` also checks from a daemon thread every ``period`` seconds, so
+    that the resident set stays bounded during a task (dropping pages under a
+    reader is safe: read-only file pages are read again on the next touch).
+    """
+
+    def __init__(self, maps, budget: int | None = None, period: float = 0.01):
+        self.maps = tuple(maps)
+        self.budget = int(RESIDENT_BUDGET_BYTES if budget is None else budget)
+        self.period = float(period)
+        self.mapped = sum(len(m) for m in self.maps)
+        self.baseline = _file_resident_bytes()
+        self.releases = 0
+        self._pid = os.getpid()
+        self._lock = threading.Lock()
+        self._watcher: tuple | None = None          # (pid, thread, stop event)
+
+    def _forked(self) -> None:
+        """In a child forked after the maps were opened: its own lock and baseline."""
+        if os.getpid() != self._pid:
+            self._pid = os.getpid()
+            self._lock = threading.Lock()           # a lock copied by fork may be held
+            self._watcher = None                    # threads do not survive a fork
+            self.baseline = _file_resident_bytes()
+
+    def __call__(self) -> bool:
+        if not self.maps:
+            return False
+        self._forked()
+        with self._lock:
+            now = _file_resident_bytes()
+            if now is not None and self.baseline is not None and now - self.baseline <= self.budget:
+                return False
+            release(self.maps)
+            self.releases += 1
+            self.baseline = _file_resident_bytes()      # libraries' pages grow too: re-based here
+            return True
+
+    def watch(self) -> bool:
+        """Start the checking thread in this process (a forked child starts its own) when the
+        maps exceed the budget; True if one runs.  :meth:`unwatch` stops it."""
+        if self.mapped <= self.budget or _file_resident_bytes() is None:
+            return False
+        self._forked()
+        pid = os.getpid()
+        if self._watcher is not None and self._watcher[1].is_alive():
+            return True
+        stop = threading.Event()
+        thread = threading.Thread(target=_watch, args=(weakref.ref(self), stop, self.period),
+                                  daemon=True, name="glaciar-fieldcache-trim")
+        self._watcher = (pid, thread, stop)
+        thread.start()
+        return True
+
+    def unwatch(self) -> None:
+        """Stop this process's checking thread (if any)."""
+        if self._watcher is not None and self._watcher[0] == os.getpid():
+            self._watcher[2].set()
+            self._watcher[1].join()
+        self._watcher = None
+
+
+def _watch(ref, stop: threading.Event, period: float) -> None:
+    while not stop.wait(period):
+        trimmer = ref()
+        if trimmer is None:             # the context is gone
+            return
+        trimmer()
+        del trimmer
+
+
+def trim(ctx, watch: bool | None = None) -> bool:
+    """Drop a context's mapped pages if more than the budget accumulated (True if it did).
+
+    ``watch``: True starts this process's checking thread (:meth:`Trimmer.watch`) for the
+    tasks that follow, False stops it, None leaves it as it is.
+    """
+    trimmer = getattr(ctx, "_trimmer", None)
+    if trimmer is None:
+        return False
+    if watch is True:
+        trimmer.watch()
+    elif watch is False:
+        trimmer.unwatch()
+    return trimmer()
