@@ -39,7 +39,7 @@ Usage::
 
     python benchmarks/scaling.py [--sizes 1000,4000[,16000]] [--tasks 30] [--n 100]
                                  [--z 8] [--mag 26] [--parallel-size 1000] [--no-parallel]
-                                 [--tmp DIR] [--map-budget-mb MB] [--no-tiles]
+                                 [--tmp DIR] [--map-budget-mb MB] [--no-tiles] [--no-clean]
 
 ``--map-budget-mb`` sets the resident budget of a worker's memory-mapped field
 cache (:data:`glaciar.engine.fieldcache.RESIDENT_BUDGET_BYTES`): with a budget
@@ -47,7 +47,9 @@ below the field's maps (e.g. 256 MB at 4000^2), pages are dropped during the
 run as on a 16000^2 mosaic, which shows what the bound costs in task CPU.  A field
 whose maps exceed that budget is cached as 128 x 128 tiles (a window read faults in
 the tiles under it, not a file block per row); ``--no-tiles`` keeps it row-major,
-for comparison.
+for comparison.  ``--no-clean`` turns CLEAN off in the generated config: sep's CLEAN
+of the full-frame reference extraction is quadratic in the number of objects and
+takes ~30 min at 16000^2, so this is how the rest of a 16000^2 run is measured.
 """
 from __future__ import annotations
 
@@ -108,6 +110,14 @@ def _child_build(opt) -> dict:
     t0 = time.perf_counter()
     path = build_demo_survey(opt.out, shape=(opt.size, opt.size), seed=opt.seed, n_galaxies=opt.n,
                              n_iterations=opt.tasks, z_values=(opt.z,), mag_values=(opt.mag,))
+    if opt.no_clean:
+        # sep's CLEAN of the full-frame reference extraction is quadratic in the number of
+        # objects (~30 min at 16000^2): this measures the rest of the set-up and the tasks.
+        import yaml
+
+        cfg = yaml.safe_load(path.read_text())
+        cfg["detection"]["CLEAN"] = False
+        path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     return {"config": str(path), "wall_s": time.perf_counter() - t0,
             "rss_mb": _maxrss_bytes(resource.RUSAGE_SELF) / MB}
 
@@ -197,6 +207,9 @@ def main(argv=None):
     ap.add_argument("--map-budget-mb", type=float, default=None,
                     help="resident budget of a worker's mapped field cache [MB] (default: "
                          "glaciar.engine.fieldcache.RESIDENT_BUDGET_BYTES)")
+    ap.add_argument("--no-clean", action="store_true",
+                    help="CLEAN off in the generated config (sep's full-frame CLEAN of the "
+                         "reference extraction is quadratic in the number of objects)")
     ap.add_argument("--no-tiles", action="store_true",
                     help="keep the field cache row-major on large fields (no tiles; for comparison)")
     # internal: child-process modes
@@ -216,9 +229,9 @@ def main(argv=None):
 
     sizes = [int(s) for s in opt.sizes.split(",") if s.strip()]
     common = ["--tasks", str(opt.tasks), "--n", str(opt.n), "--z", str(opt.z), "--mag", str(opt.mag),
-              "--seed", str(opt.seed)]
+              "--seed", str(opt.seed)] + (["--no-clean"] if opt.no_clean else [])
     load = os.getloadavg()
-    print(f"glaciar scaling: demo survey (4 bands), {opt.tasks} tasks x {opt.n} sources at "
+    print(f"glaciar scaling: demo survey (4 bands{', CLEAN off' if opt.no_clean else ''}), {opt.tasks} tasks x {opt.n} sources at "
           f"z = {opt.z:g}, m = {opt.mag:g}; load average at start {load[0]:.1f} "
           f"on {os.cpu_count()} CPUs")
     tmp_root = tempfile.mkdtemp(prefix="glaciar-scaling-", dir=opt.tmp)
