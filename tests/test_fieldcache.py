@@ -44,6 +44,17 @@ def _tree():
             "bands": ("f160w", "f125w"), "method": "ivw", "small": np.arange(5, dtype=np.int64)}
 
 
+def _assert_same_measured(ctx, built):
+    """The measured arrays of ``ctx`` equal those of the in-memory context ``built``."""
+    for b in built.bands:
+        np.testing.assert_array_equal(ctx.bases[b], built.bases[b])
+        np.testing.assert_array_equal(ctx.rms[b], built.rms[b])
+    for name in ("mask", "footprint", "depth", "detection_background"):
+        np.testing.assert_array_equal(getattr(ctx, name), getattr(built, name))
+    np.testing.assert_array_equal(ctx.reference.segmap, built.reference.segmap)
+    assert ctx.measured_noise == built.measured_noise
+
+
 def test_round_trip_values_types_and_maps(tmp_path):
     tree = _tree()
     path = fieldcache.save(tree, tmp_path / "ctx")
@@ -142,13 +153,7 @@ def test_opened_context_equals_the_built_one(small_survey, tmp_path, monkeypatch
     for ctx in (mapped, opened):
         assert isinstance(ctx.bases[cfg.survey.detection_band], np.memmap)
         assert ctx.footprint_count == int(built.footprint.sum())
-        for b in built.bands:
-            np.testing.assert_array_equal(ctx.bases[b], built.bases[b])
-            np.testing.assert_array_equal(ctx.rms[b], built.rms[b])
-        for name in ("mask", "footprint", "depth", "detection_background"):
-            np.testing.assert_array_equal(getattr(ctx, name), getattr(built, name))
-        np.testing.assert_array_equal(ctx.reference.segmap, built.reference.segmap)
-        assert ctx.measured_noise == built.measured_noise
+        _assert_same_measured(ctx, built)
     for it in range(2):
         spec = TaskSpec(field=field, field_index=0, z_index=0, mag_index=0, iteration=it,
                         z=8.0, mag=26.0)
@@ -238,13 +243,7 @@ def test_spilled_build_equals_the_in_memory_one(small_survey, tmp_path, monkeypa
     det = cfg.survey.detection_band
     assert isinstance(spilled.bases[det], np.memmap) and isinstance(spilled.depth, np.memmap)
     assert isinstance(spilled.reference.segmap, np.memmap)
-    for b in built.bands:
-        np.testing.assert_array_equal(spilled.bases[b], built.bases[b])
-        np.testing.assert_array_equal(spilled.rms[b], built.rms[b])
-    for name in ("mask", "footprint", "depth", "detection_background"):
-        np.testing.assert_array_equal(getattr(spilled, name), getattr(built, name))
-    np.testing.assert_array_equal(spilled.reference.segmap, built.reference.segmap)
-    assert spilled.measured_noise == built.measured_noise
+    _assert_same_measured(spilled, built)
     spec = TaskSpec(field=field, field_index=0, z_index=0, mag_index=0, iteration=0, z=8.0, mag=26.0)
     assert_same_outputs(run_task(spilled, spec, 3), run_task(built, spec, 3), "spilled")
 
