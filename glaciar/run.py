@@ -437,18 +437,21 @@ def save_field_context(ctx: FieldContext, path) -> FieldContext:
     return dataclasses.replace(ctx, **items, _trimmer=fieldcache.Trimmer(maps))
 
 
-def _context_dir(run_dir, cfg_hash: str, field: str) -> Path | None:
+def _context_dir(run_dir, cfg_hash: str, field: str, inputs: dict | None = None) -> Path | None:
     """Cache directory of a field's context in a run (None: no manifest yet).
 
     Keyed on everything the measurement depends on: the config's hash, the field,
-    the run's input files (size and BLAKE2b, from the manifest), glaciar's version
-    and the cache's format; a changed config or input gets a new directory.
+    the run's input files (size and BLAKE2b: ``inputs``, by default the manifest's),
+    glaciar's version and the cache's format; a changed config or input gets a new
+    directory.
     """
-    manifest = read_manifest(run_dir)
-    if manifest is None:
-        return None
+    if inputs is None:
+        manifest = read_manifest(run_dir)
+        if manifest is None:
+            return None
+        inputs = manifest.get("inputs") or {}
     ident = json.dumps({"format": fieldcache.FORMAT, "glaciar": __version__, "config": cfg_hash,
-                        "field": field, "inputs": manifest.get("inputs") or {}}, sort_keys=True)
+                        "field": field, "inputs": inputs}, sort_keys=True)
     return Path(run_dir) / C.CONTEXT_DIRNAME / hashlib.sha256(ident.encode("utf-8")).hexdigest()[:24]
 
 
@@ -579,13 +582,21 @@ def _context(cfg_dict: dict, base_dir: str, cfg_hash: str, field: str,
     return ctx
 
 
-def _context_of(cfg: Config, survey: Survey, field: str) -> FieldContext:
-    """The field's context from the main process's config, under :func:`_context`'s key."""
+def _context_of(cfg: Config, survey: Survey, field: str, cached: Path | None = None) -> FieldContext:
+    """The field's context from the main process's config, under :func:`_context`'s key.
+
+    ``cached``: the field's cache directory in the run, if known: a complete cache
+    there (an interrupted run's, for its resume) is mapped instead of measuring the
+    field again.
+    """
     key = (config_hash(cfg), str(cfg.base_dir), field)
     ctx = _CONTEXTS.get(key)
     if ctx is None:
         _CONTEXTS.clear()
-        ctx = build_field_context(cfg, survey, field)
+        if cached is not None and fieldcache.exists(cached):
+            ctx = open_field_context(cfg, survey, field, cached)
+        else:
+            ctx = build_field_context(cfg, survey, field)
         _CONTEXTS[key] = ctx
     return ctx
 
@@ -994,21 +1005,22 @@ def detection_z_limit(cfg: Config, z_max: float = 30.0) -> float | None:
     return round(hi, 3)
 
 
-def _manifest(cfg: Config, survey: Survey, seed: int, z_limit=None) -> dict:
-    """The run's manifest; ``z_limit``: a future of :func:`detection_z_limit` (None: computed here)."""
+def _manifest(cfg: Config, survey: Survey, seed: int, z_limit=None, cached: dict | None = None) -> dict:
+    """The run's manifest; ``z_limit``: a future of :func:`detection_z_limit` (None: computed here);
+    ``cached``: field -> its context's cache directory in the run (:func:`_context_of`)."""
     area = {}
     pixscale = {}
-    for f in cfg.survey.fields:
-        ps = survey.pixel_scale_arcsec(f)
-        pixscale[f] = ps
-        area[f] = float(survey.footprint(f).sum()) * ps ** 2 / 3600.0
     settings = store_settings(cfg)
     depth_area, noise = {}, {}
     for f in cfg.survey.fields:
-        # The field's context is built here once, in this process: the depth and noise
-        # records read it, a serial run's tasks use it (glaciar.run._context), and forked
-        # pool workers inherit it instead of measuring the field again.
-        ctx = _context_of(cfg, survey, f)
+        # The field's context is built here once, in this process (or mapped from an
+        # interrupted run's cache): the area, depth and noise records read it, a serial
+        # run's tasks use it (glaciar.run._context), and forked pool workers inherit it
+        # instead of measuring the field again.
+        ctx = _context_of(cfg, survey, f, (cached or {}).get(f))
+        ps = survey.pixel_scale_arcsec(f)
+        pixscale[f] = ps
+        area[f] = float(ctx.footprint_count) * ps ** 2 / 3600.0
         depth_area[f] = _depth_area(cfg, survey, f, ctx)
         noise[f] = field_noise_record(cfg, survey, f, ctx)
     return {
@@ -1085,7 +1097,7 @@ def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor
     results nor the field's context run while this process checks the inputs
     and measures the field (:class:`_SetupJobs`): None (here, in order),
     ``"fork"`` (a forked helper process) or an executor (the run's own, of
-    which ``warm`` workers are asked to import glaciar meanwhile).
+    which ``warm`` workers are asked to import glaciar and warm their caches meanwhile).
     """
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
@@ -1106,22 +1118,29 @@ def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor
     cache = _load_fingerprint_cache(run_dir) if run_dir.is_dir() else {}
     cache_before = json.dumps(cache, sort_keys=True)
     survey = Survey.from_config(cfg)
+    # An interrupted run left its fields' contexts on disk: with the inputs checked first
+    # (the cache's key holds their fingerprints), the resume maps them, not measuring again.
+    resuming = old is not None and (run_dir / C.CONTEXT_DIRNAME).is_dir()
     with _SetupJobs(cfg, survey, cache, parallel, warm) as jobs:
-        if not jobs.in_background:
+        cached = None
+        if not jobs.in_background or resuming:
             inputs = jobs.inputs()
             jobs.preflight()        # before the field is measured: a field nothing fits fails fast
+        if resuming:
+            recorded, chash = _recorded_inputs(old, finished, inputs), config_hash(cfg)
+            cached = {f: _context_dir(run_dir, chash, f, recorded) for f in cfg.survey.fields}
         try:
-            manifest = _manifest(cfg, survey, seed, z_limit=jobs.z_limit)
+            manifest = _manifest(cfg, survey, seed, z_limit=jobs.z_limit, cached=cached)
         except Exception:
             if jobs.in_background:  # an unusable input or an empty field explains the failure
                 jobs.inputs()
                 jobs.preflight()
             raise
-        if jobs.in_background:
+        if jobs.in_background and not resuming:
             inputs = jobs.inputs()
             jobs.preflight()
     items = input_files(cfg)
-    manifest["inputs"] = inputs
+    manifest["inputs"] = _recorded_inputs(old, finished, inputs)
     if old is not None and finished:
         _check_same_store(run_dir, old, manifest, items, finished)
         versions = old.get("glaciar_versions") or [old.get("glaciar_version", "?")]
@@ -1130,8 +1149,6 @@ def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor
                           f"glaciar {__version__} adds its tasks", StoreWarning)
         manifest["glaciar_version"] = old.get("glaciar_version", __version__)
         manifest["glaciar_versions"] = sorted(set(map(str, versions)) | {__version__})
-        # Inputs of fields no longer listed stay recorded: they are checked if the field returns.
-        manifest["inputs"] = {**(old.get("inputs") or {}), **inputs}
     elif old is not None:
         manifest["glaciar_version"] = old.get("glaciar_version", __version__)
     config_text = yaml.safe_dump(config_to_dict(cfg), sort_keys=False, allow_unicode=True)
@@ -1159,6 +1176,14 @@ def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor
         lock.release()
         raise
     return manifest, lock
+
+
+def _recorded_inputs(old: dict | None, finished, inputs: dict) -> dict:
+    """The manifest's input fingerprints: a store with finished tasks keeps the inputs of
+    fields no longer listed (they are checked if the field returns)."""
+    if old is not None and finished:
+        return {**(old.get("inputs") or {}), **inputs}
+    return inputs
 
 
 def _setup_job(cfg_dict: dict, base_dir: str, steps: tuple[str, ...], cache: dict | None = None):
@@ -1209,6 +1234,25 @@ def _preimport() -> None:
     import astropy.wcs  # noqa: F401
 
 
+def _prewarm(cfg_dict: dict, base_dir: str) -> None:
+    """In a spawned worker, during the run's set-up: what its first task would do before its
+    sources -- imports, the first field's settings (PSFs, filters, cosmology) and the SED
+    colour tables of the run's redshifts (each cached per process, ~0.7 s for the demo)."""
+    from .galaxy import sed
+
+    cfg = config_from_dict(cfg_dict, base_dir)
+    survey = Survey.from_config(cfg)
+    settings, _ = _field_settings(cfg, survey, cfg.survey.fields[0])
+    igm = settings["source_model"].igm
+    for z in sorted({float(s.z) for s in plan_tasks(cfg)}):
+        if cfg.grid.magnitude_type == "absolute":
+            sed.band_magnitudes(z, np.zeros(1), settings["filters"], M_uv=np.full(1, -20.0),
+                                cosmology=settings["cosmology"], igm=igm)
+        else:
+            sed.band_magnitudes(z, np.zeros(1), settings["filters"], mag=np.full(1, 25.0),
+                                detection_index=settings["detection_index"], igm=igm)
+
+
 class _SetupJobs:
     """A run's set-up steps that do not need the field's context, beside the one that does.
 
@@ -1224,8 +1268,9 @@ class _SetupJobs:
     in one forked helper process started after the file-existence check and
     reaped at the end: its CPU counts in :func:`process_cpu_seconds`); or an
     executor (the z limit only, on one of the run's workers, which then also
-    imports glaciar before its first task, and ``warm - 1`` jobs that only
-    import it, for other workers; the checks and the preflight read images,
+    imports glaciar before its first task, and ``warm - 1`` jobs that set up
+    what a first task needs (:func:`_prewarm`), for other workers; the checks
+    and the preflight read images,
     which a worker otherwise reads once, for its tasks).  Errors and
     warnings are raised here; the input check's error first.  Nothing is
     written either way.
@@ -1254,10 +1299,11 @@ class _SetupJobs:
         else:
             self._steps = ("z_limit",)
             self._job = where.submit(_setup_job, *args, self._steps)
-            # Spawned workers import glaciar when their first job arrives (~1 s each): jobs
-            # that only import it let up to ``warm`` workers do that now, beside the set-up.
+            # Spawned workers import glaciar and set up a field's settings and colour tables
+            # when their first task arrives (~2 s each): jobs that only do that let up to
+            # ``warm`` workers do it now, beside the set-up.
             for _ in range(max(0, warm - 1)):
-                where.submit(_preimport)
+                where.submit(_prewarm, *args)
         self.z_limit = _Later(self._step, "z_limit")
 
     def _step(self, name: str):

@@ -269,6 +269,33 @@ def test_run_keeps_its_cache_while_tasks_are_pending(small_survey, tmp_path):
     assert not (out / C.CONTEXT_DIRNAME).exists()
 
 
+def test_resume_maps_the_cache_instead_of_measuring_the_field(small_survey, tmp_path, monkeypatch):
+    """An interrupted run's resume maps its field cache (the field is not measured again),
+    and its manifest and rows equal an uninterrupted run's."""
+    from glaciar.store import read_manifest, read_results
+
+    cfg = load_config(small_survey)
+    run._CONTEXTS.clear()
+    whole = tmp_path / "whole"
+    run.simulate(cfg, whole, workers=1, progress=False)
+    run._CONTEXTS.clear()
+    out = tmp_path / "resumed"
+    run.simulate(cfg, out, workers=1, progress=False, max_tasks=3)
+    run._CONTEXTS.clear()                      # a new process: nothing kept in memory
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the field was measured again")
+
+    monkeypatch.setattr(run, "build_field_context", refuse)
+    stats = run.simulate(cfg, out, workers=1, progress=False)
+    assert stats["n_done_before"] == 3 and stats["n_done_before"] + stats["n_run"] == stats["n_tasks"]
+    assert read_manifest(out) == read_manifest(whole)
+    key = [C.COL_FIELD, C.COL_Z, C.COL_MAG, C.COL_ITERATION, C.COL_SOURCE]
+    a = read_results(whole).sort_values(key, ignore_index=True)
+    b = read_results(out).sort_values(key, ignore_index=True)
+    assert len(a) > 0 and a.equals(b)
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/statm")
 def test_watching_thread_drops_pages_during_a_task(tmp_path):
     """Maps larger than the budget are watched from a thread: pages touched by a long task

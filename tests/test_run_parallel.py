@@ -168,3 +168,30 @@ def test_a_callers_fork_pool_still_inherits_the_field_context(survey_copy, tmp_p
         stats = simulate(cfg, tmp_path / "run", executor=ex, progress=False, max_tasks=2)
     assert stats["n_run"] == 2
     assert log.read_text().split() == [str(os.getpid())]
+
+
+def test_prewarm_fills_the_colour_tables_a_task_reads(survey_copy):
+    """A spawned worker's warm-up job (glaciar.run._prewarm) computes the SED tables of every
+    redshift of the plan: the tasks' own draws then add no table (no cache miss)."""
+    import types
+
+    import numpy as np
+
+    from glaciar import run
+    from glaciar.config import config_to_dict
+    from glaciar.engine.context import FieldContext
+    from glaciar.engine.task import draw_task_sources
+    from glaciar.galaxy import sed
+    from glaciar.survey import Survey
+
+    cfg = load_config(survey_copy)
+    sed._band_table.cache_clear()
+    run._prewarm(config_to_dict(cfg), str(cfg.base_dir))
+    warmed = sed._band_table.cache_info()
+    assert warmed.currsize >= len(cfg.grid.z_values) * len(cfg.survey.bands)
+    settings, _ = run._field_settings(cfg, Survey.from_config(cfg), cfg.survey.fields[0])
+    # the settings the draws read, no pixel
+    ctx = types.SimpleNamespace(**settings, quantise_r_eff=FieldContext.quantise_r_eff)
+    for spec in run.plan_tasks(cfg):
+        draw_task_sources(np.random.default_rng(0), 5, spec.z, spec.mag, ctx)
+    assert sed._band_table.cache_info().misses == warmed.misses
