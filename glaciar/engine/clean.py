@@ -51,7 +51,7 @@ from scipy import ndimage
 
 __all__ = ["sep_kernel", "sep_filter", "threshold_map", "detection_mask", "lutz_regions", "lutz_one",
            "heap_mthresh", "child_pixel_orders", "CleanObjects", "clean_objects", "eats",
-           "sep_clean", "sextractor_clean", "zone_pairs", "in_zone", "light_objects", "profile_value", "final_owner", "CLEAN_ZONE"]
+           "sep_clean", "sep_clean_bounded", "sextractor_clean", "zone_pairs", "in_zone", "light_objects", "profile_value", "final_owner", "CLEAN_ZONE"]
 
 #: sep's CLEAN_ZONE: pairs further apart than CLEAN_ZONE (a1 + a2) are not compared
 CLEAN_ZONE = 10.0
@@ -825,6 +825,47 @@ def sep_clean(objs: CleanObjects, beta: float, pairs=None):
         As in sep, an object removed by a later one may itself have removed
         others before; :func:`final_owner` follows the chain.
     """
+    m = np.asarray(objs.mthresh, dtype=np.float32)
+    return sep_clean_bounded(objs, beta, m, m, None, pairs)
+
+
+#: Relative margin within which a vectorised profile value is re-checked with the scalar,
+#: bit-exact arithmetic (numpy's pow may differ from C's by an ulp: ~1e-16)
+_PROFILE_MARGIN = 1e-6
+
+
+def sep_clean_bounded(objs: CleanObjects, beta: float, lo, hi, mthresh_of=None, pairs=None):
+    """sep's ``clean()`` knowing only bounds of ``mthresh``; exact values fetched on demand.
+
+    sep's test "i removes j" reads only the two objects' own values: the
+    profile of the brighter (filtered flux) at the other's barycentre against
+    the other's ``mthresh``.  Each pair's test is therefore decided up front:
+    from the bounds where they settle it, else with the exact ``mthresh``
+    (the expensive part: it needs the object's pixel order), asked only for
+    those objects.  sep's sequential loop is then replayed over the pairs whose
+    test succeeds (the only ones that change anything), with its order
+    dependence: an object's own comparisons are skipped if it was removed
+    before its turn, not if it is removed during it.
+
+    Parameters
+    ----------
+    objs : CleanObjects
+        In sep's order; ``mthresh`` is not read.
+    beta : float
+        CLEAN_PARAM.
+    lo, hi : array of float32, shape (n,)
+        Bounds of each object's ``mthresh``: ``lo <= mthresh <= hi`` [image units].
+    mthresh_of : callable, optional
+        ``mthresh_of(indices) -> array of float32``: the exact ``mthresh`` of
+        the given objects; only called for objects whose bounds leave a test
+        undecided (never when ``lo == hi``).
+    pairs : (i, j) int arrays, optional
+        As in :func:`sep_clean`.
+
+    Returns
+    -------
+    survives, eater : as :func:`sep_clean`
+    """
     n = len(objs)
     survives = np.ones(n, dtype=bool)
     eater = np.full(n, -1, dtype=np.int64)
@@ -833,50 +874,126 @@ def sep_clean(objs: CleanObjects, beta: float, pairs=None):
     pi, pj = zone_pairs(objs) if pairs is None else pairs
     if pi.size == 0:
         return survives, eater
-    _, dxs, dys = _zone(objs.x[pi], objs.y[pi], objs.a[pi], objs.x[pj], objs.y[pj], objs.a[pj])
-    fd = objs.fdflux
-    start = np.searchsorted(pi, np.arange(n + 1))
-    pj_l, dx_l, dy_l = pj.tolist(), dxs.tolist(), dys.tolist()
-    for i in range(n):
-        if not survives[i]:
+    lo = np.asarray(lo, dtype=np.float32)
+    hi = np.asarray(hi, dtype=np.float32)
+    _, dx, dy = _zone(objs.x[pi], objs.y[pi], objs.a[pi], objs.x[pj], objs.y[pj], objs.a[pj])
+    fd = np.asarray(objs.fdflux, dtype=np.float32)
+    i_eats = fd[pj] < fd[pi]                     # sep tests the brighter one's profile
+    e = np.where(i_eats, pi, pj)
+    v = np.where(i_eats, pj, pi)
+    sdx = np.where(i_eats, dx, -dx).astype(np.float32)
+    sdy = np.where(i_eats, dy, -dy).astype(np.float32)
+    prof, val = _approx_profiles(objs, e, sdx, sdy, beta)
+    lo_v, hi_v = lo[v].astype(np.float64), hi[v].astype(np.float64)
+    tol = _PROFILE_MARGIN
+    with np.errstate(invalid="ignore"):
+        inner = (val > 1 + tol) & (val < 1e10 * (1 - tol))      # profile amp val^-beta
+        yes = inner & (prof - tol * np.abs(prof) > hi_v)
+        no = ((val < 1 - tol) | ((val > 1e10 * (1 + tol)) & (lo_v >= 0))
+              | (inner & (prof + tol * np.abs(prof) < lo_v)))
+    # the rest, scalar and exact: the profile, then the bounds, then the exact mthresh
+    need_k, need_p = [], []
+    for k in np.flatnonzero(~(yes | no)).tolist():
+        p = profile_value(objs, int(e[k]), sdx[k], sdy[k], beta)
+        if p is None:
             continue
-        for k in range(start[i], start[i + 1]):
-            j = pj_l[k]
-            if not survives[j]:
-                continue
-            if fd[j] < fd[i]:
-                if _profile_test(objs, i, objs, j, dx_l[k], dy_l[k], beta):
-                    survives[j] = False
-                    eater[j] = i
-            elif _profile_test(objs, j, objs, i, -dx_l[k], -dy_l[k], beta):
-                survives[i] = False
-                eater[i] = j
+        if p > hi_v[k]:
+            yes[k] = True
+        elif p > lo_v[k]:
+            need_k.append(k)
+            need_p.append(p)
+    if need_k:
+        need_k = np.asarray(need_k, dtype=np.int64)
+        uv, inv = np.unique(v[need_k], return_inverse=True)
+        if mthresh_of is None:
+            raise ValueError("sep_clean_bounded: bounds leave tests undecided and no mthresh_of was given")
+        mth = np.asarray(mthresh_of(uv), dtype=np.float32).astype(np.float64)
+        yes[need_k] = np.asarray(need_p) > mth[inv]
+    # sep's loop over the successful tests, in its order (pairs sorted by i, then j)
+    ks = np.flatnonzero(yes)
+    cur, alive = -1, False
+    for k, i, j, ie in zip(ks.tolist(), pi[ks].tolist(), pj[ks].tolist(), i_eats[ks].tolist()):
+        if i != cur:
+            cur, alive = i, bool(survives[i])       # sep checks i once, before its comparisons
+        if not alive or not survives[j]:
+            continue
+        if ie:
+            survives[j] = False
+            eater[j] = i
+        else:
+            survives[i] = False
+            eater[i] = j
     return survives, eater
 
 
-def zone_pairs(objs: CleanObjects):
+def _approx_profiles(o: CleanObjects, e, dx, dy, beta):
+    """Objects ``e``'s CLEAN profiles at offsets (dx, dy), vectorised: (value, val) in float64.
+
+    The arithmetic of :func:`profile_value` (float32 quadratic form, double
+    profile) except numpy's ``pow``: equal to it within ~1e-15 relative, so only
+    comparisons closer than :data:`_PROFILE_MARGIN` need the scalar version.
+    """
+    f64 = np.float64
+    unit = math.pi * o.a[e].astype(f64) * o.b[e].astype(f64)
+    with np.errstate(all="ignore"):
+        amp = o.fdflux[e].astype(f64) / (2 * unit * o.abcor[e].astype(f64))
+        alpha = (np.power(amp / o.thresh[e].astype(f64), 1.0 / beta) - 1) * unit / o.npix[e].astype(f64)
+        q = (o.cxx[e] * dx) * dx + (o.cyy[e] * dy) * dy + (o.cxy[e] * dx) * dy      # float32, sep's order
+        val = 1 + alpha * q.astype(f64)
+        prof = amp * np.power(val, -float(beta))
+    return prof, val
+
+
+def zone_pairs(objs: CleanObjects, chunk: int = 65536):
     """All pairs (i < j) within sep's CLEAN_ZONE, sorted by i then j.
+
+    Parameters
+    ----------
+    objs : CleanObjects
+    chunk : int
+        Objects queried at a time (bounds the memory of the candidate lists).
 
     Returns
     -------
     i, j : ndarray of int64
+
+    Notes
+    -----
+    A pair is in the zone when its distance is at most ``CLEAN_ZONE (a_i + a_j)
+    <= 2 CLEAN_ZONE max(a_i, a_j)``, so each object's neighbours within ``2
+    CLEAN_ZONE a`` of it hold every pair in which it has the larger ``a``: the
+    pair is kept from that member's query (ties: the lower index's), then sep's
+    exact test decides.  The work is the sum of each object's own zone, linear
+    in the number of objects (a query radius ``CLEAN_ZONE (a_i + max a)`` made
+    one large object cost a large search per object).
     """
     from scipy.spatial import cKDTree
 
     n = len(objs)
+    none = np.zeros(0, dtype=np.int64)
     if n < 2:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        return none, none.copy()
     pts = np.c_[objs.x, objs.y]
-    amax = float(np.max(objs.a))
-    r = CLEAN_ZONE * (np.asarray(objs.a, dtype=np.float64) + amax) * (1 + 1e-6) + 1e-3
-    near = cKDTree(pts).query_ball_point(pts, r)
-    cnt = np.fromiter((len(v) for v in near), dtype=np.int64, count=n)
-    ii = np.repeat(np.arange(n), cnt)
-    jj = np.fromiter((j for v in near for j in v), dtype=np.int64, count=int(cnt.sum()))
-    keep = jj > ii
-    ii, jj = ii[keep], jj[keep]
-    inside, _, _ = _zone(objs.x[ii], objs.y[ii], objs.a[ii], objs.x[jj], objs.y[jj], objs.a[jj])
-    ii, jj = ii[inside], jj[inside]
+    a = np.asarray(objs.a, dtype=np.float64)
+    # margin over float32 rounding of sep's test (relative ~1e-7)
+    r = 2.0 * CLEAN_ZONE * a * (1 + 1e-6) + 1e-3
+    tree = cKDTree(pts)
+    out_i, out_j = [], []
+    for c0 in range(0, n, chunk):
+        c1 = min(c0 + chunk, n)
+        near = tree.query_ball_point(pts[c0:c1], r[c0:c1], return_sorted=False)
+        cnt = np.fromiter((len(v) for v in near), dtype=np.int64, count=c1 - c0)
+        ii = np.repeat(np.arange(c0, c1, dtype=np.int64), cnt)
+        jj = np.fromiter((j for v in near for j in v), dtype=np.int64, count=int(cnt.sum()))
+        del near
+        ai, aj = a[ii], a[jj]
+        keep = (aj < ai) | ((aj == ai) & (jj > ii))
+        ii, jj = ii[keep], jj[keep]
+        lo, hi = np.minimum(ii, jj), np.maximum(ii, jj)
+        inside, _, _ = _zone(objs.x[lo], objs.y[lo], objs.a[lo], objs.x[hi], objs.y[hi], objs.a[hi])
+        out_i.append(lo[inside])
+        out_j.append(hi[inside])
+    ii, jj = np.concatenate(out_i), np.concatenate(out_j)
     order = np.lexsort((jj, ii))
     return ii[order], jj[order]
 

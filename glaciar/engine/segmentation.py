@@ -38,11 +38,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 
 from glaciar.engine import clean as cl
-from glaciar.engine.detect import DetectionParams, _sep_extract, detection_rms, sanitize
+from glaciar.engine.detect import SEP_OBJ_MERGED, DetectionParams, _sep_extract, detection_rms, sanitize
 
-__all__ = ["Segmentation", "sep_segmentation", "isolate_region", "region_objects", "apply_clean"]
+__all__ = ["Segmentation", "sep_segmentation", "isolate_region", "region_objects", "apply_clean",
+           "sep_extract_clean", "EMULATED_CLEAN_MIN_OBJECTS"]
 
 _BIG_RMS = np.float32(1e30)
 
@@ -338,3 +340,245 @@ def _shift(cat, dy, dx):
         if f in c.dtype.names:
             c[f] = c[f] + dy
     return c
+
+
+# --------------------------------------------------------------------------
+# Full-frame sep extraction with CLEAN, in linear time
+# --------------------------------------------------------------------------
+#: Pre-CLEAN objects from which :func:`sep_extract_clean` replaces sep's own CLEAN
+#: (quadratic in the number of objects) by glaciar's (linear); below it sep's is
+#: faster.  Chosen from ``benchmarks/fullframe_clean.py`` (see its docstring).
+EMULATED_CLEAN_MIN_OBJECTS = 20000
+
+
+def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=None):
+    """What ``sep.extract(..., clean=True)`` returns, in time linear in the number of objects.
+
+    sep's CLEAN compares every object with every earlier one.  Here sep runs
+    with CLEAN off and glaciar's bit-exact CLEAN (:mod:`glaciar.engine.clean`)
+    removes the same objects: the catalogue rows of the survivors and the
+    segmentation relabelled 1..n in their order, removed objects' pixels 0,
+    exactly as sep's.
+
+    Parameters
+    ----------
+    data, err, nodata : ndarray
+        As passed to sep (:func:`glaciar.engine.detect._sep_extract`): sanitized
+        float32 image and the detection RMS [image units], no-data mask.
+    params : DetectionParams
+        Detection settings; CLEAN_PARAM from ``params.clean_param`` (CLEAN is
+        applied whatever ``params.clean`` says).
+    min_objects : int, optional
+        Below this many pre-CLEAN objects sep's own CLEAN is run instead (a
+        second sep call; default :data:`EMULATED_CLEAN_MIN_OBJECTS`).
+
+    Returns
+    -------
+    cat : structured ndarray
+        sep's catalogue of the surviving objects.
+    seg : ndarray of int32
+        Segmentation map (0: no object).
+
+    Raises
+    ------
+    DetectionError
+        When sep fails.
+
+    Notes
+    -----
+    Memory beyond sep's own output stays bounded: per-object pixel statistics
+    are gathered by row tiles with the filter's halo, and the segmentation is
+    relabelled in place.  ``mthresh`` (which needs an object's pixel order) is
+    computed only for objects whose CLEAN test is not settled by the bounds
+    ``min <= mthresh <= max`` of ``filtered - threshold`` over the object's
+    pixels (:func:`glaciar.engine.clean.sep_clean_bounded`), region by region.
+    The matched filter's detection mask is reproduced only up to rounding, so
+    with ``filter_type="matched"`` sep's own CLEAN is always used.
+    """
+    min_objects = EMULATED_CLEAN_MIN_OBJECTS if min_objects is None else int(min_objects)
+    if params.filter_kernel is not None and params.filter_type == "matched":
+        return _sep_extract(data, err, nodata, params, True)
+    cat, seg = _sep_extract(data, err, nodata, params, False)
+    n = len(cat)
+    if n < min_objects:
+        del seg
+        return _sep_extract(data, err, nodata, params, True)
+    if n < 2:
+        return cat, seg
+    objs, lo, hi = _tiled_light_objects(data, err, nodata, seg, cat, params)
+    merged = (np.asarray(cat["flag"]) & SEP_OBJ_MERGED) != 0
+
+    def mthresh_of(idx):
+        # a deblended child's pixel order needs its region (siblings, unlabelled pixels);
+        # any other object is its whole region: its own pixels, gathered for all at once
+        idx = np.asarray(idx, dtype=np.int64)
+        out = _object_mthresh(idx[~merged[idx]], data, err, nodata, seg, params)
+        for k in idx[merged[idx]].tolist():
+            if k not in out:
+                out.update(_region_mthresh(k, data, err, nodata, seg, cat, params))
+        return np.array([out[k] for k in idx.tolist()], dtype=np.float32)
+
+    surv, _ = cl.sep_clean_bounded(objs, float(params.clean_param), lo, hi, mthresh_of)
+    keep = np.flatnonzero(surv)
+    lut = np.zeros(n + 1, dtype=np.int32)
+    lut[keep + 1] = np.arange(1, keep.size + 1, dtype=np.int32)
+    for y0, y1, _, _ in _row_tiles(seg.shape, 0):
+        seg[y0:y1] = lut[seg[y0:y1]]
+    return cat[keep], seg
+
+
+def _row_tiles(shape, halo):
+    from glaciar.engine.measure import _row_tiles as tiles   # the reference's tiling (imports this module)
+    return tiles(shape, halo)
+
+
+def _tiled_light_objects(data, err, nodata, seg, cat, params: DetectionParams):
+    """:func:`glaciar.engine.clean.light_objects` of a full image's objects, by row tiles.
+
+    Returns
+    -------
+    objects : CleanObjects
+        ``mthresh`` NaN.
+    lo, hi : ndarray of float32
+        Bounds of each object's ``mthresh``: min and max of ``filtered -
+        threshold`` over its pixels, both 0 for objects with fewer than
+        DETECT_MINAREA pixels (their ``mthresh`` is 0) [image units].
+    """
+    n = len(cat)
+    lo = np.full(n, np.inf, dtype=np.float32)
+    hi = np.full(n, -np.inf, dtype=np.float32)
+    tmin = np.full(n, np.inf, dtype=np.float32)
+    npx = np.zeros(n, dtype=np.int64)
+    area2 = np.zeros(n, dtype=np.float64)
+    th = np.asarray(cat["thresh"], dtype=np.float32)
+    thresh2 = (th.astype(np.float64) + np.asarray(cat["peak"], dtype=np.float32).astype(np.float64)) / 2.0
+    for y0, y1, ya, yb in _row_tiles(seg.shape, params.filter_halfwidth):
+        lab = seg[y0:y1]
+        on = lab > 0
+        if not on.any():
+            continue
+        li = lab[on] - 1
+        d = np.asarray(data[ya:yb], dtype=np.float32)
+        filt = d if params.filter_kernel is None else cl.sep_filter(d, params.filter_kernel)
+        thr = cl.threshold_map(err[ya:yb], nodata[ya:yb], params.detect_thresh)
+        r = slice(y0 - ya, y1 - ya)
+        t_on = thr[r][on]
+        tp = (filt[r][on] - t_on).astype(np.float32)
+        np.minimum.at(lo, li, tp)
+        np.maximum.at(hi, li, tp)
+        np.minimum.at(tmin, li, t_on)
+        npx += np.bincount(li, minlength=n)
+        area2 += np.bincount(li, weights=d[r][on].astype(np.float64) > thresh2[li], minlength=n)
+    small = npx < int(params.detect_minarea)                # heap_mthresh: 0 below DETECT_MINAREA
+    lo[small] = 0.0
+    hi[small] = 0.0
+    a = np.asarray(cat["a"], dtype=np.float32)
+    b = np.asarray(cat["b"], dtype=np.float32)
+    ab = cl._abcor(th, thresh2, area2, cat["tnpix"], a, b)
+    objs = cl.CleanObjects(x=np.asarray(cat["x"], dtype=np.float64), y=np.asarray(cat["y"], dtype=np.float64),
+                           a=a, b=b, cxx=np.asarray(cat["cxx"], dtype=np.float32),
+                           cyy=np.asarray(cat["cyy"], dtype=np.float32),
+                           cxy=np.asarray(cat["cxy"], dtype=np.float32),
+                           fdflux=np.asarray(cat["cflux"], dtype=np.float32), thresh=th,
+                           npix=np.asarray(cat["npix"], dtype=np.int64), abcor=ab,
+                           mthresh=np.full(n, np.nan, dtype=np.float32), tmin=tmin)
+    return objs, lo, hi
+
+
+def _region_mthresh(k, data, err, nodata, seg, cat, params: DetectionParams):
+    """Exact ``mthresh`` of every object of the region holding object ``k``.
+
+    The region (8-connected above-threshold pixels) is found in a cut-out grown
+    until it holds the region with a blank border; its pixels are put in sep's
+    order (:func:`~glaciar.engine.clean.lutz_one`, then
+    :func:`~glaciar.engine.clean.child_pixel_orders` for deblended children).
+
+    Returns
+    -------
+    dict index -> float32
+    """
+    H, W = seg.shape
+    h = params.filter_halfwidth
+    y0, y1 = int(cat["ymin"][k]), int(cat["ymax"][k]) + 1
+    x0, x1 = int(cat["xmin"][k]), int(cat["xmax"][k]) + 1
+    eight = np.ones((3, 3), dtype=bool)
+    while True:
+        cy0, cy1, cx0, cx1 = max(y0 - 1, 0), min(y1 + 1, H), max(x0 - 1, 0), min(x1 + 1, W)
+        fy0, fy1, fx0, fx1 = max(cy0 - h, 0), min(cy1 + h, H), max(cx0 - h, 0), min(cx1 + h, W)
+        m, filt, thr = cl.detection_mask(data[fy0:fy1, fx0:fx1], err[fy0:fy1, fx0:fx1],
+                                         nodata[fy0:fy1, fx0:fx1], params)
+        c = (slice(cy0 - fy0, cy1 - fy0), slice(cx0 - fx0, cx1 - fx0))
+        m, filt, thr = m[c], filt[c], thr[c]
+        lab = seg[cy0:cy1, cx0:cx1]
+        comp = ndimage.label(m, structure=eight)[0]
+        ids = np.unique(comp[lab == k + 1])
+        inside = np.isin(comp, ids[ids > 0])
+        ys, xs = np.nonzero(inside)
+        by0, by1, bx0, bx1 = cy0 + int(ys.min()), cy0 + int(ys.max()) + 1, cx0 + int(xs.min()), cx0 + int(xs.max()) + 1
+        if by0 >= y0 and by1 <= y1 and bx0 >= x0 and bx1 <= x1:
+            break                                    # no pixel in the cut-out's border: the whole region
+        # grow to the region's pixels seen so far and the boxes of the objects they belong to
+        sib = np.unique(lab[inside])
+        sib = sib[sib > 0] - 1
+        y0, y1 = min(y0, by0, int(cat["ymin"][sib].min())), max(y1, by1, int(cat["ymax"][sib].max()) + 1)
+        x0, x1 = min(x0, bx0, int(cat["xmin"][sib].min())), max(x1, bx1, int(cat["xmax"][sib].max()) + 1)
+    pix = cl.lutz_one(inside)[0]
+    labs = np.unique(lab[inside])
+    labs = labs[labs > 0]
+    w = inside.shape[1]
+    if labs.size == 1:
+        orders = {int(labs[0]): pix}
+    else:
+        orders = cl.child_pixel_orders(pix, w, lab.ravel(), filt.ravel(), labs.tolist(),
+                                       np.float32(cat["thresh"][labs[0] - 1]), params.deblend_nthresh)
+    tp = (filt - thr).astype(np.float32).ravel()
+    return {lab_ - 1: cl.heap_mthresh(tp[o], params.detect_minarea) for lab_, o in orders.items()}
+
+
+def _object_mthresh(idx, data, err, nodata, seg, params: DetectionParams):
+    """Exact ``mthresh`` of objects that are a whole region each (not deblended).
+
+    Their pixels are gathered by row tiles (raster order), put in sep's order
+    by :func:`~glaciar.engine.clean.lutz_one` on each object's own mask, and
+    run through :func:`~glaciar.engine.clean.heap_mthresh`.
+
+    Returns
+    -------
+    dict index -> float32
+    """
+    idx = np.asarray(idx, dtype=np.int64)
+    if idx.size == 0:
+        return {}
+    H, W = seg.shape
+    need = np.zeros(int(idx.max()) + 2, dtype=bool)
+    need[idx + 1] = True
+    flats, labs, tps = [], [], []
+    for y0, y1, ya, yb in _row_tiles(seg.shape, params.filter_halfwidth):
+        lab = seg[y0:y1].ravel()
+        sel = np.flatnonzero(need[np.minimum(lab, need.size - 1)])
+        if sel.size == 0:
+            continue
+        d = np.asarray(data[ya:yb], dtype=np.float32)
+        filt = d if params.filter_kernel is None else cl.sep_filter(d, params.filter_kernel)
+        thr = cl.threshold_map(err[ya:yb], nodata[ya:yb], params.detect_thresh)
+        r = slice(y0 - ya, y1 - ya)
+        tps.append((filt[r].ravel()[sel] - thr[r].ravel()[sel]).astype(np.float32))
+        flats.append(sel + y0 * W)
+        labs.append(lab[sel])
+    flat, lab, tp = np.concatenate(flats), np.concatenate(labs), np.concatenate(tps)
+    order = np.argsort(lab, kind="stable")            # each object's pixels in raster order
+    flat, lab, tp = flat[order], lab[order], tp[order]
+    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
+    ends = np.r_[starts[1:], lab.size]
+    out = {}
+    m = int(params.detect_minarea)
+    for s0, s1 in zip(starts.tolist(), ends.tolist()):
+        ys, xs = np.divmod(flat[s0:s1], W)
+        y0, x0 = int(ys.min()) - 1, int(xs.min()) - 1
+        w = int(xs.max()) - x0 + 2
+        mask = np.zeros((int(ys.max()) - y0 + 2, w), dtype=bool)
+        local = (ys - y0) * w + (xs - x0)               # increasing: raster order
+        mask.ravel()[local] = True
+        pix = cl.lutz_one(mask)[0]
+        out[int(lab[s0]) - 1] = cl.heap_mthresh(tp[s0:s1][np.searchsorted(local, pix)], m)
+    return out
