@@ -30,7 +30,7 @@ from glaciar.engine import photometry as phot
 from glaciar.engine.classify import ClassificationParams, classify, footprint_overlap, select_detection
 from glaciar.engine.detect import DetectionError, DetectionParams, _sep_extract, detection_rms, sanitize
 from glaciar.engine.scene import Scene
-from glaciar.engine.segmentation import sep_segmentation
+from glaciar.engine.segmentation import sep_extract_clean, sep_segmentation
 from glaciar.engine.windows import (Canvas, MeasureContext, ObjectBoxes, SegmentedBatch, ellipse_boxes,
                                     ellipse_half_extent, safe_shape, segment_full, segment_windowed,
                                     window_groups)
@@ -120,8 +120,13 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
     data, err, nodata = sanitize(det_image_sub, det_rms, mask)
     if backend == "sep" and params.clean_style == "region":
         # CLEAN within regions: the reference is a plain full-frame sep run with
-        # CLEAN as configured (no pre-CLEAN object list: no task-wide CLEAN needs it)
-        cat, seg = _sep_extract(data, detection_rms(err, nodata, params), nodata, params, params.clean)
+        # CLEAN as configured (no pre-CLEAN object list: no task-wide CLEAN needs it).
+        # sep's own CLEAN is quadratic in the number of objects: on large fields the same
+        # result comes from sep without CLEAN plus glaciar's (sep_extract_clean).
+        e = detection_rms(err, nodata, params)
+        cat, seg = sep_extract_clean(data, e, nodata, params) if params.clean else \
+            _sep_extract(data, e, nodata, params, False)
+        del e
         geo = {f: np.asarray(cat[f], dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}
         return _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, photometry, cat, None)
     if backend == "source-extractor":
