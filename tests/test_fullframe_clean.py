@@ -155,3 +155,56 @@ def test_reference_extraction_same_either_side_of_crossover(field, monkeypatch):
     assert np.array_equal(ref_e.flux, ref_s.flux) and np.array_equal(ref_e.mag, ref_s.mag, equal_nan=True)
     assert np.array_equal(ref_e.objects.region, ref_s.objects.region)
     assert np.array_equal(ref_e.objects.need, ref_s.objects.need)
+
+
+def _sep_loop(o, beta):
+    """sep's clean() loop written out (extract.c): i skipped if already removed when its turn
+    comes, not if removed during it.  Also counts removals by an object removed earlier in its turn."""
+    n = len(o)
+    surv = np.ones(n, dtype=bool)
+    late = 0
+    for i in range(n):
+        if not surv[i]:
+            continue
+        for j in range(i + 1, n):
+            if not surv[j]:
+                continue
+            if o.fdflux[j] < o.fdflux[i]:
+                if cl.eats(o, i, o, j, beta):
+                    late += not surv[i]
+                    surv[j] = False
+            elif cl.eats(o, j, o, i, beta):
+                surv[i] = False
+    return surv, late
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_bounded_clean_replays_seps_loop(seed):
+    """Tests decided from random bounds of mthresh (exact values asked only when needed)
+    remove exactly the objects sep's loop removes with the exact values."""
+    rng = np.random.default_rng(seed)
+    n = 400
+    f32 = np.float32
+    a = rng.uniform(0.8, 3.0, n).astype(f32)
+    b = (a * rng.uniform(0.4, 1.0, n)).astype(f32)
+    cxx, cyy = (1 / a ** 2).astype(f32), (1 / b ** 2).astype(f32)
+    o = cl.CleanObjects(x=rng.uniform(0, 120, n), y=rng.uniform(0, 120, n), a=a, b=b, cxx=cxx, cyy=cyy,
+                        cxy=rng.uniform(-0.1, 0.1, n).astype(f32),
+                        fdflux=(10 ** rng.uniform(0.5, 3.5, n)).astype(f32), thresh=f32(1.0) + f32(0) * a,
+                        npix=rng.integers(5, 200, n), abcor=f32(1.0) + f32(0) * a,
+                        mthresh=(10 ** rng.uniform(-1, 1.5, n)).astype(f32), tmin=f32(0) * a)
+    beta = 1.0
+    ref, late = _sep_loop(o, beta)
+    assert (~ref).sum() > 50 and late >= 1
+    lo = np.where(rng.random(n) < 0.5, o.mthresh * f32(0.3), o.mthresh).astype(f32)
+    hi = np.where(rng.random(n) < 0.5, o.mthresh * f32(3.0), o.mthresh).astype(f32)
+    asked = []
+
+    def mthresh_of(idx):
+        asked.extend(np.asarray(idx).tolist())
+        return o.mthresh[idx]
+
+    surv, eater = cl.sep_clean_bounded(o, beta, lo, hi, mthresh_of)
+    assert np.array_equal(surv, ref)
+    assert 0 < len(asked) < n and all(lo[k] < hi[k] for k in asked)
+    assert np.array_equal(cl.sep_clean(o, beta)[0], ref)
