@@ -541,6 +541,11 @@ def child_pixel_orders(region, W, seg_flat, filt_flat, labels, thresh0, nthresh)
                 if comp.sum() >= _MAXDEBAREA:
                     core = comp
         if core is None:
+            # the child's brightest pixel was handed to it from elsewhere (sep's gatherup
+            # gives pixels of branches too faint to split to any child), so its own node is
+            # another component: the lowest-level one lying in the child
+            core = _inner_node(pc, fv, len(levels), level_labels)
+        if core is None:
             order = reg[reg_lab == c]
         else:
             cy0, cx0 = np.nonzero(core)
@@ -555,6 +560,25 @@ def child_pixel_orders(region, W, seg_flat, filt_flat, labels, thresh0, nthresh)
             order = np.concatenate([core_pix, rest])
         out[c] = order
     return out
+
+
+def _inner_node(pc, fv, nlevels, level_labels):
+    """Lowest-level component of at least MAXDEBAREA pixels lying entirely in ``pc``
+    (the brightest, if several at that level), or None."""
+    npc = pc.ravel()
+    for k in range(nlevels):
+        lab = level_labels(k).ravel()
+        nl = int(lab.max())
+        if nl == 0:
+            break
+        tot = np.bincount(lab, minlength=nl + 1)
+        inn = np.bincount(lab, weights=npc, minlength=nl + 1)
+        ok = np.flatnonzero((tot == inn) & (tot >= _MAXDEBAREA))
+        ok = ok[ok > 0]
+        if ok.size:
+            peak = ndimage.maximum(fv, level_labels(k), ok)
+            return level_labels(k) == ok[int(np.argmax(peak))]
+    return None
 
 
 # --------------------------------------------------------------------------

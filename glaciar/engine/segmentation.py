@@ -413,9 +413,11 @@ def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=No
         # any other object is its whole region: its own pixels, gathered for all at once
         idx = np.asarray(idx, dtype=np.int64)
         out = _object_mthresh(idx[~merged[idx]], data, err, nodata, seg, params)
+        wanted = np.zeros(n, dtype=bool)
+        wanted[idx] = True
         for k in idx[merged[idx]].tolist():
             if k not in out:
-                out.update(_region_mthresh(k, data, err, nodata, seg, cat, params))
+                out.update(_region_mthresh(k, data, err, nodata, seg, cat, params, wanted))
         return np.array([out[k] for k in idx.tolist()], dtype=np.float32)
 
     surv, _ = cl.sep_clean_bounded(objs, float(params.clean_param), lo, hi, mthresh_of)
@@ -485,13 +487,18 @@ def _tiled_light_objects(data, err, nodata, seg, cat, params: DetectionParams):
     return objs, lo, hi
 
 
-def _region_mthresh(k, data, err, nodata, seg, cat, params: DetectionParams):
-    """Exact ``mthresh`` of every object of the region holding object ``k``.
+def _region_mthresh(k, data, err, nodata, seg, cat, params: DetectionParams, wanted=None):
+    """Exact ``mthresh`` of the objects of the deblended region holding object ``k``.
 
-    The region (8-connected above-threshold pixels) is found in a cut-out grown
-    until it holds the region with a blank border; its pixels are put in sep's
-    order (:func:`~glaciar.engine.clean.lutz_one`, then
-    :func:`~glaciar.engine.clean.child_pixel_orders` for deblended children).
+    sep labels every pixel of a region (its deblending hands each pixel of a
+    split region to one child), so the region is the 8-connected component of
+    labelled pixels holding ``k``'s pixels: found in a cut-out grown until it
+    holds the component with a blank border, then put in sep's order
+    (:func:`~glaciar.engine.clean.lutz_one`,
+    :func:`~glaciar.engine.clean.child_pixel_orders`).
+
+    ``wanted`` (bool per object, optional) limits the work to the children it
+    marks (and ``k``): a child's order does not depend on its siblings'.
 
     Returns
     -------
@@ -504,32 +511,29 @@ def _region_mthresh(k, data, err, nodata, seg, cat, params: DetectionParams):
     eight = np.ones((3, 3), dtype=bool)
     while True:
         cy0, cy1, cx0, cx1 = max(y0 - 1, 0), min(y1 + 1, H), max(x0 - 1, 0), min(x1 + 1, W)
-        fy0, fy1, fx0, fx1 = max(cy0 - h, 0), min(cy1 + h, H), max(cx0 - h, 0), min(cx1 + h, W)
-        m, filt, thr = cl.detection_mask(data[fy0:fy1, fx0:fx1], err[fy0:fy1, fx0:fx1],
-                                         nodata[fy0:fy1, fx0:fx1], params)
-        c = (slice(cy0 - fy0, cy1 - fy0), slice(cx0 - fx0, cx1 - fx0))
-        m, filt, thr = m[c], filt[c], thr[c]
         lab = seg[cy0:cy1, cx0:cx1]
-        comp = ndimage.label(m, structure=eight)[0]
-        ids = np.unique(comp[lab == k + 1])
-        inside = np.isin(comp, ids[ids > 0])
-        ys, xs = np.nonzero(inside)
-        by0, by1, bx0, bx1 = cy0 + int(ys.min()), cy0 + int(ys.max()) + 1, cx0 + int(xs.min()), cx0 + int(xs.max()) + 1
+        comp = ndimage.label(lab > 0, structure=eight)[0]
+        inside = comp == comp[lab == k + 1][0]          # the children of a region are connected
+        sib = np.unique(lab[inside]) - 1
+        # the component's objects' boxes: the whole region once they fit (no pixel in the border)
+        by0, by1 = int(cat["ymin"][sib].min()), int(cat["ymax"][sib].max()) + 1
+        bx0, bx1 = int(cat["xmin"][sib].min()), int(cat["xmax"][sib].max()) + 1
         if by0 >= y0 and by1 <= y1 and bx0 >= x0 and bx1 <= x1:
-            break                                    # no pixel in the cut-out's border: the whole region
-        # grow to the region's pixels seen so far and the boxes of the objects they belong to
-        sib = np.unique(lab[inside])
-        sib = sib[sib > 0] - 1
-        y0, y1 = min(y0, by0, int(cat["ymin"][sib].min())), max(y1, by1, int(cat["ymax"][sib].max()) + 1)
-        x0, x1 = min(x0, bx0, int(cat["xmin"][sib].min())), max(x1, bx1, int(cat["xmax"][sib].max()) + 1)
+            break
+        y0, y1, x0, x1 = min(y0, by0), max(y1, by1), min(x0, bx0), max(x1, bx1)
+    fy0, fy1, fx0, fx1 = max(cy0 - h, 0), min(cy1 + h, H), max(cx0 - h, 0), min(cx1 + h, W)
+    d = np.asarray(data[fy0:fy1, fx0:fx1], dtype=np.float32)
+    filt = d if params.filter_kernel is None else cl.sep_filter(d, params.filter_kernel)
+    c = (slice(cy0 - fy0, cy1 - fy0), slice(cx0 - fx0, cx1 - fx0))
+    filt = np.ascontiguousarray(filt[c])
+    thr = cl.threshold_map(err[cy0:cy1, cx0:cx1], nodata[cy0:cy1, cx0:cx1], params.detect_thresh)
     pix = cl.lutz_one(inside)[0]
-    labs = np.unique(lab[inside])
-    labs = labs[labs > 0]
-    w = inside.shape[1]
+    labs = sib + 1
     if labs.size == 1:
         orders = {int(labs[0]): pix}
     else:
-        orders = cl.child_pixel_orders(pix, w, lab.ravel(), filt.ravel(), labs.tolist(),
+        todo = labs if wanted is None else labs[wanted[sib] | (sib == k)]
+        orders = cl.child_pixel_orders(pix, inside.shape[1], lab.ravel(), filt.ravel(), todo.tolist(),
                                        np.float32(cat["thresh"][labs[0] - 1]), params.deblend_nthresh)
     tp = (filt - thr).astype(np.float32).ravel()
     return {lab_ - 1: cl.heap_mthresh(tp[o], params.detect_minarea) for lab_, o in orders.items()}
