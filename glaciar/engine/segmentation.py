@@ -412,7 +412,7 @@ def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=No
         # a deblended child's pixel order needs its region (siblings, unlabelled pixels);
         # any other object is its whole region: its own pixels, gathered for all at once
         idx = np.asarray(idx, dtype=np.int64)
-        out = _object_mthresh(idx[~merged[idx]], data, err, nodata, seg, params)
+        out = _object_mthresh(idx[~merged[idx]], n, data, err, nodata, seg, params)
         wanted = np.zeros(n, dtype=bool)
         wanted[idx] = True
         for k in idx[merged[idx]].tolist():
@@ -539,7 +539,7 @@ def _region_mthresh(k, data, err, nodata, seg, cat, params: DetectionParams, wan
     return {lab_ - 1: cl.heap_mthresh(tp[o], params.detect_minarea) for lab_, o in orders.items()}
 
 
-def _object_mthresh(idx, data, err, nodata, seg, params: DetectionParams):
+def _object_mthresh(idx, n_objects, data, err, nodata, seg, params: DetectionParams):
     """Exact ``mthresh`` of objects that are a whole region each (not deblended).
 
     Their pixels are gathered by row tiles (raster order), put in sep's order
@@ -554,12 +554,12 @@ def _object_mthresh(idx, data, err, nodata, seg, params: DetectionParams):
     if idx.size == 0:
         return {}
     H, W = seg.shape
-    need = np.zeros(int(idx.max()) + 2, dtype=bool)
+    need = np.zeros(int(n_objects) + 1, dtype=bool)
     need[idx + 1] = True
     flats, labs, tps = [], [], []
     for y0, y1, ya, yb in _row_tiles(seg.shape, params.filter_halfwidth):
         lab = seg[y0:y1].ravel()
-        sel = np.flatnonzero(need[np.minimum(lab, need.size - 1)])
+        sel = np.flatnonzero(need[lab])
         if sel.size == 0:
             continue
         d = np.asarray(data[ya:yb], dtype=np.float32)
