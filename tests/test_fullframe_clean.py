@@ -208,3 +208,36 @@ def test_bounded_clean_replays_seps_loop(seed):
     assert np.array_equal(surv, ref)
     assert 0 < len(asked) < n and all(lo[k] < hi[k] for k in asked)
     assert np.array_equal(cl.sep_clean(o, beta)[0], ref)
+
+
+def test_exact_mthresh_paths_equal_full_frame_scan(field):
+    """The cut-out computations of mthresh (whole-region objects gathered by row tiles;
+    deblended children by region) equal the full-frame route: sep's Lutz scan of the
+    whole detection mask, children's orders in it, heap_mthresh -- for exactly the
+    objects asked."""
+    params = DetectionParams(detect_thresh=0.5, detect_minarea=5, deblend_mincont=0.005, clean=True)
+    data, err, nodata = _inputs(field, params)
+    cat0, seg0 = _sep_extract(data, err, nodata, params, False)
+    mask, filt, thr = cl.detection_mask(data, err, nodata, params)
+    sf = seg0.ravel()
+    tp = (filt - thr).astype(np.float32).ravel()
+    full = {}
+    for pix, _, _ in cl.lutz_regions(mask, params.detect_minarea):
+        labs = np.unique(sf[pix][sf[pix] > 0])
+        if labs.size == 1:
+            full[int(labs[0]) - 1] = cl.heap_mthresh(tp[pix], params.detect_minarea)
+        elif labs.size > 1:
+            for lab, o in cl.child_pixel_orders(pix, data.shape[1], sf, filt.ravel(), labs.tolist(),
+                                                cat0["thresh"][labs[0] - 1], params.deblend_nthresh).items():
+                full[lab - 1] = cl.heap_mthresh(tp[o], params.detect_minarea)
+    merged = (cat0["flag"] & SEP_OBJ_MERGED) != 0
+    single = np.flatnonzero(~merged)
+    asked = single[::3]                                   # a subset: nothing else may be returned
+    got = sg._object_mthresh(asked, len(cat0), data, err, nodata, seg0, params)
+    assert set(got) == set(asked.tolist())
+    assert all(got[k] == full[k] for k in got)
+    kids = np.flatnonzero(merged)
+    assert kids.size >= 10
+    for k in kids.tolist():
+        got = sg._region_mthresh(k, data, err, nodata, seg0, cat0, params)
+        assert k in got and all(got[j] == full[j] for j in got), k

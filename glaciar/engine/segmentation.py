@@ -347,8 +347,10 @@ def _shift(cat, dy, dx):
 # --------------------------------------------------------------------------
 #: Pre-CLEAN objects from which :func:`sep_extract_clean` replaces sep's own CLEAN
 #: (quadratic in the number of objects) by glaciar's (linear); below it sep's is
-#: faster.  Chosen from ``benchmarks/fullframe_clean.py`` (see its docstring).
-EMULATED_CLEAN_MIN_OBJECTS = 20000
+#: faster.  From ``benchmarks/fullframe_clean.py`` on the demo survey (loaded 2-core
+#: machine): emulation / sep time 1.9 at 28k objects (4000^2), 0.83 at 69k (6000^2),
+#: 0.46 at 116k (8000^2); the two meet near 57k.
+EMULATED_CLEAN_MIN_OBJECTS = 60000
 
 
 def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=None):
