@@ -436,6 +436,22 @@ def _row_tiles(shape, halo):
     return tiles(shape, halo)
 
 
+def _sep_threshold(err, nodata, y0, params: DetectionParams):
+    """Per-pixel threshold of rows ``y0``... of the image, as sep applies it.
+
+    sep masks each row as it reads it into its filter buffer, except the first
+    ``filter_halfwidth`` rows, read before its loop: there no-data pixels keep
+    the RMS passed (and are detected where the filtered image exceeds it:
+    checked against sep 1.4 in ``tests/test_fullframe_clean.py``).
+    """
+    nd = np.asarray(nodata, dtype=bool)
+    first = params.filter_halfwidth - int(y0)
+    if first > 0 and nd[:first].any():
+        nd = nd.copy()
+        nd[:first] = False
+    return cl.threshold_map(err, nd, params.detect_thresh)
+
+
 def _tiled_light_objects(data, err, nodata, seg, cat, params: DetectionParams):
     """:func:`glaciar.engine.clean.light_objects` of a full image's objects, by row tiles.
 
@@ -464,7 +480,7 @@ def _tiled_light_objects(data, err, nodata, seg, cat, params: DetectionParams):
         li = lab[on] - 1
         d = np.asarray(data[ya:yb], dtype=np.float32)
         filt = d if params.filter_kernel is None else cl.sep_filter(d, params.filter_kernel)
-        thr = cl.threshold_map(err[ya:yb], nodata[ya:yb], params.detect_thresh)
+        thr = _sep_threshold(err[ya:yb], nodata[ya:yb], ya, params)
         r = slice(y0 - ya, y1 - ya)
         t_on = thr[r][on]
         tp = (filt[r][on] - t_on).astype(np.float32)
@@ -528,7 +544,7 @@ def _region_mthresh(k, data, err, nodata, seg, cat, params: DetectionParams, wan
     filt = d if params.filter_kernel is None else cl.sep_filter(d, params.filter_kernel)
     c = (slice(cy0 - fy0, cy1 - fy0), slice(cx0 - fx0, cx1 - fx0))
     filt = np.ascontiguousarray(filt[c])
-    thr = cl.threshold_map(err[cy0:cy1, cx0:cx1], nodata[cy0:cy1, cx0:cx1], params.detect_thresh)
+    thr = _sep_threshold(err[cy0:cy1, cx0:cx1], nodata[cy0:cy1, cx0:cx1], cy0, params)
     pix = cl.lutz_one(inside)[0]
     labs = sib + 1
     if labs.size == 1:
@@ -566,7 +582,7 @@ def _object_mthresh(idx, n_objects, data, err, nodata, seg, params: DetectionPar
             continue
         d = np.asarray(data[ya:yb], dtype=np.float32)
         filt = d if params.filter_kernel is None else cl.sep_filter(d, params.filter_kernel)
-        thr = cl.threshold_map(err[ya:yb], nodata[ya:yb], params.detect_thresh)
+        thr = _sep_threshold(err[ya:yb], nodata[ya:yb], ya, params)
         r = slice(y0 - ya, y1 - ya)
         tps.append((filt[r].ravel()[sel] - thr[r].ravel()[sel]).astype(np.float32))
         flats.append(sel + y0 * W)
