@@ -11,10 +11,10 @@ the reference extraction hands sep) this prints per side:
 * pre-CLEAN objects (sep without CLEAN);
 * seconds of sep without CLEAN, sep with CLEAN (skipped above ``--sep-max``),
   the emulation (which includes its own sep call without CLEAN), and their ratio;
-* peak RSS increase of sep with CLEAN and of the emulation [MB] (resident
-  memory sampled every 5 ms over the call, minus the resident memory before it;
-  inputs are already in memory; outputs count: the segmentation map is 4
-  bytes per pixel);
+* peak RSS increase of each call [MB]: the kernel's high-water mark of the
+  process (reset just before the call) minus the resident memory before it
+  (inputs already loaded); outputs count (the segmentation map is 4 bytes per
+  pixel);
 * whether the emulation's catalogue and segmentation equal sep's (every field,
   ``np.array_equal``).
 
@@ -38,7 +38,6 @@ import json
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -47,29 +46,30 @@ import numpy as np
 MB = 1024.0 ** 2
 
 
-def _rss_bytes() -> int:
-    with open("/proc/self/statm") as fh:
-        return int(fh.read().split()[1]) * 4096
+def _status_bytes(key: str) -> float:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith(key + ":"):
+                return 1024.0 * float(line.split()[1])
+    raise RuntimeError(f"no {key} in /proc/self/status")
 
 
 class _PeakRSS:
-    """Peak resident memory [bytes] above the level at entry, sampled by a thread."""
+    """Peak resident memory [bytes] of a block above the level at entry.
+
+    The kernel's high-water mark (``VmHWM``, reset to the current RSS on entry
+    through ``/proc/self/clear_refs``) sees allocations inside C code too
+    (``ru_maxrss`` would also carry the parent's peak across fork + exec).
+    """
 
     def __enter__(self):
-        self.base = self.peak = _rss_bytes()
-        self._stop = threading.Event()
-
-        def run():
-            while not self._stop.wait(0.005):
-                self.peak = max(self.peak, _rss_bytes())
-        self._t = threading.Thread(target=run, daemon=True)
-        self._t.start()
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        self.base = _status_bytes("VmRSS")
         return self
 
     def __exit__(self, *exc):
-        self._stop.set()
-        self._t.join()
-        self.peak = max(self.peak, _rss_bytes())
+        self.peak = _status_bytes("VmHWM")
         self.increase = self.peak - self.base
 
 
@@ -112,21 +112,18 @@ def _child(opt) -> dict:
     params = _detection_params(load_config(opt.config))
     d = Path(opt.inputs)
     data, err, nodata = (np.load(d / f"{n}_{opt.side}.npy") for n in ("data", "err", "nodata"))
-    out = {}
-    if opt.method == "noclean":
-        t0 = time.perf_counter()
-        cat0, _ = _sep_extract(data, err, nodata, params, False)
-        return {"sep_noclean_s": time.perf_counter() - t0, "objects": len(cat0)}
     with _PeakRSS() as m:
         t0 = time.perf_counter()
         if opt.method == "emulation":
             cat, seg = sep_extract_clean(data, err, nodata, params, min_objects=0)
         else:
-            cat, seg = _sep_extract(data, err, nodata, params, True)
+            cat, seg = _sep_extract(data, err, nodata, params, opt.method == "sep")
         dt = time.perf_counter() - t0
-    out[f"{opt.method}_s"] = dt
-    out[f"{opt.method}_rss_mb"] = m.increase / MB
-    if opt.method == "emulation":
+    out = {f"{opt.method}_s": dt, f"{opt.method}_rss_mb": m.increase / MB,
+           f"{opt.method}_process_peak_mb": m.peak / MB}
+    if opt.method == "noclean":
+        out["objects"] = len(cat)
+    elif opt.method == "emulation":
         np.save(d / f"emu_cat_{opt.side}.npy", cat)
         np.save(d / f"emu_seg_{opt.side}.npy", seg)
     else:
@@ -180,15 +177,16 @@ def main(argv=None):
             rows.append(r)
             print(f"  {s}^2 done: {r}", flush=True)
     print(f"\n{'side':>6s} {'objects':>8s} {'sep noCLEAN s':>14s} {'sep CLEAN s':>12s} {'emulation s':>12s} "
-          f"{'emu/sep':>8s} {'sep dRSS MB':>12s} {'emu dRSS MB':>12s} {'identical':>10s}")
+          f"{'emu/sep':>8s} {'dRSS MB: noCLEAN':>17s} {'sep CLEAN':>10s} {'emulation':>10s} {'identical':>10s}")
     for r in rows:
         sc = r.get("sep_s")
         sep_s = "skipped" if sc is None else f"{sc:.2f}"
         ratio = "-" if sc is None else f"{r['emulation_s'] / sc:.2f}"
         sep_rss = "-" if sc is None else f"{r['sep_rss_mb']:.0f}"
         same = "-" if "identical" not in r else ("yes" if r["identical"] else "NO")
-        print(f"{r['side']:>6d} {r['objects']:>8d} {r['sep_noclean_s']:>14.2f} {sep_s:>12s} "
-              f"{r['emulation_s']:>12.2f} {ratio:>8s} {sep_rss:>12s} {r['emulation_rss_mb']:>12.0f} {same:>10s}")
+        print(f"{r['side']:>6d} {r['objects']:>8d} {r['noclean_s']:>14.2f} {sep_s:>12s} "
+              f"{r['emulation_s']:>12.2f} {ratio:>8s} {r['noclean_rss_mb']:>17.0f} {sep_rss:>10s} "
+              f"{r['emulation_rss_mb']:>10.0f} {same:>10s}")
     return 0
 
 

@@ -351,6 +351,10 @@ def _shift(cat, dy, dx):
 #: machine): emulation / sep time 1.9 at 28k objects (4000^2), 0.83 at 69k (6000^2),
 #: 0.46 at 116k (8000^2); the two meet near 57k.
 EMULATED_CLEAN_MIN_OBJECTS = 60000
+#: Fewest image pixels per pre-CLEAN object expected (the demo survey has ~550): images
+#: too small to hold EMULATED_CLEAN_MIN_OBJECTS objects at that density go straight to
+#: sep's CLEAN, without an extraction to count them (a guess: it only decides speed)
+_MIN_PIXELS_PER_OBJECT = 100
 
 
 def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=None):
@@ -371,8 +375,8 @@ def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=No
         Detection settings; CLEAN_PARAM from ``params.clean_param`` (CLEAN is
         applied whatever ``params.clean`` says).
     min_objects : int, optional
-        Below this many pre-CLEAN objects sep's own CLEAN is run instead (a
-        second sep call; default :data:`EMULATED_CLEAN_MIN_OBJECTS`).
+        Below this many pre-CLEAN objects sep's own CLEAN is run instead
+        (default :data:`EMULATED_CLEAN_MIN_OBJECTS`; 0: always glaciar's).
 
     Returns
     -------
@@ -394,11 +398,17 @@ def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=No
     computed only for objects whose CLEAN test is not settled by the bounds
     ``min <= mthresh <= max`` of ``filtered - threshold`` over the object's
     pixels (:func:`glaciar.engine.clean.sep_clean_bounded`), region by region.
-    The matched filter's detection mask is reproduced only up to rounding, so
-    with ``filter_type="matched"`` sep's own CLEAN is always used.
+    sep's quirks are kept: no-data pixels of the first ``filter_halfwidth``
+    rows are not masked (:func:`_sep_threshold`).  The matched filter's
+    detection mask is reproduced only up to rounding, so with
+    ``filter_type="matched"`` sep's own CLEAN is always used.  Images too
+    small to hold ``min_objects`` objects at ``_MIN_PIXELS_PER_OBJECT`` go
+    straight to sep's CLEAN; on larger ones below the crossover the extraction
+    without CLEAN is spent for the count.
     """
     min_objects = EMULATED_CLEAN_MIN_OBJECTS if min_objects is None else int(min_objects)
-    if params.filter_kernel is not None and params.filter_type == "matched":
+    if (params.filter_kernel is not None and params.filter_type == "matched") or \
+            np.size(data) < min_objects * _MIN_PIXELS_PER_OBJECT:
         return _sep_extract(data, err, nodata, params, True)
     cat, seg = _sep_extract(data, err, nodata, params, False)
     n = len(cat)
@@ -411,7 +421,7 @@ def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=No
     merged = (np.asarray(cat["flag"]) & SEP_OBJ_MERGED) != 0
 
     def mthresh_of(idx):
-        # a deblended child's pixel order needs its region (siblings, unlabelled pixels);
+        # a deblended child's pixel order needs its region (its siblings' pixels too);
         # any other object is its whole region: its own pixels, gathered for all at once
         idx = np.asarray(idx, dtype=np.int64)
         out = _object_mthresh(idx[~merged[idx]], n, data, err, nodata, seg, params)
