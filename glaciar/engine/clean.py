@@ -480,8 +480,11 @@ def child_pixel_orders(region, W, seg_flat, filt_flat, labels, thresh0, nthresh)
         Each child's core -- the connected part above the deblending level
         ``thresh0 (peak / thresh0)^(k / nthresh)`` at the lowest level ``k`` where
         a component containing the child's filtered peak lies entirely in the
-        child -- in Lutz order, then its remaining pixels in the region's order
-        (sep's ``gatherup`` appends them in that order).
+        child (if that component has fewer than MAXDEBAREA pixels, the peak was
+        handed to the child from another branch: the lowest-level component of
+        at least MAXDEBAREA pixels lying in the child instead) -- in Lutz order,
+        then its remaining pixels in the region's order (sep's ``gatherup``
+        appends them in that order).
     """
     reg = np.asarray(region, dtype=np.int64)
     ys, xs = np.divmod(reg, W)
