@@ -297,6 +297,16 @@ def _field_settings(cfg: Config, survey: Survey, field: str) -> tuple[dict, dict
 #: (~45 bytes per pixel for 4 bands, 11 GB on a 16000^2 mosaic).
 SPILL_MIN_BYTES = 1 << 30
 
+#: Callables ``hook(step)`` told when each step of :func:`build_field_context` ends (its
+#: name, e.g. ``"band_pixels f160w"``): how benchmarks/setup_memory.py takes each step's
+#: peak memory and time. Empty in a run.
+SETUP_STEP_HOOKS: list = []
+
+
+def _step_done(name: str) -> None:
+    for hook in SETUP_STEP_HOOKS:
+        hook(name)
+
 
 def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext:
     """Read a field's images once, measure backgrounds, extract the original image, set up caches.
@@ -306,6 +316,7 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
     context's arrays are then read-only maps.
     """
     settings, psfs = _field_settings(cfg, survey, field)
+    _step_done("settings")
     bands = settings["bands"]
     det = cfg.survey.detection_band
     params = settings["detection_params"]
@@ -330,6 +341,7 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         # up to its 2 GiB budget) go; band_pixels reads each band again, one at a time.
         clear_survey_cache()
     mask = keep(~footprint)
+    _step_done("footprint")
     bases, rms = {}, {}
     backgrounds = {}
     for b in cfg.survey.bands:
@@ -342,6 +354,7 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         # images would only double the memory (at this peak and in every task after it).
         survey.release_pixels(field, (b.name,))
         drop()
+        _step_done(f"band_pixels {b.name}")
     backgrounds = {k: keep(v) for k, v in backgrounds.items()}
     if spilled:
         # The survey's cached footprint/mask arrays: the context has its own (on disk).
@@ -357,8 +370,10 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         reference = reference_extraction(det_image.astype(np.float32), det_image_rms, params,
                                          zps[det], mask=mask, photometry=(bases[det], rms[det]))
         del det_image
+        _step_done("coadd + reference_extraction")
     else:
         reference = reference_extraction(bases[det], rms[det], params, zps[det], mask=mask)
+        _step_done("reference_extraction")
     if spilled and isinstance(getattr(reference, "segmap", None), np.ndarray):
         reference = dataclasses.replace(reference, segmap=keep(reference.segmap))
     drop()
@@ -367,9 +382,11 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
                     for b in bands}
     del sky
     drop()
+    _step_done("correlated_noise")
     depth, _ = field_depth(rms[det], zps[det], psfs[det])
     depth = keep(depth)
     drop()
+    _step_done("field_depth")
     return FieldContext(
         **settings, bases=bases, rms=rms, mask=mask, footprint=footprint,
         footprint_count=int(np.count_nonzero(footprint)), depth=depth, reference=reference,
