@@ -27,7 +27,7 @@ import yaml
 from . import __version__
 from . import constants as C
 from .config import Config, check_files, config_from_dict, config_hash, config_to_dict
-from .engine.detect import DetectionParams, builtin_filter, measure_background, read_conv_file
+from .engine.detect import DetectionParams, background_model, builtin_filter, read_conv_file, sanitize
 from .engine.measure import reference_extraction
 from .engine.classify import ClassificationParams
 from .engine.coadd import coadd
@@ -94,28 +94,49 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
     rms_from_background : bool
         True when ``rms`` is sep's background RMS (no noise map, or BACKGROUND).
     """
-    img = survey.science(field, band)
-    noise = survey.rms(field, band)
+    # New arrays read for this call (not the survey's cached ones): worked on in place, so
+    # the band costs its image, its noise map and the masks, with no full-frame copies.
+    img = survey.science(field, band, cache=False)
+    noise = survey.rms(field, band, cache=False)
     valid = footprint & np.isfinite(img)
     if noise is not None:
         valid &= np.isfinite(noise) & (noise > 0)
-    bkg, bkg_rms = measure_background(img, ~valid, params)
+    nodata = ~valid
+    in_place = img.dtype == np.float32
+    if in_place:
+        # sanitize(img, None, nodata) on img itself: nodata holds every non-finite pixel.
+        img[nodata] = 0.0
+        data = img
+    else:
+        data = sanitize(img, None, nodata)[0]
+    bkg = background_model(data, nodata, params)
     from_background = noise is None or weight_type == "background"
     if from_background:
-        r = bkg_rms
+        r = bkg.rms(dtype=np.float32)
     elif weight_type == "map_weight":
-        r = noise * weight_rescale_factor(bkg_rms, noise, valid)
+        r = noise * weight_rescale_factor(bkg.rms(dtype=np.float32), noise, valid)
     else:
         r = noise
-    del bkg_rms                     # full-frame maps are dropped as soon as they are used
-    r = np.where(valid, np.asarray(r, dtype=np.float32), np.float32(np.inf)).astype(np.float32,
-                                                                                     copy=False)
-    # In place on the difference (a new array): one full-frame temporary less than np.where.
-    base = np.subtract(img, bkg)
-    base[~valid] = 0.0
+    del noise
+    r = np.asarray(r).astype(np.float32, copy=False)
+    r[nodata] = np.float32(np.inf)          # = np.where(valid, r, inf), in place
+    back = None
+    if background is not None or not in_place:
+        back = bkg.back(dtype=np.float32)
+    if in_place:
+        # data holds img where valid: the same float32 differences as img - background.
+        if back is None:
+            bkg.subfrom(data)
+        else:
+            np.subtract(data, back, out=data)
+        base = data
+    else:
+        base = np.subtract(img, back)
+    del img, data, bkg
+    base[nodata] = 0.0
     base = base.astype(np.float32, copy=False)
     if background is not None:
-        background[band] = np.asarray(bkg, dtype=np.float32)
+        background[band] = back
     return base, r, from_background
 
 

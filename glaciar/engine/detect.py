@@ -26,7 +26,7 @@ import sep
 
 __all__ = [
     "DetectionError", "DetectionParams", "builtin_filter", "builtin_filter_names",
-    "read_conv_file", "measure_background", "extract", "sanitize", "detection_rms",
+    "read_conv_file", "measure_background", "background_model", "extract", "sanitize", "detection_rms",
     "CLEAN_STYLES", "THRESHOLD_RMS", "BACKENDS",
 ]
 
@@ -442,10 +442,33 @@ def measure_background(image, mask, params: DetectionParams):
         SExtractor's mesh-mode / sigma-clipped background).
     """
     data, _, nodata = sanitize(image, None, mask)
+    bkg = background_model(data, nodata, params)
     try:
-        bkg = sep.Background(data, mask=nodata, bw=params.back_size, bh=params.back_size,
-                             fw=params.back_filtersize, fh=params.back_filtersize)
         return bkg.back(dtype=np.float32), bkg.rms(dtype=np.float32)
+    except Exception as exc:  # sep raises plain Exception subclasses
+        raise DetectionError(f"sep background estimation failed: {exc}") from exc
+
+
+def background_model(data, nodata, params: DetectionParams):
+    """sep's background model (``sep.Background``) of a sanitized image.
+
+    For a caller that needs only some of :func:`measure_background`'s full-frame maps:
+    the model holds the meshes only; ``.back()`` / ``.rms()`` make the maps and
+    ``.subfrom(data)`` subtracts the background in place (the same float32
+    differences as ``data - .back()``, without that map).
+
+    Parameters
+    ----------
+    data : ndarray of float32
+        Native, C-contiguous image, 0 where ``nodata`` (:func:`sanitize`'s ``data``).
+    nodata : ndarray of bool
+        Pixels without data.
+    params : DetectionParams
+        Uses ``back_size`` and ``back_filtersize``.
+    """
+    try:
+        return sep.Background(data, mask=nodata, bw=params.back_size, bh=params.back_size,
+                              fw=params.back_filtersize, fh=params.back_filtersize)
     except Exception as exc:  # sep raises plain Exception subclasses
         raise DetectionError(f"sep background estimation failed: {exc}") from exc
 
