@@ -34,8 +34,8 @@ from .engine.coadd import coadd
 from .engine import fieldcache
 from .engine.context import R_EFF_LOG_STEP, FieldContext
 from .engine.depth import depth_area_histogram, local_depth_map
-from .engine.noise import (CorrelatedNoise, distance_cap, empty_aperture_scatter,
-                           empty_sky_distance, weight_rescale_factor)
+from .engine.noise import (CorrelatedNoise, empty_aperture_scatter, empty_sky, source_margin,
+                           weight_rescale_factor)
 from .engine.selection import compile_selection
 from .engine.positions import placement_capacity
 from .engine.task import TaskSpec, draw_task_sources, field_key, run_task
@@ -209,26 +209,44 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
     model is a measurement of the image, the same in every run and worker.
 
     ``sky``: an empty dict shared by the calls for the bands of one field (same
-    ``segmap``); it keeps the dilated source mask and the last empty-sky distance
-    map, so bands with the same usable pixels pay for one distance transform.
+    ``segmap``); it keeps the dilated source mask and the last usable mask with its
+    candidate aperture centres, so bands with the same usable pixels pay for one
+    distance transform. Every full-frame step is made by row tiles (the dilation,
+    the usable mask, the distance transform); the distance map itself is never
+    kept, only the centres each aperture radius may take (:func:`~glaciar.engine.noise.empty_sky`).
     """
-    from scipy import ndimage
-
     sky = {} if sky is None else sky
     if "sources" not in sky:
-        sky["sources"] = ndimage.binary_dilation(segmap > 0, iterations=_EMPTY_SKY_MARGIN_PIX)
-    usable = np.isfinite(rms) & ~sky["sources"]
-    if "usable" not in sky or not np.array_equal(sky["usable"], usable):
-        # Capped just beyond the largest aperture: exact for the apertures, tiled (bounded memory).
-        sky["usable"], sky["distance"] = usable, empty_sky_distance(
-            usable, cap=distance_cap(cfg.noise.empty_aperture_radii_pix))
+        sky["sources"] = source_margin(segmap, _EMPTY_SKY_MARGIN_PIX)
+    sources = sky["sources"]
+    usable = np.empty(sources.shape, dtype=bool)
+    same = "usable" in sky
+    for y0, y1 in _row_blocks(usable.shape):
+        np.isfinite(rms[y0:y1], out=usable[y0:y1])
+        usable[y0:y1] &= ~sources[y0:y1]
+        same = same and np.array_equal(sky["usable"][y0:y1], usable[y0:y1])
+    radii = cfg.noise.empty_aperture_radii_pix
+    if not same:
+        sky.pop("usable", None), sky.pop("centres", None)
+        # The centres beyond r + 1 of every radius r: what the apertures read of the distance map.
+        sky["usable"], sky["centres"] = usable, empty_sky(usable, [float(r) + 1.0 for r in radii])
+    else:
+        usable = sky["usable"]
     seq = np.random.SeedSequence([field_key(field), field_key(band)])
-    npix, ratio, n = empty_aperture_scatter(base, rms, usable, cfg.noise.empty_aperture_radii_pix,
+    npix, ratio, n = empty_aperture_scatter(base, rms, usable, radii,
                                             cfg.noise.n_empty_apertures,
-                                            np.random.default_rng(seq), distance=sky["distance"])
+                                            np.random.default_rng(seq), sky=sky["centres"])
     if len(npix) < 2:
         return CorrelatedNoise()        # too little empty sky to say: no correction
     return CorrelatedNoise.fit(npix, ratio, n)
+
+
+def _row_blocks(shape, pixels: int = 1 << 22):
+    """(y0, y1): the rows of an image of ``shape`` by blocks of about ``pixels`` pixels."""
+    ny, nx = shape
+    rows = max(1, pixels // max(nx, 1))
+    for y0 in range(0, ny, rows):
+        yield y0, min(y0 + rows, ny)
 
 
 def field_noise_record(cfg: Config, survey: Survey, field: str,
@@ -399,10 +417,11 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         reference = dataclasses.replace(reference, segmap=keep(reference.segmap))
     drop()
     sky: dict = {}
-    noise_models = {b: correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap, sky)
-                    for b in bands}
+    noise_models = {}
+    for b in bands:
+        noise_models[b] = correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap, sky)
+        drop()              # the band's mapped image and RMS pages, read for its apertures
     del sky
-    drop()
     _step_done("correlated_noise")
     depth, _ = field_depth(rms[det], zps[det], psfs[det])
     depth = keep(depth)

@@ -111,14 +111,14 @@ def _native_float_dtype(dtype: np.dtype) -> np.dtype:
 
 
 def _read_array(path: Path) -> np.ndarray:
-    from astropy.io import fits
-
-    with fits.open(path, memmap=True) as hdul:
-        idx, shape = _image_hdu_index(hdul, path)
-        data = hdul[idx].data
-        # Big-endian memmap -> native-endian copy in one pass.
-        arr = np.array(data, dtype=_native_float_dtype(data.dtype), order="C")
-    return arr.reshape(shape)
+    """The image of a FITS file, native-endian float (float32 for 32-bit or smaller data,
+    float64 otherwise), read by blocks of rows into one new array (no other whole-image copy)."""
+    arr = None
+    for y0, y1, block in _row_blocks(path):
+        if arr is None:
+            arr = np.empty((_read_header(path)[1][0], block.shape[1]), dtype=block.dtype)
+        arr[y0:y1] = block
+    return arr
 
 
 #: Pixels per block of :func:`_row_blocks` (16 MB of float32).
@@ -127,23 +127,25 @@ ROW_BLOCK_PIXELS = 1 << 22
 
 def _row_blocks(path: Path):
     """``(y0, y1, block)``: the image of a FITS file by blocks of rows, native-endian float
-    (the dtype of :func:`_read_array`), read through astropy's memory map.
+    (the dtype of :func:`_read_array`).
 
     For whole-image quantities made pixel by pixel (validity maps, RMS from weights):
-    only one block of the image is in memory at a time, not a native copy of all of it.
+    only one block of the image is in memory at a time.  Read through astropy's
+    ``section`` (plain reads of those rows), not a memory map, whose pages would stay
+    resident in this process until the file is closed (the whole image by then).
     """
     from astropy.io import fits
 
-    with fits.open(path, memmap=True) as hdul:
+    with fits.open(path, memmap=False, lazy_load_hdus=True) as hdul:
         idx, (ny, nx) = _image_hdu_index(hdul, path)
-        data = hdul[idx].data
-        dtype = _native_float_dtype(data.dtype)
-        data = data.reshape(ny, nx)
+        hdu = hdul[idx]
+        lead = (0,) * (len(hdu.shape) - 2)          # axes of length 1 before (y, x)
         rows = max(1, ROW_BLOCK_PIXELS // max(nx, 1))
         for y0 in range(0, ny, rows):
             y1 = min(y0 + rows, ny)
-            yield y0, y1, np.array(data[y0:y1], dtype=dtype, order="C")
-        del data
+            block = np.asarray(hdu.section[lead + (slice(y0, y1), slice(None))])
+            yield y0, y1, np.array(block.reshape(y1 - y0, nx),
+                                   dtype=_native_float_dtype(block.dtype), order="C")
 
 
 def _noise_to_rms(a: np.ndarray, noise_type: str) -> np.ndarray:

@@ -33,7 +33,7 @@ import numpy as np
 from scipy import ndimage
 
 __all__ = ["weight_rescale_factor", "empty_aperture_scatter", "empty_sky_distance", "distance_cap",
-           "CorrelatedNoise",
+           "empty_sky", "EmptySky", "source_margin", "CorrelatedNoise",
            "DEFAULT_EMPTY_APERTURE_RADII_PIX", "MIN_EMPTY_APERTURES"]
 
 #: Radii of the empty apertures [pixels]: from ~3 pixels (the scale of a
@@ -130,21 +130,121 @@ def empty_sky_distance(usable: np.ndarray, cap: float | None = None,
     if cap is None:
         # Outside the image counts as unusable: pad before the distance transform.
         return ndimage.distance_transform_edt(np.pad(usable, 1))[1:-1, 1:-1]
-    if not float(cap) > 0:
-        raise ValueError(f"distance cap must be > 0 pixels, got {cap!r}")
-    ny, nx = usable.shape
+    out = np.empty(usable.shape)
+    for y0, y1, d in _capped_distance_tiles(usable, cap, tile_rows):
+        out[y0:y1] = d
+    return out
+
+
+def _tile_rows(nx: int, tile_rows: int | None) -> int:
     rows = max(1, DISTANCE_TILE_PIXELS // max(nx, 1)) if tile_rows is None else int(tile_rows)
     if rows < 1:
         raise ValueError(f"tile_rows must be >= 1, got {tile_rows!r}")
+    return rows
+
+
+def _capped_distance_tiles(usable: np.ndarray, cap: float, tile_rows: int | None):
+    """``(y0, y1, d)``: :func:`empty_sky_distance` with ``cap``, rows [y0, y1) at a time."""
+    if not float(cap) > 0:
+        raise ValueError(f"distance cap must be > 0 pixels, got {cap!r}")
+    ny, nx = usable.shape
+    rows = _tile_rows(nx, tile_rows)
     halo = int(np.ceil(float(cap))) + 1
-    out = np.empty((ny, nx))
     for y0 in range(0, ny, rows):
         y1 = min(y0 + rows, ny)
         a, b = max(y0 - halo, 0), min(y1 + halo, ny)
         # Unusable border only where the tile meets the image's edge (and at both sides).
         top, bottom = int(a == 0), int(b == ny)
         d = ndimage.distance_transform_edt(np.pad(usable[a:b], ((top, bottom), (1, 1))))
-        np.minimum(d[top + y0 - a:top + y1 - a, 1:-1], float(cap), out=out[y0:y1])
+        yield y0, y1, np.minimum(d[top + y0 - a:top + y1 - a, 1:-1], float(cap))
+
+
+@dataclass(frozen=True, eq=False)
+class EmptySky:
+    """Where empty apertures can be centred: the pixels of a usable mask farther than each
+    of a few distances from every unusable pixel (:func:`empty_sky`).
+
+    What :func:`empty_aperture_scatter` reads of an :func:`empty_sky_distance` map, in
+    ~5 bytes per candidate pixel instead of the map's 8 bytes per image pixel.
+
+    Attributes
+    ----------
+    indices : ndarray of int
+        Flat (row-major) indices, ascending, of the pixels farther than ``limits[0]``.
+    level : ndarray of uint8
+        Per index, how many of ``limits`` its distance exceeds (>= 1).
+    limits : tuple of float
+        Distances [pixels], ascending.
+    """
+
+    indices: np.ndarray
+    level: np.ndarray
+    limits: tuple
+
+    def beyond(self, limit: float) -> np.ndarray:
+        """Flat indices (ascending) of the pixels farther than ``limit``, one of ``limits``."""
+        k = self.limits.index(float(limit))
+        return self.indices if k == 0 else self.indices[self.level > k]
+
+
+def empty_sky(usable: np.ndarray, limits, tile_rows: int | None = None) -> EmptySky:
+    """The candidate aperture centres of ``usable`` beyond each distance of ``limits``.
+
+    The same comparisons ``distance > limit`` as on :func:`empty_sky_distance`'s map
+    (capped just beyond the largest limit, which leaves them exact), made tile by
+    tile: no full-frame distance map is kept.
+
+    Parameters
+    ----------
+    usable : ndarray of bool, shape (ny, nx)
+    limits : sequence of float
+        Distances [pixels] (at most 255 distinct values).
+    tile_rows : int, optional
+        Rows per tile (default :data:`DISTANCE_TILE_PIXELS` / nx).
+    """
+    usable = np.asarray(usable, dtype=bool)
+    lim = tuple(sorted({float(v) for v in limits}))
+    if not lim or len(lim) > 255:
+        raise ValueError(f"need 1 to 255 distinct distance limits, got {len(lim)}")
+    dtype = np.int32 if usable.size < 2 ** 31 else np.int64
+    nx = usable.shape[1]
+    table = np.asarray(lim)
+    idx, lev = [], []
+    for y0, _, d in _capped_distance_tiles(usable, lim[-1] + 1.0, tile_rows):
+        flat = d.reshape(-1)
+        i = np.flatnonzero(flat > lim[0])
+        # Number of limits strictly below each distance: how many "distance > limit" hold.
+        lev.append(np.searchsorted(table, flat[i], side="left").astype(np.uint8))
+        idx.append((i + y0 * nx).astype(dtype))
+    return EmptySky(np.concatenate(idx) if idx else np.empty(0, dtype),
+                    np.concatenate(lev) if lev else np.empty(0, np.uint8), lim)
+
+
+def source_margin(segmap: np.ndarray, margin: int, tile_rows: int | None = None) -> np.ndarray:
+    """Pixels within ``margin`` steps (4-connected) of a source: ``segmap > 0`` dilated.
+
+    ``scipy.ndimage.binary_dilation(segmap > 0, iterations=margin)``, computed by row
+    tiles that carry ``margin`` rows beyond them (a dilation by ``margin`` steps reads
+    no farther): the same mask without full-frame temporaries.
+
+    Parameters
+    ----------
+    segmap : ndarray of int, shape (ny, nx)
+    margin : int
+        Dilation steps [pixels], >= 1.
+    tile_rows : int, optional
+        Rows per tile (default :data:`DISTANCE_TILE_PIXELS` / nx).
+    """
+    if int(margin) < 1:
+        raise ValueError(f"margin must be >= 1 pixel, got {margin!r}")
+    ny, nx = segmap.shape
+    rows = _tile_rows(nx, tile_rows)
+    out = np.empty((ny, nx), dtype=bool)
+    for y0 in range(0, ny, rows):
+        y1 = min(y0 + rows, ny)
+        a, b = max(y0 - margin, 0), min(y1 + margin, ny)
+        grown = ndimage.binary_dilation(np.asarray(segmap[a:b]) > 0, iterations=int(margin))
+        out[y0:y1] = grown[y0 - a:y1 - a]
     return out
 
 
@@ -177,7 +277,7 @@ def distance_cap(radii_pix) -> float:
 def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarray,
                            radii_pix=DEFAULT_EMPTY_APERTURE_RADII_PIX, n_per_radius: int = 1000,
                            rng: np.random.Generator | None = None,
-                           distance: np.ndarray | None = None
+                           distance: np.ndarray | None = None, sky: EmptySky | None = None
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Measured over predicted scatter of sums in random empty circular apertures.
 
@@ -199,6 +299,10 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
     distance : ndarray, optional
         :func:`empty_sky_distance` of this ``usable`` mask, if already computed
         (capped at no less than :func:`distance_cap` of ``radii_pix``).
+    sky : EmptySky, optional
+        Instead of ``distance``: :func:`empty_sky` of this ``usable`` mask with (at
+        least) the limits ``r + 1`` of ``radii_pix`` (the same apertures, without a
+        full-frame distance map).
 
     Returns
     -------
@@ -225,27 +329,33 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
     usable = np.asarray(usable, dtype=bool)
     image, rms = np.asarray(image), np.asarray(rms)
     radii = [float(r) for r in radii_pix]
-    if distance is None:
-        distance = empty_sky_distance(usable, cap=distance_cap(radii)) if radii else \
-            np.zeros(usable.shape)
-    dist = np.asarray(distance)
-    if dist.shape != usable.shape:
-        raise ValueError(f"distance has shape {dist.shape}, usable {usable.shape}")
     nx = usable.shape[1]
-    flat_dist = dist.reshape(-1)
-    # Candidate centres (flat indices, ascending) for the smallest radius; every larger
-    # radius keeps a subset of them, in the same order: one full-frame pass, not one per radius.
-    # Chunked, and int32 where the image allows it: no full-frame temporaries (same indices).
-    index_dtype = np.int32 if flat_dist.size < 2 ** 31 else np.int64
-    candidates = _indices_beyond(flat_dist, min(radii) + 1.0, index_dtype) if radii else \
-        np.empty(0, index_dtype)
+    if sky is None:
+        if distance is None:
+            distance = empty_sky_distance(usable, cap=distance_cap(radii)) if radii else \
+                np.zeros(usable.shape)
+        dist = np.asarray(distance)
+        if dist.shape != usable.shape:
+            raise ValueError(f"distance has shape {dist.shape}, usable {usable.shape}")
+        flat_dist = dist.reshape(-1)
+        # Candidate centres (flat indices, ascending) for the smallest radius; every larger
+        # radius keeps a subset of them, in the same order: one full-frame pass, not one per
+        # radius. Chunked, and int32 where the image allows it: no full-frame temporaries.
+        index_dtype = np.int32 if flat_dist.size < 2 ** 31 else np.int64
+        candidates = _indices_beyond(flat_dist, min(radii) + 1.0, index_dtype) if radii else \
+            np.empty(0, index_dtype)
+
+        def beyond(limit):
+            return _keep_beyond(flat_dist, candidates, limit)
+    else:
+        beyond = sky.beyond
     out_n, out_r, out_k = [], [], []
     for r in radii:
         k = int(np.ceil(r))
         dy, dx = np.mgrid[-k:k + 1, -k:k + 1]
         inside = dy ** 2 + dx ** 2 < r * r
         dy, dx = dy[inside], dx[inside]
-        centres = _keep_beyond(flat_dist, candidates, r + 1.0)
+        centres = beyond(r + 1.0)
         if centres.size < MIN_EMPTY_APERTURES:
             continue
         pick = rng.choice(centres.size, size=min(n_per_radius, centres.size), replace=False)
