@@ -17,9 +17,9 @@ glaciar.run.save_field_context) into a temporary directory.
 Each step's peak is the kernel's high-water mark of the resident set (VmHWM of
 /proc/self/status), reset at the start of the step (``echo 5 > /proc/self/clear_refs``),
 so it includes file pages the step maps (FITS reads, spilled arrays).  Printed per
-step: wall seconds, peak RSS [MB], the peak above the RSS the step started from [MB]
-and that excess per image pixel [bytes/pixel] (at 16000^2 one float32 image is
-4 B/px = 1 GB).  The process must run alone on a quiet machine for the seconds to
+step: wall seconds, peak RSS [MB], the peak above the RSS the step started from [MB],
+that excess per image pixel [bytes/pixel] (at 16000^2 one float32 image is
+4 B/px = 1 GB), and the resident set at the step's end, anonymous / file-backed [MB].  The process must run alone on a quiet machine for the seconds to
 mean anything; the memory figures do not depend on the load.
 """
 from __future__ import annotations
@@ -51,7 +51,7 @@ class StepProbe:
     """Records (step, seconds, peak RSS, RSS at the step's start) at each step's end."""
 
     def __init__(self):
-        self.rows: list[tuple[str, float, float, float]] = []
+        self.rows: list[tuple[str, float, float, float, float, float]] = []
         self.start()
 
     def start(self) -> None:
@@ -61,7 +61,8 @@ class StepProbe:
 
     def __call__(self, step: str) -> None:
         peak = _status_kb("VmHWM") * 1024.0
-        self.rows.append((step, time.perf_counter() - self._t0, peak, self._rss0))
+        anon, files = (_status_kb(k) * 1024.0 for k in ("RssAnon", "RssFile"))
+        self.rows.append((step, time.perf_counter() - self._t0, peak, self._rss0, anon, files))
         self.start()
 
 
@@ -126,10 +127,12 @@ def main(argv=None) -> int:
         print(f"# field {field}: {ny} x {nx} px, {len(cfg.survey.bands)} bands, "
               f"CLEAN {'on' if cfg.detection.clean else 'off'}, "
               f"{len(ctx.reference.flux)} reference objects")
-        print(f"{'step':32s} {'seconds':>8s} {'peak MB':>9s} {'+MB':>8s} {'B/px':>6s}")
-        for step, sec, hwm, rss0 in probe.rows:
+        print(f"{'step':32s} {'seconds':>8s} {'peak MB':>9s} {'+MB':>8s} {'B/px':>6s} "
+              f"{'end anon/file MB':>17s}")
+        for step, sec, hwm, rss0, anon, files in probe.rows:
             extra = max(hwm - rss0, 0.0)
-            print(f"{step:32s} {sec:8.1f} {hwm / MB:9.0f} {extra / MB:8.0f} {extra / npix:6.1f}")
+            print(f"{step:32s} {sec:8.1f} {hwm / MB:9.0f} {extra / MB:8.0f} {extra / npix:6.1f} "
+                  f"{anon / MB:8.0f}/{files / MB:<8.0f}")
         print(f"{'total':32s} {total:8.1f} {peak / MB:9.0f} {'':8s} {peak / npix:6.1f}")
         sys.stdout.flush()
         del ctx

@@ -200,7 +200,8 @@ _EMPTY_SKY_MARGIN_PIX = 3
 
 
 def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: np.ndarray,
-                     segmap: np.ndarray, sky: dict | None = None) -> CorrelatedNoise:
+                     segmap: np.ndarray, sky: dict | None = None,
+                     release=None) -> CorrelatedNoise:
     """The correlated-noise model of one band of a field, from empty apertures.
 
     Empty sky: pixels with data, more than a few pixels from every source the
@@ -214,6 +215,8 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
     distance transform. Every full-frame step is made by row tiles (the dilation,
     the usable mask, the distance transform); the distance map itself is never
     kept, only the centres each aperture radius may take (:func:`~glaciar.engine.noise.empty_sky`).
+    ``release``: called once ``segmap`` and ``rms`` have been read whole (a caller with
+    memory-mapped arrays drops their resident pages there; the apertures read few).
     """
     sky = {} if sky is None else sky
     if "sources" not in sky:
@@ -225,6 +228,8 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
         np.isfinite(rms[y0:y1], out=usable[y0:y1])
         usable[y0:y1] &= ~sources[y0:y1]
         same = same and np.array_equal(sky["usable"][y0:y1], usable[y0:y1])
+    if release is not None:
+        release()
     radii = cfg.noise.empty_aperture_radii_pix
     if not same:
         sky.pop("usable", None), sky.pop("centres", None)
@@ -389,12 +394,13 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
                                      background=backgrounds if b.name == det else None)
         bases[b.name], rms[b.name] = keep(base), keep(noise)
         del base, noise
+        if b.name == det:
+            backgrounds[det] = keep(backgrounds[det])
         # The context holds its own background-subtracted copies: the survey's cached
         # images would only double the memory (at this peak and in every task after it).
         survey.release_pixels(field, (b.name,))
         drop()
         _step_done(f"band_pixels {b.name}")
-    backgrounds = {k: keep(v) for k, v in backgrounds.items()}
     if spilled:
         # The survey's cached footprint/mask arrays: the context has its own (on disk).
         clear_survey_cache()
@@ -409,18 +415,21 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         reference = reference_extraction(det_image.astype(np.float32), det_image_rms, params,
                                          zps[det], mask=mask, photometry=(bases[det], rms[det]))
         del det_image
-        _step_done("coadd + reference_extraction")
     else:
         reference = reference_extraction(bases[det], rms[det], params, zps[det], mask=mask)
-        _step_done("reference_extraction")
     if spilled and isinstance(getattr(reference, "segmap", None), np.ndarray):
         reference = dataclasses.replace(reference, segmap=keep(reference.segmap))
     drop()
+    _step_done("reference_extraction" if cfg.survey.detection_image is None else
+               "coadd + reference_extraction")
     sky: dict = {}
     noise_models = {}
     for b in bands:
-        noise_models[b] = correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap, sky)
-        drop()              # the band's mapped image and RMS pages, read for its apertures
+        # drop(): the mapped pages of the segmentation and the band's RMS, read whole for the
+        # usable mask, go before the distance transform; then those the apertures read.
+        noise_models[b] = correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap, sky,
+                                           release=drop)
+        drop()
     del sky
     _step_done("correlated_noise")
     depth, _ = field_depth(rms[det], zps[det], psfs[det])

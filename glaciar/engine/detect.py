@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import mmap
 import os
 from dataclasses import dataclass, field
 from importlib import resources
@@ -361,29 +362,86 @@ class DetectionParams:
 # --------------------------------------------------------------------------
 # Background and extraction
 # --------------------------------------------------------------------------
+#: Pixels per block of :func:`sanitize`'s work on a large image.
+SANITIZE_BLOCK_PIXELS = 1 << 22
+
+
+def _file_map(a):
+    """The ``mmap`` under a memory-mapped array (a view's too), or None."""
+    while a is not None:
+        m = getattr(a, "_mmap", None)
+        if m is not None:
+            return m
+        a = getattr(a, "base", None)
+    return None
+
+
+def _float32_copy(a, blocks) -> np.ndarray:
+    """``np.array(a, dtype=np.float32, order="C")``; when ``a`` is a whole memory-mapped
+    image (a field's spilled array in its set-up), block by block with the map's resident
+    pages dropped as they are copied, so the copy does not hold the mapped image in this
+    process as well.  A window of a map (a task's) is copied as it is: its map's pages
+    are the worker's field cache."""
+    src = np.asarray(a)
+    m = _file_map(a)
+    try:
+        whole = m is not None and src.nbytes >= len(m) // 2
+    except (TypeError, ValueError):         # a closed map
+        whole = False
+    if not whole:
+        return np.array(src, dtype=np.float32, order="C")
+    out = np.empty(src.shape, dtype=np.float32)
+    advice = getattr(mmap, "MADV_DONTNEED", None)
+    for rows in blocks:
+        out[rows] = src[rows]
+        if advice is not None:
+            try:
+                m.madvise(advice)
+            except (OSError, ValueError):     # a closed map: nothing resident
+                pass
+    return out
+
+
+def _blocks(shape):
+    """Slices of the first axis covering about :data:`SANITIZE_BLOCK_PIXELS` pixels each."""
+    if len(shape) < 2:
+        return [slice(None)]
+    n = shape[0]
+    rows = max(1, SANITIZE_BLOCK_PIXELS // max(int(np.prod(shape[1:])), 1))
+    return [slice(y0, min(y0 + rows, n)) for y0 in range(0, n, rows)]
+
+
 def sanitize(image, err=None, mask=None):
     """Native float32 copies for sep and the combined no-data mask.
 
     Returns ``(data, err, nodata)``: NaN/inf data -> 0; pixels without data
     (``mask`` True, data non-finite, err non-finite or <= 0) are flagged in
     ``nodata``; their err is set to 1 (they are passed to sep as masked).
+    Made by blocks of rows: no full-frame temporaries beyond the three results.
     """
-    data = np.array(image, dtype=np.float32, order="C")
-    nodata = ~np.isfinite(data)
+    blocks = _blocks(np.shape(image))
+    data = _float32_copy(image, blocks)
+    m = None
     if mask is not None:
         m = np.asarray(mask)
         if m.shape != data.shape:
             raise ValueError(f"mask shape {m.shape} differs from image shape {data.shape}")
-        nodata |= m.astype(bool)
     e = None
     if err is not None:
-        e = np.array(err, dtype=np.float32, order="C")
+        e = _float32_copy(err, blocks)
         if e.shape != data.shape:
             raise ValueError(f"RMS map shape {e.shape} differs from image shape {data.shape}")
-        with np.errstate(invalid="ignore"):
-            nodata |= ~(np.isfinite(e) & (e > 0))
-        e[nodata] = 1.0
-    data[nodata] = 0.0
+    nodata = np.empty(data.shape, dtype=bool)
+    for rows in blocks:
+        nd = ~np.isfinite(data[rows])
+        if m is not None:
+            nd |= np.asarray(m[rows], dtype=bool)
+        if e is not None:
+            with np.errstate(invalid="ignore"):
+                nd |= ~(np.isfinite(e[rows]) & (e[rows] > 0))
+            e[rows][nd] = 1.0
+        data[rows][nd] = 0.0
+        nodata[rows] = nd
     return data, e, nodata
 
 

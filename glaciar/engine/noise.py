@@ -209,15 +209,20 @@ def empty_sky(usable: np.ndarray, limits, tile_rows: int | None = None) -> Empty
     dtype = np.int32 if usable.size < 2 ** 31 else np.int64
     nx = usable.shape[1]
     table = np.asarray(lim)
-    idx, lev = [], []
+    # Filled tile by tile: only usable pixels can be candidates (distance > limit > 0), so
+    # buffers of that size are never outgrown and no concatenation doubles them.
+    n_usable = sum(int(np.count_nonzero(usable[y0:y0 + 256])) for y0 in range(0, usable.shape[0], 256))
+    idx = np.empty(n_usable, dtype=dtype)
+    lev = np.empty(n_usable, dtype=np.uint8)
+    n = 0
     for y0, _, d in _capped_distance_tiles(usable, lim[-1] + 1.0, tile_rows):
         flat = d.reshape(-1)
         i = np.flatnonzero(flat > lim[0])
         # Number of limits strictly below each distance: how many "distance > limit" hold.
-        lev.append(np.searchsorted(table, flat[i], side="left").astype(np.uint8))
-        idx.append((i + y0 * nx).astype(dtype))
-    return EmptySky(np.concatenate(idx) if idx else np.empty(0, dtype),
-                    np.concatenate(lev) if lev else np.empty(0, np.uint8), lim)
+        lev[n:n + i.size] = np.searchsorted(table, flat[i], side="left")
+        idx[n:n + i.size] = i + y0 * nx
+        n += i.size
+    return EmptySky(idx[:n], lev[:n], lim)
 
 
 def source_margin(segmap: np.ndarray, margin: int, tile_rows: int | None = None) -> np.ndarray:
