@@ -246,10 +246,14 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
     return CorrelatedNoise.fit(npix, ratio, n)
 
 
-def _row_blocks(shape, pixels: int = 1 << 22):
-    """(y0, y1): the rows of an image of ``shape`` by blocks of about ``pixels`` pixels."""
+#: Pixels per block of the set-up's elementwise full-frame work (:func:`_row_blocks`).
+ROW_BLOCK_PIXELS = 1 << 22
+
+
+def _row_blocks(shape):
+    """(y0, y1): the rows of an image of ``shape`` by blocks of ~:data:`ROW_BLOCK_PIXELS` pixels."""
     ny, nx = shape
-    rows = max(1, pixels // max(nx, 1))
+    rows = max(1, ROW_BLOCK_PIXELS // max(nx, 1))
     for y0 in range(0, ny, rows):
         yield y0, min(y0 + rows, ny)
 
