@@ -278,17 +278,21 @@ def field_noise_record(cfg: Config, survey: Survey, field: str,
     params = _detection_params(cfg)
     footprint = survey.footprint(field)
     det = cfg.survey.detection_band
-    out, pixels = {}, {}
-    for b in cfg.survey.bands:
-        pixels[b.name] = band_pixels(survey, field, b.name, footprint, params,
-                                     cfg.detection.weight_type)
+    out = {}
+    # One band's pixels at a time (the detection band's until its turn), not every band's.
+    pixels = {det: band_pixels(survey, field, det, footprint, params, cfg.detection.weight_type)}
     base_det, rms_det, _ = pixels[det]
     reference = reference_extraction(base_det, rms_det, params, float(cfg.survey.band(det).zeropoint),
                                      mask=~footprint)
+    del base_det, rms_det
     sky: dict = {}
-    for b, (base, rms, from_background) in pixels.items():
+    for band in cfg.survey.bands:
+        b = band.name
+        base, rms, from_background = pixels.pop(b) if b in pixels else \
+            band_pixels(survey, field, b, footprint, params, cfg.detection.weight_type)
         model = correlated_noise(cfg, field, b, base, rms, reference.segmap, sky)
         out[b] = _noise_entry(cfg, survey, field, b, rms, from_background, model)
+        del base, rms
     return out
 
 
