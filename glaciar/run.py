@@ -215,12 +215,14 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
     distance transform. Every full-frame step is made by row tiles (the dilation,
     the usable mask, the distance transform); the distance map itself is never
     kept, only the centres each aperture radius may take (:func:`~glaciar.engine.noise.empty_sky`).
-    ``release``: called once ``segmap`` and ``rms`` have been read whole (a caller with
+    ``release``: called as ``segmap`` and ``rms`` are read through (a caller with
     memory-mapped arrays drops their resident pages there; the apertures read few).
     """
+    release = release or (lambda: None)
     sky = {} if sky is None else sky
     if "sources" not in sky:
         sky["sources"] = source_margin(segmap, _EMPTY_SKY_MARGIN_PIX)
+        release()
     sources = sky["sources"]
     usable = np.empty(sources.shape, dtype=bool)
     same = "usable" in sky
@@ -228,7 +230,6 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
         np.isfinite(rms[y0:y1], out=usable[y0:y1])
         usable[y0:y1] &= ~sources[y0:y1]
         same = same and np.array_equal(sky["usable"][y0:y1], usable[y0:y1])
-    if release is not None:
         release()
     radii = cfg.noise.empty_aperture_radii_pix
     if not same:

@@ -453,4 +453,4 @@ def test_correlated_noise_by_tiles_is_the_whole_frame_measurement(monkeypatch, s
         want = CorrelatedNoise.fit(npix, ratio, n)
         assert got == want, b
         assert len(npix) >= 5
-    assert released == list(pix)
+    assert set(released) == set(pix) and len(released) > 2 * len(pix)    # block by block

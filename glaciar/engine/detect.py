@@ -366,39 +366,47 @@ class DetectionParams:
 SANITIZE_BLOCK_PIXELS = 1 << 22
 
 
-def _file_map(a):
-    """The ``mmap`` under a memory-mapped array (a view's too), or None."""
-    while a is not None:
-        m = getattr(a, "_mmap", None)
-        if m is not None:
-            return m
-        a = getattr(a, "base", None)
-    return None
-
-
-def _float32_copy(a, blocks) -> np.ndarray:
-    """``np.array(a, dtype=np.float32, order="C")``; when ``a`` is a whole memory-mapped
-    image (a field's spilled array in its set-up), block by block with the map's resident
-    pages dropped as they are copied, so the copy does not hold the mapped image in this
-    process as well.  A window of a map (a task's) is copied as it is: its map's pages
-    are the worker's field cache."""
-    src = np.asarray(a)
-    m = _file_map(a)
+def _whole_map(a):
+    """The ``mmap`` under ``a`` when ``a`` is a whole memory-mapped image (a field's spilled
+    array during its set-up), else None (an in-memory array, or a window of a map: a
+    task's, whose map's pages are the worker's field cache)."""
+    src, m = a, None
+    while src is not None and m is None:
+        m = getattr(src, "_mmap", None)
+        src = getattr(src, "base", None)
+    if m is None:
+        return None
     try:
-        whole = m is not None and src.nbytes >= len(m) // 2
+        return m if np.asarray(a).nbytes >= len(m) // 2 else None
     except (TypeError, ValueError):         # a closed map
-        whole = False
-    if not whole:
-        return np.array(src, dtype=np.float32, order="C")
-    out = np.empty(src.shape, dtype=np.float32)
+        return None
+
+
+def release_mapped(*arrays) -> None:
+    """Drop this process's resident pages of whole memory-mapped images (they stay in the
+    page cache): for a step that reads through a spilled image once, so that its pages
+    do not pile up in the process as it goes. Anything else is left alone."""
     advice = getattr(mmap, "MADV_DONTNEED", None)
-    for rows in blocks:
-        out[rows] = src[rows]
-        if advice is not None:
+    for a in arrays:
+        m = _whole_map(a)
+        if m is not None and advice is not None:
             try:
                 m.madvise(advice)
             except (OSError, ValueError):     # a closed map: nothing resident
                 pass
+
+
+def _float32_copy(a, blocks) -> np.ndarray:
+    """``np.array(a, dtype=np.float32, order="C")``; when ``a`` is a whole memory-mapped
+    image, block by block with its resident pages dropped as they are copied, so the
+    copy does not hold the mapped image in this process as well."""
+    src = np.asarray(a)
+    if _whole_map(a) is None:
+        return np.array(src, dtype=np.float32, order="C")
+    out = np.empty(src.shape, dtype=np.float32)
+    for rows in blocks:
+        out[rows] = src[rows]
+        release_mapped(a)
     return out
 
 

@@ -240,6 +240,8 @@ def source_margin(segmap: np.ndarray, margin: int, tile_rows: int | None = None)
     tile_rows : int, optional
         Rows per tile (default :data:`DISTANCE_TILE_PIXELS` / nx).
     """
+    from glaciar.engine.detect import release_mapped
+
     if int(margin) < 1:
         raise ValueError(f"margin must be >= 1 pixel, got {margin!r}")
     ny, nx = segmap.shape
@@ -250,6 +252,7 @@ def source_margin(segmap: np.ndarray, margin: int, tile_rows: int | None = None)
         a, b = max(y0 - margin, 0), min(y1 + margin, ny)
         grown = ndimage.binary_dilation(np.asarray(segmap[a:b]) > 0, iterations=int(margin))
         out[y0:y1] = grown[y0 - a:y1 - a]
+        release_mapped(segmap)          # a spilled segmentation's pages, read once
     return out
 
 
@@ -369,8 +372,9 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         ix = centres[pick][:, None] % nx + dx[None, :]
         # Only the aperture pixels are converted to float64 (no full-frame copies).
         ok = usable[iy, ix]
-        s = np.where(ok, image[iy, ix].astype(np.float64), 0.0).sum(axis=1)
-        v = np.where(ok, rms[iy, ix].astype(np.float64) ** 2, 0.0).sum(axis=1)
+        flat = iy * nx + ix
+        s = np.where(ok, _gather(image, flat).astype(np.float64), 0.0).sum(axis=1)
+        v = np.where(ok, _gather(rms, flat).astype(np.float64) ** 2, 0.0).sum(axis=1)
         good = np.isfinite(s) & (v > 0)
         if good.sum() < MIN_EMPTY_APERTURES:
             continue
@@ -378,6 +382,31 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         out_r.append(_robust_sigma(s[good] / np.sqrt(v[good])))
         out_k.append(int(good.sum()))
     return np.array(out_n), np.array(out_r), np.array(out_k, dtype=np.int64)
+
+
+def _gather(a: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """``a.ravel()[flat]`` (same shape as ``flat``), by blocks of rows in index order.
+
+    A whole memory-mapped image (a spilled array of a field's set-up) has its resident
+    pages dropped after each block: thousands of scattered apertures would otherwise
+    fault in most of its pages and keep them in the process.
+    """
+    from glaciar.engine.detect import release_mapped
+
+    ny, nx = a.shape
+    idx = flat.reshape(-1)
+    order = np.argsort(idx, kind="stable")
+    srt = idx[order]
+    out = np.empty(idx.size, dtype=a.dtype)
+    rows = max(1, DISTANCE_TILE_PIXELS // max(nx, 1))
+    cuts = np.searchsorted(srt, np.arange(0, ny + rows, rows, dtype=np.int64) * nx)
+    for k, y0 in enumerate(range(0, ny, rows)):
+        lo, hi = cuts[k], cuts[k + 1]
+        if hi > lo:
+            block = a[y0:min(y0 + rows, ny)].reshape(-1)         # a view: only the pixels read
+            out[order[lo:hi]] = block[srt[lo:hi] - y0 * nx]
+            release_mapped(a)
+    return out.reshape(flat.shape)
 
 
 @dataclass(frozen=True)
