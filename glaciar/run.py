@@ -418,10 +418,14 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
     if cfg.survey.detection_image is not None:
         coadd_bands = cfg.survey.detection_image.coadd
         coadd_method = cfg.survey.detection_image.method
+        # float32 straight from the stack's blocks: the values of its float64 result's .astype.
         det_image, det_image_rms = coadd([bases[b] for b in coadd_bands],
-                                         [rms[b] for b in coadd_bands], coadd_method)
-        det_image_rms = keep(det_image_rms.astype(np.float32))
-        reference = reference_extraction(det_image.astype(np.float32), det_image_rms, params,
+                                         [rms[b] for b in coadd_bands], coadd_method,
+                                         dtype=np.float32)
+        det_image_rms = keep(det_image_rms)
+        det_image = keep(det_image)
+        drop()
+        reference = reference_extraction(det_image, det_image_rms, params,
                                          zps[det], mask=mask, photometry=(bases[det], rms[det]))
         del det_image
     else:
