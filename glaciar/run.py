@@ -27,7 +27,8 @@ import yaml
 from . import __version__
 from . import constants as C
 from .config import Config, check_files, config_from_dict, config_hash, config_to_dict
-from .engine.detect import DetectionParams, background_model, builtin_filter, read_conv_file, sanitize
+from .engine.detect import (DetectionParams, background_model, builtin_filter, read_conv_file,
+                            release_mapped, sanitize)
 from .engine.measure import reference_extraction
 from .engine.classify import ClassificationParams
 from .engine.coadd import coadd
@@ -98,10 +99,15 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
     # the band costs its image, its noise map and the masks, with no full-frame copies.
     img = survey.science(field, band, cache=False)
     noise = survey.rms(field, band, cache=False)
-    valid = footprint & np.isfinite(img)
-    if noise is not None:
-        valid &= np.isfinite(noise) & (noise > 0)
-    nodata = ~valid
+    # nodata = ~(footprint & finite image & finite, positive noise), by blocks of rows.
+    nodata = np.empty(img.shape, dtype=bool)
+    for y0, y1 in _row_blocks(img.shape):
+        ok = np.asarray(footprint[y0:y1], dtype=bool) & np.isfinite(img[y0:y1])
+        if noise is not None:
+            nz = noise[y0:y1]
+            ok &= np.isfinite(nz) & (nz > 0)
+        np.logical_not(ok, out=nodata[y0:y1])
+        release_mapped(footprint)       # a spilled footprint's pages, read once
     in_place = img.dtype == np.float32
     if in_place:
         # sanitize(img, None, nodata) on img itself: nodata holds every non-finite pixel.
@@ -114,7 +120,7 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
     if from_background:
         r = bkg.rms(dtype=np.float32)
     elif weight_type == "map_weight":
-        r = noise * weight_rescale_factor(bkg.rms(dtype=np.float32), noise, valid)
+        r = noise * weight_rescale_factor(bkg.rms(dtype=np.float32), noise, ~nodata)
     else:
         r = noise
     del noise

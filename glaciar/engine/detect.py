@@ -450,6 +450,8 @@ def sanitize(image, err=None, mask=None):
             e[rows][nd] = 1.0
         data[rows][nd] = 0.0
         nodata[rows] = nd
+        if m is not None:
+            release_mapped(mask)        # a spilled mask's pages, read once
     return data, e, nodata
 
 
