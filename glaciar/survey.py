@@ -5,9 +5,12 @@ image is, converts weight maps to RMS, gives the footprint (where the
 detection band has valid data) and the pixel scale (from the config or the
 detection image's WCS).
 
-Arrays are read on first use (through astropy's memmap) and kept in a
-module-level, byte-bounded LRU cache, so each worker process reads each image
-once and a pickled ``Survey`` stays small. FITS data are big-endian on disk;
+Arrays are read on first use (by blocks of rows through astropy's ``section``,
+straight into one native array) and kept in a module-level, byte-bounded LRU
+cache, so each worker process reads each image once and a pickled ``Survey``
+stays small. Validity maps and the footprint are made block by block from the
+files without caching the images they read; ``science(..., cache=False)`` and
+``rms(..., cache=False)`` give a caller new arrays of its own (the field set-up). FITS data are big-endian on disk;
 every array returned here is native-endian (float32 for 32-bit or smaller
 data, float64 otherwise), as ``sep`` and numpy kernels require.
 
