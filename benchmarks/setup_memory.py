@@ -17,7 +17,7 @@ glaciar.run.save_field_context) into a temporary directory.
 Each step's peak is the kernel's high-water mark of the resident set (VmHWM of
 /proc/self/status), reset at the start of the step (``echo 5 > /proc/self/clear_refs``),
 so it includes file pages the step maps (FITS reads, spilled arrays).  Printed per
-step: wall seconds, peak RSS [MB], the peak above the RSS the step started from [MB],
+step: wall and CPU (user + system) seconds, peak RSS [MB], the peak above the RSS the step started from [MB],
 that excess per image pixel [bytes/pixel] (at 16000^2 one float32 image is
 4 B/px = 1 GB), and the resident set at the step's end, anonymous / file-backed [MB].  The process must run alone on a quiet machine for the seconds to
 mean anything; the memory figures do not depend on the load.
@@ -25,6 +25,7 @@ mean anything; the memory figures do not depend on the load.
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import sys
 import tempfile
@@ -42,6 +43,12 @@ def _status_kb(key: str) -> float:
     raise RuntimeError(f"no {key} in /proc/self/status (Linux only)")
 
 
+def _cpu_seconds() -> float:
+    """User + system CPU time of this process [s]."""
+    t = os.times()
+    return t.user + t.system
+
+
 def _reset_peak() -> None:
     with open("/proc/self/clear_refs", "w") as fh:
         fh.write("5")
@@ -51,18 +58,20 @@ class StepProbe:
     """Records (step, seconds, peak RSS, RSS at the step's start) at each step's end."""
 
     def __init__(self):
-        self.rows: list[tuple[str, float, float, float, float, float]] = []
+        self.rows: list[tuple] = []
         self.start()
 
     def start(self) -> None:
         _reset_peak()
         self._rss0 = _status_kb("VmRSS") * 1024.0
         self._t0 = time.perf_counter()
+        self._cpu0 = _cpu_seconds()
 
     def __call__(self, step: str) -> None:
         peak = _status_kb("VmHWM") * 1024.0
         anon, files = (_status_kb(k) * 1024.0 for k in ("RssAnon", "RssFile"))
-        self.rows.append((step, time.perf_counter() - self._t0, peak, self._rss0, anon, files))
+        self.rows.append((step, time.perf_counter() - self._t0, _cpu_seconds() - self._cpu0, peak,
+                          self._rss0, anon, files))
         self.start()
 
 
@@ -123,17 +132,18 @@ def main(argv=None) -> int:
         finally:
             run.SETUP_STEP_HOOKS.remove(probe)
         total = time.perf_counter() - t0
-        peak = max(r[2] for r in probe.rows)
+        peak = max(r[3] for r in probe.rows)
         print(f"# field {field}: {ny} x {nx} px, {len(cfg.survey.bands)} bands, "
               f"CLEAN {'on' if cfg.detection.clean else 'off'}, "
               f"{len(ctx.reference.flux)} reference objects")
-        print(f"{'step':32s} {'seconds':>8s} {'peak MB':>9s} {'+MB':>8s} {'B/px':>6s} "
+        print(f"{'step':32s} {'seconds':>8s} {'CPU s':>7s} {'peak MB':>9s} {'+MB':>8s} {'B/px':>6s} "
               f"{'end anon/file MB':>17s}")
-        for step, sec, hwm, rss0, anon, files in probe.rows:
+        for step, sec, cpu, hwm, rss0, anon, files in probe.rows:
             extra = max(hwm - rss0, 0.0)
-            print(f"{step:32s} {sec:8.1f} {hwm / MB:9.0f} {extra / MB:8.0f} {extra / npix:6.1f} "
-                  f"{anon / MB:8.0f}/{files / MB:<8.0f}")
-        print(f"{'total':32s} {total:8.1f} {peak / MB:9.0f} {'':8s} {peak / npix:6.1f}")
+            print(f"{step:32s} {sec:8.1f} {cpu:7.1f} {hwm / MB:9.0f} {extra / MB:8.0f} "
+                  f"{extra / npix:6.1f} {anon / MB:8.0f}/{files / MB:<8.0f}")
+        cpu = sum(r[2] for r in probe.rows)
+        print(f"{'total':32s} {total:8.1f} {cpu:7.1f} {peak / MB:9.0f} {'':8s} {peak / npix:6.1f}")
         sys.stdout.flush()
         del ctx
     finally:
