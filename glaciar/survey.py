@@ -10,9 +10,10 @@ straight into one native array) and kept in a module-level, byte-bounded LRU
 cache, so each worker process reads each image once and a pickled ``Survey``
 stays small. Validity maps and the footprint are made block by block from the
 files without caching the images they read; ``science(..., cache=False)`` and
-``rms(..., cache=False)`` give a caller new arrays of its own (the field set-up). FITS data are big-endian on disk;
-every array returned here is native-endian (float32 for 32-bit or smaller
-data, float64 otherwise), as ``sep`` and numpy kernels require.
+``rms(..., cache=False)`` give a caller new, writable arrays of its own (the
+field set-up). FITS data are big-endian on disk; every array returned here is
+native-endian (float32 for 32-bit or smaller data, float64 otherwise), as
+``sep`` and numpy kernels require.
 
 The cached arrays are shared by every caller in the process, so they are
 returned **read-only**: an in-place injection would otherwise corrupt every
