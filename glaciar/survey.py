@@ -144,10 +144,15 @@ def _row_blocks(path: Path):
         idx, (ny, nx) = _image_hdu_index(hdul, path)
         hdu = hdul[idx]
         lead = (0,) * (len(hdu.shape) - 2)          # axes of length 1 before (y, x)
+        # A compressed file (.fits.gz) is decompressed once, whole: a section of it would
+        # decompress again from the start of the file for every block.
+        compressed = getattr(getattr(hdul, "_file", None), "compression", None) or \
+            Path(path).suffix.lower() in (".gz", ".bz2", ".zip")
+        source = hdu.data if compressed else hdu.section
         rows = max(1, ROW_BLOCK_PIXELS // max(nx, 1))
         for y0 in range(0, ny, rows):
             y1 = min(y0 + rows, ny)
-            block = np.asarray(hdu.section[lead + (slice(y0, y1), slice(None))])
+            block = np.asarray(source[lead + (slice(y0, y1), slice(None))])
             yield y0, y1, np.array(block.reshape(y1 - y0, nx),
                                    dtype=_native_float_dtype(block.dtype), order="C")
 

@@ -503,3 +503,18 @@ def test_coadd_by_row_blocks_is_the_pixelwise_stack(monkeypatch, tmp_path, metho
     for g, whole in zip(got, co.coadd(images, rms, method)):
         assert np.array_equal(g, whole)                  # bit for bit: the same pixelwise ops
     assert (~has).sum() == 2 and np.isinf(got[1][~has]).all()
+
+
+def test_gzipped_image_by_row_blocks_is_the_whole_image(monkeypatch, tmp_path):
+    """A .fits.gz image (decompressed once, then cut in blocks) reads as astropy's whole data."""
+    from astropy.io import fits
+
+    from glaciar import survey as sv
+
+    data = np.random.default_rng(3).standard_normal((1, 31, 19)).astype(">f4")   # NAXIS3 = 1
+    path = tmp_path / "img.fits.gz"
+    fits.writeto(path, data)
+    monkeypatch.setattr(sv, "ROW_BLOCK_PIXELS", 4 * 19)
+    got = sv._read_array(path)
+    assert got.dtype == np.float32 and got.shape == (31, 19)
+    assert np.array_equal(got, fits.getdata(path)[0].astype(np.float32))
