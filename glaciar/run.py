@@ -27,15 +27,16 @@ import yaml
 from . import __version__
 from . import constants as C
 from .config import Config, check_files, config_from_dict, config_hash, config_to_dict
-from .engine.detect import DetectionParams, builtin_filter, measure_background, read_conv_file
+from .engine.detect import (DetectionParams, background_model, builtin_filter, read_conv_file,
+                            release_mapped, sanitize)
 from .engine.measure import reference_extraction
 from .engine.classify import ClassificationParams
 from .engine.coadd import coadd
 from .engine import fieldcache
 from .engine.context import R_EFF_LOG_STEP, FieldContext
 from .engine.depth import depth_area_histogram, local_depth_map
-from .engine.noise import (CorrelatedNoise, distance_cap, empty_aperture_scatter,
-                           empty_sky_distance, weight_rescale_factor)
+from .engine.noise import (CorrelatedNoise, empty_aperture_scatter, empty_sky, source_margin,
+                           weight_rescale_factor)
 from .engine.selection import compile_selection
 from .engine.positions import placement_capacity
 from .engine.task import TaskSpec, draw_task_sources, field_key, run_task
@@ -94,28 +95,54 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
     rms_from_background : bool
         True when ``rms`` is sep's background RMS (no noise map, or BACKGROUND).
     """
-    img = survey.science(field, band)
-    noise = survey.rms(field, band)
-    valid = footprint & np.isfinite(img)
-    if noise is not None:
-        valid &= np.isfinite(noise) & (noise > 0)
-    bkg, bkg_rms = measure_background(img, ~valid, params)
+    # New arrays read for this call (not the survey's cached ones): worked on in place, so
+    # the band costs its image, its noise map and the masks, with no full-frame copies.
+    img = survey.science(field, band, cache=False)
+    noise = survey.rms(field, band, cache=False)
+    # nodata = ~(footprint & finite image & finite, positive noise), by blocks of rows.
+    nodata = np.empty(img.shape, dtype=bool)
+    for y0, y1 in _row_blocks(img.shape):
+        ok = np.asarray(footprint[y0:y1], dtype=bool) & np.isfinite(img[y0:y1])
+        if noise is not None:
+            nz = noise[y0:y1]
+            ok &= np.isfinite(nz) & (nz > 0)
+        np.logical_not(ok, out=nodata[y0:y1])
+        release_mapped(footprint)       # a spilled footprint's pages, read once
+    in_place = img.dtype == np.float32
+    if in_place:
+        # sanitize(img, None, nodata) on img itself: nodata holds every non-finite pixel.
+        img[nodata] = 0.0
+        data = img
+    else:
+        data = sanitize(img, None, nodata)[0]
+    bkg = background_model(data, nodata, params)
     from_background = noise is None or weight_type == "background"
     if from_background:
-        r = bkg_rms
+        r = bkg.rms(dtype=np.float32)
     elif weight_type == "map_weight":
-        r = noise * weight_rescale_factor(bkg_rms, noise, valid)
+        r = noise * weight_rescale_factor(bkg.rms(dtype=np.float32), noise, ~nodata)
     else:
         r = noise
-    del bkg_rms                     # full-frame maps are dropped as soon as they are used
-    r = np.where(valid, np.asarray(r, dtype=np.float32), np.float32(np.inf)).astype(np.float32,
-                                                                                     copy=False)
-    # In place on the difference (a new array): one full-frame temporary less than np.where.
-    base = np.subtract(img, bkg)
-    base[~valid] = 0.0
+    del noise
+    r = np.asarray(r).astype(np.float32, copy=False)
+    r[nodata] = np.float32(np.inf)          # = np.where(valid, r, inf), in place
+    back = None
+    if background is not None or not in_place:
+        back = bkg.back(dtype=np.float32)
+    if in_place:
+        # data holds img where valid: the same float32 differences as img - background.
+        if back is None:
+            bkg.subfrom(data)
+        else:
+            np.subtract(data, back, out=data)
+        base = data
+    else:
+        base = np.subtract(img, back)
+    del img, data, bkg
+    base[nodata] = 0.0
     base = base.astype(np.float32, copy=False)
     if background is not None:
-        background[band] = np.asarray(bkg, dtype=np.float32)
+        background[band] = back
     return base, r, from_background
 
 
@@ -179,7 +206,8 @@ _EMPTY_SKY_MARGIN_PIX = 3
 
 
 def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: np.ndarray,
-                     segmap: np.ndarray, sky: dict | None = None) -> CorrelatedNoise:
+                     segmap: np.ndarray, sky: dict | None = None,
+                     release=None) -> CorrelatedNoise:
     """The correlated-noise model of one band of a field, from empty apertures.
 
     Empty sky: pixels with data, more than a few pixels from every source the
@@ -188,26 +216,53 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
     model is a measurement of the image, the same in every run and worker.
 
     ``sky``: an empty dict shared by the calls for the bands of one field (same
-    ``segmap``); it keeps the dilated source mask and the last empty-sky distance
-    map, so bands with the same usable pixels pay for one distance transform.
+    ``segmap``); it keeps the dilated source mask and the last usable mask with its
+    candidate aperture centres, so bands with the same usable pixels pay for one
+    distance transform. Every full-frame step is made by row tiles (the dilation,
+    the usable mask, the distance transform); the distance map itself is never
+    kept, only the centres each aperture radius may take (:func:`~glaciar.engine.noise.empty_sky`).
+    ``release``: called as ``segmap`` and ``rms`` are read through (a caller with
+    memory-mapped arrays drops their resident pages there; the apertures read few).
     """
-    from scipy import ndimage
-
+    release = release or (lambda: None)
     sky = {} if sky is None else sky
     if "sources" not in sky:
-        sky["sources"] = ndimage.binary_dilation(segmap > 0, iterations=_EMPTY_SKY_MARGIN_PIX)
-    usable = np.isfinite(rms) & ~sky["sources"]
-    if "usable" not in sky or not np.array_equal(sky["usable"], usable):
-        # Capped just beyond the largest aperture: exact for the apertures, tiled (bounded memory).
-        sky["usable"], sky["distance"] = usable, empty_sky_distance(
-            usable, cap=distance_cap(cfg.noise.empty_aperture_radii_pix))
+        sky["sources"] = source_margin(segmap, _EMPTY_SKY_MARGIN_PIX)
+        release()
+    sources = sky["sources"]
+    usable = np.empty(sources.shape, dtype=bool)
+    same = "usable" in sky
+    for y0, y1 in _row_blocks(usable.shape):
+        np.isfinite(rms[y0:y1], out=usable[y0:y1])
+        usable[y0:y1] &= ~sources[y0:y1]
+        same = same and np.array_equal(sky["usable"][y0:y1], usable[y0:y1])
+        release()
+    radii = cfg.noise.empty_aperture_radii_pix
+    if not same:
+        sky.pop("usable", None), sky.pop("centres", None)
+        # The centres beyond r + 1 of every radius r: what the apertures read of the distance map.
+        sky["usable"], sky["centres"] = usable, empty_sky(usable, [float(r) + 1.0 for r in radii])
+    else:
+        usable = sky["usable"]
     seq = np.random.SeedSequence([field_key(field), field_key(band)])
-    npix, ratio, n = empty_aperture_scatter(base, rms, usable, cfg.noise.empty_aperture_radii_pix,
+    npix, ratio, n = empty_aperture_scatter(base, rms, usable, radii,
                                             cfg.noise.n_empty_apertures,
-                                            np.random.default_rng(seq), distance=sky["distance"])
+                                            np.random.default_rng(seq), sky=sky["centres"])
     if len(npix) < 2:
         return CorrelatedNoise()        # too little empty sky to say: no correction
     return CorrelatedNoise.fit(npix, ratio, n)
+
+
+#: Pixels per block of the set-up's elementwise full-frame work (:func:`_row_blocks`).
+ROW_BLOCK_PIXELS = 1 << 22
+
+
+def _row_blocks(shape):
+    """(y0, y1): the rows of an image of ``shape`` by blocks of ~:data:`ROW_BLOCK_PIXELS` pixels."""
+    ny, nx = shape
+    rows = max(1, ROW_BLOCK_PIXELS // max(nx, 1))
+    for y0 in range(0, ny, rows):
+        yield y0, min(y0 + rows, ny)
 
 
 def field_noise_record(cfg: Config, survey: Survey, field: str,
@@ -230,17 +285,21 @@ def field_noise_record(cfg: Config, survey: Survey, field: str,
     params = _detection_params(cfg)
     footprint = survey.footprint(field)
     det = cfg.survey.detection_band
-    out, pixels = {}, {}
-    for b in cfg.survey.bands:
-        pixels[b.name] = band_pixels(survey, field, b.name, footprint, params,
-                                     cfg.detection.weight_type)
+    out = {}
+    # One band's pixels at a time (the detection band's until its turn), not every band's.
+    pixels = {det: band_pixels(survey, field, det, footprint, params, cfg.detection.weight_type)}
     base_det, rms_det, _ = pixels[det]
     reference = reference_extraction(base_det, rms_det, params, float(cfg.survey.band(det).zeropoint),
                                      mask=~footprint)
+    del base_det, rms_det
     sky: dict = {}
-    for b, (base, rms, from_background) in pixels.items():
+    for band in cfg.survey.bands:
+        b = band.name
+        base, rms, from_background = pixels.pop(b) if b in pixels else \
+            band_pixels(survey, field, b, footprint, params, cfg.detection.weight_type)
         model = correlated_noise(cfg, field, b, base, rms, reference.segmap, sky)
         out[b] = _noise_entry(cfg, survey, field, b, rms, from_background, model)
+        del base, rms
     return out
 
 
@@ -297,6 +356,16 @@ def _field_settings(cfg: Config, survey: Survey, field: str) -> tuple[dict, dict
 #: (~45 bytes per pixel for 4 bands, 11 GB on a 16000^2 mosaic).
 SPILL_MIN_BYTES = 1 << 30
 
+#: Callables ``hook(step)`` told when each step of :func:`build_field_context` ends (its
+#: name, e.g. ``"band_pixels f160w"``): how benchmarks/setup_memory.py takes each step's
+#: peak memory and time. Empty in a run.
+SETUP_STEP_HOOKS: list = []
+
+
+def _step_done(name: str) -> None:
+    for hook in SETUP_STEP_HOOKS:
+        hook(name)
+
 
 def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext:
     """Read a field's images once, measure backgrounds, extract the original image, set up caches.
@@ -306,6 +375,7 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
     context's arrays are then read-only maps.
     """
     settings, psfs = _field_settings(cfg, survey, field)
+    _step_done("settings")
     bands = settings["bands"]
     det = cfg.survey.detection_band
     params = settings["detection_params"]
@@ -330,6 +400,7 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         # up to its 2 GiB budget) go; band_pixels reads each band again, one at a time.
         clear_survey_cache()
     mask = keep(~footprint)
+    _step_done("footprint")
     bases, rms = {}, {}
     backgrounds = {}
     for b in cfg.survey.bands:
@@ -338,11 +409,13 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
                                      background=backgrounds if b.name == det else None)
         bases[b.name], rms[b.name] = keep(base), keep(noise)
         del base, noise
+        if b.name == det:
+            backgrounds[det] = keep(backgrounds[det])
         # The context holds its own background-subtracted copies: the survey's cached
         # images would only double the memory (at this peak and in every task after it).
         survey.release_pixels(field, (b.name,))
         drop()
-    backgrounds = {k: keep(v) for k, v in backgrounds.items()}
+        _step_done(f"band_pixels {b.name}")
     if spilled:
         # The survey's cached footprint/mask arrays: the context has its own (on disk).
         clear_survey_cache()
@@ -351,10 +424,14 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
     if cfg.survey.detection_image is not None:
         coadd_bands = cfg.survey.detection_image.coadd
         coadd_method = cfg.survey.detection_image.method
+        # float32 straight from the stack's blocks: the values of its float64 result's .astype.
         det_image, det_image_rms = coadd([bases[b] for b in coadd_bands],
-                                         [rms[b] for b in coadd_bands], coadd_method)
-        det_image_rms = keep(det_image_rms.astype(np.float32))
-        reference = reference_extraction(det_image.astype(np.float32), det_image_rms, params,
+                                         [rms[b] for b in coadd_bands], coadd_method,
+                                         dtype=np.float32)
+        det_image_rms = keep(det_image_rms)
+        det_image = keep(det_image)
+        drop()
+        reference = reference_extraction(det_image, det_image_rms, params,
                                          zps[det], mask=mask, photometry=(bases[det], rms[det]))
         del det_image
     else:
@@ -362,14 +439,22 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
     if spilled and isinstance(getattr(reference, "segmap", None), np.ndarray):
         reference = dataclasses.replace(reference, segmap=keep(reference.segmap))
     drop()
+    _step_done("reference_extraction" if cfg.survey.detection_image is None else
+               "coadd + reference_extraction")
     sky: dict = {}
-    noise_models = {b: correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap, sky)
-                    for b in bands}
+    noise_models = {}
+    for b in bands:
+        # drop(): the mapped pages of the segmentation and the band's RMS, read whole for the
+        # usable mask, go before the distance transform; then those the apertures read.
+        noise_models[b] = correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap, sky,
+                                           release=drop)
+        drop()
     del sky
-    drop()
+    _step_done("correlated_noise")
     depth, _ = field_depth(rms[det], zps[det], psfs[det])
     depth = keep(depth)
     drop()
+    _step_done("field_depth")
     return FieldContext(
         **settings, bases=bases, rms=rms, mask=mask, footprint=footprint,
         footprint_count=int(np.count_nonzero(footprint)), depth=depth, reference=reference,

@@ -5,11 +5,15 @@ image is, converts weight maps to RMS, gives the footprint (where the
 detection band has valid data) and the pixel scale (from the config or the
 detection image's WCS).
 
-Arrays are read on first use (through astropy's memmap) and kept in a
-module-level, byte-bounded LRU cache, so each worker process reads each image
-once and a pickled ``Survey`` stays small. FITS data are big-endian on disk;
-every array returned here is native-endian (float32 for 32-bit or smaller
-data, float64 otherwise), as ``sep`` and numpy kernels require.
+Arrays are read on first use (by blocks of rows through astropy's ``section``,
+straight into one native array) and kept in a module-level, byte-bounded LRU
+cache, so each worker process reads each image once and a pickled ``Survey``
+stays small. Validity maps and the footprint are made block by block from the
+files without caching the images they read; ``science(..., cache=False)`` and
+``rms(..., cache=False)`` give a caller new, writable arrays of its own (the
+field set-up). FITS data are big-endian on disk; every array returned here is
+native-endian (float32 for 32-bit or smaller data, float64 otherwise), as
+``sep`` and numpy kernels require.
 
 The cached arrays are shared by every caller in the process, so they are
 returned **read-only**: an in-place injection would otherwise corrupt every
@@ -111,14 +115,64 @@ def _native_float_dtype(dtype: np.dtype) -> np.dtype:
 
 
 def _read_array(path: Path) -> np.ndarray:
+    """The image of a FITS file, native-endian float (float32 for 32-bit or smaller data,
+    float64 otherwise), read by blocks of rows into one new array (no other whole-image copy)."""
+    arr = None
+    for y0, y1, block in _row_blocks(path):
+        if arr is None:
+            arr = np.empty((_read_header(path)[1][0], block.shape[1]), dtype=block.dtype)
+        arr[y0:y1] = block
+    return arr
+
+
+#: Pixels per block of :func:`_row_blocks` (16 MB of float32).
+ROW_BLOCK_PIXELS = 1 << 22
+
+
+def _row_blocks(path: Path):
+    """``(y0, y1, block)``: the image of a FITS file by blocks of rows, native-endian float
+    (the dtype of :func:`_read_array`).
+
+    For whole-image quantities made pixel by pixel (validity maps, RMS from weights):
+    only one block of the image is in memory at a time.  Read through astropy's
+    ``section`` (plain reads of those rows), not a memory map, whose pages would stay
+    resident in this process until the file is closed (the whole image by then).
+    """
     from astropy.io import fits
 
-    with fits.open(path, memmap=True) as hdul:
-        idx, shape = _image_hdu_index(hdul, path)
-        data = hdul[idx].data
-        # Big-endian memmap -> native-endian copy in one pass.
-        arr = np.array(data, dtype=_native_float_dtype(data.dtype), order="C")
-    return arr.reshape(shape)
+    with fits.open(path, memmap=False, lazy_load_hdus=True) as hdul:
+        idx, (ny, nx) = _image_hdu_index(hdul, path)
+        hdu = hdul[idx]
+        lead = (0,) * (len(hdu.shape) - 2)          # axes of length 1 before (y, x)
+        # A compressed file (.fits.gz) is decompressed once, whole: a section of it would
+        # decompress again from the start of the file for every block.
+        compressed = getattr(getattr(hdul, "_file", None), "compression", None) or \
+            Path(path).suffix.lower() in (".gz", ".bz2", ".zip")
+        source = hdu.data if compressed else hdu.section
+        rows = max(1, ROW_BLOCK_PIXELS // max(nx, 1))
+        for y0 in range(0, ny, rows):
+            y1 = min(y0 + rows, ny)
+            block = np.asarray(source[lead + (slice(y0, y1), slice(None))])
+            yield y0, y1, np.array(block.reshape(y1 - y0, nx),
+                                   dtype=_native_float_dtype(block.dtype), order="C")
+
+
+def _noise_to_rms(a: np.ndarray, noise_type: str) -> np.ndarray:
+    """Per-pixel RMS from a block of a noise map (``a`` itself, changed, for an RMS map).
+
+    Weights (inverse variance) give ``1/sqrt(weight)``; pixels without a valid noise
+    (weight or RMS <= 0 or non-finite) get inf, i.e. zero weight.
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        good = np.isfinite(a) & (a > 0)
+        if noise_type == "weight":
+            out = np.full(a.shape, np.inf, dtype=a.dtype)
+            out[good] = 1.0 / np.sqrt(a[good])
+            # A huge weight can underflow to RMS 0 in float32: keep it positive.
+            out[good & (out <= 0)] = np.finfo(a.dtype).tiny
+            return out
+        a[~good] = np.inf
+        return a
 
 
 def _read_header(path: Path):
@@ -297,8 +351,11 @@ class Survey:
         return self._shapes[field]
 
     # --- pixel data -------------------------------------------------------
-    def science(self, field: str, band: str) -> np.ndarray:
+    def science(self, field: str, band: str, cache: bool = True) -> np.ndarray:
         """Science image [image units], native-endian float, read-only (cached).
+
+        ``cache=False``: a new, writable array read from the file, not kept (nor
+        taken from the cache): for a caller that makes its own array from it.
 
         Returns
         -------
@@ -307,6 +364,8 @@ class Survey:
         """
         self.shape(field)
         path = self.science_path(field, band)
+        if not cache:
+            return _read_array(path)
         return _cached(("science",) + _file_key(path), lambda: _read_array(path))
 
     def release_pixels(self, field: str, bands=None) -> None:
@@ -327,42 +386,49 @@ class Survey:
             for k in keys:
                 _CACHE.pop(k, None)
 
-    def rms(self, field: str, band: str) -> np.ndarray | None:
+    def rms(self, field: str, band: str, cache: bool = True) -> np.ndarray | None:
         """Per-pixel noise RMS [image units], read-only (cached); None without a noise map.
 
         For ``noise_type: weight`` (inverse variance) the RMS is 1/sqrt(weight).
         Pixels with no valid noise (weight <= 0 or non-finite; RMS <= 0 or
-        non-finite) get RMS = inf, i.e. zero weight.
+        non-finite) get RMS = inf, i.e. zero weight. Made from the file by blocks of
+        rows (no whole-image temporaries). ``cache=False``: a new, writable array,
+        not kept (nor taken from the cache).
         """
-        self.shape(field)
+        shape = self.shape(field)
         path = self.noise_path(field, band)
         if path is None:
             return None
         ntype = self.config.survey.noise_type
 
-        negative = self.config.survey.negative_weights
-
         def build():
-            a = _read_array(path)
-            if ntype == "weight" and negative == "error":
-                n_neg = int(np.count_nonzero(a < 0))
-                if n_neg:
-                    raise ValueError(f"{path}: {n_neg} negative weight pixel(s) (survey.noise, "
-                                     f"field {field!r}, band {band!r}); fix the map or set "
-                                     "survey.negative_weights: mask to mask them")
-            with np.errstate(divide="ignore", invalid="ignore"):
-                if ntype == "weight":
-                    good = np.isfinite(a) & (a > 0)
-                    out = np.full(a.shape, np.inf, dtype=a.dtype)
-                    out[good] = 1.0 / np.sqrt(a[good])
-                    # A huge weight can underflow to RMS 0 in float32: keep it positive.
-                    out[good & (out <= 0)] = np.finfo(a.dtype).tiny
-                    return out
-                good = np.isfinite(a) & (a > 0)
-                a[~good] = np.inf
-                return a
+            out = None
+            for y0, y1, a in self._noise_blocks(field, band):
+                r = _noise_to_rms(a, ntype)
+                if out is None:
+                    out = np.empty(shape, dtype=r.dtype)
+                out[y0:y1] = r
+            return out
 
+        if not cache:
+            return build()
         return _cached(("rms", ntype) + _file_key(path), build)
+
+    def _noise_blocks(self, field: str, band: str):
+        """The noise map of ``field`` in ``band`` by blocks of rows (:func:`_row_blocks`);
+        with ``negative_weights: error``, raises after the last block if any weight is < 0."""
+        path = self.noise_path(field, band)
+        check = self.config.survey.noise_type == "weight" and \
+            self.config.survey.negative_weights == "error"
+        n_neg = 0
+        for y0, y1, a in _row_blocks(path):
+            if check:
+                n_neg += int(np.count_nonzero(a < 0))
+            yield y0, y1, a
+        if n_neg:
+            raise ValueError(f"{path}: {n_neg} negative weight pixel(s) (survey.noise, "
+                             f"field {field!r}, band {band!r}); fix the map or set "
+                             "survey.negative_weights: mask to mask them")
 
     def coverage_bands(self) -> tuple[str, ...]:
         """Bands whose data define the footprint (``survey.coverage``), detection band first.
@@ -391,14 +457,35 @@ class Survey:
             key += _file_key(self._existing(noise_path, "survey.noise", field, band))
 
         def build():
-            sci = self.science(field, band)
-            ok = np.isfinite(sci) & (sci != 0)
-            rms = self.rms(field, band)
-            if rms is not None:
-                ok &= np.isfinite(rms)
+            ok = np.empty(self.shape(field), dtype=bool)
+            for y0, y1, v in self._valid_blocks(field, band):
+                ok[y0:y1] = v
             return ok
 
         return _cached(key, build)
+
+    def _valid_blocks(self, field: str, band: str):
+        """:meth:`band_valid` by blocks of rows read from the files: ``(y0, y1, valid)``.
+
+        The science image and the RMS are never whole in memory (nor cached): the
+        footprint of a large mosaic costs its own bool map, not the bands' images.
+        """
+        self.shape(field)
+        sci_path = self._existing(self.science_path(field, band), "survey.science", field, band)
+        noise_path = self.noise_path(field, band)
+        noise = None
+        if noise_path is not None:
+            self._existing(noise_path, "survey.noise", field, band)
+            noise = self._noise_blocks(field, band)
+        ntype = self.config.survey.noise_type
+        for y0, y1, sci in _row_blocks(sci_path):
+            ok = np.isfinite(sci) & (sci != 0)
+            if noise is not None:
+                ok &= np.isfinite(_noise_to_rms(next(noise)[2], ntype))
+            yield y0, y1, ok
+        if noise is not None:
+            for _ in noise:         # the noise map's checks after its last block
+                pass
 
     def mask_path(self, field: str) -> Path | None:
         """Path of the field's mask (FITS image or DS9 region file), or None."""
@@ -445,9 +532,13 @@ class Survey:
             key += _file_key(self._existing(mpath, "survey.mask", field, self.detection_band))
 
         def build():
-            ok = np.array(self.band_valid(field, bands[0]))
+            # Block by block from the files: no band's image or validity map is kept.
+            ok = np.empty(self.shape(field), dtype=bool)
+            for y0, y1, v in self._valid_blocks(field, bands[0]):
+                ok[y0:y1] = v
             for b in bands[1:]:
-                ok &= self.band_valid(field, b)
+                for y0, y1, v in self._valid_blocks(field, b):
+                    ok[y0:y1] &= v
             m = self.mask(field)
             if m is not None:
                 ok &= ~m

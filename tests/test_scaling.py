@@ -44,7 +44,7 @@ def test_serial_run_measures_the_field_once(small_survey, tmp_path, monkeypatch)
     run._CONTEXTS.clear()
     builds = _count(monkeypatch, "build_field_context")
     refs = _count(monkeypatch, "reference_extraction")
-    dists = _count(monkeypatch, "empty_sky_distance")
+    dists = _count(monkeypatch, "empty_sky")
     stats = run.simulate(cfg, tmp_path / "run", workers=1, progress=False)
     assert stats["n_run"] == 8
     assert len(builds) == 1 and len(refs) == 1

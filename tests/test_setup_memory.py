@@ -178,3 +178,343 @@ def test_empty_aperture_centres_by_chunks_are_unchanged(monkeypatch):
     chunked = noise.empty_aperture_scatter(img, rms, usable, radii, 120, np.random.default_rng(1))
     for a, b in zip(whole, chunked):
         assert np.array_equal(a, b)
+
+
+# ---------------------------------------------------------------------------
+# Lean field set-up: row tiles and in-place work against whole-frame definitions
+# ---------------------------------------------------------------------------
+def _aperture_inputs(seed=4, shape=(90, 110), n=60):
+    rng = np.random.default_rng(seed)
+    img = (rng.standard_normal(shape) * 2.0 + rng.uniform(0.0, 4.0, shape)).astype(np.float32)
+    rms = rng.uniform(0.5, 2.0, shape).astype(np.float32)
+    seg = rng.integers(0, 4, shape).astype(np.int32)
+    nodata = rng.uniform(size=shape) < 0.05
+    x, y = rng.uniform(-3, shape[1] + 3, n), rng.uniform(-3, shape[0] + 3, n)
+    a = rng.uniform(1.0, 6.0, n)
+    b = a * rng.uniform(0.2, 1.0, n)
+    th = rng.uniform(-1.5, 1.5, n)
+    return img, rms, seg, nodata, x, y, a, b, th, rng.integers(1, 4, n).astype(np.int32)
+
+
+@pytest.mark.parametrize("gain", [None, 2.5])
+def test_sep_photometry_of_float32_images_is_that_of_their_float64_copies(gain):
+    """kron_radius, auto_photometry and aperture_photometry no longer copy a float32 image to
+    float64 (8 bytes per pixel on a field's reference photometry): sep on the float64 copies,
+    called directly, is the reference, bit for bit; a read-only map is accepted."""
+    import sep
+
+    from glaciar.engine import photometry as phot
+
+    img, rms, seg, nodata, x, y, a, b, th, ids = _aperture_inputs()
+    i64, r64 = img.astype(np.float64), rms.astype(np.float64)
+    ro = img.copy()
+    ro.setflags(write=False)
+    for data in (img, ro):
+        kr = phot.kron_radius(data, x, y, a, b, th, segmap=seg, seg_id=ids, mask=nodata)
+        want = sep.kron_radius(i64, x, y, a, b, th, 6.0, mask=nodata, segmap=seg, seg_id=ids)[0]
+        assert np.array_equal(kr, want, equal_nan=True)
+        scale = phot.auto_scale(kr, (2.5, 3.5))
+        f, fe = phot.auto_photometry(data, rms, x, y, a, b, th, scale, gain=gain, segmap=seg,
+                                     seg_id=ids, mask=nodata)
+        wf, wfe, _ = sep.sum_ellipse(i64, x, y, a, b, th, scale, err=r64, mask=nodata, gain=gain,
+                                     subpix=0, segmap=seg, seg_id=ids)
+        assert np.array_equal(f, wf, equal_nan=True) and np.array_equal(fe, wfe, equal_nan=True)
+        fa, fea = phot.aperture_photometry(data, rms, x, y, (4.0, 8.0), gain=gain, mask=nodata)
+        for k, d in enumerate((4.0, 8.0)):
+            wf, wfe, _ = sep.sum_circle(i64, x, y, d / 2, err=r64, mask=nodata, gain=gain, subpix=0)
+            assert np.array_equal(fa[k], wf, equal_nan=True)
+            assert np.array_equal(fea[k], wfe, equal_nan=True)
+    assert np.isfinite(f).sum() > 30
+
+
+@pytest.mark.parametrize("rows", [1, 2, 5, 500])
+def test_source_margin_by_tiles_is_the_whole_frame_dilation(rows):
+    from glaciar.engine.noise import source_margin
+
+    rng = np.random.default_rng(5)
+    seg = np.zeros((70, 64), np.int32)
+    seg[rng.uniform(size=seg.shape) < 0.01] = 7
+    seg[30:33, 0:5] = 2
+    seg[0, 63] = seg[69, 0] = 3                        # sources at the image's corners
+    for margin in (1, 3):
+        want = ndimage.binary_dilation(seg > 0, iterations=margin)
+        assert np.array_equal(source_margin(seg, margin, tile_rows=rows), want)
+    with pytest.raises(ValueError, match="margin"):
+        source_margin(seg, 0)
+
+
+@pytest.mark.parametrize("rows", [1, 3, 11, 400])
+def test_empty_sky_centres_are_the_whole_image_distance_comparisons(rows):
+    """EmptySky.beyond(limit): the pixels whose whole-image (uncapped, scipy in one call)
+    distance to an unusable pixel exceeds the limit, ascending."""
+    from glaciar.engine.noise import empty_sky
+
+    usable = _mask()
+    whole = ndimage.distance_transform_edt(np.pad(usable, 1))[1:-1, 1:-1].ravel()
+    limits = [r + 1.0 for r in DEFAULT_EMPTY_APERTURE_RADII_PIX]
+    sky = empty_sky(usable, limits, tile_rows=rows)
+    assert sky.indices.dtype == np.int32
+    for lim in limits:
+        want = np.flatnonzero(whole > lim)
+        assert np.array_equal(sky.beyond(lim), want), lim
+    assert sky.beyond(limits[-1]).size > 0              # the hole's middle is far from all
+
+
+def test_empty_aperture_scatter_with_empty_sky_centres_is_unchanged():
+    from glaciar.engine.noise import empty_sky
+
+    rng = np.random.default_rng(3)
+    usable = _mask((120, 110), seed=2)
+    img = rng.standard_normal(usable.shape).astype(np.float32)
+    rms = np.full(usable.shape, 1.0, np.float32)
+    radii = DEFAULT_EMPTY_APERTURE_RADII_PIX
+    want = empty_aperture_scatter(img, rms, usable, radii, 150, np.random.default_rng(5),
+                                  distance=empty_sky_distance(usable))
+    sky = empty_sky(usable, [r + 1.0 for r in radii], tile_rows=7)
+    got = empty_aperture_scatter(img, rms, usable, radii, 150, np.random.default_rng(5), sky=sky)
+    for a, b in zip(want, got):
+        assert np.array_equal(a, b)
+    assert want[0].size >= 5
+
+
+def test_sanitize_by_blocks_and_from_a_map_is_the_elementwise_definition(monkeypatch, tmp_path):
+    from glaciar.engine import detect
+
+    rng = np.random.default_rng(9)
+    img = rng.standard_normal((37, 29)).astype(np.float64)
+    img[3, 4], img[10, 1] = np.nan, np.inf
+    err = rng.uniform(0.5, 2.0, img.shape).astype(np.float32)
+    err[5, 5], err[6, 6], err[7, 7] = 0.0, -1.0, np.nan
+    mask = rng.uniform(size=img.shape) < 0.1
+    # The definition, elementwise on whole arrays.
+    i32 = img.astype(np.float32)
+    with np.errstate(invalid="ignore"):
+        nodata = ~np.isfinite(i32) | mask | ~(np.isfinite(err) & (err > 0))
+    want = (np.where(nodata, 0, i32).astype(np.float32), np.where(nodata, 1, err).astype(np.float32),
+            nodata)
+    np.save(tmp_path / "img.npy", i32)
+    mapped = np.load(tmp_path / "img.npy", mmap_mode="r")
+    for pixels in (1 << 22, 29, 60):                     # one block; one row; two rows
+        monkeypatch.setattr(detect, "SANITIZE_BLOCK_PIXELS", pixels)
+        for image in (img, mapped):
+            got = detect.sanitize(image, err, mask)
+            for g, w in zip(got, want):
+                assert g.dtype == w.dtype and np.array_equal(g, w)
+    assert np.array_equal(detect.sanitize(img)[0], np.where(~np.isfinite(i32), 0, i32))
+
+
+def _fits_survey(tmp_path, sci, wht, noise_type="weight", negative="mask"):
+    """A one-field, one-band survey of the given arrays (FITS written as given)."""
+    from astropy.io import fits
+
+    from glaciar.config import config_from_dict
+
+    fits.writeto(tmp_path / "f_b_drz.fits", sci, overwrite=True)
+    if wht is not None:
+        fits.writeto(tmp_path / "f_b_wht.fits", wht, overwrite=True)
+    cfg = {"survey": {"fields": ["f"], "image_dir": str(tmp_path), "science": "{field}_{band}_drz.fits",
+                      "noise": None if wht is None else "{field}_{band}_wht.fits",
+                      "noise_type": noise_type, "negative_weights": negative,
+                      "pixel_scale_arcsec": 0.1, "detection_band": "b",
+                      "bands": {"b": {"filter": "wfc3_ir_f160w", "zeropoint": 25.0,
+                                      "psf": {"profile": "moffat", "fwhm_arcsec": 0.2, "beta": 2.5}}}},
+           "grid": {"z": {"values": [8.0]}, "mag": {"values": [26.0]}}}
+    from glaciar.survey import Survey
+    return Survey.from_config(config_from_dict(cfg, base_dir=tmp_path))
+
+
+@pytest.mark.parametrize("dtype", [">f4", ">f8", ">i2"])
+def test_survey_reads_by_row_blocks_are_the_whole_image(monkeypatch, tmp_path, dtype):
+    """Science, RMS and footprint read by blocks of 3 rows equal astropy's whole-image data
+    turned into them elementwise (1/sqrt(weight), inf without weight)."""
+    from astropy.io import fits
+
+    from glaciar import survey as sv
+
+    rng = np.random.default_rng(2)
+    sci = (rng.standard_normal((23, 17)) * 50).astype(dtype)
+    sci[0, 0] = 0
+    wht = rng.uniform(0.1, 4.0, sci.shape).astype(">f4")
+    wht[2, 3], wht[4, 5], wht[6, 7] = 0.0, np.nan, np.inf
+    if dtype != ">i2":
+        sci[8, 9] = np.nan
+    s = _fits_survey(tmp_path, sci, wht)
+    monkeypatch.setattr(sv, "ROW_BLOCK_PIXELS", 3 * 17)
+    sv.clear_cache()
+    whole = fits.getdata(tmp_path / "f_b_drz.fits")
+    native = np.float32 if dtype != ">f8" else np.float64
+    got = s.science("f", "b", cache=False)
+    assert got.dtype == native and got.flags.writeable
+    assert np.array_equal(got, whole.astype(native), equal_nan=True)
+    w = fits.getdata(tmp_path / "f_b_wht.fits").astype(np.float32)
+    good = np.isfinite(w) & (w > 0)
+    with np.errstate(divide="ignore"):
+        want_rms = np.where(good, np.float32(1) / np.sqrt(w), np.float32(np.inf))
+    assert np.array_equal(s.rms("f", "b"), want_rms)
+    assert np.array_equal(s.rms("f", "b", cache=False), want_rms)
+    sci_n = whole.astype(native)
+    want_fp = np.isfinite(sci_n) & (sci_n != 0) & good
+    assert np.array_equal(s.footprint("f"), want_fp) and not want_fp.all()
+    assert np.array_equal(s.band_valid("f", "b"), want_fp)
+
+
+def test_negative_weights_are_counted_over_every_block(monkeypatch, tmp_path):
+    from glaciar import survey as sv
+
+    sci = np.ones((20, 10), ">f4")
+    wht = np.ones((20, 10), ">f4")
+    wht[1, 1] = wht[12, 3] = wht[19, 9] = -1.0           # in three different blocks
+    s = _fits_survey(tmp_path, sci, wht, negative="error")
+    monkeypatch.setattr(sv, "ROW_BLOCK_PIXELS", 40)
+    sv.clear_cache()
+    for call in (lambda: s.rms("f", "b"), lambda: s.footprint("f")):
+        with pytest.raises(ValueError, match=r"3 negative weight pixel\(s\)"):
+            call()
+
+
+@pytest.mark.parametrize("weight_type", [None, "map_weight", "background"])
+@pytest.mark.parametrize("dtype", [">f4", ">f8"])
+def test_band_pixels_is_the_elementwise_definition(tmp_path, weight_type, dtype):
+    """band_pixels (in place on new arrays, background subtracted by sep's subfrom where it
+    can) against the definition on whole arrays: sep's background of the sanitized image,
+    base = image - background (float32 for a float32 image), 0 and inf off the valid pixels."""
+    import sep
+
+    from glaciar.engine.detect import DetectionParams
+    from glaciar.engine.noise import weight_rescale_factor
+    from glaciar.run import band_pixels
+
+    rng = np.random.default_rng(7)
+    yy, xx = np.mgrid[:130, :120]
+    sci = rng.standard_normal((130, 120)) + 0.01 * xx + 30 * np.exp(-((yy - 60) ** 2 + (xx - 50) ** 2) / 18.0)
+    sci[:, :6] = 0.0                                    # uncovered
+    sci[40, 41] = np.nan
+    wht = np.full(sci.shape, 0.8)
+    wht[100:, 100:] = 0.0
+    s = _fits_survey(tmp_path, sci.astype(dtype), wht.astype(">f4"))
+    params = DetectionParams(back_size=32)
+    fp = s.footprint("f")
+    bkg_out = {}
+    base, rms, from_bkg = band_pixels(s, "f", "b", fp, params, weight_type, background=bkg_out)
+    img = sci.astype(dtype).astype(np.float32 if dtype == ">f4" else np.float64)
+    with np.errstate(divide="ignore"):
+        noise = np.where(wht.astype(np.float32) > 0, np.float32(1) / np.sqrt(wht.astype(np.float32)),
+                         np.inf)
+    valid = fp & np.isfinite(img) & np.isfinite(noise)
+    data = np.where(valid, img, 0).astype(np.float32)
+    model = sep.Background(data, mask=~valid, bw=32, bh=32, fw=3, fh=3)
+    back, brms = model.back(dtype=np.float32), model.rms(dtype=np.float32)
+    want_base = np.where(valid, img - back, 0).astype(np.float32)
+    if weight_type == "background":
+        want_rms = brms
+    elif weight_type == "map_weight":
+        want_rms = noise.astype(np.float32) * weight_rescale_factor(brms, noise.astype(np.float32), valid)
+    else:
+        want_rms = noise
+    want_rms = np.where(valid, want_rms.astype(np.float32), np.float32(np.inf))
+    assert base.dtype == rms.dtype == np.float32
+    assert np.array_equal(base, want_base) and np.array_equal(rms, want_rms)
+    assert np.array_equal(bkg_out["b"], back) and from_bkg == (weight_type == "background")
+    assert (~valid).sum() > 100 and np.abs(base).max() > 10
+
+
+def test_correlated_noise_by_tiles_is_the_whole_frame_measurement(monkeypatch, small_survey):
+    """The field's empty-aperture models, with every tiled step in tiles of a few rows, against
+    the whole-frame recipe: scipy's dilation of the segmentation, the uncapped whole-image
+    distance transform and empty_aperture_scatter on that map."""
+    from glaciar import run
+    from glaciar.config import load_config
+    from glaciar.engine import noise as nz
+    from glaciar.engine.noise import CorrelatedNoise
+    from glaciar.engine.task import field_key
+    from glaciar.survey import Survey
+
+    cfg = load_config(small_survey)
+    survey = Survey.from_config(cfg)
+    field = cfg.survey.fields[0]
+    params = run._detection_params(cfg)
+    fp = survey.footprint(field)
+    pix = {b.name: run.band_pixels(survey, field, b.name, fp, params) for b in cfg.survey.bands}
+    det = cfg.survey.detection_band
+    seg = run.reference_extraction(pix[det][0], pix[det][1], params, 25.0, mask=~fp).segmap
+    radii = cfg.noise.empty_aperture_radii_pix
+    grown = ndimage.binary_dilation(seg > 0, iterations=run._EMPTY_SKY_MARGIN_PIX)
+    nx = seg.shape[1]
+    monkeypatch.setattr(nz, "DISTANCE_TILE_PIXELS", 5 * nx)
+    monkeypatch.setattr(run, "ROW_BLOCK_PIXELS", 3 * nx)
+    sky, released = {}, []
+    for b, (base, rms, _) in pix.items():
+        got = run.correlated_noise(cfg, field, b, base, rms, seg, sky, release=lambda: released.append(b))
+        usable = np.isfinite(rms) & ~grown
+        seq = np.random.SeedSequence([field_key(field), field_key(b)])
+        npix, ratio, n = empty_aperture_scatter(base, rms, usable, radii, cfg.noise.n_empty_apertures,
+                                                np.random.default_rng(seq),
+                                                distance=empty_sky_distance(usable))
+        want = CorrelatedNoise.fit(npix, ratio, n)
+        assert got == want, b
+        assert len(npix) >= 5
+    assert set(released) == set(pix) and len(released) > 2 * len(pix)    # block by block
+
+
+@pytest.mark.parametrize("method", ["ivw", "chi2"])
+def test_coadd_by_row_blocks_is_the_pixelwise_stack(monkeypatch, tmp_path, method):
+    """The stack of a large image by blocks of 2 rows (inputs memory-mapped, float32 output)
+    against its definition on whole arrays: inverse-variance mean and 1/sqrt(sum w), or the
+    Gaussianised chi-square deviate of the bands with data."""
+    from scipy import special
+
+    from glaciar.engine import coadd as co
+
+    rng = np.random.default_rng(12)
+    shape = (41, 23)
+    images = [rng.standard_normal(shape).astype(np.float32) * s for s in (1.0, 2.0, 0.5)]
+    rms = [np.full(shape, s, np.float32) for s in (1.0, 2.0, 0.5)]
+    rms[0][3:9, 4:6] = np.inf
+    rms[1][3:7, 4:5] = 0.0
+    rms[2][3:5, 4:5] = np.nan                            # (3..4, 4): no band has data
+    images[1][10, 10] = 1e3                              # a bright pixel: large chi2
+    maps = []
+    for k, a in enumerate(images + rms):
+        np.save(tmp_path / f"{k}.npy", a)
+        maps.append(np.load(tmp_path / f"{k}.npy", mmap_mode="r"))
+    with np.errstate(divide="ignore"):
+        w = [np.where(np.isfinite(r) & (r > 0), 1.0 / np.square(r.astype(np.float64)), 0.0)
+             for r in rms]
+    wsum = sum(w)
+    has = wsum > 0
+    if method == "ivw":
+        with np.errstate(divide="ignore", invalid="ignore"):
+            want = (np.where(has, sum(wi * np.where(wi > 0, im, 0.0) for wi, im in zip(w, images)) / wsum, 0),
+                    np.where(has, 1.0 / np.sqrt(wsum), np.inf))
+    else:
+        x = sum(wi * np.where(wi > 0, im.astype(np.float64), 0.0) ** 2 for wi, im in zip(w, images))
+        k = sum((wi > 0).astype(int) for wi in w)
+        z = np.zeros(shape)
+        z[has] = np.clip(-special.ndtri(np.clip(special.chdtrc(k[has], x[has]), 1e-300, 1)), -37, 37)
+        want = (z, np.where(has, 1.0, np.inf))
+    monkeypatch.setattr(co, "COADD_BLOCK_PIXELS", 2 * shape[1])
+    got = co.coadd(maps[:3], maps[3:], method)
+    got32 = co.coadd(maps[:3], maps[3:], method, dtype=np.float32)
+    for g, g32, wnt in zip(got, got32, want):
+        assert g.dtype == np.float64 and g32.dtype == np.float32
+        assert np.allclose(g, wnt, rtol=1e-12, atol=0) or np.array_equal(g, wnt)
+        assert np.array_equal(g32, g.astype(np.float32))
+    monkeypatch.setattr(co, "COADD_BLOCK_PIXELS", 1 << 20)
+    for g, whole in zip(got, co.coadd(images, rms, method)):
+        assert np.array_equal(g, whole)                  # bit for bit: the same pixelwise ops
+    assert (~has).sum() == 2 and np.isinf(got[1][~has]).all()
+
+
+def test_gzipped_image_by_row_blocks_is_the_whole_image(monkeypatch, tmp_path):
+    """A .fits.gz image (decompressed once, then cut in blocks) reads as astropy's whole data."""
+    from astropy.io import fits
+
+    from glaciar import survey as sv
+
+    data = np.random.default_rng(3).standard_normal((1, 31, 19)).astype(">f4")   # NAXIS3 = 1
+    path = tmp_path / "img.fits.gz"
+    fits.writeto(path, data)
+    monkeypatch.setattr(sv, "ROW_BLOCK_PIXELS", 4 * 19)
+    got = sv._read_array(path)
+    assert got.dtype == np.float32 and got.shape == (31, 19)
+    assert np.array_equal(got, fits.getdata(path)[0].astype(np.float32))

@@ -42,8 +42,13 @@ def _weights(rms: np.ndarray) -> np.ndarray:
         return np.where(np.isfinite(r) & (r > 0), 1.0 / (r * r), 0.0)
 
 
-def coadd(images: Sequence[np.ndarray], rms: Sequence[np.ndarray], method: str = "ivw"
-          ) -> tuple[np.ndarray, np.ndarray]:
+#: Pixels per row block of :func:`coadd` on a large image (its float64 work takes
+#: ~60 bytes per pixel and band: a block bounds it).
+COADD_BLOCK_PIXELS = 1 << 20
+
+
+def coadd(images: Sequence[np.ndarray], rms: Sequence[np.ndarray], method: str = "ivw",
+          dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
     """Stack band images (same shape, background-subtracted) into a detection image.
 
     Parameters
@@ -53,17 +58,41 @@ def coadd(images: Sequence[np.ndarray], rms: Sequence[np.ndarray], method: str =
     rms : sequence of ndarray
         Their per-pixel RMS (inf or <= 0 where there are no data).
     method : {"ivw", "chi2"}
+    dtype : numpy dtype
+        Of the results: computed in float64 and rounded to it (float32: a field's
+        detection image without its float64 copy).
 
     Returns
     -------
-    image, rms : ndarray (float64)
+    image, rms : ndarray
         The stack and its RMS (``ivw``: ``1/sqrt(sum w)``; ``chi2``: 1); RMS inf
-        and image 0 where no band has data.
+        and image 0 where no band has data.  Pixel by pixel, so a large image is
+        stacked by blocks of rows (:data:`COADD_BLOCK_PIXELS`) with the same values;
+        the resident pages of memory-mapped inputs (a field's spilled bands) are
+        dropped block by block.
     """
+    from glaciar.engine.detect import release_mapped
+
     if method not in COADD_METHODS:
         raise ValueError(f"coadd method must be one of {', '.join(COADD_METHODS)}, got {method!r}")
     if len(images) != len(rms) or not images:
         raise ValueError("coadd needs one RMS map per image and at least one image")
+    shape = np.shape(images[0])
+    if len(shape) != 2 or shape[0] * shape[1] <= COADD_BLOCK_PIXELS:
+        out, err = _coadd(images, rms, method)
+        return out.astype(dtype, copy=False), err.astype(dtype, copy=False)
+    ny, nx = shape
+    out, err = np.empty(shape, dtype=dtype), np.empty(shape, dtype=dtype)
+    rows = max(1, COADD_BLOCK_PIXELS // nx)
+    for y0 in range(0, ny, rows):
+        sl = slice(y0, min(y0 + rows, ny))
+        out[sl], err[sl] = _coadd([im[sl] for im in images], [r[sl] for r in rms], method)
+        release_mapped(*images, *rms)
+    return out, err
+
+
+def _coadd(images, rms, method):
+    """:func:`coadd` of whole arrays, in float64."""
     w = [_weights(r) for r in rms]
     wsum = np.sum(w, axis=0)
     has = wsum > 0

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import mmap
 import os
 from dataclasses import dataclass, field
 from importlib import resources
@@ -26,7 +27,7 @@ import sep
 
 __all__ = [
     "DetectionError", "DetectionParams", "builtin_filter", "builtin_filter_names",
-    "read_conv_file", "measure_background", "extract", "sanitize", "detection_rms",
+    "read_conv_file", "measure_background", "background_model", "extract", "sanitize", "detection_rms",
     "CLEAN_STYLES", "THRESHOLD_RMS", "BACKENDS",
 ]
 
@@ -361,29 +362,96 @@ class DetectionParams:
 # --------------------------------------------------------------------------
 # Background and extraction
 # --------------------------------------------------------------------------
+#: Pixels per block of :func:`sanitize`'s work on a large image.
+SANITIZE_BLOCK_PIXELS = 1 << 22
+
+
+def _whole_map(a):
+    """The ``mmap`` under ``a`` when ``a`` is a whole memory-mapped image (a field's spilled
+    array during its set-up), else None (an in-memory array, or a window of a map: a
+    task's, whose map's pages are the worker's field cache)."""
+    src, m = a, None
+    while src is not None and m is None:
+        m = getattr(src, "_mmap", None)
+        src = getattr(src, "base", None)
+    if m is None:
+        return None
+    try:
+        return m if np.asarray(a).nbytes >= len(m) // 2 else None
+    except (TypeError, ValueError):         # a closed map
+        return None
+
+
+def release_mapped(*arrays) -> None:
+    """Drop this process's resident pages of whole memory-mapped images (they stay in the
+    page cache): for a step that reads through a spilled image once, so that its pages
+    do not pile up in the process as it goes. Anything else is left alone."""
+    advice = getattr(mmap, "MADV_DONTNEED", None)
+    for a in arrays:
+        m = _whole_map(a)
+        if m is not None and advice is not None:
+            try:
+                m.madvise(advice)
+            except (OSError, ValueError):     # a closed map: nothing resident
+                pass
+
+
+def _float32_copy(a, blocks) -> np.ndarray:
+    """``np.array(a, dtype=np.float32, order="C")``; when ``a`` is a whole memory-mapped
+    image, block by block with its resident pages dropped as they are copied, so the
+    copy does not hold the mapped image in this process as well."""
+    src = np.asarray(a)
+    if _whole_map(a) is None:
+        return np.array(src, dtype=np.float32, order="C")
+    out = np.empty(src.shape, dtype=np.float32)
+    for rows in blocks:
+        out[rows] = src[rows]
+        release_mapped(a)
+    return out
+
+
+def _blocks(shape):
+    """Slices of the first axis covering about :data:`SANITIZE_BLOCK_PIXELS` pixels each."""
+    if len(shape) < 2:
+        return [slice(None)]
+    n = shape[0]
+    rows = max(1, SANITIZE_BLOCK_PIXELS // max(int(np.prod(shape[1:])), 1))
+    return [slice(y0, min(y0 + rows, n)) for y0 in range(0, n, rows)]
+
+
 def sanitize(image, err=None, mask=None):
     """Native float32 copies for sep and the combined no-data mask.
 
     Returns ``(data, err, nodata)``: NaN/inf data -> 0; pixels without data
     (``mask`` True, data non-finite, err non-finite or <= 0) are flagged in
     ``nodata``; their err is set to 1 (they are passed to sep as masked).
+    Made by blocks of rows: no full-frame temporaries beyond the three results.
     """
-    data = np.array(image, dtype=np.float32, order="C")
-    nodata = ~np.isfinite(data)
+    blocks = _blocks(np.shape(image))
+    data = _float32_copy(image, blocks)
+    m = None
     if mask is not None:
         m = np.asarray(mask)
         if m.shape != data.shape:
             raise ValueError(f"mask shape {m.shape} differs from image shape {data.shape}")
-        nodata |= m.astype(bool)
     e = None
     if err is not None:
-        e = np.array(err, dtype=np.float32, order="C")
+        e = _float32_copy(err, blocks)
         if e.shape != data.shape:
             raise ValueError(f"RMS map shape {e.shape} differs from image shape {data.shape}")
-        with np.errstate(invalid="ignore"):
-            nodata |= ~(np.isfinite(e) & (e > 0))
-        e[nodata] = 1.0
-    data[nodata] = 0.0
+    nodata = np.empty(data.shape, dtype=bool)
+    for rows in blocks:
+        nd = ~np.isfinite(data[rows])
+        if m is not None:
+            nd |= np.asarray(m[rows], dtype=bool)
+        if e is not None:
+            with np.errstate(invalid="ignore"):
+                nd |= ~(np.isfinite(e[rows]) & (e[rows] > 0))
+            e[rows][nd] = 1.0
+        data[rows][nd] = 0.0
+        nodata[rows] = nd
+        if m is not None:
+            release_mapped(mask)        # a spilled mask's pages, read once
     return data, e, nodata
 
 
@@ -442,10 +510,33 @@ def measure_background(image, mask, params: DetectionParams):
         SExtractor's mesh-mode / sigma-clipped background).
     """
     data, _, nodata = sanitize(image, None, mask)
+    bkg = background_model(data, nodata, params)
     try:
-        bkg = sep.Background(data, mask=nodata, bw=params.back_size, bh=params.back_size,
-                             fw=params.back_filtersize, fh=params.back_filtersize)
         return bkg.back(dtype=np.float32), bkg.rms(dtype=np.float32)
+    except Exception as exc:  # sep raises plain Exception subclasses
+        raise DetectionError(f"sep background estimation failed: {exc}") from exc
+
+
+def background_model(data, nodata, params: DetectionParams):
+    """sep's background model (``sep.Background``) of a sanitized image.
+
+    For a caller that needs only some of :func:`measure_background`'s full-frame maps:
+    the model holds the meshes only; ``.back()`` / ``.rms()`` make the maps and
+    ``.subfrom(data)`` subtracts the background in place (the same float32
+    differences as ``data - .back()``, without that map).
+
+    Parameters
+    ----------
+    data : ndarray of float32
+        Native, C-contiguous image, 0 where ``nodata`` (:func:`sanitize`'s ``data``).
+    nodata : ndarray of bool
+        Pixels without data.
+    params : DetectionParams
+        Uses ``back_size`` and ``back_filtersize``.
+    """
+    try:
+        return sep.Background(data, mask=nodata, bw=params.back_size, bh=params.back_size,
+                              fw=params.back_filtersize, fh=params.back_filtersize)
     except Exception as exc:  # sep raises plain Exception subclasses
         raise DetectionError(f"sep background estimation failed: {exc}") from exc
 

@@ -175,32 +175,73 @@ def _row_tiles(shape, halo: int):
 def _reference_boxes(data, err, nodata, seg, geo, a, b, th, scale, params):
     """Region box and Kron/AUTO-widened box of every original object (see :class:`FieldReference`)."""
     n = geo["x"].size
-    # sep's detection mask or the segmentation, by row tiles: the filter (and the filtered
-    # rms) reads the kernel's half-height of rows around a pixel, so a tile with that halo
-    # gives its rows' mask bit for bit, without full-frame filtered images.
-    dmask = np.empty(seg.shape, dtype=bool)
-    for y0, y1, ya, yb in _row_tiles(seg.shape, params.filter_halfwidth):
-        d, e, nd = np.asarray(data[ya:yb], dtype=np.float32), err[ya:yb], nodata[ya:yb]
-        m = _clean.detection_mask(d, detection_rms(e, nd, params), nd, params)[0]
-        np.logical_or(m[y0 - ya:y1 - ya], seg[y0:y1] > 0, out=dmask[y0:y1])
-    comp, ncomp = ndimage.label(dmask, structure=np.ones((3, 3), dtype=bool))
-    del dmask
-    cb = np.zeros((ncomp + 1, 4), dtype=np.int64)
-    for c, sl in enumerate(ndimage.find_objects(comp), start=1):
-        cb[c] = (sl[0].start, sl[0].stop, sl[1].start, sl[1].stop)
-    obj_comp = np.zeros(n + 1, dtype=np.int64)
-    # Row-major, tile by tile: the same assignments in the same order as over the flat image.
-    for y0, y1, _, _ in _row_tiles(seg.shape, 0):
-        s, c = seg[y0:y1], comp[y0:y1]
-        on = s > 0
-        obj_comp[s[on]] = c[on]
-    region = cb[obj_comp[1:]]
+    region = _region_boxes(data, err, nodata, seg, params, n)
     need = region.copy()
     for r in (np.full(n, 6.0), np.nan_to_num(scale, nan=0.0)):    # the boxes _analyse checks
         box = ellipse_boxes(geo["x"], geo["y"], *ellipse_half_extent(a, b, th, r))
         need[:, 0::2] = np.minimum(need[:, 0::2], box[:, 0::2])
         need[:, 1::2] = np.maximum(need[:, 1::2], box[:, 1::2])
     return region, need
+
+
+def _region_boxes(data, err, nodata, seg, params, n):
+    """Per object id 1..n, the box (y0, y1, x0, x1) of the 8-connected component of
+    (sep's detection mask | segmentation) holding its pixels; (0, 0, 0, 0) without pixels.
+
+    By row tiles, with no full-frame mask or label image: the detection mask of a tile
+    with the filter's half-height of rows around it is its rows' mask bit for bit; the
+    tile's components are labelled on their own and joined across tile boundaries (a
+    pixel of a tile's last row touches the three below it in the next tile's first row),
+    so the components, and their boxes, are those of the whole frame.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    nx = seg.shape[1]
+    eight = np.ones((3, 3), dtype=bool)
+    boxes = [np.zeros((1, 4), dtype=np.int64)]            # label 0: no component
+    obj_label = np.zeros(n + 1, dtype=np.int64)
+    join_a, join_b = [], []
+    prev_last, offset = None, 0
+    for y0, y1, ya, yb in _row_tiles(seg.shape, params.filter_halfwidth):
+        d, e, nd = np.asarray(data[ya:yb], dtype=np.float32), err[ya:yb], nodata[ya:yb]
+        m = _clean.detection_mask(d, detection_rms(e, nd, params), nd, params)[0][y0 - ya:y1 - ya]
+        s = np.asarray(seg[y0:y1])
+        m |= s > 0
+        lab, k = ndimage.label(m, structure=eight)
+        del m
+        sl = ndimage.find_objects(lab)
+        bx = np.array([(q[0].start + y0, q[0].stop + y0, q[1].start, q[1].stop) for q in sl],
+                      dtype=np.int64).reshape(-1, 4)
+        boxes.append(bx)
+        np.add(lab, offset, out=lab, where=lab > 0)        # labels unique over the frame
+        first = lab[0]
+        if prev_last is not None:
+            for dx in (-1, 0, 1):                          # previous row's x meets this row's x + dx
+                p = prev_last[max(0, -dx):nx - max(0, dx)]
+                c = first[max(0, dx):nx - max(0, -dx)]
+                ok = (p > 0) & (c > 0)
+                join_a.append(p[ok])
+                join_b.append(c[ok])
+        prev_last = lab[-1].copy()
+        on = s > 0
+        obj_label[s[on]] = lab[on]
+        offset += k
+    n_lab = offset + 1
+    a = np.concatenate(join_a) if join_a else np.zeros(0, np.int64)
+    b = np.concatenate(join_b) if join_b else np.zeros(0, np.int64)
+    graph = coo_matrix((np.ones(a.size, dtype=np.int8), (a, b)), shape=(n_lab, n_lab))
+    n_comp, comp = connected_components(graph, directed=False)
+    lab_box = np.concatenate(boxes)
+    big = np.iinfo(np.int64).max
+    cb = np.empty((n_comp, 4), dtype=np.int64)
+    cb[:, 0::2], cb[:, 1::2] = big, -big
+    np.minimum.at(cb[:, 0], comp, lab_box[:, 0])
+    np.maximum.at(cb[:, 1], comp, lab_box[:, 1])
+    np.minimum.at(cb[:, 2], comp, lab_box[:, 2])
+    np.maximum.at(cb[:, 3], comp, lab_box[:, 3])
+    cb[comp[0]] = 0                                       # label 0 is alone in its component
+    return cb[comp[obj_label[1:]]]
 
 
 def output_columns(bands, n_apertures: int) -> list[str]:

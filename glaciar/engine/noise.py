@@ -33,7 +33,7 @@ import numpy as np
 from scipy import ndimage
 
 __all__ = ["weight_rescale_factor", "empty_aperture_scatter", "empty_sky_distance", "distance_cap",
-           "CorrelatedNoise",
+           "empty_sky", "EmptySky", "source_margin", "CorrelatedNoise",
            "DEFAULT_EMPTY_APERTURE_RADII_PIX", "MIN_EMPTY_APERTURES"]
 
 #: Radii of the empty apertures [pixels]: from ~3 pixels (the scale of a
@@ -130,21 +130,129 @@ def empty_sky_distance(usable: np.ndarray, cap: float | None = None,
     if cap is None:
         # Outside the image counts as unusable: pad before the distance transform.
         return ndimage.distance_transform_edt(np.pad(usable, 1))[1:-1, 1:-1]
-    if not float(cap) > 0:
-        raise ValueError(f"distance cap must be > 0 pixels, got {cap!r}")
-    ny, nx = usable.shape
+    out = np.empty(usable.shape)
+    for y0, y1, d in _capped_distance_tiles(usable, cap, tile_rows):
+        out[y0:y1] = d
+    return out
+
+
+def _tile_rows(nx: int, tile_rows: int | None) -> int:
     rows = max(1, DISTANCE_TILE_PIXELS // max(nx, 1)) if tile_rows is None else int(tile_rows)
     if rows < 1:
         raise ValueError(f"tile_rows must be >= 1, got {tile_rows!r}")
+    return rows
+
+
+def _capped_distance_tiles(usable: np.ndarray, cap: float, tile_rows: int | None):
+    """``(y0, y1, d)``: :func:`empty_sky_distance` with ``cap``, rows [y0, y1) at a time."""
+    if not float(cap) > 0:
+        raise ValueError(f"distance cap must be > 0 pixels, got {cap!r}")
+    ny, nx = usable.shape
+    rows = _tile_rows(nx, tile_rows)
     halo = int(np.ceil(float(cap))) + 1
-    out = np.empty((ny, nx))
     for y0 in range(0, ny, rows):
         y1 = min(y0 + rows, ny)
         a, b = max(y0 - halo, 0), min(y1 + halo, ny)
         # Unusable border only where the tile meets the image's edge (and at both sides).
         top, bottom = int(a == 0), int(b == ny)
         d = ndimage.distance_transform_edt(np.pad(usable[a:b], ((top, bottom), (1, 1))))
-        np.minimum(d[top + y0 - a:top + y1 - a, 1:-1], float(cap), out=out[y0:y1])
+        yield y0, y1, np.minimum(d[top + y0 - a:top + y1 - a, 1:-1], float(cap))
+
+
+@dataclass(frozen=True, eq=False)
+class EmptySky:
+    """Where empty apertures can be centred: the pixels of a usable mask farther than each
+    of a few distances from every unusable pixel (:func:`empty_sky`).
+
+    What :func:`empty_aperture_scatter` reads of an :func:`empty_sky_distance` map, in
+    ~5 bytes per candidate pixel instead of the map's 8 bytes per image pixel.
+
+    Attributes
+    ----------
+    indices : ndarray of int
+        Flat (row-major) indices, ascending, of the pixels farther than ``limits[0]``.
+    level : ndarray of uint8
+        Per index, how many of ``limits`` its distance exceeds (>= 1).
+    limits : tuple of float
+        Distances [pixels], ascending.
+    """
+
+    indices: np.ndarray
+    level: np.ndarray
+    limits: tuple
+
+    def beyond(self, limit: float) -> np.ndarray:
+        """Flat indices (ascending) of the pixels farther than ``limit``, one of ``limits``."""
+        k = self.limits.index(float(limit))
+        return self.indices if k == 0 else self.indices[self.level > k]
+
+
+def empty_sky(usable: np.ndarray, limits, tile_rows: int | None = None) -> EmptySky:
+    """The candidate aperture centres of ``usable`` beyond each distance of ``limits``.
+
+    The same comparisons ``distance > limit`` as on :func:`empty_sky_distance`'s map
+    (capped just beyond the largest limit, which leaves them exact), made tile by
+    tile: no full-frame distance map is kept.
+
+    Parameters
+    ----------
+    usable : ndarray of bool, shape (ny, nx)
+    limits : sequence of float
+        Distances [pixels] (at most 255 distinct values).
+    tile_rows : int, optional
+        Rows per tile (default :data:`DISTANCE_TILE_PIXELS` / nx).
+    """
+    usable = np.asarray(usable, dtype=bool)
+    lim = tuple(sorted({float(v) for v in limits}))
+    if not lim or len(lim) > 255:
+        raise ValueError(f"need 1 to 255 distinct distance limits, got {len(lim)}")
+    dtype = np.int32 if usable.size < 2 ** 31 else np.int64
+    nx = usable.shape[1]
+    table = np.asarray(lim)
+    # Filled tile by tile: only usable pixels can be candidates (distance > limit > 0), so
+    # buffers of that size are never outgrown and no concatenation doubles them.
+    n_usable = sum(int(np.count_nonzero(usable[y0:y0 + 256])) for y0 in range(0, usable.shape[0], 256))
+    idx = np.empty(n_usable, dtype=dtype)
+    lev = np.empty(n_usable, dtype=np.uint8)
+    n = 0
+    for y0, _, d in _capped_distance_tiles(usable, lim[-1] + 1.0, tile_rows):
+        flat = d.reshape(-1)
+        i = np.flatnonzero(flat > lim[0])
+        # Number of limits strictly below each distance: how many "distance > limit" hold.
+        lev[n:n + i.size] = np.searchsorted(table, flat[i], side="left")
+        idx[n:n + i.size] = i + y0 * nx
+        n += i.size
+    return EmptySky(idx[:n], lev[:n], lim)
+
+
+def source_margin(segmap: np.ndarray, margin: int, tile_rows: int | None = None) -> np.ndarray:
+    """Pixels within ``margin`` steps (4-connected) of a source: ``segmap > 0`` dilated.
+
+    ``scipy.ndimage.binary_dilation(segmap > 0, iterations=margin)``, computed by row
+    tiles that carry ``margin`` rows beyond them (a dilation by ``margin`` steps reads
+    no farther): the same mask without full-frame temporaries.
+
+    Parameters
+    ----------
+    segmap : ndarray of int, shape (ny, nx)
+    margin : int
+        Dilation steps [pixels], >= 1.
+    tile_rows : int, optional
+        Rows per tile (default :data:`DISTANCE_TILE_PIXELS` / nx).
+    """
+    from glaciar.engine.detect import release_mapped
+
+    if int(margin) < 1:
+        raise ValueError(f"margin must be >= 1 pixel, got {margin!r}")
+    ny, nx = segmap.shape
+    rows = _tile_rows(nx, tile_rows)
+    out = np.empty((ny, nx), dtype=bool)
+    for y0 in range(0, ny, rows):
+        y1 = min(y0 + rows, ny)
+        a, b = max(y0 - margin, 0), min(y1 + margin, ny)
+        grown = ndimage.binary_dilation(np.asarray(segmap[a:b]) > 0, iterations=int(margin))
+        out[y0:y1] = grown[y0 - a:y1 - a]
+        release_mapped(segmap)          # a spilled segmentation's pages, read once
     return out
 
 
@@ -177,7 +285,7 @@ def distance_cap(radii_pix) -> float:
 def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarray,
                            radii_pix=DEFAULT_EMPTY_APERTURE_RADII_PIX, n_per_radius: int = 1000,
                            rng: np.random.Generator | None = None,
-                           distance: np.ndarray | None = None
+                           distance: np.ndarray | None = None, sky: EmptySky | None = None
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Measured over predicted scatter of sums in random empty circular apertures.
 
@@ -199,6 +307,10 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
     distance : ndarray, optional
         :func:`empty_sky_distance` of this ``usable`` mask, if already computed
         (capped at no less than :func:`distance_cap` of ``radii_pix``).
+    sky : EmptySky, optional
+        Instead of ``distance``: :func:`empty_sky` of this ``usable`` mask with (at
+        least) the limits ``r + 1`` of ``radii_pix`` (the same apertures, without a
+        full-frame distance map).
 
     Returns
     -------
@@ -225,27 +337,33 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
     usable = np.asarray(usable, dtype=bool)
     image, rms = np.asarray(image), np.asarray(rms)
     radii = [float(r) for r in radii_pix]
-    if distance is None:
-        distance = empty_sky_distance(usable, cap=distance_cap(radii)) if radii else \
-            np.zeros(usable.shape)
-    dist = np.asarray(distance)
-    if dist.shape != usable.shape:
-        raise ValueError(f"distance has shape {dist.shape}, usable {usable.shape}")
     nx = usable.shape[1]
-    flat_dist = dist.reshape(-1)
-    # Candidate centres (flat indices, ascending) for the smallest radius; every larger
-    # radius keeps a subset of them, in the same order: one full-frame pass, not one per radius.
-    # Chunked, and int32 where the image allows it: no full-frame temporaries (same indices).
-    index_dtype = np.int32 if flat_dist.size < 2 ** 31 else np.int64
-    candidates = _indices_beyond(flat_dist, min(radii) + 1.0, index_dtype) if radii else \
-        np.empty(0, index_dtype)
+    if sky is None:
+        if distance is None:
+            distance = empty_sky_distance(usable, cap=distance_cap(radii)) if radii else \
+                np.zeros(usable.shape)
+        dist = np.asarray(distance)
+        if dist.shape != usable.shape:
+            raise ValueError(f"distance has shape {dist.shape}, usable {usable.shape}")
+        flat_dist = dist.reshape(-1)
+        # Candidate centres (flat indices, ascending) for the smallest radius; every larger
+        # radius keeps a subset of them, in the same order: one full-frame pass, not one per
+        # radius. Chunked, and int32 where the image allows it: no full-frame temporaries.
+        index_dtype = np.int32 if flat_dist.size < 2 ** 31 else np.int64
+        candidates = _indices_beyond(flat_dist, min(radii) + 1.0, index_dtype) if radii else \
+            np.empty(0, index_dtype)
+
+        def beyond(limit):
+            return _keep_beyond(flat_dist, candidates, limit)
+    else:
+        beyond = sky.beyond
     out_n, out_r, out_k = [], [], []
     for r in radii:
         k = int(np.ceil(r))
         dy, dx = np.mgrid[-k:k + 1, -k:k + 1]
         inside = dy ** 2 + dx ** 2 < r * r
         dy, dx = dy[inside], dx[inside]
-        centres = _keep_beyond(flat_dist, candidates, r + 1.0)
+        centres = beyond(r + 1.0)
         if centres.size < MIN_EMPTY_APERTURES:
             continue
         pick = rng.choice(centres.size, size=min(n_per_radius, centres.size), replace=False)
@@ -254,8 +372,9 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         ix = centres[pick][:, None] % nx + dx[None, :]
         # Only the aperture pixels are converted to float64 (no full-frame copies).
         ok = usable[iy, ix]
-        s = np.where(ok, image[iy, ix].astype(np.float64), 0.0).sum(axis=1)
-        v = np.where(ok, rms[iy, ix].astype(np.float64) ** 2, 0.0).sum(axis=1)
+        flat = iy * nx + ix
+        s = np.where(ok, _gather(image, flat).astype(np.float64), 0.0).sum(axis=1)
+        v = np.where(ok, _gather(rms, flat).astype(np.float64) ** 2, 0.0).sum(axis=1)
         good = np.isfinite(s) & (v > 0)
         if good.sum() < MIN_EMPTY_APERTURES:
             continue
@@ -263,6 +382,31 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         out_r.append(_robust_sigma(s[good] / np.sqrt(v[good])))
         out_k.append(int(good.sum()))
     return np.array(out_n), np.array(out_r), np.array(out_k, dtype=np.int64)
+
+
+def _gather(a: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """``a.ravel()[flat]`` (same shape as ``flat``), by blocks of rows in index order.
+
+    A whole memory-mapped image (a spilled array of a field's set-up) has its resident
+    pages dropped after each block: thousands of scattered apertures would otherwise
+    fault in most of its pages and keep them in the process.
+    """
+    from glaciar.engine.detect import release_mapped
+
+    ny, nx = a.shape
+    idx = flat.reshape(-1)
+    order = np.argsort(idx, kind="stable")
+    srt = idx[order]
+    out = np.empty(idx.size, dtype=a.dtype)
+    rows = max(1, DISTANCE_TILE_PIXELS // max(nx, 1))
+    cuts = np.searchsorted(srt, np.arange(0, ny + rows, rows, dtype=np.int64) * nx)
+    for k, y0 in enumerate(range(0, ny, rows)):
+        lo, hi = cuts[k], cuts[k + 1]
+        if hi > lo:
+            block = a[y0:min(y0 + rows, ny)].reshape(-1)         # a view: only the pixels read
+            out[order[lo:hi]] = block[srt[lo:hi] - y0 * nx]
+            release_mapped(a)
+    return out.reshape(flat.shape)
 
 
 @dataclass(frozen=True)

@@ -74,6 +74,23 @@ def _f64(a):
     return np.ascontiguousarray(a, dtype=np.float64)
 
 
+def _pixels(a):
+    """An image for sep's aperture sums: float32 and float64 kept, anything else as float64.
+
+    sep reads every pixel into a C ``float`` before summing, so a float32 image gives
+    the very sums of its float64 copy: a writable, C-contiguous float32 or float64
+    array is passed as it is (no full-frame copy, 8 bytes per pixel, for a field's
+    reference photometry); another float32 one is copied as float32 (sep takes only
+    writable buffers).
+    """
+    a = np.asarray(a)
+    if a.dtype in (np.float32, np.float64) and a.dtype.isnative:
+        if a.flags.c_contiguous and a.flags.writeable:
+            return a
+        return np.array(a, dtype=a.dtype, order="C")
+    return _f64(a)
+
+
 def _mask(m):
     return None if m is None else np.ascontiguousarray(m, dtype=bool)
 
@@ -115,8 +132,8 @@ def aperture_photometry(image, rms, x, y, diameters, gain=None, mask=None, noise
     err = np.full((len(diameters), x.size), np.nan)
     if x.size == 0:
         return flux, err
-    data = _f64(image)
-    e = _f64(rms)
+    data = _pixels(image)
+    e = _pixels(rms)
     for k, d in enumerate(diameters):
         f, fe, _ = sep.sum_circle(data, x, y, 0.5 * float(d), err=e, mask=_mask(mask),
                                   gain=gain, subpix=0)
@@ -141,7 +158,7 @@ def kron_radius(det_image, x, y, a, b, theta, segmap=None, seg_id=None, mask=Non
     if segmap is not None:
         kw = dict(segmap=np.ascontiguousarray(segmap, dtype=np.int32),
                   seg_id=np.asarray(seg_id, dtype=np.int32))
-    kr, flag = sep.kron_radius(_f64(det_image), x, _f64(y), _f64(a), _f64(b), _f64(theta),
+    kr, flag = sep.kron_radius(_pixels(det_image), x, _f64(y), _f64(a), _f64(b), _f64(theta),
                                6.0, mask=_mask(mask), **kw)
     kr = np.asarray(kr, dtype=np.float64)
     return kr
@@ -181,12 +198,13 @@ def auto_photometry(image, rms, x, y, a, b, theta, scale, gain=None,
     if segmap is not None:
         kw = dict(segmap=np.ascontiguousarray(segmap, dtype=np.int32),
                   seg_id=np.asarray(seg_id, dtype=np.int32))
-    args = (_f64(image), x, _f64(y), _f64(a), _f64(b), _f64(theta), _f64(scale))
-    f, fe, _ = sep.sum_ellipse(*args, err=_f64(rms), mask=_mask(mask), gain=gain, subpix=0, **kw)
+    args = (_pixels(image), x, _f64(y), _f64(a), _f64(b), _f64(theta), _f64(scale))
+    err = _pixels(rms)
+    f, fe, _ = sep.sum_ellipse(*args, err=err, mask=_mask(mask), gain=gain, subpix=0, **kw)
     fe = np.asarray(fe, dtype=np.float64)
     if noise is not None:
         fb = fe if gain is None else np.asarray(
-            sep.sum_ellipse(*args, err=_f64(rms), mask=_mask(mask), subpix=0, **kw)[1])
+            sep.sum_ellipse(*args, err=err, mask=_mask(mask), subpix=0, **kw)[1])
         area = np.pi * np.asarray(a, float) * np.asarray(b, float) * np.asarray(scale, float) ** 2
         fe = _scaled_error(fb, fe, noise.variance_factor(area))
     return np.asarray(f, dtype=np.float64), fe
