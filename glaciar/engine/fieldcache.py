@@ -72,6 +72,9 @@ TILE = 128
 #: Tiles start at a multiple of this file offset [bytes] (the .npy header is padded to it), so
 #: that a 64 kB tile is one fault-around block, not two.
 TILE_ALIGN = 1 << 16
+#: Read tiled arrays with positional reads (:meth:`TiledArray.open`) rather than through a
+#: memory map (False, or a platform without ``os.preadv``: mapped, pages trimmed by budget).
+READ_TILES = hasattr(os, "preadv")
 #: Largest .npy header np.load is allowed to read for a tiled file (its padding included).
 _MAX_HEADER = 1 << 17
 #: Rows copied at a time [bytes] when a cache array is written (mapped pages dropped after each).
@@ -272,6 +275,8 @@ def save(items: dict, directory) -> Path:
 # --------------------------------------------------------------------------
 def _decode(node: dict, directory: Path, maps: list):
     if "tiled" in node:
+        if READ_TILES:
+            return TiledArray.open(directory / node["tiled"], tuple(node["shape"]))
         tiles = np.load(directory / node["tiled"], mmap_mode="r", allow_pickle=False,
                         max_header_size=_MAX_HEADER)
         if isinstance(tiles, np.memmap):
@@ -327,7 +332,7 @@ def exists(directory) -> bool:
 # Tiled arrays
 # --------------------------------------------------------------------------
 class TiledArray:
-    """Read-only 2-d array stored as square tiles ``tiles[ty, tx, row, col]``.
+    """Read-only 2-d array stored as square tiles ``[ty, tx, row, col]``.
 
     Indexing returns what the same index of the plain array returns (always a
     new array, never a view): ``a[y0:y1, x0:x1]`` (steps of 1, negative and
@@ -337,26 +342,69 @@ class TiledArray:
     ``np.asarray(a)`` assembles the whole frame (rare full-frame users such as
     ``mode="full"``); any other index goes through it.
 
-    Why: on a memory map of a row-major image each window row faults in a
-    64 kB block of the file, a whole row of a 16000-pixel float32 image; a tile
-    of 128 x 128 float32 pixels is one such block.
+    The tiles are a 4-d array (in memory or memory-mapped: :attr:`tiles`), or,
+    for a cache file opened with :meth:`open`, read from the file with
+    positional reads (``os.preadv``) into private memory: one read per row of
+    tiles under a window, of the rows it needs.  Why not a memory map: the
+    page cache holds a file in large folios (up to 2 MB on Linux 6.x), and a
+    fault maps the whole folio into the process, so a window of a few kB of a
+    mapped file made up to MBs resident, which the resident budget then had
+    to drop and fault in again (system time); a positional read copies the
+    bytes it asks for and leaves nothing mapped: the process's resident set
+    does not grow with the windows it reads, and no page is ever dropped.
     """
 
     __array_priority__ = 10.0
 
-    def __init__(self, tiles: np.ndarray, shape: tuple[int, int]):
-        if tiles.ndim != 4 or tiles.shape[2] != tiles.shape[3]:
-            raise ValueError(f"tiles must have shape (ty, tx, t, t), got {tiles.shape}")
+    def __init__(self, tiles: np.ndarray | None, shape: tuple[int, int], *, _file=None):
+        if _file is not None:
+            # (path, fd, data offset [bytes], 4-d shape, dtype): positional reads of the file
+            self.path, self._fd, self._offset, tshape, dtype = _file
+            weakref.finalize(self, os.close, self._fd)
+        else:
+            tshape, dtype, self._fd, self.path = tiles.shape, tiles.dtype, None, None
+        if len(tshape) != 4 or tshape[2] != tshape[3]:
+            raise ValueError(f"tiles must have shape (ty, tx, t, t), got {tuple(tshape)}")
         self.tiles = tiles
-        self.tile = int(tiles.shape[2])
+        self.tile = int(tshape[2])
+        self._ntx = int(tshape[1])
         self.shape = (int(shape[0]), int(shape[1]))
-        if tiles.shape[0] * self.tile < self.shape[0] or tiles.shape[1] * self.tile < self.shape[1]:
-            raise ValueError(f"tiles {tiles.shape} do not cover shape {self.shape}")
-        self.dtype = tiles.dtype
+        if tshape[0] * self.tile < self.shape[0] or tshape[1] * self.tile < self.shape[1]:
+            raise ValueError(f"tiles {tuple(tshape)} do not cover shape {self.shape}")
+        self.dtype = np.dtype(dtype)
         self.ndim = 2
         self.size = self.shape[0] * self.shape[1]
-        self.itemsize = tiles.dtype.itemsize
+        self.itemsize = self.dtype.itemsize
         self.nbytes = self.size * self.itemsize
+
+    @classmethod
+    def open(cls, path, shape: tuple[int, int]) -> "TiledArray":
+        """The tiled ``.npy`` at ``path`` (written by :func:`save`), read with positional reads.
+
+        The file stays open (read-only) until the array is garbage-collected; a
+        forked process shares the descriptor (positional reads move no file offset)."""
+        path = str(path)
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+        try:
+            with os.fdopen(os.dup(fd), "rb") as fh:
+                version = np.lib.format.read_magic(fh)
+                if version == (1, 0):
+                    tshape, fortran, dtype = np.lib.format.read_array_header_1_0(
+                        fh, max_header_size=_MAX_HEADER)
+                else:
+                    tshape, fortran, dtype = np.lib.format.read_array_header_2_0(
+                        fh, max_header_size=_MAX_HEADER)
+                offset = fh.tell()
+            if fortran or dtype.hasobject or not dtype.isnative:
+                raise ValueError(f"{path}: not a tiled field-cache array ({dtype}, "
+                                 f"fortran_order={fortran})")
+            size = os.fstat(fd).st_size
+            if offset + int(np.prod(tshape)) * dtype.itemsize > size:
+                raise ValueError(f"{path}: truncated ({size} bytes)")
+        except BaseException:
+            os.close(fd)
+            raise
+        return cls(None, shape, _file=(path, fd, offset, tuple(tshape), dtype))
 
     def __len__(self) -> int:
         return self.shape[0]
@@ -364,21 +412,51 @@ class TiledArray:
     def __repr__(self) -> str:
         return f"TiledArray(shape={self.shape}, dtype={self.dtype}, tile={self.tile})"
 
+    def __reduce__(self):
+        # A file-backed array is sent to another process as its path (reopened there).
+        if self.tiles is None:
+            return (_open_tiled, (self.path, self.shape))
+        return (TiledArray, (np.asarray(self.tiles), self.shape))
+
     def _window(self, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
-        out = np.empty((max(y1 - y0, 0), max(x1 - x0, 0)), dtype=self.dtype)
         if y1 <= y0 or x1 <= x0:
-            return out
-        t, tiles = self.tile, self.tiles
-        tx0, tx1 = x0 // t, (x1 - 1) // t + 1
-        for ty in range(y0 // t, (y1 - 1) // t + 1):
-            top = ty * t
-            r0, r1 = max(y0, top) - top, min(y1, top + t) - top
-            dst = out[top + r0 - y0:top + r1 - y0]
-            for tx in range(tx0, tx1):
-                left = tx * t
-                c0, c1 = max(x0, left) - left, min(x1, left + t) - left
-                dst[:, left + c0 - x0:left + c1 - x0] = tiles[ty, tx, r0:r1, c0:c1]
-        return out
+            return np.empty((max(y1 - y0, 0), max(x1 - x0, 0)), dtype=self.dtype)
+        t = self.tile
+        ty0, tx0 = y0 // t, x0 // t
+        nty, nw = (y1 - 1) // t + 1 - ty0, (x1 - 1) // t + 1 - tx0
+        r0, c0 = y0 - ty0 * t, x0 - tx0 * t
+        if self.tiles is not None:
+            buf = self.tiles[ty0:ty0 + nty, tx0:tx0 + nw]
+        else:
+            buf = np.empty((nty, nw, t, t), dtype=self.dtype)
+            self._read_tile_rows(buf, ty0, tx0, r0, y1 - (ty0 + nty - 1) * t)
+        # (tile rows, tiles, rows, cols) -> image rows and columns of the tiles, then the window
+        if nw == 1:
+            img = buf[:, 0].reshape(nty * t, t)
+        else:
+            img = buf.transpose(0, 2, 1, 3).reshape(nty * t, nw * t)
+        return img[r0:r0 + y1 - y0, c0:c0 + x1 - x0].copy()
+
+    def _read_tile_rows(self, buf: np.ndarray, ty0: int, tx0: int, r0: int, r1: int) -> None:
+        """Fill ``buf[k, :, rows]`` (tile rows ``ty0 + k``, tiles ``tx0:``) from the file: rows
+        ``r0:`` of the first tile row, ``:r1`` of the last, all of those between.
+
+        One read per tile row, of the file's contiguous bytes from its first tile's first
+        row needed to its last tile's last: rows the window does not need of the tiles
+        between come along (cheaper than one read per tile) and are never returned."""
+        nty, nw, t = buf.shape[0], buf.shape[1], self.tile
+        row = t * self.itemsize
+        tile_bytes = t * row
+        span = nw * tile_bytes                    # bytes of one tile row of buf
+        raw = memoryview(buf.reshape(-1).view(np.uint8))
+        fd = self._fd
+        at = self._offset + (ty0 * self._ntx + tx0) * tile_bytes
+        stride = self._ntx * tile_bytes           # bytes of one tile row of the file
+        for k in range(nty):
+            a = r0 * row if k == 0 else 0
+            b = span - tile_bytes + (r1 * row if k == nty - 1 else tile_bytes)
+            if os.preadv(fd, [raw[k * span + a:k * span + b]], at + k * stride + a) != b - a:
+                raise OSError(f"{self.path}: short read")
 
     def _points(self, iy, ix) -> np.ndarray:
         iy, ix = np.broadcast_arrays(np.asarray(iy), np.asarray(ix))
@@ -388,7 +466,20 @@ class TiledArray:
         iy = np.where(iy < 0, iy + ny, iy)
         ix = np.where(ix < 0, ix + nx, ix)
         t = self.tile
-        return np.array(self.tiles[iy // t, ix // t, iy % t, ix % t])
+        if self.tiles is not None:
+            return np.array(self.tiles[iy // t, ix // t, iy % t, ix % t])
+        # element index in the file: ((ty * ntx + tx) * t + row) * t + col
+        pos = (((iy // t) * self._ntx + ix // t) * t + iy % t) * t + ix % t
+        out = np.empty(pos.shape, dtype=self.dtype)
+        if not out.size:
+            return out
+        n = self.itemsize
+        raw = memoryview(out.reshape(-1).view(np.uint8))
+        base, fd = self._offset, self._fd
+        for k, p in enumerate((pos.reshape(-1) * n).tolist()):
+            if os.preadv(fd, [raw[k * n:(k + 1) * n]], base + p) != n:
+                raise OSError(f"{self.path}: short read")
+        return out
 
     def __getitem__(self, key):
         if type(key) is not tuple:
@@ -429,6 +520,10 @@ class TiledArray:
 
     def astype(self, dtype, copy: bool = True):
         return np.asarray(self).astype(dtype, copy=copy)
+
+
+def _open_tiled(path, shape) -> TiledArray:
+    return TiledArray.open(path, shape)
 
 
 # --------------------------------------------------------------------------
