@@ -1,4 +1,4 @@
-"""Field contexts on disk: measured arrays as ``.npy`` files that workers memory-map.
+"""Field contexts on disk: measured arrays as ``.npy`` files that workers map or read by window.
 
 A field's context (:class:`glaciar.engine.context.FieldContext`) holds full-frame
 arrays -- background-subtracted images and RMS maps of every band, masks, the
@@ -21,12 +21,22 @@ them, the next touch is a minor fault) once more than
 On a field whose maps exceed that budget, glaciar.run stores the images the
 engine reads by window (images, RMS maps, mask, reference segmentation) as
 square tiles (:class:`Tiled` on writing, :class:`TiledArray` on reading: a 4-d
-``.npy`` ``[ty, tx, 128, 128]`` whose data start at a 64 kB boundary).  A
-window read from a row-major map faults in at least a 64 kB file block per
-row (a whole row of a 16000-pixel float32 image; with the page cache's large
-folios often more); from tiles, the tiles under it.  Measured on a 16000^2
-float32 image with its pages dropped before each read (benchmarks/window_reads.py,
-loaded machine): 780 -> 93 us for a 64 px window, 2380 -> 225 us for 200 px.
+``.npy`` ``[ty, tx, 64, 64]``), and workers read them with positional reads
+(``os.preadv``, one per row of tiles under a window) into private memory,
+not through a memory map.  Why: the page cache holds a file in large folios
+(Linux 6.x: up to 2 MB), and a fault on a mapped file maps the whole folio
+into the process -- measured on an 8000^2 field, a task's windows (~14 per
+source, 10-150 px) made ~1 GB of maps resident, 30-100 times the pixels they
+read, so that a worker under the budget dropped its pages every ~20 sources
+and faulted them in again (1.41-1.94x the task CPU per source of a 1000^2
+field at 16000^2, much of it system time).  A positional read copies the
+bytes of the tile rows it needs: the resident set does not grow with the
+windows read, nothing is dropped, and the tile size (not the folio size) sets
+the granularity.  Replaying a task's window reads on an 8000^2 field
+(scratch measurement, loaded machine): 10 us per read for 32 or 64 px tiles,
+10.7 for 128, against 11 us from a warm memory map and 12-13 from one whose
+pages the budget drops.  Small fields stay row-major and mapped (their pages
+stay resident, a plain slice is cheapest).
 
 :func:`spill` moves a finished array of a field being measured to an unnamed
 temporary file (memory-mapped), so that measuring a large field does not
@@ -66,11 +76,12 @@ RESIDENT_BUDGET_BYTES = 768 << 20
 #: Store the windowed images of a field larger than the resident budget as tiles
 #: (glaciar.run's field cache); False keeps every array row-major (for comparisons).
 TILED_CACHE = True
-#: Side [pixels] of the square tiles of a tiled 2-d array (:class:`TiledArray`): a float32
-#: tile is 64 kB, the kernel's fault-around block, so a window faults in the tiles under it.
-TILE = 128
-#: Tiles start at a multiple of this file offset [bytes] (the .npy header is padded to it), so
-#: that a 64 kB tile is one fault-around block, not two.
+#: Side [pixels] of the square tiles of a tiled 2-d array (:class:`TiledArray`): a window
+#: reads the rows it needs of the tiles under it (16 kB per float32 tile, 4 kB per bool one);
+#: 32 and 64 read a task's windows equally fast, 128 ~7 % slower (more bytes per window).
+TILE = 64
+#: Tiles start at a multiple of this file offset [bytes] (the .npy header is padded to it):
+#: page-aligned tiles for the memory-mapped fallback (no ``os.preadv``).
 TILE_ALIGN = 1 << 16
 #: Read tiled arrays with positional reads (:meth:`TiledArray.open`) rather than through a
 #: memory map (False, or a platform without ``os.preadv``: mapped, pages trimmed by budget).
