@@ -9,8 +9,9 @@ files plus a JSON description of how they nest (dataclasses, dicts, tuples,
 scalars); no pickle.  Workers open it (:func:`load`): arrays of at least
 :data:`MMAP_MIN_BYTES` are read-only memory maps (pages read on first touch
 and shared between processes through the page cache), smaller ones are read
-into memory.  A task reads windows of the maps, so what it costs in memory is
-the pages under its windows.
+into memory, tiled ones (below) are read by window from the file.  A task
+reads windows of the maps, so what it costs in memory is the pages under its
+windows.
 
 Mapped pages count in a process's resident set while mapped and would
 accumulate over a long run until the whole files were resident;
@@ -573,8 +574,10 @@ class Trimmer:
     size cannot be read, every call releases.
 
     A task on a large mosaic can touch more than the budget by itself: each
-    window row faults in a whole 64 kB block ("fault-around"), a full image row
-    at 16000 pixels of float32.  When the maps are larger than the budget,
+    fault maps a whole page-cache folio (64 kB fault-around, up to 2 MB with
+    large folios), many image rows at 16000 pixels of float32 (the tiled
+    images, read with positional reads, are not mapped and not counted).
+    When the maps are larger than the budget,
     :meth:`watch` also checks from a daemon thread every ``period`` seconds, so
     that the resident set stays bounded during a task (dropping pages under a
     reader is safe: read-only file pages are read again on the next touch).
