@@ -388,6 +388,9 @@ class TiledArray:
         self.size = self.shape[0] * self.shape[1]
         self.itemsize = self.dtype.itemsize
         self.nbytes = self.size * self.itemsize
+        self._row_bytes = self.tile * self.itemsize             # one row of a tile
+        self._tile_bytes = self.tile * self._row_bytes
+        self._stride = self._ntx * self._tile_bytes             # one row of tiles of the file
 
     @classmethod
     def open(cls, path, shape: tuple[int, int]) -> "TiledArray":
@@ -456,18 +459,17 @@ class TiledArray:
         One read per tile row, of the file's contiguous bytes from its first tile's first
         row needed to its last tile's last: rows the window does not need of the tiles
         between come along (cheaper than one read per tile) and are never returned."""
-        nty, nw, t = buf.shape[0], buf.shape[1], self.tile
-        row = t * self.itemsize
-        tile_bytes = t * row
-        span = nw * tile_bytes                    # bytes of one tile row of buf
-        raw = memoryview(buf.reshape(-1).view(np.uint8))
-        fd = self._fd
+        nty = buf.shape[0]
+        row, tile_bytes, stride = self._row_bytes, self._tile_bytes, self._stride
+        span = buf.shape[1] * tile_bytes          # bytes of one tile row of buf
+        raw = memoryview(buf).cast("B")
+        fd, preadv = self._fd, os.preadv
         at = self._offset + (ty0 * self._ntx + tx0) * tile_bytes
-        stride = self._ntx * tile_bytes           # bytes of one tile row of the file
+        last = nty - 1
         for k in range(nty):
             a = r0 * row if k == 0 else 0
-            b = span - tile_bytes + (r1 * row if k == nty - 1 else tile_bytes)
-            if os.preadv(fd, [raw[k * span + a:k * span + b]], at + k * stride + a) != b - a:
+            b = span - tile_bytes + (r1 * row if k == last else tile_bytes)
+            if preadv(fd, (raw[k * span + a:k * span + b],), at + k * stride + a) != b - a:
                 raise OSError(f"{self.path}: short read")
 
     def _points(self, iy, ix) -> np.ndarray:
@@ -494,6 +496,13 @@ class TiledArray:
         return out
 
     def __getitem__(self, key):
+        if type(key) is tuple and len(key) == 2:
+            ky, kx = key
+            if type(ky) is slice and type(kx) is slice and ky.step is None and kx.step is None:
+                # the common case first: a window
+                y0, y1, _ = ky.indices(self.shape[0])
+                x0, x1, _ = kx.indices(self.shape[1])
+                return self._window(y0, y1, x0, x1)
         if type(key) is not tuple:
             key = (key,)
         if len(key) == 1:
