@@ -390,7 +390,6 @@ class TiledArray:
         self.nbytes = self.size * self.itemsize
         self._row_bytes = self.tile * self.itemsize             # one row of a tile
         self._tile_bytes = self.tile * self._row_bytes
-        self._stride = self._ntx * self._tile_bytes             # one row of tiles of the file
 
     @classmethod
     def open(cls, path, shape: tuple[int, int]) -> "TiledArray":
@@ -449,37 +448,39 @@ class TiledArray:
                          * self._tile_bytes + r0 * self._row_bytes) != size:
                 raise OSError(f"{self.path}: short read")
             return rows[:, c0:c0 + x1 - x0].copy()
-        if self.tiles is not None:
-            buf = self.tiles[ty0:ty0 + nty, tx0:tx0 + nw]
-        else:
-            buf = np.empty((nty, nw, t, t), dtype=self.dtype)
-            self._read_tile_rows(buf, ty0, tx0, r0, y1 - (ty0 + nty - 1) * t)
-        # (tile rows, tiles, rows, cols) -> image rows and columns of the tiles, then the window
-        if nw == 1:
-            img = buf[:, 0].reshape(nty * t, t)
-        else:
-            img = buf.transpose(0, 2, 1, 3).reshape(nty * t, nw * t)
-        return img[r0:r0 + y1 - y0, c0:c0 + x1 - x0].copy()
-
-    def _read_tile_rows(self, buf: np.ndarray, ty0: int, tx0: int, r0: int, r1: int) -> None:
-        """Fill ``buf[k, :, rows]`` (tile rows ``ty0 + k``, tiles ``tx0:``) from the file: rows
-        ``r0:`` of the first tile row, ``:r1`` of the last, all of those between.
-
-        One read per tile row, of the file's contiguous bytes from its first tile's first
-        row needed to its last tile's last: rows the window does not need of the tiles
-        between come along (cheaper than one read per tile) and are never returned."""
-        nty = buf.shape[0]
-        row, tile_bytes, stride = self._row_bytes, self._tile_bytes, self._stride
-        span = buf.shape[1] * tile_bytes          # bytes of one tile row of buf
-        raw = memoryview(buf).cast("B")
-        fd, preadv = self._fd, os.preadv
-        at = self._offset + (ty0 * self._ntx + tx0) * tile_bytes
-        last = nty - 1
+        # Row of tiles by row of tiles (a whole frame never holds more than one extra row of
+        # tiles): the rows of the tiles under the window, then the window's columns of them.
+        out = np.empty((y1 - y0, x1 - x0), dtype=self.dtype)
+        w = x1 - x0
+        last = y1 - (ty0 + nty - 1) * t
+        buf = np.empty((nw, t, t), dtype=self.dtype) if self.tiles is None else None
         for k in range(nty):
-            a = r0 * row if k == 0 else 0
-            b = span - tile_bytes + (r1 * row if k == last else tile_bytes)
-            if preadv(fd, (raw[k * span + a:k * span + b],), at + k * stride + a) != b - a:
-                raise OSError(f"{self.path}: short read")
+            a, b = (r0 if k == 0 else 0), (last if k == nty - 1 else t)
+            if buf is None:
+                block = self.tiles[ty0 + k, tx0:tx0 + nw, a:b]
+            else:
+                self._read_tile_row(buf, ty0 + k, tx0, a, b)
+                block = buf[:, a:b]
+            dst = out[k * t + a - r0:k * t + b - r0]
+            if nw == 1:
+                dst[...] = block[0, :, c0:c0 + w]
+            else:
+                # (tiles, rows, cols) -> (rows, tiles x cols)
+                dst[...] = block.transpose(1, 0, 2).reshape(b - a, nw * t)[:, c0:c0 + w]
+        return out
+
+    def _read_tile_row(self, buf: np.ndarray, ty: int, tx0: int, a: int, b: int) -> None:
+        """Rows ``a:b`` of the tiles ``tx0:tx0 + len(buf)`` of tile row ``ty`` into ``buf``.
+
+        One read of the file's contiguous bytes from the first tile's row ``a`` to the
+        last tile's row ``b``: the other rows of the tiles between come along (cheaper
+        than one read per tile) and are not used."""
+        row, tile_bytes = self._row_bytes, self._tile_bytes
+        lo, hi = a * row, (len(buf) - 1) * tile_bytes + b * row
+        raw = memoryview(buf).cast("B")
+        if os.preadv(self._fd, (raw[lo:hi],),
+                     self._offset + (ty * self._ntx + tx0) * tile_bytes + lo) != hi - lo:
+            raise OSError(f"{self.path}: short read")
 
     def _points(self, iy, ix) -> np.ndarray:
         iy, ix = np.broadcast_arrays(np.asarray(iy), np.asarray(ix))
