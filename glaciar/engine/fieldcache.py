@@ -27,17 +27,20 @@ square tiles (:class:`Tiled` on writing, :class:`TiledArray` on reading: a 4-d
 not through a memory map.  Why: the page cache holds a file in large folios
 (Linux 6.x: up to 2 MB), and a fault on a mapped file maps the whole folio
 into the process -- measured on an 8000^2 field, a task's windows (~14 per
-source, 10-150 px) made ~1 GB of maps resident, 30-100 times the pixels they
+source, 10-150 px) made ~1 GB of maps resident, 85-550 times the bytes they
 read, so that a worker under the budget dropped its pages every ~20 sources
 and faulted them in again (1.41-1.94x the task CPU per source of a 1000^2
 field at 16000^2, much of it system time).  A positional read copies the
 bytes of the tile rows it needs: the resident set does not grow with the
 windows read, nothing is dropped, and the tile size (not the folio size) sets
-the granularity.  Replaying a task's window reads on an 8000^2 field
-(scratch measurement, loaded machine): 10 us per read for 32 or 64 px tiles,
-10.7 for 128, against 11 us from a warm memory map and 12-13 from one whose
-pages the budget drops.  Small fields stay row-major and mapped (their pages
-stay resident, a plain slice is cheapest).
+the granularity.  Task CPU per source on an 8000^2 demo field with a 192 MB
+budget (the 16000^2 pressure scaled by area; scratch harness, 20 tasks x 100
+sources, medians of 3-12 alternating rounds on a loaded machine): 1.26 ms with
+tiles read, 1.33 ms from mapped 128 px tiles the budget dropped, 0.99 ms with
+every array in memory (1000^2: 0.96 ms): what is left is the cost of ~14
+window reads per source (~10 us each against 2 us from memory).  Small fields
+stay row-major and mapped (their pages stay resident, a plain slice is
+cheapest).
 
 :func:`spill` moves a finished array of a field being measured to an unnamed
 temporary file (memory-mapped), so that measuring a large field does not
@@ -78,8 +81,9 @@ RESIDENT_BUDGET_BYTES = 768 << 20
 #: (glaciar.run's field cache); False keeps every array row-major (for comparisons).
 TILED_CACHE = True
 #: Side [pixels] of the square tiles of a tiled 2-d array (:class:`TiledArray`): a window
-#: reads the rows it needs of the tiles under it (16 kB per float32 tile, 4 kB per bool one);
-#: 32 and 64 read a task's windows equally fast, 128 ~7 % slower (more bytes per window).
+#: reads the rows it needs of the tiles under it (16 kB per float32 tile, 4 kB per bool one).
+#: Task CPU per source on an 8000^2 field (scratch harness, alternating rounds): 32 and 64
+#: the same within the noise, 128 ~20 % more (a window copies more bytes of wider tiles).
 TILE = 64
 #: Tiles start at a multiple of this file offset [bytes] (the .npy header is padded to it):
 #: page-aligned tiles for the memory-mapped fallback (no ``os.preadv``).
@@ -440,7 +444,7 @@ class TiledArray:
         nty, nw = (y1 - 1) // t + 1 - ty0, (x1 - 1) // t + 1 - tx0
         r0, c0 = y0 - ty0 * t, x0 - tx0 * t
         if nty == 1 and nw == 1 and self.tiles is None:
-            # Inside one tile (most windows of a task): its rows r0:r0 + h, in one read.
+            # Inside one tile (small windows often are): its rows r0:r0 + h, in one read.
             h = y1 - y0
             rows = np.empty((h, t), dtype=self.dtype)
             size = h * self._row_bytes
