@@ -38,9 +38,13 @@ budget (the 16000^2 pressure scaled by area; scratch harness, 20 tasks x 100
 sources, medians of 3-12 alternating rounds on a loaded machine): 1.26 ms with
 tiles read, 1.33 ms from mapped 128 px tiles the budget dropped, 0.99 ms with
 every array in memory (1000^2: 0.96 ms): what is left is the cost of ~14
-window reads per source (~10 us each against 2 us from memory).  Small fields
-stay row-major and mapped (their pages stay resident, a plain slice is
-cheapest).
+window reads per source (~10 us each against 2 us from memory).  Reads that
+miss the page cache go to disk whichever way the file is read: on an 8000^2
+cache whose pages were evicted, ~750 kB read per source and 0.6-0.8 ms of
+system CPU per source (POSIX_FADV_RANDOM made no difference); a 16000^2 run
+right after its set-up (13 GB peak on a 24 GB machine) starts that way.
+Small fields stay row-major and mapped (their pages stay resident, a plain
+slice is cheapest).
 
 :func:`spill` moves a finished array of a field being measured to an unnamed
 temporary file (memory-mapped), so that measuring a large field does not
