@@ -39,15 +39,19 @@ Usage::
 
     python benchmarks/scaling.py [--sizes 1000,4000[,16000]] [--tasks 30] [--n 100]
                                  [--z 8] [--mag 26] [--parallel-size 1000] [--no-parallel]
-                                 [--tmp DIR] [--map-budget-mb MB] [--no-tiles] [--no-clean]
+                                 [--tmp DIR] [--map-budget-mb MB] [--no-tiles] [--mmap-tiles]
+                                 [--no-clean]
 
 ``--map-budget-mb`` sets the resident budget of a worker's memory-mapped field
 cache (:data:`glaciar.engine.fieldcache.RESIDENT_BUDGET_BYTES`): with a budget
 below the field's maps (e.g. 256 MB at 4000^2), pages are dropped during the
 run as on a 16000^2 mosaic, which shows what the bound costs in task CPU.  A field
-whose maps exceed that budget is cached as 128 x 128 tiles (a window read faults in
-the tiles under it, not a file block per row); ``--no-tiles`` keeps it row-major,
-for comparison.  ``--no-clean`` turns CLEAN off in the generated config: sep's CLEAN
+whose maps exceed that budget is cached as 64 x 64 tiles, which workers read with
+positional reads (the rows of the tiles under a window; nothing mapped, nothing
+dropped); ``--mmap-tiles`` memory-maps the tiles instead (the page cache's large
+folios are then mapped whole and dropped past the budget) and ``--no-tiles`` keeps
+the cache row-major (mapped), for comparison.  A second table gives the worker's user and
+system CPU and its minor/major page faults per source.  ``--no-clean`` turns CLEAN off in the generated config: sep's CLEAN
 of the full-frame reference extraction is quadratic in the number of objects and
 takes ~30 min at 16000^2, so this is how the rest of a 16000^2 run is measured.
 """
@@ -139,6 +143,11 @@ def _child_run(opt) -> dict:
         from glaciar.engine import fieldcache
 
         fieldcache.TILED_CACHE = False
+    if opt.mmap_tiles:
+        from glaciar.engine import fieldcache
+
+        # Tiles memory-mapped (pages trimmed by the budget) instead of read with preadv.
+        fieldcache.READ_TILES = False
     out = {}
     c0 = process_cpu_seconds()
     t0 = time.perf_counter()
@@ -168,6 +177,10 @@ def _child_run(opt) -> dict:
     own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     out["main_cpu_s"] = own.ru_utime + own.ru_stime
     out["worker_cpu_s"] = kids.ru_utime + kids.ru_stime
+    # The reaped pool worker's user and system CPU and page faults (minor: a page mapped from
+    # the page cache or a fresh anonymous page; major: read from disk).
+    out["worker_user_s"], out["worker_sys_s"] = kids.ru_utime, kids.ru_stime
+    out["worker_minflt"], out["worker_majflt"] = kids.ru_minflt, kids.ru_majflt
     out["task_cpu_s"] = float(stats["cpu_seconds"])     # inside run_task + writing, all workers
     out["n_sources"] = int(stats["n_sources"])
     out["setup_s"] = float(stats["setup_seconds"])      # inputs checked, field measured, manifest
@@ -212,6 +225,9 @@ def main(argv=None):
                          "reference extraction is quadratic in the number of objects)")
     ap.add_argument("--no-tiles", action="store_true",
                     help="keep the field cache row-major on large fields (no tiles; for comparison)")
+    ap.add_argument("--mmap-tiles", action="store_true",
+                    help="memory-map the tiles (pages trimmed by the budget) instead of reading "
+                         "them with positional reads (for comparison)")
     # internal: child-process modes
     ap.add_argument("--child", choices=("build", "run"), help=argparse.SUPPRESS)
     ap.add_argument("--size", type=int, help=argparse.SUPPRESS)
@@ -259,6 +275,8 @@ def main(argv=None):
             budget = [] if opt.map_budget_mb is None else ["--map-budget-mb", str(opt.map_budget_mb)]
             if opt.no_tiles:
                 budget.append("--no-tiles")
+            if opt.mmap_tiles:
+                budget.append("--mmap-tiles")
             r = _spawn(["--child", "run", "--config", b["config"], "--out", str(sdir / "run"),
                         "--executor", "pool1", *budget, *common])
             rows.append((size, b, r))
@@ -289,6 +307,15 @@ def main(argv=None):
               "worker maps that cache and runs the tasks); task ms: CPU inside the tasks (run_task "
               "and the task file), target within 1.3x of the first size; worker RSS: peak of the pool worker, target <= 400 MB at "
               "1200^2, <= 2 GB at 16000^2; main RSS: peak of the main process)")
+        print()
+        print(f"{'side':>7s} {'worker user ms/src':>19s} {'sys ms/src':>11s} {'minor faults/src':>17s} "
+              f"{'major faults/src':>17s}")
+        for size, b, r in rows:
+            n = max(r["n_sources"], 1)
+            print(f"{size:>7d} {1e3 * r['worker_user_s'] / n:>19.3f} {1e3 * r['worker_sys_s'] / n:>11.3f} "
+                  f"{r['worker_minflt'] / n:>17.1f} {r['worker_majflt'] / n:>17.2f}")
+        print("(the pool worker: opening the field cache and every task; system time and minor "
+              "faults grow when mapped pages are dropped and faulted in again)")
 
         if not opt.no_parallel:
             size = opt.parallel_size

@@ -1,22 +1,26 @@
-"""Window reads from a memory-mapped field cache: row-major .npy vs tiles (issue 11, point 4).
+"""Window reads from a field cache: row-major map, mapped tiles, tiles read by preadv (issue 11, point 4).
 
 A task reads windows of the field's images (``base[y0:y1, x0:x1]``).  From a
-memory map, each window row faults in the file block around it (the kernel's
-64 kB fault-around), a whole row of a 16000-pixel float32 image; tiles of
-128 x 128 float32 pixels (:class:`glaciar.engine.fieldcache.TiledArray`) make
-that block a tile.  For one ``--side``^2 float32 image, written both ways into
-``--tmp`` (and read from the page cache), this prints per window size:
+memory map, a fault maps the page-cache folio around it (64 kB fault-around,
+and with large folios -- Linux 6.x -- up to 2 MB at once), a whole row of a
+16000-pixel float32 image; tiles (:class:`glaciar.engine.fieldcache.TiledArray`)
+put the pixels of a window close together in the file, and reading them with
+positional reads (``os.preadv``, what workers do) copies the rows of the tiles
+under the window and maps nothing.  For one ``--side``^2 float32 image, written
+row-major and tiled (``--tile`` px) into ``--tmp`` (and read from the page cache),
+this prints per window size and layout:
 
 * microseconds per read with the pages already mapped (``warm``) and with the
   process's pages dropped before every read (``dropped``: what a worker pays
   once its resident budget made it release the maps; the page cache keeps the
-  file, so these are minor faults);
+  file, so these are minor faults; nothing to drop for ``tiles read``);
 * the file-backed resident memory each read adds [kB] (``/proc/self/statm``, over 50 reads
   from nothing mapped).
 
 Usage::
 
-    python benchmarks/window_reads.py [--side 16000] [--windows 64,200] [--reads 2000] [--tmp DIR]
+    python benchmarks/window_reads.py [--side 16000] [--windows 64,200] [--reads 2000] [--tile 64]
+                                      [--tmp DIR]
 """
 from __future__ import annotations
 
@@ -31,7 +35,7 @@ import numpy as np
 from glaciar.engine import fieldcache
 
 
-def _write_images(directory: Path, side: int) -> tuple[Path, Path]:
+def _write_images(directory: Path, side: int, tile: int) -> tuple[Path, Path]:
     """Write a side^2 float32 image as a plain .npy and as a tiled cache, by blocks of rows."""
     rng = np.random.default_rng(1)
     plain = directory / "plain.npy"
@@ -42,7 +46,7 @@ def _write_images(directory: Path, side: int) -> tuple[Path, Path]:
     out.flush()
     del out
     img = np.load(plain, mmap_mode="r")
-    tiled = fieldcache.save({"img": fieldcache.Tiled(img)}, directory / "tiled")
+    tiled = fieldcache.save({"img": fieldcache.Tiled(img, tile)}, directory / "tiled")
     return plain, tiled
 
 
@@ -64,25 +68,31 @@ def main(argv=None):
     ap.add_argument("--side", type=int, default=16000)
     ap.add_argument("--windows", default="64,200", help="window sides [pixels]")
     ap.add_argument("--reads", type=int, default=2000)
+    ap.add_argument("--tile", type=int, default=fieldcache.TILE, help="tile side [pixels]")
     ap.add_argument("--tmp", default=None)
     opt = ap.parse_args(argv)
     root = Path(tempfile.mkdtemp(prefix="glaciar-windows-", dir=opt.tmp))
     try:
-        plain_path, tiled_path = _write_images(root, opt.side)
+        plain_path, tiled_path = _write_images(root, opt.side, opt.tile)
         rng = np.random.default_rng(2)
-        print(f"{opt.side}^2 float32 ({4 * opt.side ** 2 / 2 ** 20:.0f} MB), {opt.reads} random "
-              f"windows per figure, page cache warm")
-        print(f"{'window':>7s} {'layout':>10s} {'warm us':>9s} {'dropped us':>11s} "
+        print(f"{opt.side}^2 float32 ({4 * opt.side ** 2 / 2 ** 20:.0f} MB), {opt.tile} px tiles, "
+              f"{opt.reads} random windows per figure, page cache warm")
+        print(f"{'window':>7s} {'layout':>12s} {'warm us':>9s} {'dropped us':>11s} "
               f"{'resident kB/read':>17s}")
         for w in (int(s) for s in opt.windows.split(",")):
             windows = [(int(y), int(x), w) for y, x in
                        rng.integers(0, opt.side - w, size=(opt.reads, 2))]
-            for layout in ("row-major", "tiled"):
+            for layout in ("row-major", "tiles mapped", "tiles read"):
                 if layout == "row-major":
                     arr = np.load(plain_path, mmap_mode="r")
                     maps = (arr._mmap,)
                 else:
-                    items, maps = fieldcache.load(tiled_path)
+                    read = fieldcache.READ_TILES
+                    fieldcache.READ_TILES = layout == "tiles read"
+                    try:
+                        items, maps = fieldcache.load(tiled_path)
+                    finally:
+                        fieldcache.READ_TILES = read
                     arr = items["img"]
                 # resident growth from nothing mapped (few windows: the map does not fill
                 # up), then all windows twice (the second pass warm)
@@ -91,7 +101,7 @@ def main(argv=None):
                 _reads(arr, windows, None)
                 warm, _ = _reads(arr, windows, None)
                 dropped, _ = _reads(arr, windows, lambda: fieldcache.release(maps))
-                print(f"{w:>7d} {layout:>10s} {warm:>9.1f} {dropped:>11.1f} {kb:>17.0f}")
+                print(f"{w:>7d} {layout:>12s} {warm:>9.1f} {dropped:>11.1f} {kb:>17.0f}")
                 fieldcache.release(maps)
                 del arr, maps
     finally:

@@ -190,9 +190,15 @@ def test_tiled_context_gives_the_same_rows(small_survey, tmp_path, monkeypatch, 
                             f"tiled {mode}")
 
 
+@pytest.mark.parametrize("read", [True, False], ids=["preadv", "mapped"])
 @pytest.mark.parametrize("shape,tile", [((300, 257), 128), ((128, 128), 128), ((1, 5), 16),
-                                        ((37, 1), 8)])
-def test_tiled_array_indexes_like_the_array(tmp_path, shape, tile):
+                                        ((37, 1), 8), ((200, 333), 64), ((9, 7), 1)])
+def test_tiled_array_indexes_like_the_array(tmp_path, monkeypatch, shape, tile, read):
+    """Any tiling, read with positional reads or through a memory map, gives what plain numpy
+    indexing of the array gives (windows clipped as numpy clips them, points, rows)."""
+    if read and not hasattr(os, "preadv"):
+        pytest.skip("no os.preadv")
+    monkeypatch.setattr(fieldcache, "READ_TILES", read)
     rng = np.random.default_rng(sum(shape))
     want = rng.normal(size=shape).astype(">f4")
     path = fieldcache.save({"a": fieldcache.Tiled(want, tile), "m": fieldcache.Tiled(want > 0, tile)},
@@ -201,10 +207,12 @@ def test_tiled_array_indexes_like_the_array(tmp_path, shape, tile):
     a, m = items["a"], items["m"]
     want = want.astype(np.float32)
     assert a.shape == shape and a.dtype == np.float32 and a.ndim == 2 and len(a) == shape[0]
+    assert (a.tiles is None) == read and (not maps) == read
     np.testing.assert_array_equal(np.asarray(a), want)
     np.testing.assert_array_equal(np.asarray(m), want > 0)
-    # the tiles start at a 64 kB boundary of the file (one fault-around block per float32 tile)
-    assert a.tiles.offset % fieldcache.TILE_ALIGN == 0 and not a.tiles.flags.writeable
+    if not read:
+        # mapped: the tiles start at a 64 kB boundary of the file (page-aligned tiles)
+        assert a.tiles.offset % fieldcache.TILE_ALIGN == 0 and not a.tiles.flags.writeable
     ny, nx = shape
     for _ in range(200):
         y0, y1 = np.sort(rng.integers(-ny - 3, ny + 3, 2))
@@ -223,6 +231,57 @@ def test_tiled_array_indexes_like_the_array(tmp_path, shape, tile):
     with pytest.raises(IndexError):
         a[np.array([ny]), np.array([0])]
     fieldcache.release(maps)
+
+
+@pytest.mark.skipif(not hasattr(os, "preadv"), reason="no os.preadv")
+def test_read_tiles_survive_pickle_and_fork_and_refuse_a_truncated_file(tmp_path):
+    """A tiled array read from its file is sent to another process as its path and read by a
+    forked child through the inherited descriptor (positional reads share no offset)."""
+    import multiprocessing
+    import pickle
+
+    want = np.random.default_rng(5).normal(size=(150, 170)).astype(np.float32)
+    path = fieldcache.save({"a": fieldcache.Tiled(want, 32)}, tmp_path / "c")
+    a = fieldcache.load(path)[0]["a"]
+    b = pickle.loads(pickle.dumps(a))
+    assert b.tiles is None and b.path == a.path
+    np.testing.assert_array_equal(b[10:100, 33:160], want[10:100, 33:160])
+    ctx = multiprocessing.get_context("fork") if sys.platform.startswith("linux") else None
+    if ctx is not None:
+        a[0:5, 0:5]                                  # the parent read before the fork too
+        with ctx.Pool(1) as pool:
+            got = pool.apply(_window_sum, (a, 7, 140, 3, 150))
+        assert got == float(want[7:140, 3:150].astype(np.float64).sum())
+    name = a.path
+    with open(name, "r+b") as fh:
+        fh.truncate(os.path.getsize(name) - 4)
+    with pytest.raises(ValueError, match="truncated"):
+        fieldcache.TiledArray.open(name, (150, 170))
+
+
+def _window_sum(a, y0, y1, x0, x1):
+    return float(a[y0:y1, x0:x1].astype(np.float64).sum())
+
+
+@pytest.mark.skipif(not (sys.platform.startswith("linux") and hasattr(os, "preadv")),
+                    reason="reads /proc/self/statm; os.preadv")
+def test_window_reads_leave_nothing_resident(tmp_path, monkeypatch):
+    """Random windows of a tiled array read with positional reads add no file-backed resident
+    pages (the page cache's folios are not mapped into the process), however many are read;
+    the pixels equal numpy's."""
+    monkeypatch.setattr(fieldcache, "READ_TILES", True)
+    side = 2048
+    want = np.random.default_rng(6).normal(size=(side, side)).astype(np.float32)   # 16 MB
+    a = fieldcache.load(fieldcache.save({"a": fieldcache.Tiled(want)}, tmp_path / "c"))[0]["a"]
+    rng = np.random.default_rng(7)
+    before = fieldcache._file_resident_bytes()
+    read = 0
+    for y0, x0, h, w in zip(*rng.integers(0, side - 200, (2, 400)), *rng.integers(1, 200, (2, 400))):
+        got = a[y0:y0 + h, x0:x0 + w]
+        read += got.nbytes
+        assert np.array_equal(got, want[y0:y0 + h, x0:x0 + w])
+    grown = fieldcache._file_resident_bytes() - before
+    assert read > 8 << 20 and grown < 1 << 20, (read, grown)
 
 
 def test_spilled_build_equals_the_in_memory_one(small_survey, tmp_path, monkeypatch,

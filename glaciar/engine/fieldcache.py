@@ -1,4 +1,4 @@
-"""Field contexts on disk: measured arrays as ``.npy`` files that workers memory-map.
+"""Field contexts on disk: measured arrays as ``.npy`` files that workers map or read by window.
 
 A field's context (:class:`glaciar.engine.context.FieldContext`) holds full-frame
 arrays -- background-subtracted images and RMS maps of every band, masks, the
@@ -9,8 +9,9 @@ files plus a JSON description of how they nest (dataclasses, dicts, tuples,
 scalars); no pickle.  Workers open it (:func:`load`): arrays of at least
 :data:`MMAP_MIN_BYTES` are read-only memory maps (pages read on first touch
 and shared between processes through the page cache), smaller ones are read
-into memory.  A task reads windows of the maps, so what it costs in memory is
-the pages under its windows.
+into memory, tiled ones (below) are read by window from the file.  A task
+reads windows of the maps, so what it costs in memory is the pages under its
+windows.
 
 Mapped pages count in a process's resident set while mapped and would
 accumulate over a long run until the whole files were resident;
@@ -21,12 +22,29 @@ them, the next touch is a minor fault) once more than
 On a field whose maps exceed that budget, glaciar.run stores the images the
 engine reads by window (images, RMS maps, mask, reference segmentation) as
 square tiles (:class:`Tiled` on writing, :class:`TiledArray` on reading: a 4-d
-``.npy`` ``[ty, tx, 128, 128]`` whose data start at a 64 kB boundary).  A
-window read from a row-major map faults in at least a 64 kB file block per
-row (a whole row of a 16000-pixel float32 image; with the page cache's large
-folios often more); from tiles, the tiles under it.  Measured on a 16000^2
-float32 image with its pages dropped before each read (benchmarks/window_reads.py,
-loaded machine): 780 -> 93 us for a 64 px window, 2380 -> 225 us for 200 px.
+``.npy`` ``[ty, tx, 64, 64]``), and workers read them with positional reads
+(``os.preadv``, one per row of tiles under a window) into private memory,
+not through a memory map.  Why: the page cache holds a file in large folios
+(Linux 6.x: up to 2 MB), and a fault on a mapped file maps the whole folio
+into the process -- measured on an 8000^2 field, a task's windows (~14 per
+source, 10-150 px) made ~1 GB of maps resident, 85-550 times the bytes they
+read, so that a worker under the budget dropped its pages every ~20 sources
+and faulted them in again (1.41-1.94x the task CPU per source of a 1000^2
+field at 16000^2, much of it system time).  A positional read copies the
+bytes of the tile rows it needs: the resident set does not grow with the
+windows read, nothing is dropped, and the tile size (not the folio size) sets
+the granularity.  Task CPU per source on an 8000^2 demo field with a 192 MB
+budget (the 16000^2 pressure scaled by area; scratch harness, 20 tasks x 100
+sources, medians of 3-12 alternating rounds on a loaded machine): 1.26 ms with
+tiles read, 1.33 ms from mapped 128 px tiles the budget dropped, 0.99 ms with
+every array in memory (1000^2: 0.96 ms): what is left is the cost of ~14
+window reads per source (~10 us each against 2 us from memory).  Reads that
+miss the page cache go to disk whichever way the file is read: on an 8000^2
+cache whose pages were evicted, ~750 kB read per source and 0.6-0.8 ms of
+system CPU per source (POSIX_FADV_RANDOM made no difference); a 16000^2 run
+right after its set-up (13 GB peak on a 24 GB machine) starts that way.
+Small fields stay row-major and mapped (their pages stay resident, a plain
+slice is cheapest).
 
 :func:`spill` moves a finished array of a field being measured to an unnamed
 temporary file (memory-mapped), so that measuring a large field does not
@@ -66,12 +84,17 @@ RESIDENT_BUDGET_BYTES = 768 << 20
 #: Store the windowed images of a field larger than the resident budget as tiles
 #: (glaciar.run's field cache); False keeps every array row-major (for comparisons).
 TILED_CACHE = True
-#: Side [pixels] of the square tiles of a tiled 2-d array (:class:`TiledArray`): a float32
-#: tile is 64 kB, the kernel's fault-around block, so a window faults in the tiles under it.
-TILE = 128
-#: Tiles start at a multiple of this file offset [bytes] (the .npy header is padded to it), so
-#: that a 64 kB tile is one fault-around block, not two.
+#: Side [pixels] of the square tiles of a tiled 2-d array (:class:`TiledArray`): a window
+#: reads the rows it needs of the tiles under it (16 kB per float32 tile, 4 kB per bool one).
+#: Task CPU per source on an 8000^2 field (scratch harness, alternating rounds): 32 and 64
+#: the same within the noise, 128 ~20 % more (a window copies more bytes of wider tiles).
+TILE = 64
+#: Tiles start at a multiple of this file offset [bytes] (the .npy header is padded to it):
+#: page-aligned tiles for the memory-mapped fallback (no ``os.preadv``).
 TILE_ALIGN = 1 << 16
+#: Read tiled arrays with positional reads (:meth:`TiledArray.open`) rather than through a
+#: memory map (False, or a platform without ``os.preadv``: mapped, pages trimmed by budget).
+READ_TILES = hasattr(os, "preadv")
 #: Largest .npy header np.load is allowed to read for a tiled file (its padding included).
 _MAX_HEADER = 1 << 17
 #: Rows copied at a time [bytes] when a cache array is written (mapped pages dropped after each).
@@ -272,6 +295,8 @@ def save(items: dict, directory) -> Path:
 # --------------------------------------------------------------------------
 def _decode(node: dict, directory: Path, maps: list):
     if "tiled" in node:
+        if READ_TILES:
+            return TiledArray.open(directory / node["tiled"], tuple(node["shape"]))
         tiles = np.load(directory / node["tiled"], mmap_mode="r", allow_pickle=False,
                         max_header_size=_MAX_HEADER)
         if isinstance(tiles, np.memmap):
@@ -327,7 +352,7 @@ def exists(directory) -> bool:
 # Tiled arrays
 # --------------------------------------------------------------------------
 class TiledArray:
-    """Read-only 2-d array stored as square tiles ``tiles[ty, tx, row, col]``.
+    """Read-only 2-d array stored as square tiles ``[ty, tx, row, col]``.
 
     Indexing returns what the same index of the plain array returns (always a
     new array, never a view): ``a[y0:y1, x0:x1]`` (steps of 1, negative and
@@ -337,26 +362,71 @@ class TiledArray:
     ``np.asarray(a)`` assembles the whole frame (rare full-frame users such as
     ``mode="full"``); any other index goes through it.
 
-    Why: on a memory map of a row-major image each window row faults in a
-    64 kB block of the file, a whole row of a 16000-pixel float32 image; a tile
-    of 128 x 128 float32 pixels is one such block.
+    The tiles are a 4-d array (in memory or memory-mapped: :attr:`tiles`), or,
+    for a cache file opened with :meth:`open`, read from the file with
+    positional reads (``os.preadv``) into private memory: one read per row of
+    tiles under a window, of the rows it needs.  Why not a memory map: the
+    page cache holds a file in large folios (up to 2 MB on Linux 6.x), and a
+    fault maps the whole folio into the process, so a window of a few kB of a
+    mapped file made up to MBs resident, which the resident budget then had
+    to drop and fault in again (system time); a positional read copies the
+    bytes it asks for and leaves nothing mapped: the process's resident set
+    does not grow with the windows it reads, and no page is ever dropped.
     """
 
     __array_priority__ = 10.0
 
-    def __init__(self, tiles: np.ndarray, shape: tuple[int, int]):
-        if tiles.ndim != 4 or tiles.shape[2] != tiles.shape[3]:
-            raise ValueError(f"tiles must have shape (ty, tx, t, t), got {tiles.shape}")
+    def __init__(self, tiles: np.ndarray | None, shape: tuple[int, int], *, _file=None):
+        if _file is not None:
+            # (path, fd, data offset [bytes], 4-d shape, dtype): positional reads of the file
+            self.path, self._fd, self._offset, tshape, dtype = _file
+            weakref.finalize(self, os.close, self._fd)
+        else:
+            tshape, dtype, self._fd, self.path = tiles.shape, tiles.dtype, None, None
+        if len(tshape) != 4 or tshape[2] != tshape[3]:
+            raise ValueError(f"tiles must have shape (ty, tx, t, t), got {tuple(tshape)}")
         self.tiles = tiles
-        self.tile = int(tiles.shape[2])
+        self.tile = int(tshape[2])
+        self._ntx = int(tshape[1])
         self.shape = (int(shape[0]), int(shape[1]))
-        if tiles.shape[0] * self.tile < self.shape[0] or tiles.shape[1] * self.tile < self.shape[1]:
-            raise ValueError(f"tiles {tiles.shape} do not cover shape {self.shape}")
-        self.dtype = tiles.dtype
+        if tshape[0] * self.tile < self.shape[0] or tshape[1] * self.tile < self.shape[1]:
+            raise ValueError(f"tiles {tuple(tshape)} do not cover shape {self.shape}")
+        self.dtype = np.dtype(dtype)
         self.ndim = 2
         self.size = self.shape[0] * self.shape[1]
-        self.itemsize = tiles.dtype.itemsize
+        self.itemsize = self.dtype.itemsize
         self.nbytes = self.size * self.itemsize
+        self._row_bytes = self.tile * self.itemsize             # one row of a tile
+        self._tile_bytes = self.tile * self._row_bytes
+
+    @classmethod
+    def open(cls, path, shape: tuple[int, int]) -> "TiledArray":
+        """The tiled ``.npy`` at ``path`` (written by :func:`save`), read with positional reads.
+
+        The file stays open (read-only) until the array is garbage-collected; a
+        forked process shares the descriptor (positional reads move no file offset)."""
+        path = str(path)
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+        try:
+            with os.fdopen(os.dup(fd), "rb") as fh:
+                version = np.lib.format.read_magic(fh)
+                if version == (1, 0):
+                    tshape, fortran, dtype = np.lib.format.read_array_header_1_0(
+                        fh, max_header_size=_MAX_HEADER)
+                else:
+                    tshape, fortran, dtype = np.lib.format.read_array_header_2_0(
+                        fh, max_header_size=_MAX_HEADER)
+                offset = fh.tell()
+            if fortran or dtype.hasobject or not dtype.isnative:
+                raise ValueError(f"{path}: not a tiled field-cache array ({dtype}, "
+                                 f"fortran_order={fortran})")
+            size = os.fstat(fd).st_size
+            if offset + int(np.prod(tshape)) * dtype.itemsize > size:
+                raise ValueError(f"{path}: truncated ({size} bytes)")
+        except BaseException:
+            os.close(fd)
+            raise
+        return cls(None, shape, _file=(path, fd, offset, tuple(tshape), dtype))
 
     def __len__(self) -> int:
         return self.shape[0]
@@ -364,21 +434,61 @@ class TiledArray:
     def __repr__(self) -> str:
         return f"TiledArray(shape={self.shape}, dtype={self.dtype}, tile={self.tile})"
 
+    def __reduce__(self):
+        # A file-backed array is sent to another process as its path (reopened there).
+        if self.tiles is None:
+            return (_open_tiled, (self.path, self.shape))
+        return (TiledArray, (np.asarray(self.tiles), self.shape))
+
     def _window(self, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
-        out = np.empty((max(y1 - y0, 0), max(x1 - x0, 0)), dtype=self.dtype)
         if y1 <= y0 or x1 <= x0:
-            return out
-        t, tiles = self.tile, self.tiles
-        tx0, tx1 = x0 // t, (x1 - 1) // t + 1
-        for ty in range(y0 // t, (y1 - 1) // t + 1):
-            top = ty * t
-            r0, r1 = max(y0, top) - top, min(y1, top + t) - top
-            dst = out[top + r0 - y0:top + r1 - y0]
-            for tx in range(tx0, tx1):
-                left = tx * t
-                c0, c1 = max(x0, left) - left, min(x1, left + t) - left
-                dst[:, left + c0 - x0:left + c1 - x0] = tiles[ty, tx, r0:r1, c0:c1]
+            return np.empty((max(y1 - y0, 0), max(x1 - x0, 0)), dtype=self.dtype)
+        t = self.tile
+        ty0, tx0 = y0 // t, x0 // t
+        nty, nw = (y1 - 1) // t + 1 - ty0, (x1 - 1) // t + 1 - tx0
+        r0, c0 = y0 - ty0 * t, x0 - tx0 * t
+        if nty == 1 and nw == 1 and self.tiles is None:
+            # Inside one tile (small windows often are): its rows r0:r0 + h, in one read.
+            h = y1 - y0
+            rows = np.empty((h, t), dtype=self.dtype)
+            size = h * self._row_bytes
+            if os.preadv(self._fd, (rows,), self._offset + (ty0 * self._ntx + tx0)
+                         * self._tile_bytes + r0 * self._row_bytes) != size:
+                raise OSError(f"{self.path}: short read")
+            return rows[:, c0:c0 + x1 - x0].copy()
+        # Row of tiles by row of tiles (a whole frame never holds more than one extra row of
+        # tiles): the rows of the tiles under the window, then the window's columns of them.
+        out = np.empty((y1 - y0, x1 - x0), dtype=self.dtype)
+        w = x1 - x0
+        last = y1 - (ty0 + nty - 1) * t
+        buf = np.empty((nw, t, t), dtype=self.dtype) if self.tiles is None else None
+        for k in range(nty):
+            a, b = (r0 if k == 0 else 0), (last if k == nty - 1 else t)
+            if buf is None:
+                block = self.tiles[ty0 + k, tx0:tx0 + nw, a:b]
+            else:
+                self._read_tile_row(buf, ty0 + k, tx0, a, b)
+                block = buf[:, a:b]
+            dst = out[k * t + a - r0:k * t + b - r0]
+            if nw == 1:
+                dst[...] = block[0, :, c0:c0 + w]
+            else:
+                # (tiles, rows, cols) -> (rows, tiles x cols)
+                dst[...] = block.transpose(1, 0, 2).reshape(b - a, nw * t)[:, c0:c0 + w]
         return out
+
+    def _read_tile_row(self, buf: np.ndarray, ty: int, tx0: int, a: int, b: int) -> None:
+        """Rows ``a:b`` of the tiles ``tx0:tx0 + len(buf)`` of tile row ``ty`` into ``buf``.
+
+        One read of the file's contiguous bytes from the first tile's row ``a`` to the
+        last tile's row ``b``: the other rows of the tiles between come along (cheaper
+        than one read per tile) and are not used."""
+        row, tile_bytes = self._row_bytes, self._tile_bytes
+        lo, hi = a * row, (len(buf) - 1) * tile_bytes + b * row
+        raw = memoryview(buf).cast("B")
+        if os.preadv(self._fd, (raw[lo:hi],),
+                     self._offset + (ty * self._ntx + tx0) * tile_bytes + lo) != hi - lo:
+            raise OSError(f"{self.path}: short read")
 
     def _points(self, iy, ix) -> np.ndarray:
         iy, ix = np.broadcast_arrays(np.asarray(iy), np.asarray(ix))
@@ -388,9 +498,29 @@ class TiledArray:
         iy = np.where(iy < 0, iy + ny, iy)
         ix = np.where(ix < 0, ix + nx, ix)
         t = self.tile
-        return np.array(self.tiles[iy // t, ix // t, iy % t, ix % t])
+        if self.tiles is not None:
+            return np.array(self.tiles[iy // t, ix // t, iy % t, ix % t])
+        # element index in the file: ((ty * ntx + tx) * t + row) * t + col
+        pos = (((iy // t) * self._ntx + ix // t) * t + iy % t) * t + ix % t
+        out = np.empty(pos.shape, dtype=self.dtype)
+        if not out.size:
+            return out
+        n = self.itemsize
+        raw = memoryview(out.reshape(-1).view(np.uint8))
+        base, fd = self._offset, self._fd
+        for k, p in enumerate((pos.reshape(-1) * n).tolist()):
+            if os.preadv(fd, [raw[k * n:(k + 1) * n]], base + p) != n:
+                raise OSError(f"{self.path}: short read")
+        return out
 
     def __getitem__(self, key):
+        if type(key) is tuple and len(key) == 2:
+            ky, kx = key
+            if type(ky) is slice and type(kx) is slice and ky.step is None and kx.step is None:
+                # the common case first: a window
+                y0, y1, _ = ky.indices(self.shape[0])
+                x0, x1, _ = kx.indices(self.shape[1])
+                return self._window(y0, y1, x0, x1)
         if type(key) is not tuple:
             key = (key,)
         if len(key) == 1:
@@ -431,6 +561,10 @@ class TiledArray:
         return np.asarray(self).astype(dtype, copy=copy)
 
 
+def _open_tiled(path, shape) -> TiledArray:
+    return TiledArray.open(path, shape)
+
+
 # --------------------------------------------------------------------------
 # Resident pages
 # --------------------------------------------------------------------------
@@ -467,8 +601,10 @@ class Trimmer:
     size cannot be read, every call releases.
 
     A task on a large mosaic can touch more than the budget by itself: each
-    window row faults in a whole 64 kB block ("fault-around"), a full image row
-    at 16000 pixels of float32.  When the maps are larger than the budget,
+    fault maps a whole page-cache folio (64 kB fault-around, up to 2 MB with
+    large folios), many image rows at 16000 pixels of float32 (the tiled
+    images, read with positional reads, are not mapped and not counted).
+    When the maps are larger than the budget,
     :meth:`watch` also checks from a daemon thread every ``period`` seconds, so
     that the resident set stays bounded during a task (dropping pages under a
     reader is safe: read-only file pages are read again on the next touch).
