@@ -35,13 +35,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from _child import spawn
 
 MB = 1024.0 ** 2
 
@@ -133,10 +134,8 @@ def _child(opt) -> dict:
 
 
 def _spawn(args: list[str]) -> dict:
-    proc = subprocess.run([sys.executable, __file__, *args], capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise RuntimeError(f"child {' '.join(args)} failed:\n{proc.stderr[-3000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    """Run this script as a child with ``args``; return the JSON it prints last."""
+    return spawn(__file__, args)
 
 
 def main(argv=None):

@@ -61,11 +61,12 @@ import argparse
 import json
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from _child import spawn
 
 MB = 1024.0 ** 2
 #: Peak memory of the whole-image demo generation per pixel [bytes] (measured: 3.2 GB at 4000^2).
@@ -194,10 +195,7 @@ def _child_run(opt) -> dict:
 
 def _spawn(args: list[str]) -> dict:
     """Run this script as a child with ``args``; return the JSON it prints last."""
-    proc = subprocess.run([sys.executable, __file__, *args], capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise RuntimeError(f"child {' '.join(args)} failed:\n{proc.stderr[-3000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    return spawn(__file__, args)
 
 
 # --------------------------------------------------------------------------
@@ -250,6 +248,8 @@ def main(argv=None):
     print(f"glaciar scaling: demo survey (4 bands{', CLEAN off' if opt.no_clean else ''}), {opt.tasks} tasks x {opt.n} sources at "
           f"z = {opt.z:g}, m = {opt.mag:g}; load average at start {load[0]:.1f} "
           f"on {os.cpu_count()} CPUs")
+    if opt.tmp is not None:
+        os.makedirs(opt.tmp, exist_ok=True)
     tmp_root = tempfile.mkdtemp(prefix="glaciar-scaling-", dir=opt.tmp)
     try:
         rows = []

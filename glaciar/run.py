@@ -478,8 +478,8 @@ def _cache_items(ctx: FieldContext) -> dict:
     When the field's mapped arrays exceed a worker's resident budget
     (:data:`glaciar.engine.fieldcache.RESIDENT_BUDGET_BYTES`: their pages will be
     dropped and faulted in again during the run), the images the engine reads by
-    window (images, RMS maps, mask, reference segmentation) are stored as tiles: a window then faults
-    in the tiles under it rather than a file block per row (benchmarks/window_reads.py).
+    window (images, RMS maps, mask, reference segmentation) are stored as tiles: a window then
+    reads the tiles under it with positional reads, nothing mapped (benchmarks/window_reads.py).
     Smaller fields stay row-major (their pages stay resident, a plain slice is cheapest).
     """
     items = ctx.measured()
