@@ -15,6 +15,8 @@ from glaciar.engine import segmentation as sg
 from glaciar.engine.detect import SEP_OBJ_MERGED, DetectionParams, _sep_extract, detection_rms, sanitize
 from glaciar.engine.measure import reference_extraction
 
+from toy_images import exponential_galaxy
+
 N = 300
 
 
@@ -25,11 +27,8 @@ def _field(seed):
     yy, xx = np.mgrid[:N, :N]
     img = np.zeros((N, N))
 
-    def galaxy(x0, y0, flux, r, q=1.0, pa=0.0):
-        dx, dy = xx - x0, yy - y0
-        u = dx * np.cos(pa) + dy * np.sin(pa)
-        v = (-dx * np.sin(pa) + dy * np.cos(pa)) / q
-        return flux * np.exp(-np.hypot(u, v) / r) / (2 * np.pi * r * r * q)
+    def galaxy(*args):
+        return exponential_galaxy(xx, yy, *args)
 
     for x0, y0, f, r in [(80, 80, 3000, 5.0), (220, 100, 1500, 4.0), (100, 220, 2500, 6.0), (230, 230, 800, 3.0)]:
         img += galaxy(x0, y0, f, r)

@@ -37,6 +37,8 @@ from glaciar.engine.detect import DetectionParams, builtin_filter
 from glaciar.engine.measure import measure_injected, reference_extraction
 from glaciar.engine.scene import Scene
 
+from toy_images import exponential_galaxy
+
 N = 360
 MIN_SN = 8.0
 
@@ -47,11 +49,8 @@ def _field(seed=3, streak=True):
     yy, xx = np.mgrid[:N, :N]
     img = np.zeros((N, N))
 
-    def galaxy(x0, y0, flux, r, q=1.0, pa=0.0):
-        dx, dy = xx - x0, yy - y0
-        u = dx * np.cos(pa) + dy * np.sin(pa)
-        v = (-dx * np.sin(pa) + dy * np.cos(pa)) / q
-        return flux * np.exp(-np.hypot(u, v) / r) / (2 * np.pi * r * r * q)
+    def galaxy(*args):
+        return exponential_galaxy(xx, yy, *args)
 
     bright = [(90, 90, 3000, 5.0), (250, 110, 1500, 4.0), (110, 260, 2500, 6.0), (280, 280, 800, 3.0)]
     for x0, y0, f, r in bright:

@@ -41,11 +41,16 @@ def test_capped_tiled_distance_is_the_capped_whole_image_one(rows):
         assert d[y, x] == min(brute, 13.2)
 
 
-def test_empty_aperture_scatter_unchanged_by_the_capped_map():
+def _sky_field():
+    """A noise image, unit RMS and a usable-sky mask with holes, for the empty apertures."""
     rng = np.random.default_rng(3)
     usable = _mask((120, 110), seed=2)
     img = rng.standard_normal(usable.shape).astype(np.float32)
-    rms = np.full(usable.shape, 1.0, np.float32)
+    return img, np.full(usable.shape, 1.0, np.float32), usable
+
+
+def test_empty_aperture_scatter_unchanged_by_the_capped_map():
+    img, rms, usable = _sky_field()
     radii = DEFAULT_EMPTY_APERTURE_RADII_PIX
     uncapped = empty_sky_distance(usable)
     capped = empty_sky_distance(usable, cap=distance_cap(radii), tile_rows=7)
@@ -263,10 +268,7 @@ def test_empty_sky_centres_are_the_whole_image_distance_comparisons(rows):
 def test_empty_aperture_scatter_with_empty_sky_centres_is_unchanged():
     from glaciar.engine.noise import empty_sky
 
-    rng = np.random.default_rng(3)
-    usable = _mask((120, 110), seed=2)
-    img = rng.standard_normal(usable.shape).astype(np.float32)
-    rms = np.full(usable.shape, 1.0, np.float32)
+    img, rms, usable = _sky_field()
     radii = DEFAULT_EMPTY_APERTURE_RADII_PIX
     want = empty_aperture_scatter(img, rms, usable, radii, 150, np.random.default_rng(5),
                                   distance=empty_sky_distance(usable))
