@@ -30,6 +30,7 @@ from .config import Config, check_files, config_from_dict, config_hash, config_t
 from .engine.detect import (DetectionParams, background_model, builtin_filter, read_conv_file,
                             release_mapped, sanitize)
 from .engine.measure import reference_extraction
+from .engine.blocks import row_blocks
 from .engine.classify import ClassificationParams
 from .engine.coadd import coadd
 from .engine import fieldcache
@@ -101,7 +102,7 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
     noise = survey.rms(field, band, cache=False)
     # nodata = ~(footprint & finite image & finite, positive noise), by blocks of rows.
     nodata = np.empty(img.shape, dtype=bool)
-    for y0, y1 in _row_blocks(img.shape):
+    for y0, y1, _, _ in row_blocks(img.shape, ROW_BLOCK_PIXELS):
         ok = np.asarray(footprint[y0:y1], dtype=bool) & np.isfinite(img[y0:y1])
         if noise is not None:
             nz = noise[y0:y1]
@@ -232,7 +233,7 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
     sources = sky["sources"]
     usable = np.empty(sources.shape, dtype=bool)
     same = "usable" in sky
-    for y0, y1 in _row_blocks(usable.shape):
+    for y0, y1, _, _ in row_blocks(usable.shape, ROW_BLOCK_PIXELS):
         np.isfinite(rms[y0:y1], out=usable[y0:y1])
         usable[y0:y1] &= ~sources[y0:y1]
         same = same and np.array_equal(sky["usable"][y0:y1], usable[y0:y1])
@@ -253,16 +254,8 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
     return CorrelatedNoise.fit(npix, ratio, n)
 
 
-#: Pixels per block of the set-up's elementwise full-frame work (:func:`_row_blocks`).
+#: Pixels per block of the set-up's elementwise full-frame work (:func:`~glaciar.engine.blocks.row_blocks`).
 ROW_BLOCK_PIXELS = 1 << 22
-
-
-def _row_blocks(shape):
-    """(y0, y1): the rows of an image of ``shape`` by blocks of ~:data:`ROW_BLOCK_PIXELS` pixels."""
-    ny, nx = shape
-    rows = max(1, ROW_BLOCK_PIXELS // max(nx, 1))
-    for y0 in range(0, ny, rows):
-        yield y0, min(y0 + rows, ny)
 
 
 def field_noise_record(cfg: Config, survey: Survey, field: str,

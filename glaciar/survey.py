@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import BandConfig, Config
+from .engine.blocks import row_blocks
 
 __all__ = ["Survey", "clear_cache", "set_cache_limit", "selection_bands"]
 
@@ -149,9 +150,7 @@ def _row_blocks(path: Path):
         compressed = getattr(getattr(hdul, "_file", None), "compression", None) or \
             Path(path).suffix.lower() in (".gz", ".bz2", ".zip")
         source = hdu.data if compressed else hdu.section
-        rows = max(1, ROW_BLOCK_PIXELS // max(nx, 1))
-        for y0 in range(0, ny, rows):
-            y1 = min(y0 + rows, ny)
+        for y0, y1, _, _ in row_blocks((ny, nx), ROW_BLOCK_PIXELS):
             block = np.asarray(source[lead + (slice(y0, y1), slice(None))])
             yield y0, y1, np.array(block.reshape(y1 - y0, nx),
                                    dtype=_native_float_dtype(block.dtype), order="C")

@@ -71,6 +71,7 @@ def coadd(images: Sequence[np.ndarray], rms: Sequence[np.ndarray], method: str =
         the resident pages of memory-mapped inputs (a field's spilled bands) are
         dropped block by block.
     """
+    from glaciar.engine.blocks import row_blocks
     from glaciar.engine.detect import release_mapped
 
     if method not in COADD_METHODS:
@@ -81,11 +82,9 @@ def coadd(images: Sequence[np.ndarray], rms: Sequence[np.ndarray], method: str =
     if len(shape) != 2 or shape[0] * shape[1] <= COADD_BLOCK_PIXELS:
         out, err = _coadd(images, rms, method)
         return out.astype(dtype, copy=False), err.astype(dtype, copy=False)
-    ny, nx = shape
     out, err = np.empty(shape, dtype=dtype), np.empty(shape, dtype=dtype)
-    rows = max(1, COADD_BLOCK_PIXELS // nx)
-    for y0 in range(0, ny, rows):
-        sl = slice(y0, min(y0 + rows, ny))
+    for y0, y1, _, _ in row_blocks(shape, COADD_BLOCK_PIXELS):
+        sl = slice(y0, y1)
         out[sl], err[sl] = _coadd([im[sl] for im in images], [r[sl] for r in rms], method)
         release_mapped(*images, *rms)
     return out, err

@@ -27,6 +27,7 @@ import math
 import numpy as np
 
 from .. import constants as C
+from .blocks import row_blocks
 from .classify import input_pixel
 
 __all__ = ["disk_pixel_weights", "local_depth_map", "depth_area_histogram", "depth_at"]
@@ -132,15 +133,9 @@ def local_depth_map(rms, valid, zeropoint: float, aperture_radius_pix: float,
         raise ValueError(f"need nsigma > 0 and a finite zeropoint, got {nsigma!r}, {zeropoint!r}")
     w = disk_pixel_weights(aperture_radius_pix)
     h = w.shape[0] // 2
-    ny, nx = rms_in.shape
-    rows = max(1, DEPTH_TILE_PIXELS // max(nx, 1)) if tile_rows is None else int(tile_rows)
-    if rows < 1:
-        raise ValueError(f"tile_rows must be >= 1, got {tile_rows!r}")
-    depth = np.full((ny, nx), np.nan, dtype=np.float32)
+    depth = np.full(rms_in.shape, np.nan, dtype=np.float32)
     w_sum, n_bad = w.sum(), 0
-    for y0 in range(0, ny, rows):
-        y1 = min(y0 + rows, ny)
-        a, b = max(y0 - h, 0), min(y1 + h, ny)
+    for y0, y1, a, b in row_blocks(rms_in.shape, DEPTH_TILE_PIXELS, h, rows=tile_rows):
         r = np.asarray(rms_in[a:b], dtype=np.float64)
         ok = np.isfinite(r) & (r > 0)
         v = ok if valid_in is None else np.asarray(valid_in[a:b], dtype=bool)

@@ -25,6 +25,8 @@ from importlib import resources
 import numpy as np
 import sep
 
+from glaciar.engine.blocks import row_blocks
+
 __all__ = [
     "DetectionError", "DetectionParams", "builtin_filter", "builtin_filter_names",
     "read_conv_file", "measure_background", "background_model", "extract", "sanitize", "detection_rms",
@@ -414,9 +416,7 @@ def _blocks(shape):
     """Slices of the first axis covering about :data:`SANITIZE_BLOCK_PIXELS` pixels each."""
     if len(shape) < 2:
         return [slice(None)]
-    n = shape[0]
-    rows = max(1, SANITIZE_BLOCK_PIXELS // max(int(np.prod(shape[1:])), 1))
-    return [slice(y0, min(y0 + rows, n)) for y0 in range(0, n, rows)]
+    return [slice(y0, y1) for y0, y1, _, _ in row_blocks(shape, SANITIZE_BLOCK_PIXELS)]
 
 
 def sanitize(image, err=None, mask=None):

@@ -25,6 +25,7 @@ from scipy import ndimage
 
 from glaciar.constants import COL_FLAGS, FLAG_SATURATED, FLAG_SEP_ERROR, STATUS_NOT_DETECTED, band_column
 from glaciar.engine import clean as _clean
+from glaciar.engine.blocks import row_blocks
 from glaciar.engine import localclean as _lc
 from glaciar.engine import photometry as phot
 from glaciar.engine.classify import ClassificationParams, classify, footprint_overlap, select_detection
@@ -165,11 +166,7 @@ REFERENCE_TILE_PIXELS = 1 << 22
 def _row_tiles(shape, halo: int):
     """(y0, y1, a, b): row tiles [y0, y1) of ``REFERENCE_TILE_PIXELS`` and their rows [a, b)
     with ``halo`` more rows on each side inside the image."""
-    ny, nx = shape
-    rows = max(1, REFERENCE_TILE_PIXELS // max(nx, 1))
-    for y0 in range(0, ny, rows):
-        y1 = min(y0 + rows, ny)
-        yield y0, y1, max(y0 - halo, 0), min(y1 + halo, ny)
+    return row_blocks(shape, REFERENCE_TILE_PIXELS, halo)
 
 
 def _reference_boxes(data, err, nodata, seg, geo, a, b, th, scale, params):

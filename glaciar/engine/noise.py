@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from glaciar.engine.blocks import row_blocks
+
 __all__ = ["weight_rescale_factor", "empty_aperture_scatter", "empty_sky_distance", "distance_cap",
            "empty_sky", "EmptySky", "source_margin", "CorrelatedNoise",
            "DEFAULT_EMPTY_APERTURE_RADII_PIX", "MIN_EMPTY_APERTURES"]
@@ -136,23 +138,13 @@ def empty_sky_distance(usable: np.ndarray, cap: float | None = None,
     return out
 
 
-def _tile_rows(nx: int, tile_rows: int | None) -> int:
-    rows = max(1, DISTANCE_TILE_PIXELS // max(nx, 1)) if tile_rows is None else int(tile_rows)
-    if rows < 1:
-        raise ValueError(f"tile_rows must be >= 1, got {tile_rows!r}")
-    return rows
-
-
 def _capped_distance_tiles(usable: np.ndarray, cap: float, tile_rows: int | None):
     """``(y0, y1, d)``: :func:`empty_sky_distance` with ``cap``, rows [y0, y1) at a time."""
     if not float(cap) > 0:
         raise ValueError(f"distance cap must be > 0 pixels, got {cap!r}")
-    ny, nx = usable.shape
-    rows = _tile_rows(nx, tile_rows)
+    ny = usable.shape[0]
     halo = int(np.ceil(float(cap))) + 1
-    for y0 in range(0, ny, rows):
-        y1 = min(y0 + rows, ny)
-        a, b = max(y0 - halo, 0), min(y1 + halo, ny)
+    for y0, y1, a, b in row_blocks(usable.shape, DISTANCE_TILE_PIXELS, halo, rows=tile_rows):
         # Unusable border only where the tile meets the image's edge (and at both sides).
         top, bottom = int(a == 0), int(b == ny)
         d = ndimage.distance_transform_edt(np.pad(usable[a:b], ((top, bottom), (1, 1))))
@@ -244,12 +236,8 @@ def source_margin(segmap: np.ndarray, margin: int, tile_rows: int | None = None)
 
     if int(margin) < 1:
         raise ValueError(f"margin must be >= 1 pixel, got {margin!r}")
-    ny, nx = segmap.shape
-    rows = _tile_rows(nx, tile_rows)
-    out = np.empty((ny, nx), dtype=bool)
-    for y0 in range(0, ny, rows):
-        y1 = min(y0 + rows, ny)
-        a, b = max(y0 - margin, 0), min(y1 + margin, ny)
+    out = np.empty(segmap.shape, dtype=bool)
+    for y0, y1, a, b in row_blocks(segmap.shape, DISTANCE_TILE_PIXELS, int(margin), rows=tile_rows):
         grown = ndimage.binary_dilation(np.asarray(segmap[a:b]) > 0, iterations=int(margin))
         out[y0:y1] = grown[y0 - a:y1 - a]
         release_mapped(segmap)          # a spilled segmentation's pages, read once
@@ -393,17 +381,15 @@ def _gather(a: np.ndarray, flat: np.ndarray) -> np.ndarray:
     """
     from glaciar.engine.detect import release_mapped
 
-    ny, nx = a.shape
+    nx = a.shape[1]
     idx = flat.reshape(-1)
     order = np.argsort(idx, kind="stable")
     srt = idx[order]
     out = np.empty(idx.size, dtype=a.dtype)
-    rows = max(1, DISTANCE_TILE_PIXELS // max(nx, 1))
-    cuts = np.searchsorted(srt, np.arange(0, ny + rows, rows, dtype=np.int64) * nx)
-    for k, y0 in enumerate(range(0, ny, rows)):
-        lo, hi = cuts[k], cuts[k + 1]
+    for y0, y1, _, _ in row_blocks(a.shape, DISTANCE_TILE_PIXELS):
+        lo, hi = np.searchsorted(srt, (y0 * nx, y1 * nx))
         if hi > lo:
-            block = a[y0:min(y0 + rows, ny)].reshape(-1)         # a view: only the pixels read
+            block = a[y0:y1].reshape(-1)                          # a view: only the pixels read
             out[order[lo:hi]] = block[srt[lo:hi] - y0 * nx]
             release_mapped(a)
     return out.reshape(flat.shape)
