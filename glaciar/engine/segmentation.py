@@ -462,6 +462,15 @@ def _sep_threshold(err, nodata, y0, params: DetectionParams):
     return cl.threshold_map(err, nd, params.detect_thresh)
 
 
+def _tile_as_sep(data, err, nodata, ya, yb, params: DetectionParams):
+    """Rows ``[ya, yb)`` of the image (float32), filtered and thresholded as sep does them
+    (rows within the filter's half-height of ``ya`` or ``yb`` are right only if those are
+    the image's edges: the caller reads a halo)."""
+    d = np.asarray(data[ya:yb], dtype=np.float32)
+    filt = d if params.filter_kernel is None else cl.sep_filter(d, params.filter_kernel)
+    return d, filt, _sep_threshold(err[ya:yb], nodata[ya:yb], ya, params)
+
+
 def _tiled_light_objects(data, err, nodata, seg, cat, params: DetectionParams):
     """:func:`glaciar.engine.clean.light_objects` of a full image's objects, by row tiles.
 
@@ -488,9 +497,7 @@ def _tiled_light_objects(data, err, nodata, seg, cat, params: DetectionParams):
         if not on.any():
             continue
         li = lab[on] - 1
-        d = np.asarray(data[ya:yb], dtype=np.float32)
-        filt = d if params.filter_kernel is None else cl.sep_filter(d, params.filter_kernel)
-        thr = _sep_threshold(err[ya:yb], nodata[ya:yb], ya, params)
+        d, filt, thr = _tile_as_sep(data, err, nodata, ya, yb, params)
         r = slice(y0 - ya, y1 - ya)
         t_on = thr[r][on]
         tp = (filt[r][on] - t_on).astype(np.float32)
@@ -590,9 +597,7 @@ def _object_mthresh(idx, n_objects, data, err, nodata, seg, params: DetectionPar
         sel = np.flatnonzero(need[lab])
         if sel.size == 0:
             continue
-        d = np.asarray(data[ya:yb], dtype=np.float32)
-        filt = d if params.filter_kernel is None else cl.sep_filter(d, params.filter_kernel)
-        thr = _sep_threshold(err[ya:yb], nodata[ya:yb], ya, params)
+        _, filt, thr = _tile_as_sep(data, err, nodata, ya, yb, params)
         r = slice(y0 - ya, y1 - ya)
         tps.append((filt[r].ravel()[sel] - thr[r].ravel()[sel]).astype(np.float32))
         flats.append(sel + y0 * W)
