@@ -96,13 +96,23 @@ def band_column(quantity: str, band: str) -> str:
     ``flux_aper{k}``, ``fluxerr_aper{k}``, ``mag`` (measured, from the S/N
     flux definition; NaN when the flux is not positive), ``magerr``, ``sn``,
     ``maglim`` (magnitude of max(flux, 1 sigma error): the usual 1-sigma limit
-    for non-detections, so a colour cut never passes on a NaN or 99 magnitude).
+    for non-detections, so a colour cut never passes on a NaN or 99 magnitude),
+    ``mag_auto``/``magerr_auto`` (the total magnitude: Kron/AUTO flux, see
+    ``OBS_MAG_QUANTITY``).
     """
     return f"{quantity}_{band.lower()}"
 
 
 BAND_QUANTITIES = ("mag_in", "mag_in_stamp", "flux_in", "flux_iso", "fluxerr_iso",
-                   "flux_auto", "fluxerr_auto", "mag", "magerr", "sn", "maglim")
+                   "flux_auto", "fluxerr_auto", "mag", "magerr", "sn", "maglim", "mag_auto",
+                   "magerr_auto")
+
+#: The observed magnitude of the luminosity function: the detection band's total magnitude,
+#: from the Kron (AUTO) flux (k = PHOT_AUTOPARAMS, ~94 % of a galaxy's light for SExtractor's
+#: 2.5: closer to the total than the ISO magnitude, whose isophote loses 0.1-0.2 mag at the
+#: faint end).  Recorded for injections and catalogue alike; the transfer function
+#: p(m_obs | m_in, z) and ``glaciar lf`` use it (``band_column(OBS_MAG_QUANTITY, band)``).
+OBS_MAG_QUANTITY = "mag_auto"
 
 # --------------------------------------------------------------------------
 # Results store layout (relative to the run directory)

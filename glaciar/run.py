@@ -696,7 +696,7 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
             mag_column = C.COL_M_UV if ctx.magnitude_type == "absolute" else C.COL_MAG_INPUT
             # And the histograms of the measured detection-band magnitude (transfer matrices).
             write_task_table(run_dir, name, table, key=spec_key(spec), mag_column=mag_column,
-                             obs_column=C.band_column("mag", ctx.detection_band))
+                             obs_column=C.band_column(C.OBS_MAG_QUANTITY, ctx.detection_band))
             done.append((name, len(table), time.process_time() - t0))
     finally:
         if ctx is not None:

@@ -125,7 +125,7 @@ def test_glaciar_fit_products_from_a_run(small_run):
     assert sf.sed.beta_mean == cfg.source.beta_mean and sf.sed.igm == cfg.source.igm
     assert sf.sed.detection_filter.name.endswith(cfg.survey.detection_band.lower())
     tm = sf.transfer_matrix
-    det = C.band_column("mag", cfg.survey.detection_band)
+    det = C.band_column(C.OBS_MAG_QUANTITY, cfg.survey.detection_band)
     for k, flag in enumerate((C.COL_RECOVERED, C.COL_SELECTED)):
         for i, zi in enumerate(sorted(rows[C.COL_Z].unique())):
             for j, mj in enumerate(sorted(rows[C.COL_MAG_INPUT].round(6).unique())):

@@ -17,7 +17,7 @@ from glaciar.store import (COMPACT_DIRNAME, StoreWarning, compact, read_current_
 from glaciar.tables import (MOBS_BIN_BRIGHT, MOBS_BIN_FAINT, mobs_lattice_index,
                             transfer_from_histograms, transfer_matrix)
 
-OBS = C.band_column("mag", "f160w")
+OBS = C.band_column(C.OBS_MAG_QUANTITY, "f160w")
 FIELDS = ("a", "b")
 ZS = (7.0, 8.0)
 MAGS = (25.0, 26.5)

@@ -36,7 +36,8 @@ from glaciar.engine.windows import (Canvas, MeasureContext, ObjectBoxes, Segment
                                     ellipse_half_extent, safe_shape, segment_full, segment_windowed,
                                     window_groups)
 
-__all__ = ["FieldReference", "reference_extraction", "measure_injected", "output_columns"]
+__all__ = ["FieldReference", "reference_extraction", "measure_injected", "output_columns",
+           "total_magnitudes"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -249,7 +250,7 @@ def output_columns(bands, n_apertures: int) -> list[str]:
         q = ["flux_iso", "fluxerr_iso", "flux_auto", "fluxerr_auto"]
         for k in range(n_apertures):
             q += [f"flux_aper{k}", f"fluxerr_aper{k}"]
-        q += ["mag", "magerr", "sn", "maglim"]
+        q += ["mag", "magerr", "sn", "maglim", "mag_auto", "magerr_auto"]
         cols += [band_column(x, b) for x in q]
     return cols
 
@@ -393,9 +394,23 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         last, rounds = segment_full(ctx, _finish), 1
     else:
         last, rounds = segment_windowed(ctx, _finish, early_exit=early_exit)
+    total_magnitudes(out, bands, zeropoints)
     if diagnostics is not None:
         diagnostics.update(window=np.array(last, copy=True), rounds=rounds)
     return out
+
+
+def total_magnitudes(out: dict, bands, zeropoints: Mapping[str, float]) -> None:
+    """Fill ``mag_auto_<band>`` and ``magerr_auto_<band>`` of ``out`` from its AUTO fluxes.
+
+    The total magnitude of a detection (``OBS_MAG_QUANTITY``): every backend and the
+    catalogue get it from the same flux columns (NaN where the flux is not positive).
+    """
+    for band in bands:
+        mag, magerr, _ = phot.magnitudes(out[band_column("flux_auto", band)],
+                                         out[band_column("fluxerr_auto", band)], zeropoints[band])
+        out[band_column("mag_auto", band)] = mag
+        out[band_column("magerr_auto", band)] = magerr
 
 
 def _measure_product(ctx, prod):

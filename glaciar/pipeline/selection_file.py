@@ -425,7 +425,7 @@ def add_lf_products(run_dir, manifest: dict, fits_list: list[SelectionFunction],
 
     sed = injection_sed(run_dir, manifest)
     det = manifest.get("detection_band")
-    obs_col = C.band_column("mag", det) if det else None
+    obs_col = C.band_column(C.OBS_MAG_QUANTITY, det) if det else None
     transfer = _transfer_source(run_dir, obs_col)
     listed = [str(f) for f in (manifest.get("fields") or [])]
     for i, sf in enumerate(fits_list):
