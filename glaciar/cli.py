@@ -1,4 +1,4 @@
-"""The ``glaciar`` command: demo, init, simulate, report, fit, next.
+"""The ``glaciar`` command: demo, init, simulate, report, fit, next, catalog, lf.
 
 Every sub-command turns expected failures (bad config, missing file, mismatched
 store, bad option value) into a one-line message on stderr and exit status 2
@@ -270,6 +270,18 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def _cmd_catalog(args) -> int:
+    from .pipeline.catalog import default_out, run_catalog
+
+    out = args.out if args.out is not None else default_out(args.source)
+    table = run_catalog(args.source, out, regions=args.regions, progress=not args.quiet)
+    n_sel = int(table[C.COL_SELECTED].sum()) if len(table) else 0
+    print(f"{len(table)} detections, {n_sel} selected; wrote {out}")
+    if args.regions:
+        print(f"wrote {Path(out).with_suffix('.reg')}")
+    return 0
+
+
 def _finite_positive(text):
     """argparse type: a finite number > 0."""
     try:
@@ -395,6 +407,18 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--write", default=None, metavar="CELLS_YAML",
                    help="write the proposal as a cells file for `glaciar simulate --cells`")
     s.set_defaults(func=_cmd_next)
+
+    s = sub.add_parser("catalog", help="detect, measure and select on the survey's own images "
+                                       "with the run's settings (the candidates an LF counts)")
+    s.add_argument("source", metavar="CONFIG_OR_RUN",
+                   help="a configuration file, or a run directory (its settings and field caches)")
+    s.add_argument("--out", default=None,
+                   help="output file: .parquet (default), .ecsv or .fits (default: RUN/catalog.parquet, "
+                        "or <config stem>_catalog.parquet beside the configuration)")
+    s.add_argument("--regions", action="store_true",
+                   help="also write a DS9 region file of the selected candidates (<out stem>.reg)")
+    s.add_argument("--quiet", action="store_true")
+    s.set_defaults(func=_cmd_catalog)
     return p
 
 

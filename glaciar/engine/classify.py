@@ -65,7 +65,8 @@ import numpy as np
 from glaciar.constants import (STATUS_BLENDED_FAILED, STATUS_BLENDED_FAINTER, STATUS_BLENDED_PASSED,
                                STATUS_ISOLATED, STATUS_LOW_SN, STATUS_NOT_DETECTED)
 
-__all__ = ["ClassificationParams", "select_detection", "footprint_overlap", "flux_test", "classify"]
+__all__ = ["ClassificationParams", "select_detection", "footprint_overlap", "flux_test", "classify",
+           "passes_sn"]
 
 
 @dataclass(frozen=True)
@@ -280,6 +281,13 @@ def flux_test(recovered_flux, template_flux, tolerance):
         return (tpl > 0) & (np.abs(frec - tpl) <= tolerance * tpl)
 
 
+def passes_sn(sn, min_sn: float) -> np.ndarray:
+    """True where a detection's S/N reaches ``min_sn`` (NaN never does): the S/N part of
+    "recovered", for injections (status -2 otherwise) and catalogue rows alike."""
+    with np.errstate(invalid="ignore"):
+        return np.asarray(sn, dtype=np.float64) >= float(min_sn)
+
+
 def classify(labels, sn, n_footprint, n_overlap, blend_mag, input_mag,
              recovered_flux, template_flux, params: ClassificationParams):
     """Recovery status of each injected source (vectorised, pure).
@@ -322,7 +330,7 @@ def classify(labels, sn, n_footprint, n_overlap, blend_mag, input_mag,
     imag = np.asarray(input_mag, dtype=np.float64)
     status = np.full(labels.shape, STATUS_NOT_DETECTED, dtype=np.int8)
     det = labels > 0
-    low = det & ~(sn >= params.min_sn)
+    low = det & ~passes_sn(sn, params.min_sn)
     status[low] = STATUS_LOW_SN
     good = det & ~low
     isolated = good & (n_ov == 0)

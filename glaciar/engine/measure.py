@@ -297,7 +297,9 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         If given, filled with ``"window"``: (N, 4) int array, the last
         window of each source (y0, y1, x0, x1, image pixels; the whole image
         in ``full`` mode), and ``"rounds"``: number of extraction rounds
-        (benchmarks; no effect on the results).
+        (benchmarks; no effect on the results); in ``full`` mode also
+        ``"segmap"``: the extraction's segmentation of the whole image (labels
+        are ``detection_id``).
     input_templates : sequence of length N, optional
         Per source, its injected detection-band stamp ``(y0, x0, data, flux)``
         (pixels ``data * flux`` [image units] at image row/column y0, x0) or
@@ -391,7 +393,16 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         _measure_product(ctx, prod)
         last, rounds = np.repeat(np.array([[0, ny, 0, nx]]), n, axis=0), 1
     elif mode == "full":
-        last, rounds = segment_full(ctx, _finish), 1
+        finish = _finish
+        if diagnostics is not None:
+            def finish(c, batch):
+                # The final full-frame segmentation (the canvas is the whole image): what
+                # glaciar.engine.catalog reads the detections from.
+                cv = batch.canvas
+                oy, ox = int(cv.oy[0]), int(cv.ox[0])
+                diagnostics["segmap"] = np.asarray(batch.seg)[oy:oy + ny, ox:ox + nx]
+                _finish(c, batch)
+        last, rounds = segment_full(ctx, finish), 1
     else:
         last, rounds = segment_windowed(ctx, _finish, early_exit=early_exit)
     total_magnitudes(out, bands, zeropoints)

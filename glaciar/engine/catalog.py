@@ -1,0 +1,175 @@
+"""The survey's own detections, measured and selected exactly as the injected sources are.
+
+A luminosity function counts the candidates of the survey's images; the selection
+function says which galaxies that *same* measurement misses.  Both must therefore come
+from one field measurement (background, RMS and noise maps, correlated-noise model,
+masks) and one code path: :func:`measure_catalog` runs :func:`glaciar.engine.measure
+.measure_injected` on the field's images with nothing injected (or with given stamps),
+in full-frame mode, with one input position inside every segment of the extraction, so
+every detection gets the row an injected source gets when it selects that detection:
+the same ISO, aperture and AUTO photometry in every band, the same errors (correlated
+noise included), magnitudes, S/N, ``maglim`` and flags.  A real detection has no input
+to be blended with, so the classification columns of injections (status, overlap,
+template flux) have no meaning here; "recovered" is its S/N part (``min_sn``,
+:func:`~glaciar.engine.classify.passes_sn`) and ``selected`` is recovered, inside the
+footprint the selection function's area counts, and passing the selection.
+"""
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+import pandas as pd
+
+from .. import constants as C
+from .classify import passes_sn
+from .coadd import CoaddScene
+from .depth import depth_at
+from .measure import measure_injected, output_columns
+from .scene import Scene
+
+__all__ = ["measure_catalog", "segment_pixels", "CATALOG_ID", "CATALOG_IN_FOOTPRINT",
+           "CATALOG_RECOVERED", "INJECTION_ONLY_COLUMNS"]
+
+#: Column names of the catalogue beyond the per-source columns of injections.
+CATALOG_ID = "id"                      #: label of the detection in the field's segmentation
+CATALOG_IN_FOOTPRINT = "in_footprint"  #: centre pixel inside the area the selection function counts
+CATALOG_RECOVERED = C.COL_RECOVERED    #: S/N (sn_definition) >= min_sn
+#: Columns of :func:`measure_injected` that describe an injected source's classification
+#: against the original image: left out of a catalogue.
+#: Full-frame extractions :func:`measure_catalog` may take to reach a segmentation in which
+#: every segment holds an input position (3 on the demo field).
+MAX_CATALOG_PASSES = 6
+INJECTION_ONLY_COLUMNS = ("status", "detection_id", "overlap_fraction", "blend_original_id",
+                          "blend_original_mag", "flux_auto_template", "x_det", "y_det")
+
+
+def segment_pixels(segmap: np.ndarray, labels=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One pixel of every segment: the first in row-major order.
+
+    Parameters
+    ----------
+    segmap : ndarray of int, shape (ny, nx)
+        Segmentation (0 = background).
+    labels : array_like of int, optional
+        Only these labels (default: every label present).
+
+    Returns
+    -------
+    x, y : ndarray of float
+        Pixel centres (0-based; x along axis 1).  Any pixel of a segment selects it
+        (:func:`~glaciar.engine.classify.select_detection`: the central pixel's segment wins).
+    label : ndarray of int64
+    """
+    flat = np.asarray(segmap).ravel()
+    nz = np.flatnonzero(flat)
+    lab, first = np.unique(flat[nz], return_index=True)
+    pix = nz[first]
+    if labels is not None:
+        keep = np.isin(lab, np.asarray(labels))
+        lab, pix = lab[keep], pix[keep]
+    ny, nx = np.shape(segmap)
+    return (pix % nx).astype(np.float64), (pix // nx).astype(np.float64), lab.astype(np.int64)
+
+
+def _measure(ctx, scenes: Mapping[str, Scene], x, y, diagnostics: dict | None):
+    det = ctx.detection_band
+    if getattr(ctx, "coadd_bands", ()):
+        det_scene = CoaddScene([scenes[b] for b in ctx.coadd_bands],
+                               [ctx.rms[b] for b in ctx.coadd_bands], ctx.coadd_method)
+        det_rms = ctx.detection_image_rms
+    else:
+        det_scene, det_rms = scenes[det], ctx.rms[det]
+    n = x.size
+    nan = np.full(n, np.nan)
+    return measure_injected(det_scene, det_rms, scenes, ctx.rms, x, y, nan, nan, ctx.reference,
+                            ctx.detection_params, ctx.classification_params, ctx.zeropoints,
+                            ctx.gains, det, mask=ctx.mask, mode="full", diagnostics=diagnostics,
+                            input_templates=[None] * n,
+                            noise_models=getattr(ctx, "noise_models", None),
+                            det_background=getattr(ctx, "detection_background", None))
+
+
+def measure_catalog(ctx, scenes: Mapping[str, Scene] | None = None, *,
+                    positions=None) -> pd.DataFrame:
+    """Detect, measure and select every source of a field's images.
+
+    Parameters
+    ----------
+    ctx : glaciar.engine.context.FieldContext
+        The field's measurement (the one its injections use).
+    scenes : mapping band -> Scene, optional
+        Background-subtracted images to catalogue; default the field's own
+        (``Scene(ctx.bases[band])``, nothing injected).  Given stamps, the catalogue
+        of the injected image (tests: a hand-injected source gets its engine row).
+    positions : (x, y) arrays, optional
+        Extra input pixels (e.g. where stamps were added).  The first extraction is
+        given these and one pixel of every segment of the field's reference
+        extraction; each further one adds a pixel of every segment no input reached,
+        until the segmentation repeats with every segment reached.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per detection, ordered by ``id`` (its label in the field's
+        full-frame segmentation): ``field``, ``id``, ``x``, ``y`` (the detection's
+        centroid, 0-based pixels), every band's measured columns
+        (:func:`~glaciar.engine.measure.output_columns` less
+        :data:`INJECTION_ONLY_COLUMNS`: ISO, AUTO and aperture fluxes and errors,
+        ``mag``, ``magerr``, ``sn``, ``maglim``, ``mag_auto``, ``magerr_auto``),
+        ``source_flags``, ``depth_local`` [AB mag], ``in_footprint``,
+        ``recovered`` and ``selected``.
+    """
+    if scenes is None:
+        scenes = {b: Scene(ctx.bases[b]) for b in ctx.bases}
+    x, y, _ = segment_pixels(ctx.reference.segmap)
+    if positions is not None:
+        px, py = (np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in positions)
+        x, y = np.concatenate([x, np.floor(px + 0.5)]), np.concatenate([y, np.floor(py + 0.5)])
+    # The engine re-extracts canonically (deblending and CLEAN of the region on its own) the
+    # regions that hold an input position, as it does around an injected source; elsewhere
+    # the frame keeps sep's raw segments.  So the segmentation depends on the positions:
+    # give every segment a position until it no longer changes and every segment is hit
+    # (the demo field: 3 extractions).  Each detection then has the segmentation, and the
+    # row, an injected source selecting it would get.
+    previous = None
+    for _ in range(MAX_CATALOG_PASSES):
+        diag: dict = {}
+        out = _measure(ctx, scenes, x, y, diag)
+        seg = diag["segmap"]
+        present = np.flatnonzero(np.bincount(np.asarray(seg).ravel()))
+        present = present[present > 0]
+        if (previous is not None and np.array_equal(previous, seg)
+                and np.isin(present, out["detection_id"]).all()):
+            break
+        previous = seg
+        mx, my, _ = segment_pixels(seg, np.setdiff1d(present, out["detection_id"]))
+        x, y = np.concatenate([x, mx]), np.concatenate([y, my])
+    else:
+        raise RuntimeError(f"field {ctx.field}: the catalogue's segmentation did not settle in "
+                           f"{MAX_CATALOG_PASSES} extractions")
+    parts = [out]
+    cols = [c for c in output_columns(ctx.bands, len(ctx.detection_params.phot_apertures))
+            if c not in INJECTION_ONLY_COLUMNS]
+    merged = {c: np.concatenate([p[c] for p in parts]) for c in cols + ["detection_id", "x_det", "y_det"]}
+    ids = merged["detection_id"]
+    _, first = np.unique(ids, return_index=True)
+    keep = first[ids[first] > 0]                       # one row per detection, in label order
+    n = keep.size
+    xd, yd = merged["x_det"][keep], merged["y_det"][keep]
+    table = {C.COL_FIELD: np.full(n, ctx.field, dtype=object),
+             CATALOG_ID: ids[keep].astype(np.int64), C.COL_X: xd, C.COL_Y: yd}
+    for c in cols:
+        table[c] = merged[c][keep]
+    ny, nx = ctx.shape
+    iy = np.clip(np.floor(yd + 0.5).astype(np.int64), 0, ny - 1)
+    ix = np.clip(np.floor(xd + 0.5).astype(np.int64), 0, nx - 1)
+    table[C.COL_DEPTH] = depth_at(ctx.depth, xd, yd)
+    table[CATALOG_IN_FOOTPRINT] = np.asarray(ctx.footprint[iy, ix], dtype=bool)
+    frame = pd.DataFrame(table)
+    sn = frame[C.band_column("sn", ctx.detection_band)].to_numpy(float)
+    recovered = passes_sn(sn, ctx.classification_params.min_sn)
+    frame[CATALOG_RECOVERED] = recovered
+    passed = ctx.selection(frame) if ctx.selection is not None else np.ones(n, bool)
+    frame[C.COL_SELECTED] = recovered & frame[CATALOG_IN_FOOTPRINT].to_numpy() & np.asarray(passed, bool)
+    return frame
