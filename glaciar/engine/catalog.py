@@ -25,6 +25,7 @@ from .. import constants as C
 from .classify import passes_sn
 from .coadd import CoaddScene
 from .depth import depth_at
+from .detect import DetectionError, _sep_extract, detection_rms, sanitize
 from .measure import measure_injected, output_columns
 from .scene import Scene
 
@@ -38,7 +39,7 @@ CATALOG_RECOVERED = C.COL_RECOVERED    #: S/N (sn_definition) >= min_sn
 #: Columns of :func:`measure_injected` that describe an injected source's classification
 #: against the original image: left out of a catalogue.
 #: Full-frame extractions :func:`measure_catalog` may take to reach a segmentation in which
-#: every segment holds an input position (3 on the demo field).
+#: every segment holds an input position (1 on the demo field).
 MAX_CATALOG_PASSES = 6
 INJECTION_ONLY_COLUMNS = ("status", "detection_id", "overlap_fraction", "blend_original_id",
                           "blend_original_mag", "flux_auto_template", "x_det", "y_det")
@@ -70,6 +71,26 @@ def segment_pixels(segmap: np.ndarray, labels=None) -> tuple[np.ndarray, np.ndar
         lab, pix = lab[keep], pix[keep]
     ny, nx = np.shape(segmap)
     return (pix % nx).astype(np.float64), (pix // nx).astype(np.float64), lab.astype(np.int64)
+
+
+def _first_positions(ctx, scenes) -> tuple[np.ndarray, np.ndarray]:
+    """A guess of one pixel inside every final segment (only the number of extractions
+    depends on it): one pixel of every segment of the reference extraction, and the
+    filtered-image peak of every object of a raw sep extraction (no CLEAN) of the
+    detection image, a pixel of the object's core whatever the deblending does to its
+    faint pixels."""
+    x, y, _ = segment_pixels(ctx.reference.segmap)
+    if getattr(ctx, "coadd_bands", ()):
+        return x, y
+    params = ctx.detection_params
+    data, err, nodata = sanitize(scenes[ctx.detection_band].full(), ctx.rms[ctx.detection_band],
+                                 ctx.mask)
+    try:
+        cat, _ = _sep_extract(data, detection_rms(err, nodata, params), nodata, params, False)
+    except DetectionError:
+        return x, y
+    return (np.concatenate([x, np.asarray(cat["xcpeak"], np.float64)]),
+            np.concatenate([y, np.asarray(cat["ycpeak"], np.float64)]))
 
 
 def _measure(ctx, scenes: Mapping[str, Scene], x, y, diagnostics: dict | None):
@@ -104,9 +125,8 @@ def measure_catalog(ctx, scenes: Mapping[str, Scene] | None = None, *,
         of the injected image (tests: a hand-injected source gets its engine row).
     positions : (x, y) arrays, optional
         Extra input pixels (e.g. where stamps were added).  The first extraction is
-        given these and one pixel of every segment of the field's reference
-        extraction; each further one adds a pixel of every segment no input reached,
-        until the segmentation repeats with every segment reached.
+        given these and :func:`_first_positions`; each further one adds a pixel of
+        every segment no input reached, until every segment is reached.
 
     Returns
     -------
@@ -122,28 +142,26 @@ def measure_catalog(ctx, scenes: Mapping[str, Scene] | None = None, *,
     """
     if scenes is None:
         scenes = {b: Scene(ctx.bases[b]) for b in ctx.bases}
-    x, y, _ = segment_pixels(ctx.reference.segmap)
+    x, y = _first_positions(ctx, scenes)
     if positions is not None:
         px, py = (np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in positions)
         x, y = np.concatenate([x, np.floor(px + 0.5)]), np.concatenate([y, np.floor(py + 0.5)])
     # The engine re-extracts canonically (deblending and CLEAN of the region on its own) the
     # regions that hold an input position, as it does around an injected source; elsewhere
-    # the frame keeps sep's raw segments.  So the segmentation depends on the positions:
-    # give every segment a position until it no longer changes and every segment is hit
-    # (the demo field: 3 extractions).  Each detection then has the segmentation, and the
-    # row, an injected source selecting it would get.
-    previous = None
+    # the frame keeps sep's raw segments.  So the segmentation depends on the positions, and
+    # it is the one every injected source would see once every segment holds a position:
+    # then every region with a segment was re-extracted, and more positions inside those
+    # regions change nothing.  The first positions (every raw object's core) reach that on
+    # the demo field; otherwise each further extraction adds a pixel of each segment missed.
     for _ in range(MAX_CATALOG_PASSES):
         diag: dict = {}
         out = _measure(ctx, scenes, x, y, diag)
         seg = diag["segmap"]
         present = np.flatnonzero(np.bincount(np.asarray(seg).ravel()))
-        present = present[present > 0]
-        if (previous is not None and np.array_equal(previous, seg)
-                and np.isin(present, out["detection_id"]).all()):
+        missing = np.setdiff1d(present[present > 0], out["detection_id"])
+        if not missing.size:
             break
-        previous = seg
-        mx, my, _ = segment_pixels(seg, np.setdiff1d(present, out["detection_id"]))
+        mx, my, _ = segment_pixels(seg, missing)
         x, y = np.concatenate([x, mx]), np.concatenate([y, my])
     else:
         raise RuntimeError(f"field {ctx.field}: the catalogue's segmentation did not settle in "
