@@ -242,3 +242,43 @@ def test_catalog_refuses_run_whose_inputs_changed(small_run, tmp_path):
     with pytest.raises(ValueError, match="changed since the run"):
         run_catalog(copy, tmp_path / "c.parquet")
     assert not (tmp_path / "c.parquet").exists()
+
+
+def test_missed_segments_measured_windowed_equal_full_frame(small_context, monkeypatch):
+    """Segments the first positions miss (their region re-extracted around a sibling) are
+    measured in windowed mode with their neighbours; their rows equal those of a second
+    full-frame extraction given a pixel of them, to 1e-9 relative."""
+    from glaciar.engine import catalog as K
+    from glaciar.engine.scene import Scene
+
+    cfg, ctx = small_context
+    scenes = {b: Scene(ctx.bases[b]) for b in ctx.bases}
+    x0, y0 = K._first_positions(ctx, scenes)
+    diag = {}
+    full = K._measure(ctx, scenes, x0, y0, diag)
+    seg = diag["segmap"]
+    # Leave out the positions of a few detections that share an 8-connected region with
+    # another detection (so their region is still re-extracted around the sibling).
+    from scipy import ndimage
+
+    comp, _ = ndimage.label(seg > 0, structure=np.ones((3, 3)))
+    ids = full["detection_id"]
+    comp_of = {int(i): int(comp[seg == i][0]) for i in np.unique(ids[ids > 0])}
+    by_comp = {}
+    for i, c in comp_of.items():
+        by_comp.setdefault(c, []).append(i)
+    drop_ids = [v[-1] for v in by_comp.values() if len(v) >= 2][:3]
+    assert drop_ids, "the small field has deblended neighbours"
+    keep = ~np.isin(ids, drop_ids)
+    monkeypatch.setattr(K, "_first_positions", lambda c, s: (x0[keep], y0[keep]))
+    calls = []
+    real = K._measure
+    monkeypatch.setattr(K, "_measure", lambda *a, **k: calls.append(k.get("mode", "full")) or real(*a, **k))
+    cat = K.measure_catalog(ctx, scenes).set_index("id")
+    assert calls == ["full", "windowed"]
+    for i in drop_ids:
+        j = np.flatnonzero(ids == i)[0]
+        for c in cat.columns:
+            if c in full and np.issubdtype(np.asarray(full[c]).dtype, np.floating):
+                a, b = cat.loc[i, c], full[c][j]
+                assert (np.isnan(a) and np.isnan(b)) or abs(a - b) <= 1e-9 * abs(b), (i, c, a, b)
