@@ -10,6 +10,8 @@ selection-function file, the chains, tables and figures is
 - :mod:`~glaciar.inference.sampling` -- emcee per parameter block, convergence;
 - :mod:`~glaciar.inference.diagnostics` -- PPC, PSIS-LOO, redshift-edge check;
 - :mod:`~glaciar.inference.selection_function` -- the fitted selection function, V_eff;
+- :mod:`~glaciar.inference.transfer` -- the transfer function p(m_obs | m_in, z) anywhere;
+- :mod:`~glaciar.inference.counts` -- expected counts per measured-magnitude bin of an LF;
 - :mod:`~glaciar.inference.adaptive` -- where to simulate next, how many, when to stop.
 """
 from .adaptive import (allocate_sources, allocate_variance_reduction, candidate_grid,
@@ -17,12 +19,15 @@ from .adaptive import (allocate_sources, allocate_variance_reduction, candidate_
 from .fit import (ConvergenceWarning, FitResult, aggregate_cells, find_map, fit_and_choose,
                   fit_surfaces, laplace_covariance)
 from .models import COMPLETENESS_SHAPES, Cells, SurfaceModel
+from .counts import CountKernel, ExpectedCounts, count_kernel, expected_counts
 from .selection_function import EffectiveVolume, SelectionFunction
+from .transfer import TransferFunction, transfer_function
 
 __all__ = ["propose_cells", "allocate_sources", "allocate_variance_reduction", "candidate_grid", "information_gain",
            "max_posterior_sd", "plan_round", "run_design", "ConvergenceWarning", "FitResult", "aggregate_cells", "find_map",
            "fit_and_choose", "fit_surfaces", "laplace_covariance", "run_fit", "COMPLETENESS_SHAPES",
-           "Cells", "SurfaceModel", "EffectiveVolume", "SelectionFunction"]
+           "Cells", "SurfaceModel", "EffectiveVolume", "SelectionFunction", "TransferFunction",
+           "transfer_function", "CountKernel", "ExpectedCounts", "count_kernel", "expected_counts"]
 
 
 def __getattr__(name):

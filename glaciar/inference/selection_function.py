@@ -14,9 +14,11 @@ draw by draw.  With ``depth`` they are the surfaces at that local depth.
 
 For luminosity-function codes also V_eff as a function of M_UV
 (:meth:`SelectionFunction.effective_volume_muv`, mapping M_UV to the detection band with
-the injections' spectra, :class:`InjectionSED` and :func:`kcorrection`) and the
+the injections' spectra, :class:`InjectionSED` and :func:`kcorrection`), the
 photometric transfer function p(m_obs | m_in, z) (:meth:`SelectionFunction.transfer`,
-counted by :func:`glaciar.tables.transfer_matrix`).
+counted by :func:`glaciar.tables.transfer_matrix`; anywhere in the box:
+:meth:`SelectionFunction.transfer_function`), and the expected counts per measured-magnitude
+bin of a luminosity function (:meth:`SelectionFunction.expected_counts`).
 
 No file I/O here: the file (layout in ``docs/selection-function-file.md``, so
 that it can be read without glaciar) is written and read by
@@ -355,6 +357,66 @@ class SelectionFunction:
         return str(self.meta.get("magnitude_type", "apparent"))
 
     @property
+    def detection_z_limit(self) -> float | None:
+        """Lowest redshift [to 0.005] at which the detection band receives no flux, or None.
+
+        Beyond it nothing is detected, so P = 0 there whatever the fitted surface
+        extrapolates.  From the metadata (``detection_z_limit``, as the run's manifest
+        records it) when present, else from the injection SED (:attr:`sed`: a source of
+        the central beta is fainter than ``FAINT_MAG_LIMIT`` in the band, the rule of
+        :func:`kcorrection` and of the injections), searched up to z = 30.  None without
+        either, or when the band receives flux up to z = 30.
+        """
+        if not hasattr(self, "_z_limit"):
+            self._z_limit = self._find_z_limit()
+        return self._z_limit
+
+    def _find_z_limit(self):
+        v = self.meta.get("detection_z_limit")
+        if v is not None:
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                v = None
+            if v is not None and np.isfinite(v):
+                return v
+        if self.sed is None:
+            return None
+        from ..galaxy.population import get_cosmology
+        sed, cosmo = self.sed, get_cosmology(self.sed.cosmology)
+
+        def flux(z):
+            return bool(np.isfinite(_colour(z, np.array([sed.beta_mean]), sed.detection_filter,
+                                            sed.igm, cosmo)).all())
+
+        lo_z = max(self.domain.get("z", self._z_range())[0], 0.01)
+        hi_z = self.domain.get("z", self._z_range())[1]
+        if flux(hi_z):
+            lo, hi = hi_z, hi_z + 0.25
+            while flux(hi):
+                lo, hi = hi, hi + 0.25
+                if hi > 30.0:
+                    return None
+        elif not flux(lo_z):
+            return float(lo_z)
+        else:
+            lo, hi = lo_z, hi_z
+        while hi - lo > 0.005:
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if flux(mid) else (lo, mid)
+        return round(hi, 3)
+
+    def z_edge_is_physical(self, z_top: float, within: float = 0.1) -> bool:
+        """Whether a redshift range ending at ``z_top`` reaches the detection band's flux limit.
+
+        True when ``z_top`` is within ``within`` of :attr:`detection_z_limit` (or above
+        it): P is 0 beyond, so a selection that is still high at ``z_top`` loses no
+        volume (the tolerance :func:`glaciar.pipeline.fit` uses for its edge check).
+        """
+        zl = self.detection_z_limit
+        return zl is not None and float(z_top) >= zl - within
+
+    @property
     def fields(self) -> list[str]:
         """Fields this fit describes (those with a depth distribution, else from the metadata)."""
         if self.depth_area:
@@ -619,7 +681,7 @@ class SelectionFunction:
         m = np.asarray(m, float)
         mm = m.reshape(-1)
         out = np.zeros((self.n_draws, mm.size))
-        ends = np.zeros((2, mm.size))            # P at the two ends and its peak, draw 0..63
+        ends = np.zeros((3, mm.size))            # P at the low and high end, its peak; draws 0..63
         for dj, sr in zip(nodes, node_sr):
             mrel = self.model.relative_magnitude(mm, dj)
             for i in range(0, self.n_draws, 64):
@@ -627,15 +689,23 @@ class SelectionFunction:
                 out[i:i + 64] += simpson(c * s * dvdz[None, :, None], x=zz, axis=1) * sr
                 if i == 0:
                     p = np.median(c * s, axis=0)                          # (n_z, n_m)
-                    ends += sr * np.stack([np.maximum(p[0], p[-1]), p.max(axis=0)])
-        # V_eff counts only the simulated z range: say so when C*S is not ~0 at its ends.
-        cut = (ends[1] > 0) & (ends[0] > 0.05 * ends[1])
-        if cut.any() and (z_min, z_max) == tuple(zr):
-            import warnings
-            warnings.warn(f"effective_volume: C*S is still {np.max(ends[0][cut] / ends[1][cut]):.0%} "
-                          f"of its peak at an end of the simulated z range {zr[0]:g}-{zr[1]:g} "
-                          f"(m = {mm[cut][0]:g}...): V_eff misses the volume beyond it",
-                          stacklevel=2)
+                    ends += sr * np.stack([p[0], p[-1], p.max(axis=0)])
+        # V_eff counts only the simulated z range: say so when C*S is not ~0 at its ends --
+        # except at a top that reaches the z where the detection band receives no flux
+        # (nothing is selected beyond it, whatever the surface extrapolates).
+        if (z_min, z_max) == tuple(zr):
+            top = ends[1]
+            if self.z_edge_is_physical(zr[1]):
+                top = np.zeros_like(top)
+            worst = np.maximum(ends[0], top)
+            cut = (ends[2] > 0) & (worst > 0.05 * ends[2])
+            if cut.any():
+                import warnings
+                warnings.warn(f"effective_volume: C*S is still "
+                              f"{np.max(worst[cut] / ends[2][cut]):.0%} of its peak at an end "
+                              f"of the simulated z range {zr[0]:g}-{zr[1]:g} "
+                              f"(m = {mm[cut][0]:g}...): V_eff misses the volume beyond it",
+                              stacklevel=2)
         if "mag" in self.domain:
             out[:, self._mask(mm, np.full(mm.shape, zz[0]), None)] = np.nan
         out = out.reshape((self.n_draws,) + m.shape)
@@ -873,6 +943,74 @@ class SelectionFunction:
                              matrix=tm.matrix[k, i], draws=tm.draws[:, k, i],
                              counts=tm.counts[k, i], z_lo=float(tm.z_edges[i]),
                              z_hi=float(tm.z_edges[i + 1]), kind=kind)
+
+    def transfer_function(self, kind: str = "selected", *, draws: bool = False, **kw):
+        """The transfer function p(m_obs | m_in, z) anywhere in the simulated box.
+
+        :func:`glaciar.inference.transfer.transfer_function` of :attr:`transfer_matrix`
+        (keywords forwarded): interpolated between the matrix's rows and slices, per
+        posterior draw with ``draws=True``.
+
+        Raises
+        ------
+        ValueError
+            No transfer matrix in this fit, or a bad ``kind``.
+        """
+        from .transfer import transfer_function
+        if self.transfer_matrix is None:
+            raise ValueError("transfer_function: this selection function has no transfer "
+                             "matrix (a file written before glaciar recorded one?)")
+        return transfer_function(self.transfer_matrix, kind, draws=draws, **kw)
+
+    def count_kernel(self, m_obs_edges, M_edges=None, **kw):
+        """The linear map phi(M_UV) -> expected counts per measured-magnitude bin, per draw.
+
+        :func:`glaciar.inference.counts.count_kernel` (keywords and defaults there).
+        """
+        from .counts import count_kernel
+        return count_kernel(self, m_obs_edges, M_edges, **kw)
+
+    def expected_counts(self, phi, m_obs_edges, *, z_min=None, z_max=None, M_uv_range=None,
+                        area=None, cosmology=None, draws=True, transfer: bool = True, **kw):
+        """Expected numbers of selected sources per measured-magnitude bin for an LF phi(M_UV, z).
+
+        N_k = Σ_fields Σ_depth Ω(d) ∫ dz dV/dz/dΩ ∫ dM phi(M, z) <P(z, m | d) q(k | m, z)>_beta,
+        m = M + K(z, beta) (M itself for an absolute-magnitude fit), q the transfer
+        function conditional on selection (:meth:`transfer_function`).  Magnitudes
+        outside the simulated range use the surface's extrapolation and the nearest
+        transfer row; the share of each bin's counts that comes from them is returned and
+        warned about where it matters.  Method, accuracy and the remaining keywords
+        (``sed``, ``field``, ``n_z``, ``n_beta``, ``dM``, ``interval``, ``warn``,
+        ``transfer_draws``): :func:`glaciar.inference.counts.expected_counts`.
+
+        Parameters
+        ----------
+        phi : callable
+            ``phi(M, z)`` [Mpc^-3 mag^-1] on broadcastable arrays.
+        m_obs_edges : array_like
+            Measured detection-band magnitude bins [AB mag] (first may be -inf, last +inf).
+        z_min, z_max : float, optional
+            Redshift range; default (and at most) the simulated one.
+        M_uv_range : (float, float), optional
+            M_UV range integrated over [AB mag] (phi = 0 outside).
+        area : float or Quantity, optional
+            Survey area (float: arcmin^2); default the fit's.
+        cosmology : astropy Cosmology or str, optional
+            Default the injections'.
+        draws : bool or int
+            True: every posterior draw (selection draw i with transfer draw i mod n_t);
+            an int: that many; False: one evaluation at the pointwise median of P.
+        transfer : bool
+            False: the measured magnitude is taken to be the input magnitude.
+
+        Returns
+        -------
+        glaciar.inference.counts.ExpectedCounts
+        """
+        from .counts import expected_counts
+        return expected_counts(self, phi, m_obs_edges, z_min=z_min, z_max=z_max,
+                               M_uv_range=M_uv_range, area=area, cosmology=cosmology,
+                               draws=draws, transfer=transfer, **kw)
 
     def _z_range(self):
         if self.z_grid is not None:
