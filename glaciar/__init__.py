@@ -7,6 +7,7 @@ The public API, the functions the ``glaciar`` command calls (imported lazily, so
 - :func:`glaciar.simulate` -- run (or resume) the injection-recovery simulation;
 - :func:`glaciar.catalog` -- the survey's own candidates, measured with the run's settings;
 - :func:`glaciar.fit` -- fit C and S; returns the :class:`SelectionFunction`;
+- :mod:`glaciar.report` -- ``write_summary_files`` and ``write_html_report`` of a run;
 - :func:`glaciar.lf` -- the UV luminosity function of a catalogue through a run's selection
   function (``glaciar.lf`` is also the package of LF models and likelihoods);
 - :class:`glaciar.SelectionFunction` -- read an exported selection-function file;

@@ -40,7 +40,7 @@ import numpy as np
 
 from . import constants as C
 
-__all__ = ["load_report_data", "render_html", "write_html_report", "REPORT_NAME",
+__all__ = ["load_report_data", "render_html", "write_html_report", "write_summary_files", "REPORT_NAME",
            "ADAPTIVE_ROUNDS_NAME"]
 
 #: file name of the page inside the run directory
@@ -680,3 +680,55 @@ def write_html_report(run_dir, path=None) -> Path:
     out = Path(path) if path is not None else run_dir / REPORT_NAME
     atomic_write_text(out, page)
     return out
+
+
+def write_summary_files(run_dir, *, regions: bool = False) -> list[Path]:
+    """The summary tables (ECSV), maps (PNG) and optionally DS9 regions of a run
+    (``glaciar report``); returns the paths written.  Store warnings are issued as
+    :class:`glaciar.store.StoreWarning` (once each)."""
+    import warnings
+
+    from .plots import plot_summary_maps
+    from .store import (StoreWarning, read_current_counts, read_current_results, read_manifest,
+                        store_columns)
+    from .tables import summary_table, write_regions, write_summaries
+
+    # What fit uses too: the tasks the run's configuration lists now; their stored counts
+    # (footers only), or the rows of a store written before counts.
+    run_dir = Path(run_dir)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", StoreWarning)
+        got = read_current_counts(run_dir)
+        have = store_columns(run_dir)
+        rows = got[0] if got is not None else read_current_results(run_dir, columns=[
+            c for c in (C.COL_FIELD, C.COL_Z, C.COL_MAG, C.COL_STATUS, C.COL_RECOVERED,
+                        C.COL_SELECTED) if c in have])
+    seen = set()
+    for w in caught:
+        if str(w.message) not in seen:
+            seen.add(str(w.message))
+            warnings.warn(w.message, stacklevel=2)
+    manifest = read_manifest(run_dir) or {}
+    out_dir = run_dir / C.SUMMARY_DIRNAME
+    meta = {k: manifest[k] for k in ("config_hash", "seed", "detection_band", "selection") if k in manifest}
+    box = None
+    if manifest.get("box"):
+        from .box import box_bin_edges, box_points
+
+        b = manifest["box"]
+        ze, me = box_bin_edges(b["z"], b["mag"], b["n_points"])
+        box = {"points": box_points(b["z"], b["mag"], b["n_points"], manifest["seed"]),
+               "z_edges": ze, "mag_edges": me}
+    paths = write_summaries(rows, out_dir, meta, box=box)
+    mag_label = "M_UV" if manifest.get("magnitude_type") == "absolute" else \
+        f"m ({manifest.get('detection_band', 'detection band')}, AB)"
+    for field, sub in rows.groupby(C.COL_FIELD):
+        paths += plot_summary_maps(summary_table(sub), out_dir, str(field), mag_label)
+    if regions:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", StoreWarning)     # printed above
+            src = read_current_results(run_dir, columns=[
+                c for c in (C.COL_FIELD, C.COL_Z, C.COL_MAG, C.COL_ITERATION, C.COL_SOURCE,
+                            C.COL_X, C.COL_Y, C.COL_STATUS) if c in have])
+        paths += write_regions(src, out_dir / "regions")
+    return paths
