@@ -147,7 +147,7 @@ def __getattr__(name):
     if name == "SelectionFunction":
         from .inference.selection_function import SelectionFunction
         return SelectionFunction
-    if name in ("lf", "demo"):
+    if name in ("lf", "demo", "report"):
         import importlib
         return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module 'glaciar' has no attribute {name!r}")
