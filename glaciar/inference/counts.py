@@ -27,9 +27,9 @@ so that the bin edges cost no quadrature error.
 Accuracy (tests/test_expected_counts.py), for a step selection (P = 1 to m = 27.5) and a
 constant phi, against the comoving volume times the bin width: < 1e-4 relative without
 the transfer function; with a Gaussian transfer function (m_obs = m_in + 0.15 +
-N(0, 0.2)) against the analytic convolution: < 1e-4 in bins 0.5 mag or more bright of
-the step, < 5e-3 at the step, a few per cent in the tail beyond it (bins holding < 5 %
-of a full bin).
+N(0, 0.2)) against the analytic convolution: < 2e-4 in bins 0.5 mag or more bright of
+the step, < 6e-3 at the step, and everywhere within 0.5 % of a full bin's counts (the
+tail beyond the step: a few per cent of a small number).
 
 Magnitudes outside the simulated range.  P is the parametric surface's extrapolation
 there and q the nearest row's offset distribution.  Neither is measured: the fraction of
