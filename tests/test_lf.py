@@ -1,0 +1,157 @@
+"""Luminosity-function models, likelihood and sampler (glaciar.lf)."""
+import numpy as np
+import pytest
+from scipy.special import logsumexp
+from scipy.stats import poisson
+
+from glaciar.galaxy.filters import get_filter
+from glaciar.inference import SelectionFunction, SurfaceModel
+from glaciar.inference.selection_function import InjectionSED
+from glaciar.lf import (LFPosterior, default_window, double_power_law, fit_lf, get_model,
+                        parse_fix, schechter, stepwise)
+from test_expected_counts import gauss_matrix
+
+TRUE = {"log_phi_star": -3.3, "M_star": -20.9, "alpha": -2.0}
+
+
+def lf_sf(n_draws=4, area=800.0, seed=0):
+    """A smooth selection (m50 = 27.6, w = 0.25, z edges of 0.15) over z 6-8, m 24-30.
+
+    Draws scatter by 0.02 in every parameter; the transfer function is m_obs = m_in + 0.15
+    + N(0, 0.1 + 0.1 (m_in - 24)).
+    """
+    mdl = SurfaceModel(shape="logistic", z_ref=7.0, z_scale=1.0, m_ref=27.0, m_scale=2.0)
+    base = dict.fromkeys(mdl.param_names, 0.0)
+    base.update(logit_c_max_0=3.0, m50_0=27.6, m50_1=0.1, log_w_0=np.log(0.25), logit_s_max=3.0,
+                eta_lo_0=-1.0, log_dz_lo_0=np.log(0.15), eta_hi_0=-1.0, log_dz_hi_0=np.log(0.15))
+    th = np.array([base[n] for n in mdl.param_names])
+    draws = th + 0.02 * np.random.default_rng(seed).standard_normal((n_draws, len(th)))
+    sed = InjectionSED(get_filter("wfc3_ir_f160w"), beta_mean=-2.0, beta_sd=0.4)
+    sf = SelectionFunction(mdl, draws, meta={"area_arcmin2": area}, sed=sed,
+                           domain={"z": (6.0, 8.0), "mag": (24.0, 30.0)})
+    sf.transfer_matrix = gauss_matrix(np.arange(24.0, 30.01, 0.5), [6.0, 6.5, 7.0, 7.5, 8.0],
+                                      sigma=lambda m: 0.1 + 0.1 * (m - 24.0))
+    return sf
+
+
+def mock_candidates(sf, phi, edges, seed):
+    """Candidates drawn from the forward model: Poisson counts per bin, uniform inside it."""
+    ec = sf.expected_counts(lambda M, z: phi(M) + 0 * z, edges, draws=1, warn=False)
+    rng = np.random.default_rng(seed)
+    n = rng.poisson(ec.median)
+    return np.concatenate([rng.uniform(a, b, k) for a, b, k in zip(edges[:-1], edges[1:], n)])
+
+
+WINDOW = np.round(np.arange(24.4, 29.01, 0.2), 6)      # faint end where P is ~0.1
+
+
+def test_models_against_hand_values():
+    # Schechter at M = M*: 0.4 ln10 phi* e^-1; one magnitude fainter: x = 10^-0.4.
+    ln = 0.4 * np.log(10)
+    assert schechter(-21.0, -3.0, -21.0, -2.0) == pytest.approx(ln * 1e-3 * np.exp(-1), rel=1e-12)
+    x = 10 ** -0.4
+    assert schechter(-20.0, -3.0, -21.0, -2.0) == pytest.approx(ln * 1e-3 * x ** -1 * np.exp(-x),
+                                                                rel=1e-12)
+    # Double power law: phi*/2 at M*; far faint -> slope alpha, far bright -> beta.
+    assert double_power_law(-21.0, -3.0, -21.0, -2.0, -4.5) == pytest.approx(5e-4, rel=1e-12)
+    d = 2.0
+    want = 1e-3 / (10 ** (0.4 * (-1.0) * d) + 10 ** (0.4 * (-3.5) * d))
+    assert double_power_law(-19.0, -3.0, -21.0, -2.0, -4.5) == pytest.approx(want, rel=1e-12)
+    np.testing.assert_allclose(stepwise([-22.0, -21.2, -20.5, -19.0], [-4.0, -3.0],
+                                        [-21.5, -21.0, -20.0]), [0.0, 1e-4, 1e-3, 0.0])
+    mdl = get_model("dpl")
+    assert mdl.param_names == ("log_phi_star", "M_star", "alpha", "beta")
+    # beta < alpha (the slopes are otherwise interchangeable) and the uniform box.
+    assert mdl.log_prior([-3.0, -21.0, -2.0, -4.0]) == 0.0
+    assert mdl.log_prior([-3.0, -21.0, -4.0, -2.0]) == -np.inf
+    assert get_model("schechter").log_prior([-3.0, -21.0, -4.0]) == -np.inf
+
+
+def test_fix_parsing_names_the_allowed_parameters():
+    assert parse_fix(["alpha=-2", "M_star = -21.5"]) == {"alpha": -2.0, "M_star": -21.5}
+    with pytest.raises(ValueError, match="allowed: log_phi_star, M_star, alpha$"):
+        parse_fix(["apha=-2"])
+    with pytest.raises(ValueError, match="allowed: log_phi_star, M_star, alpha, beta"):
+        parse_fix(["gamma=1"], "dpl")
+    with pytest.raises(ValueError, match="NAME=VALUE"):
+        parse_fix(["alpha"])
+    with pytest.raises(ValueError, match="not a number"):
+        parse_fix(["alpha=steep"])
+    with pytest.raises(ValueError, match="given twice"):
+        parse_fix(["alpha=-2", "alpha=-1.9"])
+    assert parse_fix(["log_phi_3=-4"], "stepwise") == {"log_phi_3": -4.0}
+    with pytest.raises(ValueError, match="unknown luminosity-function model"):
+        parse_fix([], "gaussian")
+    # fit_lf refuses an unknown name before computing anything (no SED needed to get there).
+    with pytest.raises(ValueError, match="allowed: log_phi_star, M_star, alpha"):
+        fit_lf(lf_sf(), [25.0], fix={"Mstar": -21.0})
+    with pytest.raises(ValueError, match="every parameter"):
+        get_model("schechter").check_fix({"log_phi_star": -3, "M_star": -21, "alpha": -2})
+
+
+def test_likelihood_is_the_log_mean_exp_of_poisson_over_draws():
+    rng = np.random.default_rng(0)
+    K = rng.uniform(0.0, 50.0, (6, 3, 5))                 # (cells, draws, bins)
+    n = np.array([3, 0, 7, 1, 12])
+    M = np.linspace(-22, -19.5, 6)
+    post = LFPosterior(get_model("schechter"), K, n, {}, M=M)
+    th = np.array([[-3.0, -21.0, -1.8], [-2.5, -20.5, -2.2]])
+    lam = np.einsum("wm,mdk->wdk", schechter(M[None, :], *(th.T[:, :, None])), K)
+    per = poisson.logpmf(n, lam).sum(axis=-1)             # with ln n! (a constant)
+    from scipy.special import gammaln
+    want = logsumexp(per, axis=1) - np.log(3) + gammaln(n + 1).sum()
+    np.testing.assert_allclose(post.log_like(th), want, rtol=1e-12)
+    assert post(np.array([[-3.0, -21.0, 1.0]]))[0] == -np.inf      # alpha outside its prior
+
+
+def test_schechter_recovered_from_the_forward_model():
+    sf = lf_sf()
+    m = mock_candidates(sf, lambda M: schechter(M, **TRUE), WINDOW, seed=11)
+    assert 2000 < len(m) < 5000
+    res = fit_lf(sf, m, m_obs_edges=WINDOW, seed=3, n_steps=3000)
+    assert res.convergence["converged"] and res.n_candidates == len(m)
+    for name, truth in TRUE.items():
+        p = res.parameters[name]
+        sd = 0.5 * (p["hi68"] - p["lo68"])
+        assert abs(p["median"] - truth) < 2.5 * sd, (name, p, truth)
+    # Observed vs expected per bin: the predictive mean follows the data.
+    c = res.counts
+    chi2 = np.sum((c["n_obs"] - c["n_exp"]) ** 2 / np.maximum(c["n_exp"], 1.0))
+    assert chi2 < 2.0 * len(c["n_obs"])
+    # The binned phi where the data are: within a few sigma of the truth.
+    b = res.binned_phi
+    good = b["n_obs"] > 100
+    truth = np.array([schechter(np.linspace(lo, hi, 11), **TRUE).mean()
+                      for lo, hi in zip(b["M_lo"][good], b["M_hi"][good])])
+    sig = 0.5 * (b["phi_hi68"][good] - b["phi_lo68"][good])
+    assert np.all(np.abs(b["phi"][good] - truth) < 4 * sig + 0.05 * truth)
+    # A fixed parameter stays fixed; the others follow.
+    fx = fit_lf(sf, m, m_obs_edges=WINDOW, seed=4, n_steps=2000, fix={"alpha": -2.0})
+    assert fx.fixed == {"alpha": -2.0} and fx.parameters["alpha"]["lo68"] == -2.0
+    assert fx.chain.shape[-1] == 2
+    p = fx.parameters["M_star"]
+    assert abs(p["median"] - TRUE["M_star"]) < 2.5 * 0.5 * (p["hi68"] - p["lo68"])
+
+
+def test_stepwise_recovers_a_stepwise_truth():
+    sf = lf_sf()
+    bins = [-22.5, -21.5, -20.5, -19.5, -18.5]
+    truth = np.array([-5.0, -3.9, -3.2, -2.6])
+    m = mock_candidates(sf, lambda M: stepwise(M, truth, bins), WINDOW, seed=12)
+    res = fit_lf(sf, m, model="stepwise", m_obs_edges=WINDOW, seed=5, n_steps=3000, bins=bins)
+    assert res.param_names == ("log_phi_0", "log_phi_1", "log_phi_2", "log_phi_3")
+    assert res.muv_range == (-22.5, -18.5)
+    for k, t in enumerate(truth):
+        p = res.parameters[f"log_phi_{k}"]
+        assert abs(p["median"] - t) < 2.5 * 0.5 * (p["hi68"] - p["lo68"]), (k, p, t)
+    np.testing.assert_allclose(res.binned_phi["phi"],
+                               [10 ** res.parameters[f"log_phi_{k}"]["median"] for k in range(4)],
+                               rtol=0.05)
+
+
+def test_default_window_is_inside_the_simulated_range_on_the_lattice():
+    w = default_window(lf_sf())
+    assert w[0] == pytest.approx(24.4) and w[-1] == pytest.approx(30.0)
+    np.testing.assert_allclose(np.diff(w), 0.2)
+    with pytest.raises(ValueError, match="no candidate"):
+        fit_lf(lf_sf(), [10.0, 40.0], m_obs_edges=WINDOW)
