@@ -155,3 +155,94 @@ def test_default_window_is_inside_the_simulated_range_on_the_lattice():
     np.testing.assert_allclose(np.diff(w), 0.2)
     with pytest.raises(ValueError, match="no candidate"):
         fit_lf(lf_sf(), [10.0, 40.0], m_obs_edges=WINDOW)
+
+
+# ----------------------------------------------------------------------------- glaciar lf
+def _run(tmp_path, *, chash="c0ffee", band="F160W"):
+    """A run directory with a manifest and a selection-function file (no store needed)."""
+    import json
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "manifest.json").write_text(json.dumps({"config_hash": chash, "detection_band": band}))
+    sf = lf_sf()
+    sf.meta["config_hash"] = chash
+    sf.write(run / "selection_function.fits")
+    return run, sf
+
+
+def _catalog(path, sf, *, chash="c0ffee", columns=None, n_junk=5, seed=21):
+    from glaciar.pipeline.catalog import write_catalog
+    import pandas as pd
+
+    m = mock_candidates(sf, lambda M: schechter(M, **TRUE), default_window(sf), seed=seed)
+    mag = np.concatenate([m, np.full(n_junk, np.nan), np.full(n_junk, 26.0)])
+    sel = np.concatenate([np.ones(len(m) + n_junk, bool), np.zeros(n_junk, bool)])
+    table = pd.DataFrame({"field": "f1", "id": np.arange(len(mag)), "selected": sel,
+                          "mag_auto_f160w": mag})
+    if columns is not None:
+        table = table[columns]
+    meta = {} if chash is None else {"config_hash": chash}
+    write_catalog(table, path, meta)
+    return len(m)
+
+
+def test_run_lf_writes_the_products(tmp_path):
+    import json
+
+    from glaciar.pipeline.lf import run_lf
+
+    run, sf = _run(tmp_path)
+    n = _catalog(run / "catalog.parquet", sf)
+    out = run_lf(run, model="schechter", fix={"alpha": -2.0}, seed=1)
+    assert out == run / "lf"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["model"] == "schechter" and summary["fixed"] == {"alpha": -2.0}
+    # Selected rows with a finite magnitude (the NaN ones and the unselected left out),
+    # minus those outside the default window.
+    assert summary["n_candidates"] + summary["n_outside_window"] == n
+    assert summary["n_selected_without_magnitude"] == 5
+    assert set(summary["parameters"]) == {"log_phi_star", "M_star", "alpha"}
+    assert set(summary["parameters"]["M_star"]) == {"median", "lo68", "hi68"}
+    from astropy.table import Table
+    t = Table.read(out / "binned_phi.ecsv")
+    assert {"M", "phi", "phi_lo68", "phi_hi68", "n_obs"} <= set(t.colnames)
+    import astropy.units as u
+    assert t["phi"].unit == u.Mpc ** -3 / u.mag
+    assert (out / "lf.png").stat().st_size > 10000 and (out / "counts.ecsv").is_file()
+
+
+def test_run_lf_refuses_bad_inputs_before_writing(tmp_path):
+    from glaciar.pipeline.lf import run_lf
+
+    run, sf = _run(tmp_path)
+    other = tmp_path / "other.parquet"
+    _catalog(other, sf, chash="deadbeef")
+    with pytest.raises(ValueError, match=r"config_hash deadbeef.*config_hash c0ffee"):
+        run_lf(run, other)
+    ecsv = tmp_path / "cat.ecsv"
+    _catalog(ecsv, sf, chash="deadbeef")
+    with pytest.raises(ValueError, match=r"cat.ecsv \(config_hash deadbeef\)"):
+        run_lf(run, ecsv)
+    anon = tmp_path / "anon.parquet"
+    _catalog(anon, sf, chash=None)
+    with pytest.raises(ValueError, match="no config_hash"):
+        run_lf(run, anon)
+    nocol = tmp_path / "nocol.fits"
+    _catalog(nocol, sf, columns=["field", "id", "selected"])
+    with pytest.raises(ValueError, match="missing column.*mag_auto_f160w"):
+        run_lf(run, nocol)
+    good = tmp_path / "good.parquet"
+    _catalog(good, sf)
+    with pytest.raises(ValueError, match="allowed: log_phi_star, M_star, alpha$"):
+        run_lf(run, good, fix={"Mstar": -21.0})
+    with pytest.raises(ValueError, match="unknown luminosity-function model"):
+        run_lf(run, good, model="gauss")
+    with pytest.raises(ValueError, match="muv_range"):
+        run_lf(run, good, muv_range=(-18.0, -22.0))
+    with pytest.raises(FileNotFoundError, match="catalogue not found"):
+        run_lf(run, tmp_path / "none.parquet")
+    (run / "selection_function.fits").unlink()
+    with pytest.raises(FileNotFoundError, match="glaciar fit"):
+        run_lf(run, good)
+    assert not (run / "lf").exists()

@@ -280,9 +280,8 @@ def _gehrels(n):
     """1-sigma Poisson limits (Gehrels 1986, eqs. 7 and 11 with S = 1)."""
     n = np.asarray(n, float)
     up = n + np.sqrt(n + 0.75) + 1.0
-    with np.errstate(invalid="ignore"):
-        lo = np.where(n > 0, n * (1 - 1 / (9 * np.maximum(n, 1e-300))
-                                  - 1 / (3 * np.sqrt(np.maximum(n, 1e-300)))) ** 3, 0.0)
+    nn = np.maximum(n, 1.0)            # the lower limit of n < 1 (apportioned counts) is ~0
+    lo = np.where(n >= 1.0, nn * (1 - 1 / (9 * nn) - 1 / (3 * np.sqrt(nn))) ** 3, 0.0)
     return np.maximum(lo, 0.0), up
 
 
