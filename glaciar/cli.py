@@ -251,6 +251,23 @@ def _cmd_catalog(args) -> int:
     return 0
 
 
+def _cmd_lf(args) -> int:
+    import json
+
+    from .lf import parse_fix
+    from .pipeline.lf import run_lf
+
+    fix = parse_fix(args.fix or [], args.model)
+    out = run_lf(args.run_dir, args.catalog, model=args.model, fix=fix, muv_range=args.muv_range,
+                 z_range=args.z_range, seed=args.seed, progress=not args.quiet)
+    summary = json.loads((Path(out) / "summary.json").read_text())
+    print(f"{summary['model']}: {summary['n_candidates']} candidates")
+    for name, p in summary["parameters"].items():
+        print(f"  {name:>14s} = {p['median']:.3f}  [{p['lo68']:.3f}, {p['hi68']:.3f}] (68 %)")
+    print(f"wrote {out}")
+    return 0
+
+
 def _finite_positive(text):
     """argparse type: a finite number > 0."""
     try:
@@ -388,6 +405,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write a DS9 region file of the selected candidates (<out stem>.reg)")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_catalog)
+
+    s = sub.add_parser("lf", help="the UV luminosity function of a run's candidates: Poisson "
+                                  "forward model through P = C*S and the transfer function")
+    s.add_argument("run_dir", metavar="RUN")
+    s.add_argument("--catalog", default=None, metavar="CAT",
+                   help="candidates from `glaciar catalog RUN` (default RUN/catalog.parquet)")
+    s.add_argument("--model", default="schechter", choices=["schechter", "dpl", "double_power_law",
+                                                          "stepwise"])
+    s.add_argument("--fix", action="append", metavar="NAME=VALUE",
+                   help="hold a parameter fixed (repeatable), e.g. --fix M_star=-20.5")
+    s.add_argument("--muv-range", type=float, nargs=2, metavar=("LO", "HI"), default=None,
+                   help="M_UV range of the LF [AB mag]")
+    s.add_argument("--z-range", type=float, nargs=2, metavar=("LO", "HI"), default=None,
+                   help="redshift range (inside the simulated one)")
+    s.add_argument("--seed", type=_non_negative_int, default=0)
+    s.add_argument("--quiet", action="store_true")
+    s.set_defaults(func=_cmd_lf)
     return p
 
 
