@@ -162,3 +162,20 @@ def test_render_mock_universe_writes_images_and_truth(cfg, tmp_path):
         assert fits.getheader(survey.science_path(field, b))["MOCKSEED"] == 9
     with pytest.raises(ValueError, match="already holds a mock universe"):
         mock.render_mock_universe(cfg_path, rows, seed=10, truth_path=tmp_path / "t2.parquet")
+
+
+def test_redshift_lattice(cfg):
+    """z_step: redshifts on the lattice, each cell with its comoving volume's probability."""
+    rng = np.random.default_rng(5)
+    t = mock.draw_mock_population(rng, LF, (8.0, 8.05), M_RANGE, {"a": 400.0}, cfg,
+                                  pixel_scale_arcsec=0.08, z_step=0.01)
+    z = t["z"].to_numpy()
+    assert np.all(np.abs(z * 100 - np.round(z * 100)) < 1e-9)
+    nodes = np.round(np.arange(8.0, 8.0501, 0.01), 10)
+    assert set(np.unique(z)) <= set(nodes)
+    # Cell k holds [z_k - 0.005, z_k + 0.005] (half cells at the ends).
+    edges = np.clip(np.r_[nodes - 0.005, nodes[-1] + 0.005], 8.0, 8.05)
+    p = np.array([integrate.quad(_dvdz, a, b)[0] for a, b in zip(edges[:-1], edges[1:])])
+    p /= p.sum()
+    k = np.array([(z == v).sum() for v in nodes])
+    assert stats.chisquare(k, p * k.sum()).pvalue > 1e-3

@@ -158,7 +158,8 @@ def _band_setup(cfg):
 
 
 def draw_mock_population(rng: np.random.Generator, lf, z_range, M_range, area_arcmin2, cfg,
-                         *, pixel_scale_arcsec: float | None = None) -> pd.DataFrame:
+                         *, pixel_scale_arcsec: float | None = None,
+                         z_step: float | None = None) -> pd.DataFrame:
     """Galaxies of a luminosity function over the volume of a survey.
 
     Parameters
@@ -179,6 +180,16 @@ def draw_mock_population(rng: np.random.Generator, lf, z_range, M_range, area_ar
     pixel_scale_arcsec : float, optional
         Image pixel scale; with it, ``r_eff_pix`` is on the injections' template lattice
         and ``r_eff_arcsec`` follows from it (as in the injections).
+    z_step : float, optional
+        Round each redshift to the nearest multiple of ``z_step`` (inside ``z_range``):
+        the redshifts then take lattice values with probabilities equal to the comoving
+        volume of each lattice cell (the midpoint rule of the continuous distribution).
+        With 0.01 (``glaciar.galaxy.sed.Z_LATTICE_STEP``) the band magnitudes come from
+        the exact, cached band tables of the lattice instead of one exact table per
+        source where the IGM enters a band (~15 ms each): ~0.5 ms per source once
+        the lattice is cached, against ~60 ms.  Effect on any count: the midpoint
+        rule's error, (dz^2 / 24) P''/P ~ 1e-5 relative for a selection that turns on
+        over dz ~ 0.3.
 
     Returns
     -------
@@ -207,6 +218,9 @@ def draw_mock_population(rng: np.random.Generator, lf, z_range, M_range, area_ar
         n_exp[field] = mu
         n = int(rng.poisson(mu))
         z = _inverse_cdf(rng, zz, cv, n)
+        if z_step is not None:
+            step = float(z_step)
+            z = np.round(np.clip(np.round(z / step) * step, zz[0], zz[-1]), 10)
         M = _inverse_cdf(rng, MM, cp, n)
         beta = population.draw_beta(rng, n, model)
         shapes = population.draw_shapes(rng, n, model)
