@@ -110,6 +110,9 @@ def test_schechter_recovered_from_the_forward_model():
     assert 2000 < len(m) < 5000
     res = fit_lf(sf, m, m_obs_edges=WINDOW, seed=3, n_steps=3000)
     assert res.convergence["converged"] and res.n_candidates == len(m)
+    # The mixture: every draw's posterior sampled on its own and weighed 1/D.
+    assert res.convergence["sf_draw_ess"] == pytest.approx(sf.n_draws)
+    assert res.convergence["n_importance"] + res.convergence["n_chains"] == sf.n_draws
     for name, truth in TRUE.items():
         p = res.parameters[name]
         sd = 0.5 * (p["hi68"] - p["lo68"])
@@ -125,10 +128,13 @@ def test_schechter_recovered_from_the_forward_model():
                       for lo, hi in zip(b["M_lo"][good], b["M_hi"][good])])
     sig = 0.5 * (b["phi_hi68"][good] - b["phi_lo68"][good])
     assert np.all(np.abs(b["phi"][good] - truth) < 4 * sig + 0.05 * truth)
-    # A fixed parameter stays fixed; the others follow.
-    fx = fit_lf(sf, m, m_obs_edges=WINDOW, seed=4, n_steps=2000, fix={"alpha": -2.0})
+    # A fixed parameter stays fixed; the others follow (here with one emcee chain on the
+    # likelihood averaged over the draws).
+    fx = fit_lf(sf, m, m_obs_edges=WINDOW, seed=4, n_steps=2000, fix={"alpha": -2.0},
+                marginalise="likelihood")
+    assert fx.convergence["converged"] and fx.convergence["n_chains"] == 1
     assert fx.fixed == {"alpha": -2.0} and fx.parameters["alpha"]["lo68"] == -2.0
-    assert fx.chain.shape[-1] == 2
+    assert fx.chain.shape[-1] == 2 and fx.samples.shape[-1] == 3
     p = fx.parameters["M_star"]
     assert abs(p["median"] - TRUE["M_star"]) < 2.5 * 0.5 * (p["hi68"] - p["lo68"])
 
@@ -150,7 +156,16 @@ def test_stepwise_recovers_a_stepwise_truth():
 
 
 def test_default_window_is_inside_the_simulated_range_on_the_lattice():
-    w = default_window(lf_sf())
+    from glaciar.lf import expected_counts
+
+    sf = lf_sf()
+    by_name = expected_counts(sf, "schechter", WINDOW, params=TRUE, draws=1, warn=False)
+    by_phi = sf.expected_counts(lambda M, z: schechter(M, **TRUE) + 0 * z, WINDOW, draws=1,
+                                warn=False)
+    np.testing.assert_allclose(by_name.median, by_phi.median, rtol=1e-12)
+    with pytest.raises(ValueError, match="needs alpha"):
+        expected_counts(sf, "schechter", WINDOW, params={"log_phi_star": -3, "M_star": -21})
+    w = default_window(sf)
     assert w[0] == pytest.approx(24.4) and w[-1] == pytest.approx(30.0)
     np.testing.assert_allclose(np.diff(w), 0.2)
     with pytest.raises(ValueError, match="no candidate"):

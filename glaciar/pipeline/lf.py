@@ -2,8 +2,10 @@
 
 :func:`run_lf` is the edge around :func:`glaciar.lf.fit_lf`: it reads
 ``RUN_DIR/selection_function.fits`` and the catalogue (Parquet, or ECSV / FITS by
-extension), checks that the catalogue was made with the run's configuration and holds the
-columns it needs -- all before anything is written -- fits, and writes
+extension), checks that the catalogue was measured as the run's injections were
+(:func:`read_candidates`: the identity ``glaciar catalog`` records, else the
+``config_hash``) and holds the columns it needs -- all before anything is written --
+fits, and writes
 
 - ``RUN_DIR/lf/summary.json``: model, candidates, parameters (median and 68 % interval),
   fixed parameters, ranges, convergence, the files it came from;
@@ -104,8 +106,11 @@ def read_candidates(run_dir, catalog, manifest: dict | None = None):
     FileNotFoundError
         No run manifest or no catalogue.
     ValueError
-        The catalogue's identity differs from the run's (both hashes and files named),
-        it carries none, or lacks the ``selected`` or magnitude column (named).
+        The catalogue's identity differs from the run's, it carries none, or it lacks the
+        ``selected`` or magnitude column (named).  The identity is the one ``glaciar
+        catalog`` records (measurement settings, input files, fields, band:
+        :func:`glaciar.pipeline.catalog.check_identity`) when present, else the
+        ``config_hash`` (both hashes and files named on a mismatch).
     """
     from ..store import read_manifest
 
@@ -116,18 +121,21 @@ def read_candidates(run_dir, catalog, manifest: dict | None = None):
     table, meta = _read_catalog(catalog)
     run_hash = manifest.get("config_hash")
     cat_hash = _meta_value(meta, "config_hash")
-    if cat_hash is None:
+    if "store_hash" in meta:
+        # The identity `glaciar catalog` records: measurement settings, input-file
+        # fingerprints, fields, detection band -- what fixes the selection.  It decides:
+        # config_hash also covers the grid, the iterations and where the files sit (a run's
+        # stored config.yaml hashes differently from the file it was made from).
+        from .catalog import check_identity
+        check_identity(meta, manifest, catalog, run_dir)
+    elif cat_hash is None:
         raise ValueError(f"{catalog}: no config_hash in its metadata, so it cannot be matched to "
                          f"the run {run_dir} (config_hash {run_hash}); catalogue the run with "
                          f"`glaciar catalog {run_dir}`")
-    if str(cat_hash) != str(run_hash):
+    elif str(cat_hash) != str(run_hash):
         raise ValueError(f"{catalog} (config_hash {cat_hash}) was not made with the configuration "
                          f"of the run {run_dir} ({C.MANIFEST_NAME} config_hash {run_hash}); its "
                          "selection is not the one the selection function describes")
-    if "store_hash" in meta:
-        # The finer identity glaciar catalog records (settings, input files, fields, band).
-        from .catalog import check_identity
-        check_identity(meta, manifest, catalog, run_dir)
     det = manifest.get("detection_band")
     if not det:
         raise ValueError(f"{run_dir}/{C.MANIFEST_NAME}: no detection_band recorded")
@@ -142,7 +150,8 @@ def read_candidates(run_dir, catalog, manifest: dict | None = None):
     fin = np.isfinite(mag)
     info = {"n_rows": int(len(table)), "n_selected": int(sel.sum()),
             "n_no_magnitude": int((sel & ~fin).sum()), "column": col,
-            "config_hash": str(cat_hash)}
+            "config_hash": None if cat_hash is None else str(cat_hash),
+            "identity": "store_hash" if "store_hash" in meta else "config_hash"}
     return mag[sel & fin], info
 
 
@@ -262,7 +271,8 @@ def run_lf(run_dir, catalog=None, *, model: str = "schechter", fix: dict | None 
         "m_obs_range": [float(res.counts["m_lo"][0]), float(res.counts["m_hi"][-1])],
         "muv_range": list(res.muv_range), "z_range": list(res.z_range),
         "transfer": res.transfer, "seed": int(seed), "convergence": res.convergence,
-        "catalog": str(catalog), "selection_function": str(sf_path),
+        "catalog": str(catalog), "catalog_identity": info["identity"],
+        "selection_function": str(sf_path),
         "fields": [s.field for s in sfs], "config_hash": manifest.get("config_hash"),
         "units": {"phi": "Mpc-3 mag-1", "log_phi_star": "log10 Mpc-3 (Schechter) or "
                   "log10 Mpc-3 mag-1 (double power law)", "M_star": "AB mag (M_UV, 1600 A)",
