@@ -257,6 +257,24 @@ def test_run_lf_refuses_bad_inputs_before_writing(tmp_path):
         run_lf(run, good, muv_range=(-18.0, -22.0))
     with pytest.raises(FileNotFoundError, match="catalogue not found"):
         run_lf(run, tmp_path / "none.parquet")
+    # The identity `glaciar catalog` records (settings, input files, fields, band) decides
+    # when present: the run's stored config.yaml hashes differently from its source file.
+    import json
+
+    from glaciar.pipeline.catalog import catalog_identity, read_catalog, write_catalog
+    from glaciar.pipeline.lf import read_candidates
+    manifest = {"config_hash": "c0ffee", "detection_band": "F160W", "store_hash": "5e77",
+                "inputs": {}, "fields": ["f1"]}
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    same = tmp_path / "same.parquet"
+    _catalog(same, sf, chash="other")
+    t, meta = read_catalog(same)
+    write_catalog(t, same, {**meta, **catalog_identity("5e77", {}, ["f1"], "F160W")})
+    m_obs, info = read_candidates(run, same)
+    assert info["identity"] == "store_hash" and len(m_obs) > 100
+    write_catalog(t, same, {**meta, **catalog_identity("0bad", {}, ["f1"], "F160W")})
+    with pytest.raises(ValueError, match="other measurement settings"):
+        read_candidates(run, same)
     (run / "selection_function.fits").unlink()
     with pytest.raises(FileNotFoundError, match="glaciar fit"):
         run_lf(run, good)
