@@ -107,6 +107,19 @@ def test_redshift_evolving_phi_and_absolute_magnitude_fit():
     full = EDGES[1:] <= 26.7 - 0.2
     np.testing.assert_allclose(ec.median[full], 0.2 * volume(), rtol=1e-4)
     assert np.all(ec.median[EDGES[:-1] > 27.6] < 1e-6 * volume())
+    # With a transfer function (read at m = M + K): the same where the scatter (0.15 +- 0.2
+    # mag) stays inside the selected range; in all, 0.15 mag of sources more (the shift
+    # brings them in across the bright edge, P depending on M only).  Beyond the
+    # transfer matrix's rows (m_in < 23) their offsets apply unchanged.
+    sf.transfer_matrix = gauss_matrix(np.arange(23.0, 30.01, 0.5), [6.0, 7.0, 8.0])
+    wide = np.round(np.arange(22.0, 30.01, 0.2), 6)
+    with pytest.warns(UserWarning, match="outside the simulated range"):   # M_UV < -23
+        et = sf.expected_counts(one, wide)
+    with pytest.warns(UserWarning, match="outside the simulated range"):
+        eb = sf.expected_counts(one, wide, transfer=False)
+    inner = (wide[:-1] >= 25.0) & (wide[1:] <= 25.6)
+    np.testing.assert_allclose(et.median[inner], 0.2 * volume(), rtol=2e-3)
+    assert et.median.sum() == pytest.approx(eb.median.sum() + 0.15 * volume(), rel=1e-3)
 
 
 def test_magnitudes_outside_the_simulated_range_are_flagged_not_zeroed():

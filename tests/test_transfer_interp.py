@@ -61,6 +61,10 @@ def test_off_grid_bins_match_the_exact_normal():
     assert worst[24.2] < 0.012                         # sigma = 0.12
     assert max(worst[25.3], worst[26.7], worst[27.9], worst[27.85]) < 5e-3   # sigma >= 0.2
     assert worst[25.0] < 2e-3                          # a row's own magnitude and slice
+    # Beyond the rows (m_in < 24): the end row's offsets, unchanged (sigma 0.1, shift 0.15).
+    np.testing.assert_allclose(tf.probability(22.7, 7.0, edges), tf.probability(24.0, 7.0,
+                                                                               edges + 1.3),
+                               atol=1e-9)
     # sigma = 0.11: narrower than the bins, the histogram does not resolve it (documented).
     assert worst[24.1] < 0.08
     ms = np.linspace(24.0, 24.5, 201)

@@ -382,10 +382,11 @@ def count_kernel(sf, m_obs_edges, M_edges=None, *, z_min=None, z_max=None, area=
             Qd = np.zeros((n_z * n_M, n_k))
             np.add.at(Qd, rows_zj, wq[:, None] * _overlap(m_pt, dm / 2, E))
             Qd = Qd.reshape(n_z, n_M, n_k)
+        last_dt = None
         for a in order:
-            if transfer and (a == order[0] or a % n_t != prev % n_t):
+            if transfer and a % n_t != last_dt:
                 Qd = (B @ q_table(a)).reshape(n_z, n_M, n_k)
-            prev = a
+                last_dt = a % n_t
             pw = P_zm[a] * wzm
             values[a] = np.einsum("zm,zmk->mk", pw, Qd)
             extrap += np.einsum("zm,zmk->mk", np.where(ext_zm, pw, 0.0), Qd)

@@ -250,9 +250,10 @@ class TransferFunction:
         j, t = self._row_pairs(m)
         j2 = np.minimum(j + 1, len(self.m_nodes) - 1)
         tt = t[:, None]
-        # Displacement interpolation: quantiles (in m_obs) mix linearly.
-        q = ((1 - tt) * (self.quantiles[d, i, j] + self.source[i, j][:, None])
-             + tt * (self.quantiles[d, i, j2] + self.source[i, j2][:, None]))
+        # Displacement interpolation: the quantiles of the offset mix linearly, and
+        # m_obs = m + offset (between rows (1 - t) u_j + t u_j+1 = m, so this is the mix
+        # of the rows' m_obs quantiles; beyond the end rows, their offsets unchanged).
+        q = m[:, None] + (1 - tt) * self.quantiles[d, i, j] + tt * self.quantiles[d, i, j2]
         x = np.broadcast_to(np.clip(E, -_BIG, _BIG), (len(m), len(E)))
         G = _interp_rows(x, q, np.broadcast_to(self.levels, q.shape), "right")
         flo = (1 - t) * self.f_lo[d, i, j] + t * self.f_lo[d, i, j2]

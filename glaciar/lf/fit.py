@@ -672,7 +672,6 @@ def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None, z_r
         Bad model, ``fix`` naming an unknown parameter (the allowed ones are listed),
         bad ranges, no candidate in the window.
     """
-    from ..inference.sampling import ConvergenceWarning, sample_block
     from ..inference.selection_function import beta_nodes, kcorrection
 
     sfs = _as_list(sf)
