@@ -44,10 +44,12 @@ N(0, sigma(m_in)), sigma growing linearly from 0.1 mag (m_in = 24) to 0.5 mag (2
 tabulated exactly on a 0.5 mag grid of input magnitudes in 0.2 mag m_obs bins, the
 probabilities of 0.2 mag bins at off-grid (m_in, z) agree with the exact normal ones to
 < 5e-3 where sigma >= 0.2 mag, < 0.01 at sigma = 0.12, and at a row's own magnitude to
-< 3e-3.  A scatter narrower than the bins is not resolved by the histogram: at sigma ~ 0.1
-a bin's probability can be off by up to 0.07 at one input magnitude (0.015 averaged over
-0.5 mag of input magnitude, which is what counts integrate over).  This is the 0.2 mag
-histogram's limit, not the interpolation's (exact for this family).
+< 4e-3 (1e-3 at sigma = 0.2: the quantile representation).  A scatter narrower than the
+bins is not resolved by the histogram: at sigma ~ 0.1 a bin's probability can be off by
+up to 0.07 at one input magnitude (0.015 averaged over 0.5 mag of input magnitude, which
+is what counts integrate over).  This is the 0.2 mag histogram's limit, not the
+interpolation's (exact for this family).  Finer m_obs bins in the stored histograms
+(``TRANSFER_MOBS_STEP``) would lift it.
 
 Arrays in, arrays out; no file I/O.
 """
