@@ -148,6 +148,8 @@ class LFResult:
         chains, steps; None without a chain), ``n_steps`` (longest chain), ``n_walkers``,
         ``converged`` (every chain), ``acceptance``, ``n_sf_draws``, ``marginalise``,
         ``sf_draw_ess``, ``extrapolated_fraction_max``.
+    path : Path or None
+        Where :func:`glaciar.pipeline.lf.run_lf` wrote it.
     """
 
     model: str
@@ -164,6 +166,8 @@ class LFResult:
     z_range: tuple
     transfer: bool
     convergence: dict = field(default_factory=dict)
+    #: Directory the result was written to (``RUN_DIR/lf``), when it was.
+    path: object = None
 
     def phi(self, M, which: str = "median") -> np.ndarray:
         """phi(M) [Mpc^-3 mag^-1] at the median parameters (``which="median"``), or per sample."""

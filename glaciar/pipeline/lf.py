@@ -19,6 +19,8 @@ function was built from).
 """
 from __future__ import annotations
 
+import dataclasses
+
 import io
 import json
 from pathlib import Path
@@ -184,7 +186,8 @@ def _ecsv(columns: dict, data: dict, meta: dict) -> str:
 
 
 def run_lf(run_dir, catalog=None, *, model: str = "schechter", fix: dict | None = None,
-           muv_range=None, z_range=None, seed: int = 0, progress: bool = False) -> Path:
+           muv_range=None, z_range=None, seed: int = 0, progress: bool = False,
+           return_result: bool = False):
     """Fit a luminosity function to a run's catalogue and write ``RUN_DIR/lf/``.
 
     Parameters
@@ -206,9 +209,13 @@ def run_lf(run_dir, catalog=None, *, model: str = "schechter", fix: dict | None 
     progress : bool
         Show the sampler's progress.
 
+    return_result : bool
+        Return the :class:`glaciar.lf.LFResult` (with the directory as ``result.path``)
+        instead of the directory; ``glaciar.lf(run, catalog, ...)`` does.
+
     Returns
     -------
-    Path
+    Path or LFResult
         ``RUN_DIR/lf``.
 
     Raises
@@ -285,4 +292,6 @@ def run_lf(run_dir, catalog=None, *, model: str = "schechter", fix: dict | None 
     save_png(lf_figure(res), out / "lf.png", dpi=FIGURE_DPI)
     # The summary last: its presence says the rest was written.
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    if return_result:
+        return dataclasses.replace(res, path=out)
     return out
