@@ -23,7 +23,6 @@ import pandas as pd
 
 from .. import constants as C
 from .classify import passes_sn
-from .coadd import CoaddScene
 from .depth import depth_at
 from .detect import DetectionError, _sep_extract, detection_rms, sanitize
 from .measure import measure_injected, output_columns
@@ -102,12 +101,7 @@ def _first_positions(ctx, scenes) -> tuple[np.ndarray, np.ndarray]:
 def _measure(ctx, scenes: Mapping[str, Scene], x, y, diagnostics: dict | None,
              mode: str = "full"):
     det = ctx.detection_band
-    if getattr(ctx, "coadd_bands", ()):
-        det_scene = CoaddScene([scenes[b] for b in ctx.coadd_bands],
-                               [ctx.rms[b] for b in ctx.coadd_bands], ctx.coadd_method)
-        det_rms = ctx.detection_image_rms
-    else:
-        det_scene, det_rms = scenes[det], ctx.rms[det]
+    det_scene, det_rms = ctx.detection_scene(scenes)
     n = x.size
     nan = np.full(n, np.nan)
     return measure_injected(det_scene, det_rms, scenes, ctx.rms, x, y, nan, nan, ctx.reference,

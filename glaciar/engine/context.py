@@ -86,6 +86,17 @@ class FieldContext:
         """The measured fields (:data:`MEASURED`) by name."""
         return {name: getattr(self, name) for name in self.MEASURED}
 
+    def detection_scene(self, scenes):
+        """The detection image of band ``scenes`` (band -> Scene) and its RMS map: the stack of
+        ``coadd_bands`` (:class:`~glaciar.engine.coadd.CoaddScene`) or the detection band's."""
+        if self.coadd_bands:
+            from .coadd import CoaddScene
+
+            return (CoaddScene([scenes[b] for b in self.coadd_bands],
+                               [self.rms[b] for b in self.coadd_bands], self.coadd_method),
+                    self.detection_image_rms)
+        return scenes[self.detection_band], self.rms[self.detection_band]
+
     @staticmethod
     def quantise_r_eff(r_eff_pix):
         """Round r_e [pixels] to the logarithmic grid of step :data:`R_EFF_LOG_STEP`."""

@@ -18,7 +18,6 @@ import pandas as pd
 
 from .. import constants as C
 from ..galaxy import population, sed
-from .coadd import CoaddScene
 from .depth import depth_at
 from .measure import measure_injected
 from .positions import draw_positions
@@ -178,12 +177,7 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
     scenes = {b: Scene(ctx.bases[b], stamps[b]) for b in bands}
     det = ctx.detection_band
     jd = ctx.detection_index
-    if getattr(ctx, "coadd_bands", ()):
-        det_scene = CoaddScene([scenes[b] for b in ctx.coadd_bands],
-                               [ctx.rms[b] for b in ctx.coadd_bands], ctx.coadd_method)
-        det_rms = ctx.detection_image_rms
-    else:
-        det_scene, det_rms = scenes[det], ctx.rms[det]
+    det_scene, det_rms = ctx.detection_scene(scenes)
     meas = measure_injected(det_scene, det_rms, scenes, ctx.rms, x, y,
                             flux_in[:, jd], src.mag_in[:, jd], ctx.reference, ctx.detection_params,
                             ctx.classification_params, ctx.zeropoints, ctx.gains, det,
