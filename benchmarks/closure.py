@@ -57,7 +57,28 @@ closure test's parameters.
                                  [--deeper 1.75] [--iterations 2] [--n-galaxies 50]
                                  [--free-mstar]
 
-Measured figures: see the end of this docstring (filled in from a run).
+Measured (2026-11-27, ``--ensemble 10 --seed 1``, 4 fields of 2000^2 px, 23.48 arcmin^2; shared
+2-core machine; ~5 min per realisation: simulate 165 s, fit 45 s, catalog ~20 s, lf 6 s):
+
+| method | M* | parameter | coverage of 68 % | mean pull (s.e.) | median pull | mean median - truth |
+|---|---|---|---|---|---|---|
+| forward model + transfer (glaciar.lf) | fixed | log_phi_star | 7/10 = 0.70 | +0.09 (0.35) | +0.29 | -0.001 |
+| forward model + transfer (glaciar.lf) | fixed | alpha | 6/10 = 0.60 | -0.06 (0.40) | +0.08 | -0.011 |
+| (a) input magnitude only (transfer=False) | fixed | log_phi_star | 7/10 = 0.70 | +0.15 (0.37) | +0.26 | +0.003 |
+| (a) input magnitude only (transfer=False) | fixed | alpha | 5/10 = 0.50 | -1.15 (0.47) | -0.93 | -0.431 |
+| (b) binned 1/V_eff, M_UV at mean z | fixed | log_phi_star | 9/10 = 0.90 | -0.52 (0.36) | -0.50 | -0.049 |
+| (b) binned 1/V_eff, M_UV at mean z | fixed | alpha | 2/10 = 0.20 | -2.29 (0.50) | -2.17 | -0.737 |
+
+| counts test | mean G / bins | p < 0.01 | p < 0.05 | median p |
+|---|---|---|---|---|
+| truth, transfer | 7.7 / 7.2 | 0/10 | 1/10 | 0.51 |
+| truth, input-only | 10.5 / 7.2 | 1/10 | 3/10 | 0.24 |
+| fitted median, transfer | 5.6 / 7.2 | 0/10 | 0/10 | 0.67 |
+| 1/V_eff binned phi vs truth (chi^2) | 11.7 / 7.0 | 1/10 | 3/10 | 0.15 |
+
+Summed over the realisations: 332 candidates selected against 307.5 expected from the truth
+LF through the selection function (+1.40 sigma); 326 of them mock galaxies against the sum
+over the mock galaxies of P(z_i, m_i) = 318.9 (+0.40 sigma); 0.6 contaminants per realisation.
 """
 from __future__ import annotations
 
@@ -89,7 +110,7 @@ OBS_BIN = 0.5
 
 
 # --------------------------------------------------------------------------------------
-# The public API (with the lower-level functions as fallbacks while it is being written)
+# The public API (each with the lower-level call it stands for, as a fallback)
 # --------------------------------------------------------------------------------------
 def _api(name):
     import glaciar
