@@ -632,7 +632,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1, help="first realisation's seed (default 1)")
     ap.add_argument("--ensemble", type=int, default=1, help="realisations (default 1)")
     ap.add_argument("--workers", type=int, default=2, help="simulation workers (default 2)")
-    ap.add_argument("--out", type=Path, default=None, help="work directory (default: a temporary one)")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="work directory (default: a temporary one); realisations already in its "
+                         "closure_results.jsonl are not run again")
     ap.add_argument("--keep", action="store_true", help="keep the realisations' files")
     ap.add_argument("--boost", type=float, default=0.8,
                     help="log phi* = -3.5 + boost [dex] (default 0.8: ~35 galaxies per arcmin^2)")
@@ -649,8 +651,20 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     results = []
     log = out / "closure_results.jsonl"
+    done = {}
+    if log.exists():             # a resumed ensemble: the realisations already finished count
+        for line in log.read_text().splitlines():
+            try:
+                r = json.loads(line)
+            except ValueError:
+                continue
+            done[r["seed"]] = r
     for i in range(args.ensemble):
         seed = args.seed + i
+        if seed in done:
+            results.append(done[seed])
+            print(f"(seed {seed}: finished before, read from {log})")
+            continue
         work = out / f"r{seed:03d}"
         if work.exists():
             shutil.rmtree(work)
