@@ -563,8 +563,8 @@ def print_ensemble(results: list[dict], args) -> None:
     print(f"\n## Ensemble: {n} realisations (seeds {results[0]['seed']}..{results[-1]['seed']}), "
           f"each simulated, catalogued and fitted anew\n")
     print("| method | M* | parameter | coverage of 68 % | mean pull (s.e.) | median pull | "
-          "mean median - truth |")
-    print("|---|---|---|---|---|---|---|")
+          "mean median - truth | mean of (median - forward model's) (s.e.) |")
+    print("|---|---|---|---|---|---|---|---|")
     for key in results[0]["fits"]:
         meth, var = key.split("/")
         for k in ("log_phi_star", "alpha", "M_star"):
@@ -576,9 +576,15 @@ def print_ensemble(results: list[dict], args) -> None:
             bias = np.mean([p["median"] - tp[k] for p in ps])
             se = np.nanstd(pulls, ddof=1) / math.sqrt(max(np.isfinite(pulls).sum(), 1)) \
                 if np.isfinite(pulls).sum() > 1 else float("nan")
+            ref = f"transfer/{var}"
+            diff = np.array([r["fits"][key][k]["median"] - r["fits"][ref][k]["median"]
+                             for r in results if ref in r["fits"]])
+            paired = "" if meth == "transfer" or not diff.size else (
+                f"{diff.mean():+.3f} ({diff.std(ddof=1) / math.sqrt(diff.size):.3f})"
+                if diff.size > 1 else f"{diff.mean():+.3f}")
             print(f"| {METHODS[meth]} | {var} | {k} | {sum(inside)}/{n} = {np.mean(inside):.2f} | "
                   f"{np.nanmean(pulls):+.2f} ({_fmt(se, 2)}) | {np.nanmedian(pulls):+.2f} | "
-                  f"{bias:+.3f} |")
+                  f"{bias:+.3f} | {paired} |")
     print("\n| counts test | mean G / bins | p < 0.01 | p < 0.05 | median p |")
     print("|---|---|---|---|---|")
     for key, name in (("truth", "truth, transfer"), ("truth_input_only", "truth, input-only"),
