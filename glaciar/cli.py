@@ -186,6 +186,7 @@ def _cmd_next(args) -> int:
     from .config import load_config
     from .inference import SelectionFunction
     from .pipeline.adaptive import cells_yaml, proposal_cells
+    from .pipeline.fitdir import hold_run
     from .store import atomic_write_text, read_manifest
 
     run_dir = Path(args.run_dir)
@@ -193,13 +194,15 @@ def _cmd_next(args) -> int:
                                    or not Path(args.write).resolve().parent.is_dir()):
         raise FileNotFoundError(f"--write {args.write}: expected a file path in an existing "
                                 "directory")
-    sf = SelectionFunction.read(run_dir / C.SELECTION_FUNCTION_NAME, field=args.field)
-    cfg_path = run_dir / C.RUN_CONFIG_NAME
-    if not cfg_path.is_file():
-        raise FileNotFoundError(f"{cfg_path}: the run's stored configuration is missing "
-                                "(needed for its simulated cells)")
-    cfg = load_config(cfg_path)
-    manifest = read_manifest(run_dir) or {}
+    # Under the run's lock: the fit and the configuration read together, never mid-write.
+    with hold_run(run_dir, "next"):
+        sf = SelectionFunction.read(run_dir / C.SELECTION_FUNCTION_NAME, field=args.field)
+        cfg_path = run_dir / C.RUN_CONFIG_NAME
+        if not cfg_path.is_file():
+            raise FileNotFoundError(f"{cfg_path}: the run's stored configuration is missing "
+                                    "(needed for its simulated cells)")
+        cfg = load_config(cfg_path)
+        manifest = read_manifest(run_dir) or {}
     cells, stats = proposal_cells(sf, cfg, args.n, add_iterations=args.iterations,
                                   z_limit=manifest.get("detection_z_limit"))
     print(f"# largest posterior sd of C*S: {stats['max_sd']:.4f} at z = {stats['at'][0]:g}, "

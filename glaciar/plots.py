@@ -42,14 +42,20 @@ def _edges(v: np.ndarray) -> np.ndarray:
     return np.concatenate([[2 * v[0] - mid[0]], mid, [2 * v[-1] - mid[-1]]])
 
 
-def plot_summary_maps(summary: pd.DataFrame, out_dir, label: str, mag_label: str = "m (AB)") -> list[Path]:
-    """Write ``completeness_<label>.png``, ``selection_total_<label>.png`` and ``selection_<label>.png``."""
+def plot_summary_maps(summary: pd.DataFrame, out_dir, label: str, mag_label: str = "m (AB)",
+                      selection: bool = True) -> list[Path]:
+    """Write ``completeness_<label>.png``, ``selection_total_<label>.png`` and ``selection_<label>.png``.
+
+    ``selection=False`` (a detection-only run: S = 1 by definition) omits the S map.
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     out = []
     titles = {"completeness": "C(m, z)", "selection_total": "C(m, z) · S(z, m)", "selection": "S(z, m)"}
+    if not selection:
+        del titles["selection"]
     for column, title in titles.items():
         zs, ms, grid = summary_grid(summary, column)
         fig, ax = plt.subplots(figsize=(6, 4.5), dpi=110)

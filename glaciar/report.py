@@ -75,6 +75,11 @@ def _grid_axes(header, shape):
     return z, m
 
 
+def _detection_only(manifest: dict) -> bool:
+    """A run without selection criteria (``selection: []``): S = 1 exactly, nothing to plot."""
+    return "selection" in manifest and not manifest.get("selection")
+
+
 def _read_selection_function(path: Path) -> dict:
     """Headers, parameter table, grids (planes in ``_PLANE_ORDER``), PPC and DEPTH per fit."""
     from astropy.io import fits
@@ -339,6 +344,14 @@ def _statistics_section(d: dict) -> str:
                                          "steps × walkers"], rows, table_id="fit-statistics",
                                         formats={"wall_time_s": ".1f"},
                                         headers={"wall_time_s": "wall time [s]"})
+        if fs.get("wall_time_s") is not None:
+            # The command's own clock (every model compared, checks, V_eff, files); a fit's
+            # row is its share, without reading the run and writing the outputs.
+            body += _note(f"Fit wall time: {float(fs['wall_time_s']):.1f} s for the whole "
+                          "`glaciar fit` (every model compared, the checks and the outputs).")
+        else:
+            body += _note("Fit wall time: not recorded by the glaciar that wrote this fit (its "
+                          "per-fit times count one model's sampler only).")
     return _section("statistics", "Run statistics", body)
 
 
@@ -421,6 +434,10 @@ def _curves_section(d: dict) -> str:
                                              points=points),
                         f"Completeness C(m, z) with 68 % and 95 % credible bands (fit {name})",
                         f"fig-completeness-{name}")
+        if fit["draws_header"].get("SELFIT", True) is False:
+            body += _note(f"fit {name}: detection only (no selection criteria), so S = 1 "
+                          "exactly and P = C; there is no S to show.")
+            continue
         g = fit["SR_GRID"]
         curves, points = [], []
         for im in _nearest(g["m"], m.get("mag_values", []), 4):
@@ -675,17 +692,36 @@ def write_html_report(run_dir, path=None) -> Path:
     """Write the run's HTML report (default ``RUN/report.html``, atomically); return its path."""
     from .store import atomic_write_text
 
+    from .pipeline.fitdir import hold_run
+
     run_dir = Path(run_dir)
-    page = render_html(load_report_data(run_dir))
-    out = Path(path) if path is not None else run_dir / REPORT_NAME
-    atomic_write_text(out, page)
+    # Under the run's lock: never a half-written run, nor a fit/ from another fit than the file.
+    with hold_run(run_dir, "report"):
+        page = render_html(load_report_data(run_dir))
+        out = Path(path) if path is not None else run_dir / REPORT_NAME
+        atomic_write_text(out, page)
     return out
 
 
 def write_summary_files(run_dir, *, regions: bool = False) -> list[Path]:
     """The summary tables (ECSV), maps (PNG) and optionally DS9 regions of a run
     (``glaciar report``); returns the paths written.  Store warnings are issued as
-    :class:`glaciar.store.StoreWarning` (once each)."""
+    :class:`glaciar.store.StoreWarning` (once each).
+
+    Raises
+    ------
+    glaciar.store.RunLockedError
+        ``glaciar simulate`` (or a fit) is writing the run.
+    """
+    from .pipeline.fitdir import hold_run
+
+    run_dir = Path(run_dir)
+    # Under the run's lock: a run that `glaciar simulate` is writing is refused.
+    with hold_run(run_dir, "report"):
+        return _write_summary_files(run_dir, regions)
+
+
+def _write_summary_files(run_dir: Path, regions: bool) -> list[Path]:
     import warnings
 
     from .plots import plot_summary_maps
@@ -695,7 +731,6 @@ def write_summary_files(run_dir, *, regions: bool = False) -> list[Path]:
 
     # What fit uses too: the tasks the run's configuration lists now; their stored counts
     # (footers only), or the rows of a store written before counts.
-    run_dir = Path(run_dir)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", StoreWarning)
         got = read_current_counts(run_dir)
@@ -723,7 +758,8 @@ def write_summary_files(run_dir, *, regions: bool = False) -> list[Path]:
     mag_label = "M_UV" if manifest.get("magnitude_type") == "absolute" else \
         f"m ({manifest.get('detection_band', 'detection band')}, AB)"
     for field, sub in rows.groupby(C.COL_FIELD):
-        paths += plot_summary_maps(summary_table(sub), out_dir, str(field), mag_label)
+        paths += plot_summary_maps(summary_table(sub), out_dir, str(field), mag_label,
+                                   selection=not _detection_only(manifest))
     if regions:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", StoreWarning)     # printed above

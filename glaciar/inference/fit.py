@@ -188,7 +188,7 @@ def find_map(model: SurfaceModel, cells: Cells, starts=None) -> np.ndarray:
         starts = [_heuristic_start(model, cells), model.prior_mean]
     starts = [np.asarray(x0, float) for x0 in starts]
     out = np.array(starts[0], float)
-    for part in ("c", "s"):
+    for part in model.parts:
         lp_fn = model.block_log_posterior(cells, part)
         idx = lp_fn.index
         fg = _neg_log_post_and_grad(lp_fn, 1e-5 * model.prior_sd[idx])
@@ -305,7 +305,7 @@ def fit_surfaces(cells: Cells, model: SurfaceModel, *, seed=0, n_walkers: int | 
         theta_map = find_map(model, cells)
     seeds = np.random.SeedSequence(seed).spawn(2)
     blocks = []
-    for i, part in enumerate(("c", "s")):
+    for i, part in enumerate(model.parts):
         prev = None if resume is None else resume.blocks[i]
         cov = None if prev is not None else laplace_covariance(model, cells, theta_map, part)
         log_prob = model.block_log_posterior(cells, part)
@@ -319,7 +319,8 @@ def fit_surfaces(cells: Cells, model: SurfaceModel, *, seed=0, n_walkers: int | 
 
 
 def fit_and_choose(cells: Cells, shapes=None, *, depth_ref=None, seed=0, n_walkers=None,
-                   max_steps: int = DEFAULT_MAX_STEPS, loo_draws: int = 400, fit=None):
+                   max_steps: int = DEFAULT_MAX_STEPS, loo_draws: int = 400, fit=None,
+                   selection: bool = True, label: str = "fit"):
     """Fit every completeness step in ``shapes`` and keep one by PSIS-LOO.
 
     The selection block is the same for every step; the steps are compared on
@@ -341,6 +342,17 @@ def fit_and_choose(cells: Cells, shapes=None, *, depth_ref=None, seed=0, n_walke
     fit : callable, optional
         ``fit(cells, model) -> FitResult`` replacing :func:`fit_surfaces` (the
         pipeline passes one that resumes saved chains and shows progress).
+    selection : bool
+        False for a detection-only run: S = 1 exactly, only C is fitted.
+    label : str
+        Names the fit in the warnings (e.g. ``fit 'all'``).
+
+    Warns
+    -----
+    ConvergenceWarning
+        Once the model is chosen, each model's sampler warnings again, prefixed by
+        ``label``, the model and whether it was kept (a warning about a model that
+        was compared and dropped says so).
 
     Returns
     -------
@@ -357,14 +369,30 @@ def fit_and_choose(cells: Cells, shapes=None, *, depth_ref=None, seed=0, n_walke
     if fit is None:
         def fit(c, mdl):
             return fit_surfaces(c, mdl, seed=seed, n_walkers=n_walkers, max_steps=max_steps)
-    results, loos = {}, {}
+    results, loos, held = {}, {}, {}
     for shape in shapes:
-        mdl = SurfaceModel.for_data(cells.z, cells.mag, shape=shape, depth_ref=depth_ref)
-        results[shape] = fit(cells, mdl)
+        mdl = SurfaceModel.for_data(cells.z, cells.mag, shape=shape, depth_ref=depth_ref,
+                                    selection=selection)
+        # The sampler's warnings know the block, not the model: held until the model is
+        # chosen, then issued naming the model and whether it was kept.
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            results[shape] = fit(cells, mdl)
+        held[shape] = caught
         if len(shapes) > 1:
             d = results[shape].draws(loo_draws)
             loos[shape] = psis_loo(mdl.cell_log_likelihood(d, cells, part="c"))
     if len(shapes) == 1:
-        return shapes[0], results, []
-    chosen, table = compare_models(loos)
+        chosen, table = shapes[0], []
+    else:
+        chosen, table = compare_models(loos)
+    for shape in shapes:
+        role = ("kept" if shape == chosen else "compared by PSIS-LOO, not kept") \
+            if len(shapes) > 1 else "the only model fitted"
+        for w in held[shape]:
+            if issubclass(w.category, ConvergenceWarning):
+                warnings.warn(f"{label}, model {shape} ({role}): {w.message}", w.category,
+                              stacklevel=2)
+            else:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     return chosen, results, table

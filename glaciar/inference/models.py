@@ -214,6 +214,9 @@ class SurfaceModel:
     depth_ref : float or None
         Reference depth [AB mag]: with a value, the model is depth-aware and
         every magnitude is taken relative to the local depth, m - (d - depth_ref).
+    selection : bool
+        False for a detection-only run (no selection criteria): S is 1 exactly,
+        the model has no selection parameters and no "s" block.
     """
 
     shape: str = "logistic"
@@ -226,8 +229,10 @@ class SurfaceModel:
     edge_degree: int = 1
     c_max_degree: int = 1
     depth_ref: float | None = None
+    selection: bool = True
     _slices: dict = field(default=None, init=False, repr=False, compare=False)
     _cache: dict = field(default=None, init=False, repr=False, compare=False)
+    _n_total: int = field(default=0, init=False, repr=False, compare=False)
 
     def __post_init__(self):
         if self.shape not in COMPLETENESS_SHAPES:
@@ -245,13 +250,16 @@ class SurfaceModel:
                  ("log_w", self.log_w_degree + 1)]
         if self.shape == "sas":
             sizes += [("sas_eps", 1), ("sas_log_delta", 1)]
-        sizes += [("logit_s_max", 1), ("eta_lo", e), ("log_dz_lo", e), ("eta_hi", e),
-                  ("log_dz_hi", e)]
+        if self.selection:
+            sizes += [("logit_s_max", 1), ("eta_lo", e), ("log_dz_lo", e), ("eta_hi", e),
+                      ("log_dz_hi", e)]
         sl, i = {}, 0
         for name, k in sizes:
             sl[name] = slice(i, i + k)
             i += k
+        object.__setattr__(self, "selection", bool(self.selection))
         object.__setattr__(self, "_slices", sl)
+        object.__setattr__(self, "_n_total", i)
         # Names and priors are fixed by the model; computed once because the
         # log prior is evaluated at every sampler step.
         names = []
@@ -264,7 +272,8 @@ class SurfaceModel:
 
     # ------------------------------------------------------------------ setup
     @classmethod
-    def for_data(cls, z, mag, shape="logistic", depth_ref=None, **degrees) -> "SurfaceModel":
+    def for_data(cls, z, mag, shape="logistic", depth_ref=None, selection=True,
+                 **degrees) -> "SurfaceModel":
         """Model normalised to the covariate ranges of the data.
 
         Parameters
@@ -276,6 +285,8 @@ class SurfaceModel:
             Completeness step shape.
         depth_ref : float, optional
             Reference depth [AB mag] of a depth-aware model.
+        selection : bool
+            False: detection only, S = 1 exactly (no selection parameters).
         """
         z = np.asarray(z, float)
         mag = np.asarray(mag, float)
@@ -295,7 +306,8 @@ class SurfaceModel:
         # A single z (or magnitude) gives no lever arm: unit scale, the prior rules.
         return cls(shape=shape, z_ref=0.5 * (zlo + zhi), z_scale=0.5 * (zhi - zlo) or 1.0,
                    m_ref=0.5 * (mlo + mhi), m_scale=0.5 * (mhi - mlo) or 1.0,
-                   depth_ref=None if depth_ref is None else float(depth_ref), **degrees)
+                   depth_ref=None if depth_ref is None else float(depth_ref),
+                   selection=bool(selection), **degrees)
 
     @property
     def depth_aware(self) -> bool:
@@ -337,15 +349,16 @@ class SurfaceModel:
 
     def _prior_mean(self) -> np.ndarray:
         s = self._slices
-        mu = np.zeros(s["log_dz_hi"].stop)
+        mu = np.zeros(self._n_total)
         mu[s["logit_c_max"].start] = _LOGIT_MAX_PRIOR[0]
-        mu[s["logit_s_max"]] = _LOGIT_MAX_PRIOR[0]
         mu[s["m50"].start] = self.m_ref                      # centre of the magnitude range
         mu[s["log_w"].start] = _LOG_W_PRIOR[0]
-        for e in ("eta_lo", "eta_hi"):
-            mu[s[e].start] = _ETA_PRIOR[0]
-        for e in ("log_dz_lo", "log_dz_hi"):
-            mu[s[e].start] = _LOG_DZ_PRIOR[0]
+        if self.selection:
+            mu[s["logit_s_max"]] = _LOGIT_MAX_PRIOR[0]
+            for e in ("eta_lo", "eta_hi"):
+                mu[s[e].start] = _ETA_PRIOR[0]
+            for e in ("log_dz_lo", "log_dz_hi"):
+                mu[s[e].start] = _LOG_DZ_PRIOR[0]
         for name, (m, _) in _SAS_PRIORS.items():
             if name in s:
                 mu[s[name]] = m
@@ -353,20 +366,21 @@ class SurfaceModel:
 
     def _prior_sd(self) -> np.ndarray:
         s = self._slices
-        sd = np.ones(s["log_dz_hi"].stop)
+        sd = np.ones(self._n_total)
         sd[s["logit_c_max"]] = _LOGIT_MAX_SLOPE_SD
         sd[s["logit_c_max"].start] = _LOGIT_MAX_PRIOR[1]
-        sd[s["logit_s_max"]] = _LOGIT_MAX_PRIOR[1]
         sd[s["m50"]] = self.m_scale                     # m50 may move by the half range per zc
         sd[s["m50"].start] = 2.0 * self.m_scale         # anywhere within +-1 full range
         sd[s["log_w"]] = _LOG_W_SLOPE_SD
         sd[s["log_w"].start] = _LOG_W_PRIOR[1]
-        for e in ("eta_lo", "eta_hi"):
-            sd[s[e]] = _ETA_SLOPE_SD
-            sd[s[e].start] = _ETA_PRIOR[1]
-        for e in ("log_dz_lo", "log_dz_hi"):
-            sd[s[e]] = _LOG_DZ_SLOPE_SD
-            sd[s[e].start] = _LOG_DZ_PRIOR[1]
+        if self.selection:
+            sd[s["logit_s_max"]] = _LOGIT_MAX_PRIOR[1]
+            for e in ("eta_lo", "eta_hi"):
+                sd[s[e]] = _ETA_SLOPE_SD
+                sd[s[e].start] = _ETA_PRIOR[1]
+            for e in ("log_dz_lo", "log_dz_hi"):
+                sd[s[e]] = _LOG_DZ_SLOPE_SD
+                sd[s[e].start] = _LOG_DZ_PRIOR[1]
         for name, (_, v) in _SAS_PRIORS.items():
             if name in s:
                 sd[s[name]] = v
@@ -417,6 +431,9 @@ class SurfaceModel:
 
     def _log_s(self, theta, z, m):
         """ln S and ln(1 - S); theta (W, P), z and m 1-D (N,) -> two (W, N) arrays."""
+        if not self.selection:                       # detection only: S = 1 exactly
+            shape = (len(theta), np.size(z))
+            return np.zeros(shape), np.full(shape, -np.inf)
         a, b = self._s_args(theta, z, m)
         # S = S_max / D with D = (1 + e^-a)(1 + e^-b), and 1 - S = (D - S_max) / D where
         # D - S_max = (1 - S_max) + ea + eb + ea eb is a sum of positives.  Clipping a, b
@@ -512,6 +529,9 @@ class SurfaceModel:
                                th[:, s["sas_log_delta"]][:, :, None])
         f = expit(-u) if self.shape == "logistic" else step_function(u, self.shape)
         c = expit(lcm)[:, :, None] * f
+        if not self.selection:                       # detection only: S = 1 exactly
+            sel = np.ones_like(c)
+            return (c[0], sel[0]) if np.ndim(theta) == 1 else (c, sel)
         mp = _poly(m, self.m_ref, self.m_scale, self.edge_degree)                 # (n_m, k)
         edge = {k: th[:, s[k]] @ mp.T for k in ("eta_lo", "log_dz_lo", "eta_hi", "log_dz_hi")}
         zmin, zmax = self.z_range
@@ -552,7 +572,7 @@ class SurfaceModel:
         terms = []
         if part in ("both", "c"):
             terms.append((self._log_c(th, cells.mag, cells.z), cells.n, cells.k_rec))
-        if part in ("both", "s"):
+        if part in ("both", "s") and self.selection:   # S = 1 exactly: no S term
             terms.append((self._log_s(th, cells.z, cells.mag), cells.k_rec, cells.k_sel))
         for (log_p, log_1mp), n, k in terms:
             n, k = np.asarray(n, float), np.asarray(k, float)
@@ -580,8 +600,13 @@ class SurfaceModel:
 
     def block_indices(self, part: str) -> np.ndarray:
         """Indices of the parameters of ``part`` ("c": completeness, "s": selection)."""
-        i = self._slices["logit_s_max"].start
+        i = self._slices["logit_s_max"].start if self.selection else self.n_params
         return np.arange(i) if part == "c" else np.arange(i, self.n_params)
+
+    @property
+    def parts(self) -> tuple[str, ...]:
+        """The parameter blocks: ("c", "s"), or ("c",) for a detection-only model."""
+        return ("c", "s") if self.selection else ("c",)
 
     def block_log_posterior(self, cells: Cells, part: str) -> "BlockPosterior":
         """The fast vectorised log posterior of one parameter block (see :class:`BlockPosterior`)."""
@@ -594,7 +619,8 @@ class SurfaceModel:
                 "MREF": self.m_ref, "MSCALE": self.m_scale, "DEGM50": self.m50_degree,
                 "DEGLOGW": self.log_w_degree, "DEGEDGE": self.edge_degree,
                 "DEGCMAX": self.c_max_degree,
-                "DEPTHREF": float("nan") if self.depth_ref is None else self.depth_ref}
+                "DEPTHREF": float("nan") if self.depth_ref is None else self.depth_ref,
+                "SELFIT": self.selection}
 
     @classmethod
     def from_header_dict(cls, h) -> "SurfaceModel":
@@ -604,7 +630,9 @@ class SurfaceModel:
                        m_ref=float(h["MREF"]), m_scale=float(h["MSCALE"]),
                        m50_degree=int(h["DEGM50"]), log_w_degree=int(h["DEGLOGW"]),
                        edge_degree=int(h["DEGEDGE"]), c_max_degree=int(h["DEGCMAX"]),
-                       depth_ref=dref if np.isfinite(dref) else None)
+                       depth_ref=dref if np.isfinite(dref) else None,
+                       # files written before detection-only models all fitted S
+                       selection=bool(h.get("SELFIT", True)))
         except KeyError as exc:
             raise ValueError(f"selection-function header lacks model keyword {exc}") from exc
 

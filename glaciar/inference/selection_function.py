@@ -76,8 +76,12 @@ class MagnitudeAt:
     ----------
     median, lower, upper : ndarray
         Posterior median and central-interval bounds [mag]; NaN where the
-        level is above C_max (never reached).
+        level is above C_max (never reached), and NaN where a bound (or the
+        median) lies outside the simulated magnitude range or z outside the
+        simulated redshift range (no extrapolation is reported as a value).
     draws : ndarray (n_draws,) + shape
+        Per draw; -inf / +inf where the draw's level lies brighter / fainter
+        than the simulated range, NaN where it is not reached.
     """
 
     median: np.ndarray
@@ -498,7 +502,11 @@ class SelectionFunction:
         m = np.asarray(m, float)
         z = np.asarray(z, float)
         mdl, th = self.model, self.draws
-        if depth is not None or not mdl.depth_aware:
+        if not mdl.selection and which != "C":
+            # Detection only: S = 1 and P = C exactly (no selection was applied).
+            c = self._evaluate("C", m, z, depth, field, True, "extrapolate")
+            out = c if which == "P" else np.ones_like(c)
+        elif depth is not None or not mdl.depth_aware:
             c = mdl.completeness(th, m, z, depth)
             if which == "C":
                 out = c
@@ -591,7 +599,9 @@ class SelectionFunction:
         C is monotone in m for every draw (and so is its area-weighted depth
         average), so each draw's root is found by bisection, to 1e-6 mag, within
         the simulated magnitude range +- 5 mag.  NaN where the level is not
-        reached there (e.g. above C_max).
+        reached there (e.g. above C_max), and wherever the answer would be an
+        extrapolation: a quantile outside the simulated magnitude range, or a
+        redshift outside the simulated one (like :meth:`completeness`).
 
         Parameters
         ----------
@@ -625,9 +635,24 @@ class SelectionFunction:
                 lo = np.where(above, mid, lo)
                 hi = np.where(above, hi, mid)
             out[:, j] = np.where(ok, 0.5 * (lo + hi), np.nan)
+        if "mag" in self.domain:
+            # A root outside the simulated range is an extrapolation of the parametric
+            # step: kept as -inf / +inf (its side), so that the quantiles count the draw
+            # but no number outside the range is reported.
+            tol = 1e-9 * max(1.0, abs(hi_m))
+            out = np.where(out < lo_m - tol, -np.inf, np.where(out > hi_m + tol, np.inf, out))
         with np.errstate(all="ignore"):
-            q = (np.nanquantile(out, [0.5, 0.5 - interval / 2, 0.5 + interval / 2], axis=0)
-                 if np.isfinite(out).any() else np.full((3, len(z)), np.nan))
+            fin = ~np.isnan(out)
+            q = np.full((3, len(z)), np.nan)
+            for j in range(len(z)):
+                if fin[:, j].any():
+                    q[:, j] = np.quantile(out[fin[:, j], j],
+                                          [0.5, 0.5 - interval / 2, 0.5 + interval / 2])
+        q[~np.isfinite(q)] = np.nan
+        if "z" in self.domain:
+            zlo, zhi = self.domain["z"]
+            tol = 1e-9 * max(1.0, abs(zhi))
+            q[:, (z < zlo - tol) | (z > zhi + tol)] = np.nan
         return MagnitudeAt(median=q[0], lower=q[1], upper=q[2], draws=out)
 
     def effective_volume(self, m, area=None, cosmology=None, *, field: str | None = None,
@@ -1038,8 +1063,17 @@ class SelectionFunction:
             c, s = self.model.surfaces_on_grid(self.draws, zg, mrel)
             cbar += wj * c
             pbar += wj * c * s
-        with np.errstate(invalid="ignore", divide="ignore"):
-            sbar = pbar / cbar
+        if not self.model.selection:
+            # Detection only: S = 1 and P = C exactly, also where C = 0.
+            sbar, pbar = np.ones_like(cbar), cbar.copy()
+        else:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                sbar = pbar / cbar
+        if self.domain:
+            # Outside the simulated box nothing is a measurement: NaN, as everywhere else.
+            bad = self._mask(mg[None, :], zg[:, None], None)
+            for a in (cbar, sbar, pbar):
+                a[:, bad] = np.nan
         return {"C": cbar, "S": sbar, "P": pbar}
 
     def grid_quantiles(self, which: str, z_grid=None, m_grid=None, quantiles=GRID_QUANTILES,

@@ -21,6 +21,8 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
+import time
 import warnings
 from pathlib import Path
 
@@ -33,12 +35,13 @@ from ..inference.models import COMPLETENESS_SHAPES
 from ..inference.sampling import DEFAULT_MAX_STEPS
 from ..inference.selection_function import SelectionFunction
 from .chains import chains_key, file_tag, load_chains, save_chains
+from .fitdir import FitStage, hold_run
 from .inputs import depth_area as _depth_area
 from .inputs import fit_inputs, manifest_areas
 from .summary import (cmax_summary, format_summary, json_default, m50_summary, param_summary,
                       param_table, veff_summary)
 
-__all__ = ["run_fit", "FitWarning", "MODEL_CHOICES"]
+__all__ = ["run_fit", "FitWarning", "MODEL_CHOICES", "check_not_degenerate", "kept_reason"]
 
 MODEL_CHOICES = COMPLETENESS_SHAPES + ("auto",)
 #: Posterior draws used for the PPC, the model comparison and the summary's V_eff.
@@ -113,7 +116,7 @@ def _physical_edges(edges, z_limit):
 
 def _warn_checks(name, chosen, verdict, edges):
     if not verdict["adequate"]:
-        warnings.warn(f"fit {name!r} ({chosen}): {verdict['n_extreme']} of {verdict['n_cells']} "
+        warnings.warn(f"fit {name!r}, model {chosen} (kept): {verdict['n_extreme']} of {verdict['n_cells']} "
                       f"cells are extreme in the posterior-predictive check (chance allows "
                       f"{verdict['max_allowed']}); the model does not describe the data there "
                       f"(cells flagged 'extreme' in fit/ppc_{file_tag(name)}.ecsv)", FitWarning)
@@ -126,7 +129,7 @@ def _warn_checks(name, chosen, verdict, edges):
                if np.isfinite(e["extend_dz"]) else
                f"it has hardly started to fall there: extend the z grid {side} {e['z']:g} "
                "until it has")
-        warnings.warn(f"fit {name!r}: C*S has not fallen to ~0 at z = {e['z']:g} (still "
+        warnings.warn(f"fit {name!r}, model {chosen} (kept): C*S has not fallen to ~0 at z = {e['z']:g} (still "
                       f"{e['ratio']:.0%} of its peak at m = {e['mag']:.2f}), so V_eff misses "
                       f"the volume {side} it; {how}", FitWarning)
 
@@ -190,11 +193,19 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
     ------
     ValueError
         Bad arguments (checked before anything is read or sampled), a bad
-        per-source table or manifest.
-    """
-    from ..store import atomic_write_bytes, atomic_write_text, read_manifest
-    from .selection_file import to_bytes
+        per-source table or manifest, or a degenerate run (:func:`check_not_degenerate`:
+        nothing recovered, or nothing selected, in the run or in a field).
+    glaciar.store.RunLockedError
+        ``glaciar simulate`` (or another fit) is writing the run.
 
+    Notes
+    -----
+    The fit holds the run's lock from before it reads until it has written, and
+    writes ``fit/`` and the file as one unit (:mod:`glaciar.pipeline.fitdir`).
+    A detection-only run (``selection: []`` in its manifest) has S = 1 exactly:
+    only C is fitted, and there is no selection figure and no redshift-edge advice.
+    """
+    t_start = time.perf_counter()
     # Arguments first: nothing is read, sampled or written on bad input.
     if model not in MODEL_CHOICES:
         raise ValueError(f"--model {model!r}: expected one of {MODEL_CHOICES}")
@@ -205,6 +216,71 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
     if int(max_steps) < 1 or int(max_draws) < 1:
         raise ValueError(f"--max-steps ({max_steps}) and max_draws ({max_draws}) must be >= 1")
     run_dir = Path(run_dir)
+    with hold_run(run_dir, "fit"):
+        return _run_fit_locked(run_dir, t_start, model=model, per_field=per_field, seed=seed,
+                               n_walkers=n_walkers, max_steps=max_steps, progress=progress,
+                               cosmology=cosmology, area_arcmin2=area_arcmin2,
+                               mag_resolution=mag_resolution, resume=resume,
+                               max_draws=max_draws, plots=plots, depth=depth, write=write)
+
+
+def check_not_degenerate(run_dir, data, detection_only: bool) -> None:
+    """Refuse a run whose outcome is not a fit: nothing recovered, or nothing selected.
+
+    A surface fitted to all-zero flags is its prior: it would print m50 values
+    and 'converged' for a run that measured nothing (e.g. a mis-declared noise map
+    giving C = 0 everywhere).  Checked for the whole run and for every field.
+
+    Raises
+    ------
+    ValueError
+        One line naming the run, the field(s) and what is missing.
+    """
+    fields = np.asarray(data.field).astype(str)
+    k_rec = np.asarray(data.k_rec)
+    k_sel = np.asarray(data.k_sel)
+    n = np.asarray(data.n)
+    where = f"{run_dir}"
+    if int(k_rec.sum()) == 0:
+        raise ValueError(f"{where}: none of the {int(n.sum())} injected sources was recovered; "
+                         "there is no completeness to fit (check the noise map type and "
+                         "zeropoints, or simulate brighter magnitudes)")
+    if not detection_only and int(k_sel.sum()) == 0:
+        raise ValueError(f"{where}: none of the {int(k_rec.sum())} recovered sources passes the "
+                         "selection; there is no selection function to fit (check the "
+                         "selection expressions and the redshift grid)")
+    names = sorted(set(fields))
+    none_rec = [f for f in names if int(k_rec[fields == f].sum()) == 0]
+    if none_rec:
+        raise ValueError(f"{where}: no injected source was recovered in field(s) "
+                         f"{', '.join(map(repr, none_rec))}; fix or remove them from "
+                         "survey.fields before fitting")
+    if not detection_only:
+        none_sel = [f for f in names if int(k_sel[fields == f].sum()) == 0]
+        if none_sel:
+            raise ValueError(f"{where}: no recovered source passes the selection in field(s) "
+                             f"{', '.join(map(repr, none_sel))}; fix or remove them from "
+                             "survey.fields before fitting")
+
+
+def kept_reason(chosen: str, comparison: list, requested: str) -> str:
+    """Why ``chosen`` is the model in the file, in one sentence (for the summary)."""
+    if not comparison:
+        return f"the only model fitted (--model {requested})"
+    best = max(comparison, key=lambda r: r["delta_elpd"])["model"]
+    if chosen == best:
+        return "the highest PSIS-LOO elpd, and no simpler model within 2 s.e. of it"
+    return (f"the simplest model whose PSIS-LOO elpd is within 2 s.e. of the best "
+            f"({best})")
+
+
+def _run_fit_locked(run_dir, t_start, *, model, per_field, seed, n_walkers, max_steps, progress,
+                    cosmology, area_arcmin2, mag_resolution, resume, max_draws, plots, depth,
+                    write):
+    """:func:`run_fit` once the arguments are checked and the run's lock is held."""
+    from ..store import atomic_write_bytes, atomic_write_text, read_manifest
+    from .selection_file import to_bytes
+
     manifest = read_manifest(run_dir) or {}
     magnitude_type = str(manifest.get("magnitude_type", "apparent"))
     mag_col = C.COL_M_UV if magnitude_type == "absolute" else C.COL_MAG_INPUT
@@ -220,6 +296,13 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
                           "configuration no longer lists", FitWarning)
             data = data.subset(np.isin(data.field, list(map(str, listed))))
             fields = sorted(set(map(str, data.field)))
+    # A detection-only run (an empty selection list) has S = 1 exactly: nothing to fit.
+    detection_only = "selection" in manifest and not manifest.get("selection")
+    check_not_degenerate(run_dir, data, detection_only)
+    if detection_only and np.any(np.asarray(data.k_sel) != np.asarray(data.k_rec)):
+        raise ValueError(f"{run_dir}: the manifest has no selection criteria, but the stored "
+                         "'selected' flags differ from 'recovered'; the run's files disagree "
+                         "(simulate it again into a new directory)")
     field_area = manifest_areas(manifest, run_dir)
     depth_area = _depth_area(manifest, fields)
 
@@ -258,7 +341,8 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
             if k in manifest}
     meta.update(fields=fields, magnitude_type=magnitude_type, mag_resolution=mag_resolution,
                 pooled=not per_field, depth_aware=bool(depth_aware), depth_ref=depth_ref,
-                likelihood="recovered ~ Bernoulli(C); selected | recovered ~ Bernoulli(S)",
+                likelihood=("recovered ~ Bernoulli(C); detection only: S = 1" if detection_only
+                            else "recovered ~ Bernoulli(C); selected | recovered ~ Bernoulli(S)"),
                 magnitude_column=mag_col)
     # Per-field areas: the depth histograms' when known, else the manifest's footprints.
     per_field_area = ({f: float(np.sum(a)) for f, (_, a) in depth_area.items()} if depth_area
@@ -267,8 +351,8 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         meta["area_arcmin2_field"] = per_field_area
         meta["area_arcmin2"] = float(sum(per_field_area.values()))
 
+    # Saved chains are read from the current fit/ (resume); nothing is written there.
     fit_dir = run_dir / "fit"
-    fit_dir.mkdir(exist_ok=True)
     cells_all = data.cells(mag_resolution, depth_ref, mag_col)
     domain = {"z": (float(data.z.min()), float(data.z.max())),
               "mag": (float(np.min(data.mag_lo)), float(np.max(data.mag_hi)))}
@@ -282,12 +366,14 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
 
     outputs = []
     summary = {"model": model, "seed": seed, "magnitude_type": magnitude_type,
-               "depth_aware": bool(depth_aware), "depth_ref": depth_ref, "fits": {}}
+               "depth_aware": bool(depth_aware), "depth_ref": depth_ref,
+               "detection_only": bool(detection_only), "fits": {}}
     from tqdm.auto import tqdm
 
     # One progress bar for the job (every model and field), named by the fit it is on.
     bar = tqdm(desc="fit", unit="step", disable=not progress, leave=False)
     for i, (name, d) in enumerate(groups):
+        t_group = time.perf_counter()
         cells = cells_all if not per_field else d.cells(mag_resolution, depth_ref, mag_col)
         fseed = [int(seed), i] if per_field else int(seed)
         keys = {}
@@ -299,7 +385,9 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
             return res
 
         chosen, results, comparison = fit_and_choose(cells, shapes, depth_ref=depth_ref,
-                                                     loo_draws=_DIAG_DRAWS, fit=fit)
+                                                     loo_draws=_DIAG_DRAWS, fit=fit,
+                                                     selection=not detection_only,
+                                                     label=f"fit {name!r}")
         res, key, tag = results[chosen], keys[chosen], file_tag(f"{name}_{chosen}")
         mdl = res.model
         draws = res.draws(max_draws)
@@ -341,13 +429,16 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
             continue
         gd = sub.grid_draws(zg, mg)
         few = SelectionFunction(mdl, sub.draws[:_EDGE_DRAWS], meta=fmeta, depth_area=own_depth)
+        # Detection only: no selection, so no redshift edge of it to advise on.
         edges = edge_report(gd["P"], zg, mg, extrapolate=lambda z, few=few: few.grid_draws(z, mg)["P"]) \
-            if len(zg) > 1 else []
+            if len(zg) > 1 and not detection_only else []
         edges = _physical_edges(edges, manifest.get("detection_z_limit"))
         entry = {
             "n_sources": cells.n_sources, "n_cells": len(cells), "model": chosen,
+            "model_kept_because": kept_reason(chosen, comparison, model),
             "converged": res.converged, "adequate": verdict["adequate"], "ppc": verdict,
-            "wall_time_s": res.wall_time, "model_comparison": comparison,
+            # the sampler time of the kept model alone; wall_time_s (set below) is the whole fit's
+            "sampler_time_s": res.wall_time, "model_comparison": comparison,
             "blocks": {b.part: {"n_steps": b.n_steps, "n_walkers": b.chain.shape[1],
                                 "burn": b.burn, "thin": b.thin, "tau": b.tau.tolist(),
                                 "acceptance_fraction": float(np.mean(b.acceptance_fraction)),
@@ -362,6 +453,8 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         except ValueError as exc:         # no area, or a single redshift
             entry["effective_volume"] = None
             entry["effective_volume_note"] = str(exc)
+        # This fit's real wall time: every model compared, the checks and summaries.
+        entry["wall_time_s"] = time.perf_counter() - t_group
         summary["fits"][name] = entry
         outputs.append((name, tag, res, key, draws, sf))
 
@@ -372,23 +465,48 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
     from .selection_file import add_lf_products
     add_lf_products(run_dir, manifest, [sf for *_, sf in outputs], cosmology=cosmology, seed=seed)
 
-    # Everything sampled and checked: now write.
+    # Everything sampled and checked: now write, into a stage swapped in as one unit.
     from astropy.table import Table
-    for name, tag, res, key, draws, sf in outputs:
-        save_chains(fit_dir, tag, res, key)
-        for kind, tab in (("parameters", Table(param_table(res, draws))), ("ppc", Table(sf.ppc))):
-            buf = io.StringIO()
-            tab.write(buf, format="ascii.ecsv")
-            atomic_write_text(fit_dir / f"{kind}_{file_tag(name)}.ecsv", buf.getvalue())
-        if plots:
-            from ..plots import save_png
-            from .figures import FIGURE_DPI, completeness_figure, selection_figure
-            save_png(completeness_figure(sf), fit_dir / f"completeness_{file_tag(name)}.png",
-                     dpi=FIGURE_DPI)
-            save_png(selection_figure(sf), fit_dir / f"selection_{file_tag(name)}.png",
-                     dpi=FIGURE_DPI)
-    atomic_write_text(fit_dir / "summary.json", json.dumps(summary, indent=2, default=json_default))
-    atomic_write_text(fit_dir / "summary.txt", format_summary(summary))
-    out = run_dir / C.SELECTION_FUNCTION_NAME
-    atomic_write_bytes(out, to_bytes([sf for *_, sf in outputs], meta))
-    return out
+    with FitStage(run_dir) as stage:
+        new_dir = stage.fit_dir
+        for name, tag, res, key, draws, sf in outputs:
+            save_chains(new_dir, tag, res, key)
+            for kind, tab in (("parameters", Table(param_table(res, draws))), ("ppc", Table(sf.ppc))):
+                buf = io.StringIO()
+                tab.write(buf, format="ascii.ecsv")
+                atomic_write_text(new_dir / f"{kind}_{file_tag(name)}.ecsv", buf.getvalue())
+            if plots:
+                from ..plots import save_png
+                from .figures import FIGURE_DPI, completeness_figure, selection_figure
+                save_png(completeness_figure(sf), new_dir / f"completeness_{file_tag(name)}.png",
+                         dpi=FIGURE_DPI)
+                if sf.model.selection:            # detection only: S = 1, nothing to draw
+                    save_png(selection_figure(sf), new_dir / f"selection_{file_tag(name)}.png",
+                             dpi=FIGURE_DPI)
+        _keep_other_chains(fit_dir, new_dir)
+        atomic_write_bytes(stage.selection_file, to_bytes([sf for *_, sf in outputs], meta))
+        # The whole command's wall time, up to the commit (what `glaciar report` shows).
+        summary["wall_time_s"] = time.perf_counter() - t_start
+        atomic_write_text(new_dir / "summary.json",
+                          json.dumps(summary, indent=2, default=json_default))
+        atomic_write_text(new_dir / "summary.txt", format_summary(summary))
+        return stage.commit()
+
+
+def _keep_other_chains(old_dir: Path, new_dir: Path) -> None:
+    """Saved chains of other models or settings in the previous fit/, kept for a later resume.
+
+    They are keyed by data, model, seed and walkers (:func:`chains_key`), so a
+    stale one is never resumed; hard links (copies where links fail) cost no space.
+    """
+    import shutil
+
+    if not old_dir.is_dir() or old_dir.is_symlink():
+        return
+    for p in old_dir.iterdir():
+        if (p.name.startswith(("chain_", "log_prob_", "state_")) and p.is_file()
+                and not p.is_symlink() and not (new_dir / p.name).exists()):
+            try:
+                os.link(p, new_dir / p.name)
+            except OSError:
+                shutil.copy2(p, new_dir / p.name)

@@ -102,6 +102,15 @@ def veff_summary(sf: SelectionFunction, mg, zg, cosmology) -> dict:
                        "lower_mpc3": vq.lower.value.tolist(), "upper_mpc3": vq.upper.value.tolist()}}
 
 
+def _finite(v) -> bool:
+    return v is not None and np.isfinite(float(v))
+
+
+def _mag_text(v) -> str:
+    """A magnitude to 0.01, or "n/a" (NaN: outside the simulated range or not reached)."""
+    return f"{float(v):.2f}" if _finite(v) else "n/a"
+
+
 def format_summary(summary: dict) -> str:
     """The few lines ``glaciar fit`` prints: per fit, the verdicts, m50(z), C_max, V_eff."""
     lines = []
@@ -110,15 +119,24 @@ def format_summary(summary: dict) -> str:
         depth = (f"depth-aware (d_ref = {summary['depth_ref']:.2f})" if summary.get("depth_aware")
                  else "no depth")
         ppc = e["ppc"]
-        lines.append(f"fit {name}: {e['model']}, {depth}, {e['n_sources']} sources; "
-                     f"converged: {'yes' if e['converged'] else 'NO'}; adequate: "
+        # The verdicts are the kept model's: say so, and why it was kept.
+        lines.append(f"fit {name}: model {e['model']}, {depth}, {e['n_sources']} sources; "
+                     f"{e['model']} converged: {'yes' if e['converged'] else 'NO'}; adequate: "
                      f"{'yes' if e['adequate'] else 'NO'} ({ppc['n_extreme']}/{ppc['n_cells']} "
                      f"PPC cells extreme, chance allows {ppc['max_allowed']})")
+        if e.get("model_kept_because"):
+            lines.append(f"  kept {e['model']}: {e['model_kept_because']}")
         if e.get("model_comparison"):
-            lines.append("  PSIS-LOO: " + ", ".join(
+            lines.append("  PSIS-LOO elpd relative to the best: " + ", ".join(
                 f"{r['model']} {r['delta_elpd']:+.1f}±{r['se_delta']:.1f}" for r in e["model_comparison"]))
+        if summary.get("detection_only"):
+            lines.append("  S = 1 exactly (detection only: the run has no selection criteria), "
+                         "so P = C")
         lines.append(f"  {mlabel} at C = 0.5: " + "; ".join(
-            f"z {r['z']:g}: {r['m50']:.2f} [{r['ci68'][0]:.2f}, {r['ci68'][1]:.2f}]" for r in e["m50"]))
+            f"z {r['z']:g}: {_mag_text(r['m50'])} [{_mag_text(r['ci68'][0])}, "
+            f"{_mag_text(r['ci68'][1])}]" for r in e["m50"])
+            + ("" if all(_finite(r["m50"]) for r in e["m50"]) else
+               " (n/a: outside the simulated magnitude range, or never reached)"))
         cm = e["c_max"]
         lines.append(f"  C_max(z = {cm['z']:g}) = {cm['median']:.3f} [{cm['ci68'][0]:.3f}, "
                      f"{cm['ci68'][1]:.3f}]")
