@@ -111,3 +111,21 @@ def test_refused_in_one_line(tmp_path, capsys, setup, command, words):
     for w in words:
         assert w in err, (w, err)
     assert _snapshot(tmp_path) == before
+
+
+def test_leftovers_that_are_symlinks_are_unlinked_not_followed(tmp_path, capsys):
+    """A killed fit's stage or old fit/ pointing outside the run: only the links go."""
+    run = tmp_path / "run"
+    run.mkdir()
+    _none_recovered(run)
+    outside = tmp_path / "outside"
+    (outside / "fit").mkdir(parents=True)
+    (outside / "fit" / "keep.npy").write_bytes(b"data")
+    (outside / C.SELECTION_FUNCTION_NAME).write_bytes(b"data")
+    for name in (".fit.new", ".fit.commit", ".fit.old"):
+        (run / name).symlink_to(outside, target_is_directory=True)
+    before = _snapshot(outside)
+    assert main(["fit", str(run)] + FAST) == 2
+    assert _snapshot(outside) == before
+    assert not any((run / n).is_symlink() for n in (".fit.new", ".fit.commit", ".fit.old"))
+    assert not (run / "fit").exists() and not (run / C.SELECTION_FUNCTION_NAME).exists()

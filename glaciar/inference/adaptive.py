@@ -351,7 +351,7 @@ def propose_cells(sf_or_draws, z_grid, m_grid, n: int, *, interval: float = 0.68
     z_grid = np.asarray(z_grid, float).ravel()
     m_grid = np.asarray(m_grid, float).ravel()
     if hasattr(sf_or_draws, "grid_draws"):
-        g = sf_or_draws.grid_draws(z_grid, m_grid)
+        g = sf_or_draws.grid_draws(z_grid, m_grid, outside="extrapolate")   # past the data too
         d, c, s = g["P"], g["C"], g["S"]
     else:
         d = np.asarray(sf_or_draws, float)

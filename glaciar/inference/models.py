@@ -614,13 +614,19 @@ class SurfaceModel:
 
     # -------------------------------------------------------------- header
     def to_header_dict(self) -> dict:
-        """FITS-header keywords that fully specify the model (see the file docs)."""
-        return {"CSHAPE": self.shape, "ZREF": self.z_ref, "ZSCALE": self.z_scale,
-                "MREF": self.m_ref, "MSCALE": self.m_scale, "DEGM50": self.m50_degree,
-                "DEGLOGW": self.log_w_degree, "DEGEDGE": self.edge_degree,
-                "DEGCMAX": self.c_max_degree,
-                "DEPTHREF": float("nan") if self.depth_ref is None else self.depth_ref,
-                "SELFIT": self.selection}
+        """FITS-header keywords that fully specify the model (see the file docs).
+
+        ``SELFIT = False`` marks a detection-only model (S = 1); it is left out when
+        S is fitted, so such files (and saved-chain keys) are what they were before.
+        """
+        h = {"CSHAPE": self.shape, "ZREF": self.z_ref, "ZSCALE": self.z_scale,
+             "MREF": self.m_ref, "MSCALE": self.m_scale, "DEGM50": self.m50_degree,
+             "DEGLOGW": self.log_w_degree, "DEGEDGE": self.edge_degree,
+             "DEGCMAX": self.c_max_degree,
+             "DEPTHREF": float("nan") if self.depth_ref is None else self.depth_ref}
+        if not self.selection:
+            h["SELFIT"] = False
+        return h
 
     @classmethod
     def from_header_dict(cls, h) -> "SurfaceModel":

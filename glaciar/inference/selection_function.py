@@ -1043,13 +1043,19 @@ class SelectionFunction:
         return self.model.z_range
 
     # ------------------------------------------------------------------- grids
-    def grid_draws(self, z_grid=None, m_grid=None, field: str | None = None):
+    def grid_draws(self, z_grid=None, m_grid=None, field: str | None = None, *,
+                   outside: str = "nan"):
         """Draws of the survey-averaged C̄, S̄ = P̄/C̄ and P̄ on the outer grid z x m.
+
+        ``outside`` as :meth:`completeness`: NaN outside the simulated (z, m) box,
+        unless "extrapolate" (where to simulate next looks just beyond the data).
 
         Returns
         -------
         dict of ndarray, each (n_draws, n_z, n_m), keys "C", "S", "P".
         """
+        if outside not in ("nan", "extrapolate"):
+            raise ValueError(f"outside must be 'nan' or 'extrapolate', not {outside!r}")
         zg = self.z_grid if z_grid is None else np.asarray(z_grid, float)
         mg = self.m_grid if m_grid is None else np.asarray(m_grid, float)
         if zg is None or mg is None:
@@ -1069,7 +1075,7 @@ class SelectionFunction:
         else:
             with np.errstate(invalid="ignore", divide="ignore"):
                 sbar = pbar / cbar
-        if self.domain:
+        if self.domain and outside == "nan":
             # Outside the simulated box nothing is a measurement: NaN, as everywhere else.
             bad = self._mask(mg[None, :], zg[:, None], None)
             for a in (cbar, sbar, pbar):
@@ -1077,7 +1083,7 @@ class SelectionFunction:
         return {"C": cbar, "S": sbar, "P": pbar}
 
     def grid_quantiles(self, which: str, z_grid=None, m_grid=None, quantiles=GRID_QUANTILES,
-                       field: str | None = None):
+                       field: str | None = None, *, outside: str = "nan"):
         """Pointwise posterior quantiles on the (z, m) grid, shape (n_q, n_z, n_m).
 
         Parameters
@@ -1088,7 +1094,8 @@ class SelectionFunction:
         """
         if which not in ("C", "S", "P"):
             raise ValueError(f"which must be 'C', 'S' or 'P', not {which!r}")
-        return np.quantile(self.grid_draws(z_grid, m_grid, field)[which], quantiles, axis=0)
+        return np.quantile(self.grid_draws(z_grid, m_grid, field, outside=outside)[which],
+                           quantiles, axis=0)
 
     # ------------------------------------------------------------------ the file
     # The FITS layout is written and read at the edge, glaciar.pipeline.selection_file

@@ -151,7 +151,7 @@ def _scored(sf, zc, mc):
     """Draws of C, S and P on the candidates, and the PPC's misfit mask there."""
     from ..inference.adaptive import misfit_on_candidates
 
-    g = sf.grid_draws(zc, mc)
+    g = sf.grid_draws(zc, mc, outside="extrapolate")   # candidates may lie past the data
     misfit = None
     if getattr(sf, "ppc", None) is not None and len(sf.ppc):
         misfit = misfit_on_candidates(sf.ppc, zc, mc)

@@ -27,6 +27,7 @@ removed at that start too.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shutil
 from pathlib import Path
@@ -121,8 +122,13 @@ def hold_run(run_dir, command: str):
         raise FileNotFoundError(f"{run_dir}: no such run directory (expected the --out of "
                                 "`glaciar simulate`)")
     lock = RunLock(run_dir)
+    read_only = False
     try:
         lock.acquire()
+    except OSError as exc:
+        if exc.errno not in (errno.EACCES, errno.EPERM, errno.EROFS):
+            raise
+        read_only = True
     except RunLockedError:
         try:
             pid = (run_dir / C.LOCK_NAME).read_text().strip() or "unknown"
@@ -131,6 +137,12 @@ def hold_run(run_dir, command: str):
         raise RunLockedError(f"{run_dir}: this run is being written by another glaciar process "
                              f"(pid {pid}: `glaciar simulate`, or a fit); `glaciar {command}` "
                              "reads it once that has finished — run it again then") from None
+    if read_only:
+        # A read-only run (an archive): nobody can write it, so reading is consistent; a
+        # lock someone else holds is still refused (and nothing can be cleaned).
+        lock.check_free()
+        yield lock
+        return
     try:
         recover_fit_outputs(run_dir)
         yield lock
