@@ -338,12 +338,14 @@ def _statistics_section(d: dict) -> str:
         for name, e in fs.get("fits", {}).items():
             steps = ", ".join(f"{p}: {b['n_steps']}×{b['n_walkers']}" for p, b in
                               (e.get("blocks") or {}).items())
-            rows.append((name, e.get("model"), e.get("n_sources"), e.get("n_cells"),
-                         e.get("wall_time_s"), steps))
-        body += "<h3>Fit</h3>" + _table(["fit", "model", "n_sources", "n_cells", "wall_time_s",
-                                         "steps × walkers"], rows, table_id="fit-statistics",
+            rows.append((name, e.get("model"), e.get("model_kept_because"), e.get("n_sources"),
+                         e.get("n_cells"), e.get("wall_time_s"), steps))
+        body += "<h3>Fit</h3>" + _table(["fit", "model", "kept_because", "n_sources", "n_cells",
+                                         "wall_time_s", "steps × walkers"], rows,
+                                        table_id="fit-statistics",
                                         formats={"wall_time_s": ".1f"},
-                                        headers={"wall_time_s": "wall time [s]"})
+                                        headers={"wall_time_s": "wall time [s]",
+                                                 "kept_because": "kept because"})
         if fs.get("wall_time_s") is not None:
             # The command's own clock (every model compared, checks, V_eff, files); a fit's
             # row is its share, without reading the run and writing the outputs.

@@ -187,6 +187,7 @@ def test_fit_wall_time_is_the_commands(detection_only_fit):
     html = R._statistics_section({"manifest": {"fields": []}, "summaries": {"all": pd.DataFrame(
         {"n_input": [1], "n_recovered": [1], "n_selected": [1]})}, "fit_summary": summ})
     assert f"Fit wall time: {summ['wall_time_s']:.1f} s" in html
+    assert "the only model fitted (--model logistic)" in html       # why the model was kept
 
 
 # ------------------------------------------------------ bullet 8: one unit, leftovers
