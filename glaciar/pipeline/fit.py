@@ -6,7 +6,11 @@ decides the model (depth-aware whenever the local depth varies;
 ``model="auto"`` picks the completeness step by PSIS-LOO), samples with
 :func:`glaciar.inference.fit_and_choose`, runs the posterior-predictive check
 and the redshift-edge check (:mod:`glaciar.inference.diagnostics`), and
-writes every output only after all of that succeeded (each file atomically):
+writes every output only after all of that succeeded, as one unit (built in
+``RUN_DIR/.fit.new/`` and swapped in, :mod:`glaciar.pipeline.fitdir`), holding the
+run's lock throughout.  Degenerate runs (nothing recovered or nothing selected, in
+the run or a field) are refused before anything is sampled
+(:func:`check_not_degenerate`); a detection-only run fits C alone (S = 1 exactly):
 
 ``RUN_DIR/selection_function.fits``
     :mod:`glaciar.pipeline.selection_file`.
