@@ -33,7 +33,7 @@ from ..galaxy import psf as _psf
 from ..galaxy.population import SourceModel
 from ..galaxy.filters import FILE_SUFFIXES as FILTER_FILE_SUFFIXES, looks_like_path
 from ..galaxy.sersic import Q_MIN
-from ._types import At, Choice, Float, Int, show, unknown_key_error
+from ._types import At, Choice, Float, Int, show, unknown_key_error, yaml_bool_hint
 
 __all__ = ["Section", "PsfProfile", "BandConfig", "SurveyConfig", "AxisSpec", "GridCell", "GridConfig",
            "GridBox", "SimulationConfig", "SourceConfig", "DetectionImageConfig", "DetectionConfig", "ClassificationConfig",
@@ -244,7 +244,8 @@ class BandConfig(Section):
     @classmethod
     def _filter(cls, value, info: ValidationInfo):
         if not isinstance(value, str) or not value.strip():
-            raise At(f"expected a built-in filter name or a curve file, got {show(value)}")
+            raise At(f"expected a built-in filter name or a curve file, got {show(value)}"
+                     f"{yaml_bool_hint(value)}")
         value = value.strip()
         if looks_like_path(value, FILTER_FILE_SUFFIXES):
             return resolve_path(_base_dir(info), value)
@@ -263,7 +264,7 @@ class BandConfig(Section):
         if isinstance(value, Mapping):
             return _nested(PsfProfile, value, info).spec()
         raise At(f"expected a FITS path or a mapping {{profile, fwhm_arcsec, ...}}, "
-                 f"got {show(value)}")
+                 f"got {show(value)}{yaml_bool_hint(value)}")
 
 
 def read_fields_file(path) -> tuple[str, ...]:
@@ -293,7 +294,7 @@ def _template_names(template: str) -> set[str]:
 def _check_template(value, what: str):
     if not isinstance(value, str) or not value.strip():
         raise At(f"expected a file-name template such as '{{field}}_{{band}}_{what}.fits', "
-                 f"got {show(value)}")
+                 f"got {show(value)}{yaml_bool_hint(value)}")
     try:
         parts = list(string.Formatter().parse(value))
     except ValueError as exc:
@@ -380,7 +381,7 @@ class SurveyConfig(Section):
         if "fields_file" in data:
             ff = data["fields_file"]
             if not isinstance(ff, str) or not ff.strip():
-                raise At(f"expected a file name, got {show(ff)}", "fields_file")
+                raise At(f"expected a file name, got {show(ff)}{yaml_bool_hint(ff)}", "fields_file")
             path = resolve_path(base, ff.strip())
             if not Path(path).is_file():
                 raise At(f"file not found: {path}", "fields_file")
@@ -416,7 +417,8 @@ class SurveyConfig(Section):
 
         image_dir = data.get("image_dir", ".")
         if not isinstance(image_dir, (str, os.PathLike)) or not str(image_dir).strip():
-            raise At(f"expected a directory name, got {show(image_dir)}", "image_dir")
+            raise At(f"expected a directory name, got {show(image_dir)}"
+                     f"{yaml_bool_hint(image_dir)}", "image_dir")
         data["image_dir"] = Path(resolve_path(base, str(image_dir).strip()))
         if "science" not in data:
             raise At("missing required key (file-name template, e.g. "
@@ -459,7 +461,8 @@ class SurveyConfig(Section):
                 raise At(f"missing required key (one of {', '.join(names)})", "detection_band")
             det = names[0]
         if not isinstance(det, str) or not det.strip():
-            raise At(f"expected a band name, got {show(det)}", "detection_band")
+            raise At(f"expected a band name, got {show(det)}{yaml_bool_hint(det)}",
+                     "detection_band")
         match = [n for n in names if n.lower() == det.strip().lower()]
         if not match:
             close = difflib.get_close_matches(det, names, n=1)
@@ -695,7 +698,7 @@ class GridConfig(Section):
         if "cells_file" in data:
             cf = data.pop("cells_file")
             if not isinstance(cf, str) or not cf.strip():
-                raise At(f"expected a file name, got {show(cf)}", "cells_file")
+                raise At(f"expected a file name, got {show(cf)}{yaml_bool_hint(cf)}", "cells_file")
             path = resolve_path(_base_dir(info), cf.strip())
             if not Path(path).is_file():
                 raise At(f"file not found: {path}", "cells_file")
@@ -918,7 +921,7 @@ class DetectionConfig(Section):
         if "sex_file" in data:
             sex = data["sex_file"]
             if not isinstance(sex, str) or not sex.strip():
-                raise At(f"expected a file name, got {show(sex)}", "sex_file")
+                raise At(f"expected a file name, got {show(sex)}{yaml_bool_hint(sex)}", "sex_file")
             path = resolve_path(base, sex.strip())
             if not Path(path).is_file():
                 raise At(f"file not found: {path}", "sex_file")
@@ -949,7 +952,8 @@ class DetectionConfig(Section):
 def _filter_name(value, base_dirs) -> str:
     """A FILTER_NAME: a built-in kernel name as is, a ``.conv`` path made absolute."""
     if not isinstance(value, str) or not value.strip():
-        raise At(f"expected a built-in kernel name or a .conv file, got {show(value)}",
+        raise At(f"expected a built-in kernel name or a .conv file, got {show(value)}"
+                 f"{yaml_bool_hint(value)}",
                  "FILTER_NAME")
     value = value.strip()
     if not looks_like_path(value, (".conv",)):
