@@ -1243,16 +1243,23 @@ def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor
         if resuming:
             recorded, chash = _recorded_inputs(old, finished, inputs), config_hash(cfg)
             cached = {f: _context_dir(run_dir, chash, f, recorded) for f in cfg.survey.fields}
-        try:
-            manifest = _manifest(cfg, survey, seed, z_limit=jobs.z_limit, cached=cached)
-        except Exception:
-            if jobs.in_background:  # an unusable input or an empty field explains the failure
-                jobs.inputs()
-                jobs.preflight()
-            raise
+        # Measuring the fields reads every input while the check runs beside it: a
+        # damaged file makes astropy warn here first.  Held back until the inputs are
+        # known to be good, so a refusal is the check's one line, not warnings and a line.
+        with warnings.catch_warnings(record=True) as measured:
+            warnings.simplefilter("always")
+            try:
+                manifest = _manifest(cfg, survey, seed, z_limit=jobs.z_limit, cached=cached)
+            except Exception:
+                if jobs.in_background:  # an unusable input or an empty field explains it
+                    jobs.inputs()
+                    jobs.preflight()
+                raise
         if jobs.in_background and not resuming:
             inputs = jobs.inputs()
             jobs.preflight()
+    for w in {(str(w.message), w.category): w for w in measured}.values():
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     items = input_files(cfg)
     manifest["inputs"] = _recorded_inputs(old, finished, inputs)
     if old is not None and finished:

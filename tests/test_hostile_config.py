@@ -48,6 +48,18 @@ def _text_file(tmp_path, name, text):
     return str(p)
 
 
+def _spoiled_images(d, tmp_path, name, how):
+    """Point the config at a copy of its images in which ``name`` is spoiled by ``how``."""
+    import shutil
+
+    src = d["survey"]["image_dir"]
+    dst = tmp_path / "images"
+    shutil.copytree(src, dst)
+    data = (dst / name).read_bytes()
+    (dst / name).write_bytes(how(data))
+    d["survey"]["image_dir"] = str(dst)
+
+
 def _sex(tmp_path, lines):
     return {"sex_file": _text_file(tmp_path, "bad.sex", "DETECT_THRESH 0.7\n" + lines + "\n")}
 
@@ -97,14 +109,31 @@ CASES = [
      ["bad.sex", "WEIGHT_GAIN"]),
     ("sex-absolute-threshold", lambda d, t: d.update(detection=_sex(t, "THRESH_TYPE ABSOLUTE")),
      ["bad.sex", "THRESH_TYPE"]),
+    ("science-image-truncated",
+     lambda d, t: _spoiled_images(d, t, "demo01_f160w_drz.fits", lambda b: b[:2880]),
+     ["survey.science (field 'demo01', band 'f160w')", "truncated"]),
+    ("noise-map-truncated",
+     lambda d, t: _spoiled_images(d, t, "demo01_f125w_wht.fits", lambda b: b[:2 * 2880]),
+     ["survey.noise (field 'demo01', band 'f125w')", "truncated"]),
+    ("science-image-is-text",
+     lambda d, t: _spoiled_images(d, t, "demo01_f098m_drz.fits",
+                                  lambda b: FAKE_FITS_HEADER.encode()),
+     ["survey.science (field 'demo01', band 'f098m')"]),
     ("noise-correlated-yes-is-not-a-choice",
      lambda d, t: d.update(noise={"correlated": "maybe"}), ["noise.correlated", "maybe"]),
 ]
 
 
-@pytest.mark.parametrize("spoil, words", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
+# Damaged images are met first by the set-up that measures the fields while the inputs
+# are checked in a worker process (two or more workers): astropy warned there before.
+PARALLEL_SETUP = {"science-image-truncated", "noise-map-truncated", "psf-fake-fits-header"}
+
+
+@pytest.mark.parametrize("spoil, words, workers",
+                         [(*c[1:], "2" if c[0] in PARALLEL_SETUP else "1") for c in CASES],
+                         ids=[c[0] for c in CASES])
 def test_hostile_config_is_one_line_exit_2_and_writes_nothing(small_survey, tmp_path, capfd,
-                                                              spoil, words):
+                                                              spoil, words, workers):
     d = _base(small_survey)
     spoil(d, tmp_path)
     cfg = tmp_path / "c.yaml"
@@ -112,13 +141,48 @@ def test_hostile_config_is_one_line_exit_2_and_writes_nothing(small_survey, tmp_
     before = _snapshot(small_survey.parent, tmp_path)
     out = tmp_path / "run"
     capfd.readouterr()
-    code = main(["simulate", str(cfg), "--out", str(out), "--workers", "1", "--quiet"])
+    code = main(["simulate", str(cfg), "--out", str(out), "--workers", workers, "--quiet"])
     err = capfd.readouterr().err
     assert code == 2, err
     assert err.count("\n") == 1 and err.startswith("glaciar simulate: error:"), err
     assert "Traceback" not in err and all(w in err for w in words), err
     assert not out.exists()
     assert _snapshot(small_survey.parent, tmp_path) == before
+
+
+@pytest.mark.parametrize("spoil, extra, words", [
+    (lambda d, t: d.update(selection=["sn_f160w > " + "9" * 800]), [], ["64-bit"]),
+    (lambda d, t: d["survey"]["bands"]["f160w"].update(psf=_text_file(t, "p.fits",
+                                                                      FAKE_FITS_HEADER)),
+     [], ["survey.bands.f160w.psf", "astropy warned"]),
+    (lambda d, t: _spoiled_images(d, t, "demo01_f160w_drz.fits", lambda b: b[:2880]), [],
+     ["truncated"]),
+    (lambda d, t: None, ["--adaptive", "--budget", "40"], ["--budget 40", "48"]),
+], ids=["selection-overflow", "psf-fake-header", "truncated-image", "budget-below-corners"])
+def test_hostile_input_leaves_an_existing_run_as_it_was(small_survey, small_run, tmp_path, capfd,
+                                                        spoil, extra, words):
+    import hashlib
+    import shutil
+
+    from glaciar import constants as C
+
+    run = tmp_path / "run"
+    shutil.copytree(small_run[1], run, ignore=shutil.ignore_patterns(C.LOCK_NAME))
+    d = _base(small_survey)
+    spoil(d, tmp_path)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(yaml.safe_dump(d, sort_keys=False))
+
+    def contents():
+        return {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in run.rglob("*")
+                if p.is_file()}
+
+    before, stat_before = contents(), _snapshot(run)
+    capfd.readouterr()
+    code = main(["simulate", str(cfg), "--out", str(run), "--workers", "2", "--quiet", *extra])
+    err = capfd.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and all(w in err for w in words), err
+    assert contents() == before and _snapshot(run) == stat_before
 
 
 # ---------------------------------------------------------------------------
