@@ -67,8 +67,8 @@ def _sex(tmp_path, lines):
 # (id, how the config is spoiled (dict, tmp_path) -> YAML text or None, words in the error)
 CASES = [
     ("selection-800-digit-integer",
-     lambda d, t: d.update(selection=["sn_f160w > " + "9" * 800]), ["selection[0]", "800 characters",
-                                                                   "64-bit"]),
+     lambda d, t: d.update(selection=["sn_f160w > " + "9" * 800]),
+     ["selection[0]", "800 characters", "64-bit"]),
     ("selection-negative-800-digit-integer",
      lambda d, t: d.update(selection=["sn_f160w > -" + "9" * 800]), ["selection[0]", "64-bit"]),
     ("selection-1e400", lambda d, t: d.update(selection=["sn_f160w > 1e400"]),

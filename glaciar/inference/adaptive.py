@@ -132,7 +132,10 @@ def coarse_plan(n_z: int, n_mag: int, n_iterations: int, sources_per_iteration: 
         (the message gives the smallest budget that works).
     """
     target = fraction * budget
-    cells_at = lambda k: len(coarse_axis(n_z, k)) * len(coarse_axis(n_mag, k))  # noqa: E731
+
+    def cells_at(k):
+        return len(coarse_axis(n_z, k)) * len(coarse_axis(n_mag, k))
+
     k_max = max(n_z, n_mag, 2) - 1          # beyond it only the extreme values remain
     for k in range(1, k_max + 1):
         cost = cells_at(k) * n_iterations * sources_per_iteration
