@@ -16,7 +16,7 @@ from typing import Annotated, Literal
 
 from pydantic import BeforeValidator, ValidationError
 
-__all__ = ["ConfigError", "At", "Int", "Float", "Choice", "show",
+__all__ = ["ConfigError", "At", "Int", "Float", "Choice", "show", "yaml_bool_hint",
            "format_validation_error", "unknown_key_error"]
 
 
