@@ -99,11 +99,10 @@ def _with_cells_option(cfg, path):
 
 
 def _simulate_adaptive(args, cfg, out: Path, workers: int, executor) -> int:
-    from .pipeline.adaptive import AdaptiveSettings, run_adaptive
-    from .run import task_cells
+    from .pipeline.adaptive import AdaptiveSettings, design_sources, run_adaptive
 
     # Sources of the design: tasks (iterations of every cell) x n_galaxies.
-    design = sum(task_cells(cfg).values()) * cfg.simulation.n_galaxies
+    design = design_sources(cfg)
     budget = args.budget if args.budget is not None else 3 * design
     round_size = args.round_size if args.round_size is not None else max(
         cfg.simulation.n_galaxies * len(cfg.survey.fields), design // 10)
@@ -352,11 +351,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="add the cells of this file (as written by `glaciar next --write`)")
     s.add_argument("--adaptive", action="store_true",
                    help="after the design, rounds of fit -> propose -> simulate until "
-                        "--target-sd or --budget (glaciar.pipeline.adaptive)")
+                        "--target-sd or --budget (glaciar.pipeline.adaptive). A design "
+                        "costing more than --budget starts coarse: every k-th z and mag "
+                        "value (first and last kept), k the smallest stride costing <= half "
+                        "the budget (fewer iterations if even the corners cost more), "
+                        "without grid.cells/box; the rounds fill in the rest")
     s.add_argument("--target-sd", type=_finite_positive, default=0.02,
                    help="stop when the largest posterior sd of C*S over the grid is below this")
     s.add_argument("--budget", type=_positive_int_number, default=None,
-                   help="stop at this many injected sources (default: 3x the design)")
+                   help="stop at this many injected sources, exceeded by less than one "
+                        "task per field (default: 3x the design)")
     s.add_argument("--round-size", type=_positive_int_number, default=None,
                    help="sources added per round (default: a tenth of the design)")
     s.add_argument("--max-steps", type=_positive_int, default=None,

@@ -842,6 +842,29 @@ def _reason(exc: BaseException, path: Path) -> str:
     return msg.splitlines()[0]
 
 
+#: Longest part of a one-line error given to folded foreign-library warnings [characters].
+MAX_FOLDED_CHARS = 200
+
+
+def _folded(caught) -> str:
+    """Warnings recorded while a file was checked, as one parenthesised clause ("" if none).
+
+    A foreign library (astropy) warns several times, over several lines, before it
+    fails on a damaged file; the refusal stays one line and keeps what they said.
+    """
+    said = []
+    for w in caught:
+        text = " ".join(str(w.message).split())
+        if text and text not in said:
+            said.append(text)
+    if not said:
+        return ""
+    text = "; ".join(said)
+    if len(text) > MAX_FOLDED_CHARS:
+        text = text[:MAX_FOLDED_CHARS - 3] + "..."
+    return f" (warnings while reading it: {text})"
+
+
 def _check_image(item: InputFile) -> None:
     """A science or noise image: a readable FITS file with a 2-D image holding finite pixels."""
     from .survey import _read_array
@@ -892,8 +915,13 @@ def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None =
     for it in items:
         by_path.setdefault(str(it.path.resolve()), []).append(it)
 
-    def fail(item, exc):
-        return InputError(f"{item.key}: {item.path}: {_reason(exc, item.path)}")
+    def fail(item, exc, caught=()):
+        return InputError(f"{item.key}: {item.path}: {_reason(exc, item.path)}{_folded(caught)}")
+
+    def reissue(key, path, caught):
+        # A check that passes keeps the library's warnings, each on one line naming the file.
+        for w in caught:
+            warnings.warn(f"{key}: {path}: {' '.join(str(w.message).split())}", stacklevel=3)
 
     out = {}
     errors = (OSError, ValueError, TypeError, KeyError, IndexError, EOFError, UnicodeDecodeError,
@@ -904,13 +932,16 @@ def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None =
         except OSError as exc:
             raise fail(item, exc) from None
         entry = cache.get(str(item.path.resolve()), {})
-        try:
-            if item.kind in ("science", "noise") and not entry.get("checked"):
-                _check_image(item)
-            elif item.kind == "filter":
-                get_filter(str(item.path))
-        except errors as exc:
-            raise fail(item, exc) from None
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                if item.kind in ("science", "noise") and not entry.get("checked"):
+                    _check_image(item)
+                elif item.kind == "filter":
+                    get_filter(str(item.path))
+            except errors as exc:
+                raise fail(item, exc, caught) from None
+        reissue(item.key, item.path, caught)
         if item.kind in ("science", "noise"):
             entry["checked"] = True
         out[item.key] = {"path": str(item.path), **fp}
@@ -921,16 +952,21 @@ def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None =
         scales.add(survey.pixel_scale_arcsec(f))
     for b in cfg.survey.bands:
         key = f"survey.bands.{b.name}.psf"
+        where = Path(b.psf) if isinstance(b.psf, str) else None
+        if where is not None and not where.is_absolute():
+            where = Path(cfg.base_dir) / where
         for scale in sorted(scales):
-            try:
-                _band_psf(cfg, b, scale)
-            except errors as exc:
-                where = Path(b.psf) if isinstance(b.psf, str) else None
-                if where is not None and not where.is_absolute():
-                    where = Path(cfg.base_dir) / where
-                if where is None:
-                    raise InputError(f"{key}: {_reason(exc, Path('.'))}") from None
-                raise InputError(f"{key}: {where}: {_reason(exc, where)}") from None
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                try:
+                    _band_psf(cfg, b, scale)
+                except errors as exc:
+                    if where is None:
+                        raise InputError(f"{key}: {_reason(exc, Path('.'))}"
+                                         f"{_folded(caught)}") from None
+                    raise InputError(f"{key}: {where}: {_reason(exc, where)}"
+                                     f"{_folded(caught)}") from None
+            reissue(key, where if where is not None else "(analytic)", caught)
     try:
         _detection_params(cfg)
     except errors as exc:
@@ -1207,16 +1243,23 @@ def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor
         if resuming:
             recorded, chash = _recorded_inputs(old, finished, inputs), config_hash(cfg)
             cached = {f: _context_dir(run_dir, chash, f, recorded) for f in cfg.survey.fields}
-        try:
-            manifest = _manifest(cfg, survey, seed, z_limit=jobs.z_limit, cached=cached)
-        except Exception:
-            if jobs.in_background:  # an unusable input or an empty field explains the failure
-                jobs.inputs()
-                jobs.preflight()
-            raise
+        # Measuring the fields reads every input while the check runs beside it: a
+        # damaged file makes astropy warn here first.  Held back until the inputs are
+        # known to be good, so a refusal is the check's one line, not warnings and a line.
+        with warnings.catch_warnings(record=True) as measured:
+            warnings.simplefilter("always")
+            try:
+                manifest = _manifest(cfg, survey, seed, z_limit=jobs.z_limit, cached=cached)
+            except Exception:
+                if jobs.in_background:  # an unusable input or an empty field explains it
+                    jobs.inputs()
+                    jobs.preflight()
+                raise
         if jobs.in_background and not resuming:
             inputs = jobs.inputs()
             jobs.preflight()
+    for w in {(str(w.message), w.category): w for w in measured}.values():
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     items = input_files(cfg)
     manifest["inputs"] = _recorded_inputs(old, finished, inputs)
     if old is not None and finished:

@@ -119,6 +119,13 @@ def test_non_string_keys(tmp_path):
     (lambda d: d.update(selection=["(source_flags & 18446744073709551616) == 0"]), "selection[0]",
      "outside the 64-bit range"),
     (lambda d: d.update(selection=["__import__('os')"]), "selection[0]", ""),
+    # issue 21: beyond float range, refused in one line (was an OverflowError traceback)
+    (lambda d: d.update(selection=["sn_f160w > " + "9" * 800]), "selection[0]",
+     "(800 characters) is outside the 64-bit range"),
+    (lambda d: d.update(selection=["sn_f160w < 1e400"]), "selection[0]",
+     "1e400 is beyond the float range"),
+    (lambda d: d["survey"].update(noise_type=True), "survey.noise_type",
+     "YAML reads unquoted on/yes/true as true: quote the word"),
 ])
 def test_hostile_values(tmp_path, mutate, where, what):
     d = base()

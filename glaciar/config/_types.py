@@ -16,7 +16,7 @@ from typing import Annotated, Literal
 
 from pydantic import BeforeValidator, ValidationError
 
-__all__ = ["ConfigError", "At", "Int", "Float", "Choice", "show",
+__all__ = ["ConfigError", "At", "Int", "Float", "Choice", "show", "yaml_bool_hint",
            "format_validation_error", "unknown_key_error"]
 
 
@@ -54,6 +54,20 @@ def show(value) -> str:
     if len(text) > MAX_SHOWN:
         text = text[:MAX_SHOWN - 3] + "..."
     return text if isinstance(value, str) else f"{text} ({type(value).__name__})"
+
+
+#: Words YAML 1.1 (PyYAML) reads as booleans when unquoted, lower case.
+YAML11_FALSE = ("off", "no", "false")
+YAML11_TRUE = ("on", "yes", "true")
+
+
+def yaml_bool_hint(value) -> str:
+    """For a boolean where a word was expected: how to write the word (else "")."""
+    if not isinstance(value, bool):
+        return ""
+    words = YAML11_TRUE if value else YAML11_FALSE
+    return (f" (YAML reads unquoted {'/'.join(words)} as {str(value).lower()}: quote the word "
+            "you meant)")
 
 
 def _no_bool(kind: str):
@@ -104,6 +118,14 @@ def Choice(*values: str, aliases: dict[str, str] | None = None):
     aliases = aliases or {}
 
     def check(value):
+        if isinstance(value, bool):
+            # YAML 1.1 reads unquoted off/no/false (on/yes/true) as a boolean: take it
+            # back to the word when the enumeration has exactly one such word.
+            words = [w for w in (YAML11_FALSE if value is False else YAML11_TRUE) if w in values]
+            if len(words) == 1:
+                return words[0]
+            raise At(f"expected one of {', '.join(values)}, got {show(value)}"
+                     f"{yaml_bool_hint(value)}")
         if not isinstance(value, str) or not value.strip():
             raise At(f"expected one of {', '.join(values)}, got {show(value)}")
         v = aliases.get(value.strip().lower(), value.strip().lower())
@@ -149,7 +171,7 @@ def _message(err: dict) -> str:
     if kind in ("bool_parsing", "bool_type"):
         return f"expected true/false, got {show(value)}"
     if kind in ("string_type", "string_too_short"):
-        return f"expected a non-empty string, got {show(value)}"
+        return f"expected a non-empty string, got {show(value)}{yaml_bool_hint(value)}"
     if kind in ("tuple_type", "list_type"):
         return f"expected a list, got {show(value)}"
     if kind == "too_short":

@@ -33,7 +33,7 @@ from ..galaxy import psf as _psf
 from ..galaxy.population import SourceModel
 from ..galaxy.filters import FILE_SUFFIXES as FILTER_FILE_SUFFIXES, looks_like_path
 from ..galaxy.sersic import Q_MIN
-from ._types import At, Choice, Float, Int, show, unknown_key_error
+from ._types import At, Choice, Float, Int, show, unknown_key_error, yaml_bool_hint
 
 __all__ = ["Section", "PsfProfile", "BandConfig", "SurveyConfig", "AxisSpec", "GridCell", "GridConfig",
            "GridBox", "SimulationConfig", "SourceConfig", "DetectionImageConfig", "DetectionConfig", "ClassificationConfig",
@@ -47,6 +47,22 @@ MAX_TASKS = 10_000_000
 MAX_GRID_VALUES = 10_000
 #: Largest number of points of ``grid.box`` (the manifest lists each one).
 MAX_BOX_POINTS = 100_000
+# Plausibility bounds: far beyond any survey, they stop absurd values (1e300) before
+# they overflow the arithmetic (a traceback) or name a task file too long to write.
+#: Largest redshift of the grid, its cells and box.
+MAX_REDSHIFT = 50.0
+#: Largest |magnitude| of the grid, its cells and box [AB mag], and |zeropoint| [mag].
+MAX_ABS_MAGNITUDE = 100.0
+#: Pixel scales (images, FITS PSFs) at or above this are refused [arcsec / pixel].
+MAX_PIXEL_SCALE_ARCSEC = 10.0
+#: Range of an analytic PSF's FWHM [arcsec].
+PSF_FWHM_RANGE_ARCSEC = (1e-3, 100.0)
+#: Largest half-light radius at z = 6 [proper kpc].
+MAX_R_EFF_KPC = 100.0
+#: Largest aperture diameter [pixels].
+MAX_APERTURE_PIX = 10_000.0
+#: Largest detection threshold [sigma].
+MAX_DETECT_THRESH = 10_000.0
 
 
 def _default(cls, name: str):
@@ -184,7 +200,9 @@ class PsfProfile(Section):
     """An analytic PSF (the keys allowed depend on ``profile``)."""
 
     profile: Choice(*PSF_PROFILES) = Field(description="moffat | gaussian | airy")
-    fwhm_arcsec: Float | None = Field(None, gt=0, description="FWHM [arcsec] (moffat, gaussian)")
+    fwhm_arcsec: Float | None = Field(None, ge=PSF_FWHM_RANGE_ARCSEC[0],
+                                      le=PSF_FWHM_RANGE_ARCSEC[1],
+                                      description="FWHM [arcsec] (moffat, gaussian)")
     beta: Float | None = Field(None, gt=1, description="Moffat index")
     wavelength_angstrom: Float | None = Field(None, gt=0, description="wavelength [Å] (airy)")
     diameter_m: Float | None = Field(None, gt=0, description="telescope diameter [m] (airy)")
@@ -227,7 +245,8 @@ class BandConfig(Section):
     filter: str = Field(description="built-in filter (wfc3_ir_*, wfc3_uvis_*, acs_wfc_*, nircam_*) "
                                     "or a throughput curve file (.tab/.dat/.par/.fits)",
                         json_schema_extra={"example": "wfc3_ir_f160w"})
-    zeropoint: Float = Field(description="AB magnitude of one image unit (e.g. 1 e-/s) [mag]",
+    zeropoint: Float = Field(ge=-MAX_ABS_MAGNITUDE, le=MAX_ABS_MAGNITUDE,
+                             description="AB magnitude of one image unit (e.g. 1 e-/s) [mag]",
                              json_schema_extra={"example": 25.946})
     gain: Float | None = Field(None, gt=0, description="e- per image unit, adds source Poisson "
                                                        "noise; null = none")
@@ -237,14 +256,16 @@ class BandConfig(Section):
                             json_schema_extra={"example": {"profile": "moffat",
                                                            "fwhm_arcsec": 0.18, "beta": 2.5}})
     psf_pixel_scale_arcsec: Float | None = Field(
-        None, gt=0, description="FITS PSF pixel scale [arcsec/pixel]; null = from its header "
+        None, gt=0, lt=MAX_PIXEL_SCALE_ARCSEC,
+        description="FITS PSF pixel scale [arcsec/pixel]; null = from its header "
                                 "(PIXSCALE, CD/CDELT)")
 
     @field_validator("filter", mode="before")
     @classmethod
     def _filter(cls, value, info: ValidationInfo):
         if not isinstance(value, str) or not value.strip():
-            raise At(f"expected a built-in filter name or a curve file, got {show(value)}")
+            raise At(f"expected a built-in filter name or a curve file, got {show(value)}"
+                     f"{yaml_bool_hint(value)}")
         value = value.strip()
         if looks_like_path(value, FILTER_FILE_SUFFIXES):
             return resolve_path(_base_dir(info), value)
@@ -263,7 +284,7 @@ class BandConfig(Section):
         if isinstance(value, Mapping):
             return _nested(PsfProfile, value, info).spec()
         raise At(f"expected a FITS path or a mapping {{profile, fwhm_arcsec, ...}}, "
-                 f"got {show(value)}")
+                 f"got {show(value)}{yaml_bool_hint(value)}")
 
 
 def read_fields_file(path) -> tuple[str, ...]:
@@ -293,7 +314,7 @@ def _template_names(template: str) -> set[str]:
 def _check_template(value, what: str):
     if not isinstance(value, str) or not value.strip():
         raise At(f"expected a file-name template such as '{{field}}_{{band}}_{what}.fits', "
-                 f"got {show(value)}")
+                 f"got {show(value)}{yaml_bool_hint(value)}")
     try:
         parts = list(string.Formatter().parse(value))
     except ValueError as exc:
@@ -341,8 +362,9 @@ class SurveyConfig(Section):
                               json_schema_extra={"example": "{field}_{band}_wht.fits"})
     noise_type: Choice("weight", "rms") = Field("weight", description="weight (inverse variance) "
                                                                       "| rms")
-    pixel_scale_arcsec: Float | None = Field(None, gt=0, description="[arcsec/pixel]; null = from "
-                                                                     "the detection image's WCS")
+    pixel_scale_arcsec: Float | None = Field(None, gt=0, lt=MAX_PIXEL_SCALE_ARCSEC,
+                                             description="[arcsec/pixel]; null = from the "
+                                                         "detection image's WCS")
     mask: str | None = Field(None, description="mask per field inside image_dir ({field} is "
                                                "filled in): a FITS image (non-zero = masked) or "
                                                "a DS9 region file (.reg; inside = masked, image "
@@ -380,7 +402,7 @@ class SurveyConfig(Section):
         if "fields_file" in data:
             ff = data["fields_file"]
             if not isinstance(ff, str) or not ff.strip():
-                raise At(f"expected a file name, got {show(ff)}", "fields_file")
+                raise At(f"expected a file name, got {show(ff)}{yaml_bool_hint(ff)}", "fields_file")
             path = resolve_path(base, ff.strip())
             if not Path(path).is_file():
                 raise At(f"file not found: {path}", "fields_file")
@@ -416,7 +438,8 @@ class SurveyConfig(Section):
 
         image_dir = data.get("image_dir", ".")
         if not isinstance(image_dir, (str, os.PathLike)) or not str(image_dir).strip():
-            raise At(f"expected a directory name, got {show(image_dir)}", "image_dir")
+            raise At(f"expected a directory name, got {show(image_dir)}"
+                     f"{yaml_bool_hint(image_dir)}", "image_dir")
         data["image_dir"] = Path(resolve_path(base, str(image_dir).strip()))
         if "science" not in data:
             raise At("missing required key (file-name template, e.g. "
@@ -459,7 +482,8 @@ class SurveyConfig(Section):
                 raise At(f"missing required key (one of {', '.join(names)})", "detection_band")
             det = names[0]
         if not isinstance(det, str) or not det.strip():
-            raise At(f"expected a band name, got {show(det)}", "detection_band")
+            raise At(f"expected a band name, got {show(det)}{yaml_bool_hint(det)}",
+                     "detection_band")
         match = [n for n in names if n.lower() == det.strip().lower()]
         if not match:
             close = difflib.get_close_matches(det, names, n=1)
@@ -520,8 +544,9 @@ class AxisSpec(Section):
     """One grid axis: ``{min, max, step}`` (max included within step/1000),
     ``{min, max, n_bins}`` or ``{values: [...]}``; validated to ``{values}``."""
 
-    #: Smallest allowed value (None: any).
+    #: Smallest and largest allowed values (None: any).
     _lower: ClassVar[float | None] = None
+    _upper: ClassVar[float | None] = None
     min: Float | None = Field(None, description="first value")
     max: Float | None = Field(None, description="last value (included within step/1000)")
     step: Float | None = Field(None, gt=0, description="spacing")
@@ -530,7 +555,7 @@ class AxisSpec(Section):
 
     @model_validator(mode="after")
     def _canonical(self):
-        lower = type(self)._lower
+        lower, upper = type(self)._lower, type(self)._upper
         if self.values is not None:
             for key in ("min", "max", "step", "n_bins"):
                 if getattr(self, key) is not None:
@@ -541,6 +566,8 @@ class AxisSpec(Section):
             for i, v in enumerate(values):
                 if lower is not None and v < lower:
                     raise At(f"must be >= {lower:g}, got {v:g}", "values", i)
+                if upper is not None and v > upper:
+                    raise At(f"must be <= {upper:g}, got {v:g}", "values", i)
             if any(b <= a for a, b in zip(values, values[1:])):
                 raise At("must be strictly increasing", "values")
         else:
@@ -549,6 +576,8 @@ class AxisSpec(Section):
                     raise At("missing required key", key)
                 if lower is not None and getattr(self, key) < lower:
                     raise At(f"must be >= {lower:g}, got {getattr(self, key):g}", key)
+                if upper is not None and getattr(self, key) > upper:
+                    raise At(f"must be <= {upper:g}, got {getattr(self, key):g}", key)
             lo, hi = self.min, self.max
             if lo > hi:
                 raise At(f"min ({lo:g}) > max ({hi:g})")
@@ -579,11 +608,11 @@ class AxisSpec(Section):
 
 
 class RedshiftAxis(AxisSpec):
-    _lower = 0.0
+    _lower, _upper = 0.0, MAX_REDSHIFT
 
 
 class MagnitudeAxis(AxisSpec):
-    pass
+    _lower, _upper = -MAX_ABS_MAGNITUDE, MAX_ABS_MAGNITUDE
 
 
 #: The paper's default z range is 9.0-11.9 in 15 bins (not an even step); we keep
@@ -600,8 +629,9 @@ class GridCell(Section):
     proposal can be re-applied without duplicating work.
     """
 
-    z: Float = Field(ge=0, description="redshift")
-    mag: Float = Field(description="magnitude [AB mag]")
+    z: Float = Field(ge=0, le=MAX_REDSHIFT, description="redshift")
+    mag: Float = Field(ge=-MAX_ABS_MAGNITUDE, le=MAX_ABS_MAGNITUDE,
+                       description="magnitude [AB mag]")
     n_iterations: Int | None = Field(None, ge=1, description="total iterations of the cell "
                                                              "(default simulation.n_iterations)")
     fields: tuple[str, ...] | None = Field(None, description="fields to simulate it in "
@@ -625,9 +655,9 @@ def read_cells_file(path) -> list:
     return data
 
 
-def _range(lower=None):
-    """A ``[lo, hi]`` pair of finite numbers (``lo >= lower``); the order is checked by the model."""
-    item = Annotated[Float, Field(ge=lower)] if lower is not None else Float
+def _range(lower, upper):
+    """A ``[lo, hi]`` pair of finite numbers in [lower, upper] (the order: the model's check)."""
+    item = Annotated[Float, Field(ge=lower, le=upper)]
     return tuple[item, item]
 
 
@@ -640,8 +670,9 @@ class GridBox(Section):
     first points (a prefix of the sequence), so a store is extended, not redone.
     """
 
-    z: _range(lower=0.0) = Field(description="[z_lo, z_hi]: redshift range, z_lo < z_hi")
-    mag: _range() = Field(description="[m_lo, m_hi]: magnitude range [AB mag], m_lo < m_hi")
+    z: _range(0.0, MAX_REDSHIFT) = Field(description="[z_lo, z_hi]: redshift range, z_lo < z_hi")
+    mag: _range(-MAX_ABS_MAGNITUDE, MAX_ABS_MAGNITUDE) = Field(
+        description="[m_lo, m_hi]: magnitude range [AB mag], m_lo < m_hi")
     n_points: Int = Field(ge=1, le=MAX_BOX_POINTS, description="number of (z, mag) points")
     n_iterations: Int = Field(1, ge=1, description="iterations (tasks of simulation.n_galaxies "
                                                    "sources) per point and field")
@@ -695,7 +726,7 @@ class GridConfig(Section):
         if "cells_file" in data:
             cf = data.pop("cells_file")
             if not isinstance(cf, str) or not cf.strip():
-                raise At(f"expected a file name, got {show(cf)}", "cells_file")
+                raise At(f"expected a file name, got {show(cf)}{yaml_bool_hint(cf)}", "cells_file")
             path = resolve_path(_base_dir(info), cf.strip())
             if not Path(path).is_file():
                 raise At(f"file not found: {path}", "cells_file")
@@ -747,7 +778,8 @@ def _src(name):
 class SourceConfig(Section):
     """The artificial galaxies (fields of :class:`~glaciar.galaxy.population.SourceModel`)."""
 
-    r_eff_kpc_z6: Float = Field(_src("r_eff_kpc_z6"), gt=0, description="half-light radius "
+    r_eff_kpc_z6: Float = Field(_src("r_eff_kpc_z6"), gt=0, le=MAX_R_EFF_KPC,
+                                description="half-light radius "
                                 "(semi-major axis) at z = 6 [proper kpc]")
     size_evolution: Float = Field(_src("size_evolution"), description="r_e ∝ (1+z)^size_evolution")
     r_eff_scatter_dex: Float = Field(_src("r_eff_scatter_dex"), ge=0,
@@ -830,7 +862,7 @@ class DetectionConfig(Section):
     sex_file: str | None = Field(None, alias="sex_file", description="read these keys from a "
                                  "SExtractor .sex file; keys given here win")
     detect_thresh: Annotated[Float, BeforeValidator(_first)] = Field(
-        _det("detect_thresh"), gt=0, alias="DETECT_THRESH",
+        _det("detect_thresh"), gt=0, le=MAX_DETECT_THRESH, alias="DETECT_THRESH",
         description="threshold above the background [sigma]")
     detect_minarea: Int = Field(_det("detect_minarea"), ge=1, alias="DETECT_MINAREA",
                                 description="minimum area above threshold [pixels]")
@@ -869,7 +901,7 @@ class DetectionConfig(Section):
                                  description="background mesh [pixels]")
     back_filtersize: SquareInt = Field(_det("back_filtersize"), ge=1, alias="BACK_FILTERSIZE",
                                        description="background median filter [meshes]")
-    phot_apertures: _float_list(gt=0) = Field(
+    phot_apertures: _float_list(gt=0, le=MAX_APERTURE_PIX) = Field(
         _det("phot_apertures"), alias="PHOT_APERTURES",
         description="aperture diameters [pixels] (columns flux_aper0_<band>, ...)")
     phot_autoparams: _float_list(gt=0, min_length=2, max_length=2) = Field(
@@ -918,7 +950,7 @@ class DetectionConfig(Section):
         if "sex_file" in data:
             sex = data["sex_file"]
             if not isinstance(sex, str) or not sex.strip():
-                raise At(f"expected a file name, got {show(sex)}", "sex_file")
+                raise At(f"expected a file name, got {show(sex)}{yaml_bool_hint(sex)}", "sex_file")
             path = resolve_path(base, sex.strip())
             if not Path(path).is_file():
                 raise At(f"file not found: {path}", "sex_file")
@@ -949,7 +981,8 @@ class DetectionConfig(Section):
 def _filter_name(value, base_dirs) -> str:
     """A FILTER_NAME: a built-in kernel name as is, a ``.conv`` path made absolute."""
     if not isinstance(value, str) or not value.strip():
-        raise At(f"expected a built-in kernel name or a .conv file, got {show(value)}",
+        raise At(f"expected a built-in kernel name or a .conv file, got {show(value)}"
+                 f"{yaml_bool_hint(value)}",
                  "FILTER_NAME")
     value = value.strip()
     if not looks_like_path(value, (".conv",)):

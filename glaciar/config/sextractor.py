@@ -123,6 +123,15 @@ def detection_keys_from_sex(path, base_dir, info=None) -> dict[str, Any]:
         if key in HONOURED_KEYS or key in NO_EFFECT_KEYS:
             continue
         text = ",".join(value) if isinstance(value, list) else value
+        if key == "GAIN" and value == []:
+            # GLACiAR's template (SExtractor_files/parameters.sex) leaves GAIN empty and
+            # fills it per band from gain_values before each SExtractor call: the same
+            # per-band gain glaciar takes from survey.bands.<band>.gain.
+            if info is not None:
+                _warn(info, f"{path}: GAIN without a value: each band's gain is "
+                            "survey.bands.<band>.gain, as GLACiAR fills it per band "
+                            "(a band without one gets no source Poisson noise)")
+            continue
         if key in DEFAULT_ONLY_KEYS:
             if text.upper() not in DEFAULT_ONLY_KEYS[key]:
                 allowed = " or ".join(v or "(empty)" for v in DEFAULT_ONLY_KEYS[key])
@@ -153,6 +162,13 @@ def detection_keys_from_sex(path, base_dir, info=None) -> dict[str, Any]:
                                 "(survey.noise) are used as configured; set WEIGHT_TYPE "
                                 "BACKGROUND to ignore them")
                 continue
+        if key == "WEIGHT_GAIN" and isinstance(value, list):
+            # Dual-image mode again ("detection,measurement", e.g. GLACiAR's "N,N").
+            kinds = {v.upper() for v in value}
+            if len(kinds) > 1:
+                raise At(f"{path}: WEIGHT_GAIN: different values for detection and measurement "
+                         f"({', '.join(sorted(kinds))}) are not supported", "sex_file")
+            value = kinds.pop()
         if key == "FILTER_NAME":
             value = value[0] if isinstance(value, list) else value
             resolved = _filter_name(value, [Path(path).parent, Path(base_dir)])

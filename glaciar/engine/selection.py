@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import ast
 import difflib
+import math
+import sys
 from dataclasses import dataclass
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -230,6 +232,14 @@ def _real(x):
 def _quote(expr: str, limit: int = 60) -> str:
     """An expression as quoted in messages, shortened (a message stays one readable line)."""
     return repr(expr) if len(expr) <= limit else repr(expr[:limit - 3]) + "..."
+
+
+def _literal(expr: str, node: ast.Constant, limit: int = 24) -> str:
+    """A numeric literal as written in ``expr``, shortened, with its digit count when long."""
+    text = ast.get_source_segment(expr.strip(), node) or "?"
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit - 3]}... ({len(text)} characters)"
 
 
 def _depth(tree: ast.AST) -> int:
@@ -470,10 +480,18 @@ def compile_selection(expressions: Sequence[str],
             raise SelectionError(f"selection expression {_quote(expr)}: nested more than "
                                  f"{MAX_EXPRESSION_DEPTH} levels deep")
         for node in ast.walk(tree):
-            if isinstance(node, ast.Constant) and isinstance(node.value, int) \
-                    and not isinstance(node.value, bool) and not -2**63 <= node.value < 2**63:
+            if not isinstance(node, ast.Constant) or isinstance(node.value, bool):
+                continue
+            # The refusal quotes the literal as written: an integer beyond float range
+            # cannot be formatted as a float (OverflowError), and 1e400 has already
+            # become inf.
+            if isinstance(node.value, int) and not -2**63 <= node.value < 2**63:
                 raise SelectionError(f"selection expression {_quote(expr)}: integer constant "
-                                     f"{node.value:.3g} is outside the 64-bit range")
+                                     f"{_literal(expr, node)} is outside the 64-bit range")
+            if isinstance(node.value, float) and not math.isfinite(node.value):
+                raise SelectionError(f"selection expression {_quote(expr)}: number "
+                                     f"{_literal(expr, node)} is beyond the float range "
+                                     f"(|x| < {sys.float_info.max:.3g})")
         v = _Validator(expr.strip())
         v.visit(tree)
         if available is not None:

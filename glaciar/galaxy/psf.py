@@ -27,7 +27,9 @@ from __future__ import annotations
 import functools
 import math
 import os
+import warnings
 from collections.abc import Callable, Mapping
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -254,6 +256,41 @@ def normalize_psf(psf, name: str = "PSF") -> np.ndarray:
     return np.ascontiguousarray(arr / total)
 
 
+#: Longest part of a one-line error given to astropy's folded warnings [characters].
+MAX_FOLDED_CHARS = 200
+
+
+@contextmanager
+def _open_fits(path):
+    """``fits.open(path, memmap=False)`` whose warnings become part of one line.
+
+    A text file named ``.fits`` makes astropy warn up to four times, over several
+    lines, before it fails: when opening or reading fails, the error is one line
+    that carries what astropy said; when it succeeds, each warning is re-issued as
+    one line naming the file.
+    """
+    from astropy.io import fits
+
+    with warnings.catch_warnings(record=True) as caught:
+        try:
+            with fits.open(path, memmap=False) as hdul:
+                yield hdul
+        except (OSError, ValueError, TypeError, IndexError, KeyError, EOFError) as exc:
+            said = list(dict.fromkeys(" ".join(str(w.message).split()) for w in caught))
+            if not said:
+                raise
+            text = "; ".join(said)
+            if len(text) > MAX_FOLDED_CHARS:
+                text = text[:MAX_FOLDED_CHARS - 3] + "..."
+            reason = " ".join(str(exc).split()) or type(exc).__name__
+            if reason.startswith(f"{path}: "):
+                reason = reason[len(f"{path}: "):]
+            cls = OSError if isinstance(exc, OSError) else ValueError
+            raise cls(f"{path}: {reason} (astropy warned: {text})") from None
+    for w in dict.fromkeys(" ".join(str(w.message).split()) for w in caught):
+        warnings.warn(f"{path}: {w}", stacklevel=3)
+
+
 def _first_image_hdu(hdul, path):
     found = [h for h in hdul if h.data is not None and getattr(h, "is_image", False)
              and h.data.ndim >= 2]
@@ -288,12 +325,10 @@ def fits_pixel_scale(path, hdu: int | str | None = None) -> float | None:
     FileNotFoundError, OSError, ValueError
         Missing or unreadable file, no image HDU.
     """
-    from astropy.io import fits
-
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"file not found: {path}")
-    with fits.open(path, memmap=False) as hdul:
+    with _open_fits(path) as hdul:
         h = _first_image_hdu(hdul, path) if hdu is None else hdul[hdu]
         return header_pixel_scale(h.header)
 
@@ -328,12 +363,10 @@ def read_psf(path, psf_pixel_scale_arcsec: float | None = None,
         If the image has NaNs, a non-positive sum, no usable pixel scale, or
         a header scale that is implausible (>= 10 arcsec / pixel).
     """
-    from astropy.io import fits
-
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"PSF file not found: {path}")
-    with fits.open(path, memmap=False) as hdul:
+    with _open_fits(path) as hdul:
         if hdu is None:
             h = _first_image_hdu(hdul, path)
         else:

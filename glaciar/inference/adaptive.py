@@ -72,7 +72,84 @@ __all__ = ["propose_cells", "candidate_grid", "information_gain", "acquisition_s
            "misfit_on_candidates", "allocate_sources", "allocate_variance_reduction",
            "max_posterior_sd", "in_box",
            "merge_cells", "plan_round", "round_seed", "run_design", "DesignRound", "DesignResult",
-           "REQUEST_DTYPE", "OUTCOMES", "CRITERIA"]
+           "REQUEST_DTYPE", "OUTCOMES", "CRITERIA", "COARSE_FRACTION", "coarse_axis",
+           "coarse_plan"]
+
+#: The coarse start of a budget below the design costs at most this fraction of the
+#: budget (the rest is left to the rounds).
+COARSE_FRACTION = 0.5
+
+
+def coarse_axis(n: int, k: int) -> list[int]:
+    """Indices of every ``k``-th of ``n`` sorted grid values, the first and last always kept.
+
+    >>> coarse_axis(7, 3)
+    [0, 3, 6]
+    >>> coarse_axis(6, 4)
+    [0, 4, 5]
+    """
+    if n < 1 or k < 1:
+        raise ValueError(f"coarse_axis: expected n >= 1 and k >= 1, got n={n}, k={k}")
+    idx = list(range(0, n, k))
+    if idx[-1] != n - 1:
+        idx.append(n - 1)
+    return idx
+
+
+def coarse_plan(n_z: int, n_mag: int, n_iterations: int, sources_per_iteration: int,
+                budget: int, fraction: float = COARSE_FRACTION) -> tuple[int, int, int]:
+    """The coarse start of the adaptive loop when the design costs more than the budget.
+
+    The rule: the smallest stride ``k`` >= 1 such that every ``k``-th z and
+    magnitude value (:func:`coarse_axis`: the extreme values are always kept),
+    at the design's iterations per cell, costs at most ``fraction`` of the
+    budget; when even the grid's corners cost more, the corners with fewer
+    iterations (the most that fit in ``fraction`` of the budget, at least one).
+
+    Parameters
+    ----------
+    n_z, n_mag : int
+        Values on the design's z and magnitude axes.
+    n_iterations : int
+        Iterations (tasks per field) of each design cell.
+    sources_per_iteration : int
+        Sources of one iteration of one cell over all its fields
+        (``n_galaxies`` x fields).
+    budget : int
+        Sources the whole loop may inject.
+    fraction : float
+        Share of the budget the coarse start may spend.
+
+    Returns
+    -------
+    k, n_iterations, cost : int
+        Stride, iterations per coarse cell, and the coarse start's sources.
+
+    Raises
+    ------
+    ValueError
+        When one iteration of the corner cells already costs more than ``budget``
+        (the message gives the smallest budget that works).
+    """
+    target = fraction * budget
+
+    def cells_at(k):
+        return len(coarse_axis(n_z, k)) * len(coarse_axis(n_mag, k))
+
+    k_max = max(n_z, n_mag, 2) - 1          # beyond it only the extreme values remain
+    for k in range(1, k_max + 1):
+        cost = cells_at(k) * n_iterations * sources_per_iteration
+        if cost <= target:
+            return k, n_iterations, cost
+    per_iteration = cells_at(k_max) * sources_per_iteration
+    n_it = max(1, min(n_iterations, int(target // per_iteration)))
+    cost = per_iteration * n_it
+    if cost > budget:
+        raise ValueError(f"--budget {budget}: below the smallest coarse design, the grid's "
+                         f"{cells_at(k_max)} corner cell(s) with one iteration ({cost} sources); "
+                         f"raise --budget to at least {cost}")
+    return k_max, n_it, cost
+
 
 #: Dtype of a simulation request: cells and the number of sources to inject in each.
 REQUEST_DTYPE = [("z", float), ("mag", float), ("n", np.int64)]

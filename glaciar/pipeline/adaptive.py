@@ -1,12 +1,14 @@
 """The adaptive loop at the edge: fit → propose → simulate into one store, round by round.
 
 ``glaciar simulate CONFIG --adaptive`` runs the configuration's design (the
-coarse grid plus any ``grid.cells``), then repeats
+coarse grid plus any ``grid.cells``) when it fits in the budget, else a coarse
+subset of it (:func:`coarse_design`), then repeats
 
 1. fit the run (:func:`glaciar.pipeline.run_fit`, the logistic surface),
 2. measure the largest posterior sd of P = C·S over the (z, m) box,
 3. stop when it is below ``target_sd`` or ``budget`` sources are spent,
-4. otherwise share ~``round_size`` sources among the candidate cells
+4. otherwise share ~``round_size`` sources (at most what the budget has left,
+   to half a task per field) among the candidate cells
    (:func:`glaciar.inference.plan_round`: expected information gain about
    P = C·S plus the posterior-predictive misfit term), log the proposal,
    and simulate it into the same store.
@@ -18,6 +20,15 @@ are skipped), and a round killed during its fit is fitted again from the
 same store, which gives the same proposal (the fit's seed is fixed).  The
 cells of the rounds are part of the run: its stored ``config.yaml`` lists
 them as ``grid.cells``.
+
+The budget is kept: a design that costs more than ``budget`` sources starts
+from every k-th z and magnitude value of its Cartesian grid (the extreme
+values kept; k the smallest stride whose cost is at most half the budget,
+:func:`glaciar.inference.adaptive.coarse_plan`; fewer iterations per cell when
+even the grid's corners cost more), without its ``grid.cells`` and
+``grid.box`` points.  The rounds' candidates stay the full design's lattice,
+so they fill in the values the coarse start skipped.  The loop stops before a
+round would exceed the budget by a whole task per field.
 """
 from __future__ import annotations
 
@@ -32,6 +43,7 @@ import numpy as np
 from .. import constants as C
 
 __all__ = ["ADAPTIVE_ROUNDS_NAME", "AdaptiveSettings", "read_rounds", "with_cells",
+           "design_sources", "coarse_design",
            "run_adaptive", "proposal_cells", "round_cells", "cells_yaml"]
 
 ADAPTIVE_ROUNDS_NAME = C.ADAPTIVE_ROUNDS_NAME
@@ -104,6 +116,53 @@ def with_cells(cfg, cells: list[dict], source_name: str = "cells"):
     return config_from_dict(d, base_dir=cfg.base_dir, source_name=source_name)
 
 
+def design_sources(cfg) -> int:
+    """Sources the configuration's design injects: its tasks (all fields) x ``n_galaxies``."""
+    from ..run import task_cells
+
+    return int(sum(task_cells(cfg).values())) * cfg.simulation.n_galaxies
+
+
+def coarse_design(cfg, budget: int):
+    """The design the adaptive loop starts from: ``cfg`` itself, or a coarse subset of it.
+
+    When the design costs at most ``budget`` sources it runs as configured.
+    Otherwise the start is the Cartesian grid's every k-th z and magnitude value
+    (first and last kept) at the iterations of :func:`glaciar.inference.adaptive.
+    coarse_plan` (at most half the budget), without ``grid.cells`` and
+    ``grid.box``; the same inputs give the same start, so a resumed loop
+    starts from the same cells.
+
+    Returns
+    -------
+    start : Config
+    note : str or None
+        One line saying what the coarse start is (None when ``start`` is ``cfg``).
+    """
+    from ..config import config_from_dict, config_to_dict
+    from ..inference.adaptive import coarse_axis, coarse_plan
+
+    full = design_sources(cfg)
+    if full <= budget:
+        return cfg, None
+    zs, ms = list(cfg.grid.z_values), list(cfg.grid.mag_values)
+    per_iteration = cfg.simulation.n_galaxies * len(cfg.survey.fields)
+    k, n_it, cost = coarse_plan(len(zs), len(ms), cfg.simulation.n_iterations, per_iteration,
+                                budget)
+    z_keep = [zs[i] for i in coarse_axis(len(zs), k)]
+    m_keep = [ms[i] for i in coarse_axis(len(ms), k)]
+    d = config_to_dict(cfg)
+    d["grid"]["z"], d["grid"]["mag"] = {"values": z_keep}, {"values": m_keep}
+    for key in ("cells", "cells_file", "box"):
+        d["grid"].pop(key, None)
+    d["simulation"]["n_iterations"] = n_it
+    start = config_from_dict(d, base_dir=cfg.base_dir, source_name="the coarse design")
+    note = (f"coarse start: the design costs {full} sources, the budget {budget}: z and mag "
+            f"values at stride {k} (extremes kept; {len(z_keep)} z x {len(m_keep)} mag), "
+            f"{n_it} iteration(s) per cell, {cost} sources; the rounds fill in the rest")
+    return start, note
+
+
 def _simulated_values(cfg):
     from ..run import task_cells
 
@@ -112,7 +171,7 @@ def _simulated_values(cfg):
             cells)
 
 
-def _candidates(cfg, box=None, z_limit=None):
+def _candidates(cfg, box=None, z_limit=None, design=None):
     """The candidate (z, m) lattice: the design's values and the midpoints between them.
 
     The design (the Cartesian axes, and a regular lattice over ``grid.box``
@@ -120,17 +179,20 @@ def _candidates(cfg, box=None, z_limit=None):
     design does not span) fixes the lattice, so a cell proposed again gains
     iterations instead of new midpoints halving the spacing round after round
     (:func:`glaciar.inference.candidate_grid`, which assumes no uniform spacing).
+    ``design`` is the configured design when ``cfg`` is its coarse start
+    (:func:`coarse_design`): the lattice is the full design's.
     """
     from ..inference import candidate_grid
 
     zs, ms, simulated = _simulated_values(cfg)
-    zd, md = np.asarray(cfg.grid.z_values, float), np.asarray(cfg.grid.mag_values, float)
-    if cfg.grid.box is not None:
+    design = cfg if design is None else design
+    zd, md = np.asarray(design.grid.z_values, float), np.asarray(design.grid.mag_values, float)
+    if design.grid.box is not None:
         # A box's points are scattered: its candidates are a lattice over the box, united
         # with the Cartesian axes (also simulated), and never the points' own values.
         from ..box import box_lattice
 
-        b = cfg.grid.box
+        b = design.grid.box
         zl, ml = box_lattice(b.z, b.mag, b.n_points)
         zd, md = np.union1d(zl, zd), np.union1d(ml, md)
     zb = None if box is None else ((box[0], box[1]), (box[2], box[3]))
@@ -216,17 +278,18 @@ def _stopping(p_draws, zc, mc) -> dict:
     return {"max_sd": float(np.max(sd)), "at": [float(zc[iz]), float(mc[im])]}
 
 
-def round_cells(sf, cfg, n_units: int, *, z_limit=None, box=None) -> tuple[list[dict], dict]:
+def round_cells(sf, cfg, n_units: int, *, z_limit=None, box=None,
+                design=None) -> tuple[list[dict], dict]:
     """One adaptive round: ``n_units`` cell-iterations shared among the candidates.
 
     :func:`glaciar.inference.plan_round` (information criterion with the PPC
     misfit term) shares the units in proportion to the score (largest
     remainders, at least one per chosen cell); each unit is one more task per
-    field of a cell.
+    field of a cell.  ``design``: as :func:`_candidates`.
     """
     from ..inference import plan_round
 
-    zc, mc, simulated = _candidates(cfg, box, z_limit)
+    zc, mc, simulated = _candidates(cfg, box, z_limit, design)
     g, misfit = _scored(sf, zc, mc)
     request = plan_round(g["C"], g["S"], zc, mc, int(n_units), criterion="information",
                          misfit=misfit)
@@ -263,7 +326,8 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
     Parameters
     ----------
     cfg : Config
-        The coarse design.
+        The configured design; when it costs more than ``settings.budget`` the loop
+        starts from its coarse subset (:func:`coarse_design`, said by ``echo``).
     run_dir : path
         Results store; ``adaptive_rounds.json`` there is read and extended.
     settings : AdaptiveSettings
@@ -280,6 +344,10 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
 
     run_dir = Path(run_dir)
     rounds = read_rounds(run_dir)
+    design = cfg
+    cfg, note = coarse_design(design, settings.budget)
+    if note:
+        echo(note)
     cfg = with_cells(cfg, [c for r in rounds for c in r.get("cells", [])])
     while True:
         stats = simulate(cfg, run_dir, workers=workers, seed=seed, executor=executor,
@@ -303,7 +371,7 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
         # One more iteration of a cell adds n_galaxies sources per field.
         n_units = max(1, int(round(min(settings.round_size, remaining) / per_task)))
         cells, st = round_cells(sf, cfg, n_units, z_limit=manifest.get("detection_z_limit"),
-                                box=box)
+                                box=box, design=design)
         if rounds and rounds[-1].get("stop"):
             rounds = rounds[:-1]            # a finished loop resumed with a new target/budget
         entry = {"round": len(rounds), "n_sources": n_sources, "max_sd": round(st["max_sd"], 5),
