@@ -49,6 +49,7 @@ from .store import (RunLock, StoreMismatchError, StoreWarning, atomic_write_text
                     COMPACT_EVERY, compact, field_file_prefix, file_fingerprint, finished_task_names, manifest_text,
                     read_manifest, store_format, task_filename, task_key, verified_task_names,
                     write_manifest, write_task_table)
+from .paths import check_run_tree, run_subdir
 from .survey import Survey, clear_cache as clear_survey_cache
 
 __all__ = ["FieldContext", "band_pixels", "build_field_context", "open_field_context",
@@ -538,10 +539,12 @@ def _prepare_context_cache(run_dir: Path, cfg: Config, cfg_hash: str, fields) ->
     and half-written ones, and put the context this process built (for the manifest) on disk,
     so its tasks, forked workers and spawned workers all map the same files."""
     keep = {_context_dir(run_dir, cfg_hash, f) for f in cfg.survey.fields}
-    root = Path(run_dir) / C.CONTEXT_DIRNAME
+    root = run_subdir(run_dir, C.CONTEXT_DIRNAME, create=False)     # refused if a link
     if root.is_dir():
         for entry in root.iterdir():
-            if entry not in keep:
+            if entry.is_symlink():
+                entry.unlink()          # the link only: nothing outside the run is touched
+            elif entry not in keep:
                 shutil.rmtree(entry, ignore_errors=True)
     for key, ctx in list(_CONTEXTS.items()):
         if key[0] == cfg_hash and key[2] in fields:
@@ -1180,6 +1183,10 @@ def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise FileExistsError(f"{run_dir}: exists and is not a directory")
+    if run_dir.is_dir():
+        # A results/, .context/, summary/, ... that is a symbolic link would receive task
+        # files, caches and reports outside the run: refused before anything is written.
+        check_run_tree(run_dir)
     lock = RunLock(run_dir)
     lock.check_free()
     old = read_manifest(run_dir) if run_dir.is_dir() else None

@@ -267,8 +267,8 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         meta["area_arcmin2_field"] = per_field_area
         meta["area_arcmin2"] = float(sum(per_field_area.values()))
 
-    fit_dir = run_dir / "fit"
-    fit_dir.mkdir(exist_ok=True)
+    from ..paths import run_subdir
+    fit_dir = run_subdir(run_dir, "fit")      # refused if a symbolic link (writes stay in the run)
     cells_all = data.cells(mag_resolution, depth_ref, mag_col)
     domain = {"z": (float(data.z.min()), float(data.z.max())),
               "mag": (float(np.min(data.mag_lo)), float(np.max(data.mag_hi)))}
