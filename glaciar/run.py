@@ -510,7 +510,9 @@ def save_field_context(ctx: FieldContext, path) -> FieldContext:
             fieldcache.save(_cache_items(ctx), path)
         items, maps = fieldcache.load(path)
     except OSError as exc:
-        warnings.warn(f"{path}: field cache not written ({exc}); the field's arrays stay in "
+        # One reason, not DiskFullError's whole advice: the run goes on.
+        why = os.strerror(exc.errno) if exc.errno else str(exc)
+        warnings.warn(f"{path}: field cache not written ({why}); the field's arrays stay in "
                       "memory", UserWarning)
         return ctx
     return dataclasses.replace(ctx, **items, _trimmer=fieldcache.Trimmer(maps))

@@ -68,6 +68,9 @@ _DIGEST_SUFFIX = b".blake2b"
 #: ``write_page_checksum``) but not its footer: a garbled footer that still parses
 #: (a renamed column, another row count) is caught by this digest.
 _META_SCHEMA = b"glaciar.schema.blake2b"
+#: Footer metadata: BLAKE2b of every byte before the footer (pages and page headers,
+#: :func:`_parquet_bytes`).
+_META_PAGES = b"glaciar.pages.blake2b"
 #: Footer metadata of a compacted part: JSON list of [task file name, task key, n_rows].
 _META_PART_TASKS = b"glaciar.part_tasks"
 #: Characters of the field name kept in the readable part of a task file name.
@@ -238,11 +241,41 @@ def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
         if k in meta:
             meta[k + _DIGEST_SUFFIX] = _digest(meta[k])
     meta[_META_SCHEMA] = _schema_digest(t.schema, t.num_rows)
-    t = t.replace_schema_metadata(meta)
-    buf = io.BytesIO()
-    pq.write_table(t, buf, write_page_checksum=True)
-    atomic_write_bytes(run_subdir(run_dir, RESULTS_DIRNAME) / name, buf.getvalue())
+    data = _parquet_bytes(t.replace_schema_metadata(meta))
+    atomic_write_bytes(run_subdir(run_dir, RESULTS_DIRNAME) / name, data)
     return path
+
+
+def _parquet_bytes(table) -> bytes:
+    """``table`` as Parquet bytes with page checksums and, in its footer, a digest of its pages.
+
+    Parquet's page checksums cover a page's data, not its header; a digest of every
+    byte before the footer (:data:`_META_PAGES`) covers both, and checking it costs one
+    hash of the file (:func:`unit_problem`).  The key-value metadata lives only in the
+    footer, so the file is written once to learn the bytes of its pages and once more
+    with their digest added: the pages come out the same (checked; if they ever did not,
+    the file keeps its page checksums only).
+    """
+    import io
+
+    import pyarrow.parquet as pq
+
+    def write(t) -> bytes:
+        buf = io.BytesIO()
+        pq.write_table(t, buf, write_page_checksum=True)
+        return buf.getvalue()
+
+    first = write(table)
+    pages = first[:_pages_end(first)]
+    meta = dict(table.schema.metadata or {})
+    meta[_META_PAGES] = _digest(pages)
+    second = write(table.replace_schema_metadata(meta))
+    return second if second[:len(pages)] == pages else first
+
+
+def _pages_end(data: bytes) -> int:
+    """Offset of the footer of complete Parquet bytes (the pages end there)."""
+    return len(data) - 8 - int.from_bytes(data[-8:-4], "little")
 
 
 # --------------------------------------------------------------------------
@@ -645,11 +678,12 @@ def unit_problem(path: str | os.PathLike) -> str | None:
 
     Parses the footer (a garbled one fails, or no longer matches the digests
     glaciar wrote into it: row count, column names and types, counts,
-    histograms, a part's task list), then decodes every data page of every
-    row group with Parquet's page checksums verified (files written by
-    glaciar since page checksums: every page is checked; older files without
-    checksums: pages that no longer decode).  Reads the whole file once,
-    a batch at a time (~1 GB/s; :mod:`benchmarks.corruption`).
+    histograms, a part's task list), then checks every byte before the footer
+    against its recorded digest (pages and page headers: one hash of the file).
+    A file written before page digests has every page of every row group
+    decoded instead, with Parquet's page checksums verified where it has them
+    (without: pages that no longer decode).  Detection of random in-page
+    garbage: benchmarks/corruption.py.
     """
     import pyarrow.parquet as pq
 
@@ -669,12 +703,35 @@ def unit_problem(path: str | os.PathLike) -> str | None:
             digest = meta.get(k + _DIGEST_SUFFIX)
             if digest is not None and (k not in meta or _digest(meta[k]) != digest):
                 return f"corrupt footer (unreadable {k.decode()} metadata: digest mismatch)"
-        for _ in pf.iter_batches(batch_size=_VERIFY_BATCH_ROWS, use_threads=False):
-            pass
+        pages = meta.get(_META_PAGES)
+        if pages is not None:
+            if _file_pages_digest(path) != pages:
+                return "corrupt data pages (digest mismatch)"
+        else:       # a file from before page digests: decode every page (checksums if any)
+            for _ in pf.iter_batches(batch_size=_VERIFY_BATCH_ROWS, use_threads=False):
+                pass
     except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad bytes
         text = str(exc).strip().splitlines()
         return f"corrupt ({type(exc).__name__}: {text[0] if text else 'unreadable'})"
     return None
+
+
+def _file_pages_digest(path: Path) -> bytes:
+    """BLAKE2b of the bytes of a Parquet file before its footer, read in blocks."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as fh:
+        size = fh.seek(0, os.SEEK_END)
+        fh.seek(max(size - 8, 0))
+        tail = fh.read(8)
+        left = size - 8 - int.from_bytes(tail[:4], "little") if size >= 12 else 0
+        fh.seek(0)
+        while left > 0:
+            block = fh.read(min(left, 1 << 22))
+            if not block:
+                break
+            h.update(block)
+            left -= len(block)
+    return h.hexdigest().encode("ascii")
 
 
 #: Rows decoded at a time when a unit's pages are verified (memory: one batch of columns).
@@ -956,6 +1013,12 @@ def _unit_tables(run_dir, meta_key: bytes, tag_key: bytes):
     def table(path, meta):
         if meta is None or meta_key not in meta:
             return None
+        digest = meta.get(meta_key + _DIGEST_SUFFIX)
+        if digest is not None and _digest(meta[meta_key]) != digest:
+            # Garbled bytes that may still decode: the rows say which file is corrupt.
+            warnings.warn(f"{path}: unreadable {meta_key.decode()} metadata (digest mismatch); "
+                          "reading rows instead", StoreWarning, stacklevel=4)
+            return None
         try:
             return _ipc_table(meta[meta_key]), meta.get(tag_key)
         except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad bytes
@@ -1177,13 +1240,12 @@ def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.Dat
         if k in meta:
             meta[k + _DIGEST_SUFFIX] = _digest(meta[k])
     meta[_META_SCHEMA] = _schema_digest(table.schema, table.num_rows)
-    buf = io.BytesIO()
-    pq.write_table(table.replace_schema_metadata(meta), buf, write_page_checksum=True)
+    data = _parquet_bytes(table.replace_schema_metadata(meta))
     name = "part-" + _short_hash("\n".join(sorted(str(t[1]) for t in tasks)), 16) + ".parquet"
     part_dir = _partition_dir(Path(run_dir), field, float(z))
     run_subdir(run_dir, *part_dir.relative_to(Path(run_dir)).parts)
     path = part_dir / name
-    atomic_write_bytes(path, buf.getvalue())
+    atomic_write_bytes(path, data)
     return path
 
 
@@ -1427,8 +1489,15 @@ class RunLock:
                 raise
             finally:
                 os.close(fd)
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError as exc:
+            # The pid only names the holder in refusals: on a full disk the lock holds
+            # without it, and the run's first real write says which file has no room.
+            if disk_full(self.path, exc) is None:
+                os.close(fd)
+                raise
         self._fd = fd
         return self
 
