@@ -388,12 +388,24 @@ def load(directory) -> tuple[dict, tuple]:
     :func:`trim` / :func:`release`).
     """
     directory = Path(directory)
-    index = json.loads((directory / INDEX_NAME).read_text(encoding="utf-8"))
-    if index.get("format") != FORMAT:
-        raise ValueError(f"{directory / INDEX_NAME}: field cache format {index.get('format')!r}, "
+    try:
+        index = json.loads((directory / INDEX_NAME).read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{directory / INDEX_NAME}: unreadable field cache ({exc}); remove "
+                         f"{directory} and the field is measured again") from None
+    if not isinstance(index, dict) or index.get("format") != FORMAT:
+        raise ValueError(f"{directory / INDEX_NAME}: field cache format "
+                         f"{index.get('format') if isinstance(index, dict) else None!r}, "
                          f"expected {FORMAT}")
     maps: list = []
-    items = _decode(index["items"], directory, maps)
+    try:
+        items = _decode(index["items"], directory, maps)
+    except (OSError, ValueError, KeyError, TypeError, EOFError) as exc:
+        # e.g. a truncated .npy: named, with the fix (the cache is a copy of measurements).
+        text = str(exc).strip().splitlines()
+        raise ValueError(f"{directory}: unreadable field cache ({type(exc).__name__}: "
+                         f"{text[0] if text else ''}); remove it and the field is measured "
+                         "again") from None
     return items, tuple(maps)
 
 
