@@ -10,13 +10,18 @@ Layout of a run directory::
     RUN_DIR/results/compact/field=<name>-<hash>/z=<z>/part-<hash>.parquet
                                compacted tasks of one (field, z): their rows, and in the
                                footer their task list, counts and histograms (:func:`compact`)
+    RUN_DIR/results/corrupt/   task files and parts found corrupt, set aside by the run
+                               that found them (their tasks run again; :func:`set_aside`)
     RUN_DIR/.lock              advisory lock held by the run writing here (its pid inside)
     RUN_DIR/.input_fingerprints.json   cache of input-file hashes by (path, size, mtime)
 
 Every file is written to a temporary name in the same directory and then
 renamed, so an interrupted run never leaves a half-written file behind; a
-resumed run skips the tasks whose file exists and is a complete Parquet file
-of the right task (:func:`verified_task_names`).
+resumed run skips the tasks whose file exists and is an intact Parquet file
+of the right task (:func:`verified_task_names`).  Task files and parts are
+written with Parquet page checksums and footer digests of their pages, columns
+and row count, and footer tables (:func:`unit_problem`): a corrupt one is set
+aside and redone, and readers name it.
 
 Task files are named by :func:`task_filename`: a readable part plus a hash of
 the exact task key (field name, z and magnitude as ``repr(float)``,
