@@ -42,7 +42,6 @@ page; a file is never read back with different values.
 from __future__ import annotations
 
 import argparse
-import io
 import shutil
 import sys
 import tempfile

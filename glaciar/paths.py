@@ -16,8 +16,8 @@ Three facts every writer of a run directory shares, defined once here:
   memory-mapped, so that a full disk raises ``ENOSPC`` there instead of killing
   the process with ``SIGBUS`` when a mapped page is first written.
 
-Task files of the store keep their own, older naming (readable part plus a
-hash of the exact task key, :func:`glaciar.store.task_filename`), which is
+Task files of the store keep their own, older naming (:func:`readable` part plus
+a hash of the exact task key, :func:`glaciar.store.task_filename`), which is
 already injective and safe: changing it would orphan every existing run.
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ import re
 import stat
 from pathlib import Path
 
-__all__ = ["file_stem", "run_subdir", "check_run_tree", "UnsafePathError", "DiskFullError",
+__all__ = ["file_stem", "readable", "run_subdir", "check_run_tree", "UnsafePathError", "DiskFullError",
            "disk_full", "allocate", "RUN_SUBDIRS"]
 
 #: An ordinary name: used as a file-name part unchanged.  Letters, digits and ``_+-.``, not
@@ -69,6 +69,13 @@ class DiskFullError(OSError):
         return str(self.strerror)
 
 
+def readable(name, n: int) -> str:
+    """The first ``n`` characters of ``name`` with every character other than letters,
+    digits and ``_.+-`` replaced by ``_`` (the readable part of an escaped name; task files
+    and compacted partitions use it beside a hash of the exact name, glaciar.store)."""
+    return _KEEP.sub("_", str(name))[:n]
+
+
 def file_stem(name, reserved=()) -> str:
     """The file-name part of a user string (field, band or catalogue name).
 
@@ -94,9 +101,8 @@ def file_stem(name, reserved=()) -> str:
     s = str(name)
     if _ORDINARY.fullmatch(s) and s not in set(reserved):
         return s
-    readable = _KEEP.sub("_", s)[:_READABLE_CHARS].lstrip(".")
     digest = hashlib.sha256(s.encode("utf-8", "surrogatepass")).hexdigest()[:_HASH_CHARS]
-    return f"{readable}{_HASH_SEP}{digest}"
+    return f"{readable(s, _READABLE_CHARS).lstrip('.')}{_HASH_SEP}{digest}"
 
 
 def _refuse_link(p: Path) -> UnsafePathError:

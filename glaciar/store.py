@@ -35,7 +35,6 @@ import errno
 import hashlib
 import json
 import os
-import re
 import tempfile
 import warnings
 from pathlib import Path
@@ -45,7 +44,7 @@ import pandas as pd
 
 from .constants import (COL_FIELD, COL_ITERATION, COL_MAG, COL_Z, LOCK_NAME, MANIFEST_NAME,
                         RESULTS_DIRNAME)
-from .paths import UnsafePathError, allocate, disk_full, run_subdir
+from .paths import UnsafePathError, allocate, disk_full, readable, run_subdir
 
 __all__ = ["atomic_write_bytes", "atomic_write_text", "task_key", "task_filename",
            "field_file_prefix", "write_task_table", "finished_task_names", "verified_task_names",
@@ -184,7 +183,7 @@ def task_key(field: str, z: float, mag: float, iteration: int) -> str:
 
 
 def _readable(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.+-]", "_", str(name))[:_READABLE_FIELD_CHARS]
+    return readable(name, _READABLE_FIELD_CHARS)
 
 
 def _short_hash(text: str, n: int) -> str:
@@ -225,10 +224,7 @@ def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
     :func:`task_histogram` as well (when the table has that column and
     ``mag_input``).
     """
-    import io
-
     import pyarrow as pa
-    import pyarrow.parquet as pq
 
     path = Path(run_dir) / RESULTS_DIRNAME / name
     t = pa.Table.from_pandas(table, preserve_index=False)
@@ -1228,10 +1224,6 @@ def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.Dat
     obs_column : str or None
         The measured-magnitude column the histograms bin.
     """
-    import io
-
-    import pyarrow.parquet as pq
-
     meta = {**(extra_meta or {}),
             _META_PART_TASKS: json.dumps(tasks, ensure_ascii=False).encode("utf-8"),
             _META_ROWS: str(table.num_rows).encode()}

@@ -9,7 +9,6 @@ import errno
 import os
 import re
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
