@@ -509,9 +509,9 @@ def save_field_context(ctx: FieldContext, path) -> FieldContext:
         if not fieldcache.exists(path):
             fieldcache.save(_cache_items(ctx), path)
         items, maps = fieldcache.load(path)
-    except OSError as exc:
+    except (OSError, ValueError) as exc:     # ValueError: fieldcache.load's unreadable cache
         # One reason, not DiskFullError's whole advice: the run goes on.
-        why = os.strerror(exc.errno) if exc.errno else str(exc)
+        why = os.strerror(exc.errno) if getattr(exc, "errno", None) else str(exc)
         warnings.warn(f"{path}: field cache not written ({why}); the field's arrays stay in "
                       "memory", UserWarning)
         return ctx
