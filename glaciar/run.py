@@ -548,6 +548,11 @@ def _prepare_context_cache(run_dir: Path, cfg: Config, cfg_hash: str, fields) ->
                 entry.unlink()          # the link only: nothing outside the run is touched
             elif entry not in keep:
                 shutil.rmtree(entry, ignore_errors=True)
+            elif fieldcache.exists(entry):
+                try:                    # mapping only: a truncated file would fail the workers
+                    fieldcache.load(entry)
+                except fieldcache.UnreadableCache:
+                    shutil.rmtree(entry, ignore_errors=True)      # written again below
     for key, ctx in list(_CONTEXTS.items()):
         if key[0] == cfg_hash and key[2] in fields:
             _CONTEXTS[key] = save_field_context(ctx, _context_dir(run_dir, cfg_hash, key[2]))
@@ -677,8 +682,13 @@ def _context_of(cfg: Config, survey: Survey, field: str, cached: Path | None = N
     if ctx is None:
         _CONTEXTS.clear()
         if cached is not None and fieldcache.exists(cached):
-            ctx = open_field_context(cfg, survey, field, cached)
-        else:
+            try:
+                ctx = open_field_context(cfg, survey, field, cached)
+            except fieldcache.UnreadableCache as exc:
+                # A copy of measurements: measured again (the run replaces it, under its lock).
+                warnings.warn(f"{exc.path}: unreadable field cache ({exc.why}); the field is "
+                              "measured again", StoreWarning)
+        if ctx is None:
             ctx = build_field_context(cfg, survey, field)
         _CONTEXTS[key] = ctx
     return ctx

@@ -366,3 +366,25 @@ def test_garbled_counts_are_read_from_the_rows(run, capsys):
     assert len(lines) == 1 and lines[0].startswith(f"warning: {f}: unreadable glaciar.counts "
                                                    "metadata (digest mismatch)")
     assert (run / C.SUMMARY_DIRNAME / "summary_all.ecsv").read_text() == ref
+
+
+def test_truncated_field_cache_is_measured_again(run, two_task_run, capsys):
+    """An interrupted run's field cache with a truncated array file: the resume warns,
+    naming the cache, measures the field again and gives the same rows."""
+    cfg_path, _ = two_task_run
+    ref = _rows(run)
+    for f in _task_files(run):
+        f.unlink()
+    # An unfinished run keeps its field caches (1 of its 2 tasks run).
+    simulate(load_config(cfg_path), run, workers=1, progress=False, max_tasks=1)
+    cache = next((run / C.CONTEXT_DIRNAME).iterdir())
+    npy = max(cache.glob("*.npy"), key=lambda p: p.stat().st_size)
+    with open(npy, "r+b") as fh:
+        fh.truncate(npy.stat().st_size // 2)
+    from glaciar import run as glaciar_run
+    glaciar_run._CONTEXTS.clear()             # as a new process: the cache is opened from disk
+    code, lines = _cli(capsys, "simulate", cfg_path, "--out", run, "--workers", 1, "--quiet")
+    assert code == 0
+    assert len(lines) == 1 and re.match(rf"warning: {re.escape(str(cache))}: unreadable field "
+                                        r"cache \(.*\); the field is measured again", lines[0])
+    pd.testing.assert_frame_equal(_rows(run), ref)

@@ -70,7 +70,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["save", "load", "exists", "release", "Trimmer", "trim", "TiledArray", "Tiled", "spill", "FORMAT",
+__all__ = ["save", "load", "exists", "UnreadableCache", "release", "Trimmer", "trim", "TiledArray", "Tiled", "spill", "FORMAT",
            "MMAP_MIN_BYTES", "RESIDENT_BUDGET_BYTES", "TILE"]
 
 #: Version of the on-disk layout (part of a cache's key: a new layout never reads an old one).
@@ -391,8 +391,7 @@ def load(directory) -> tuple[dict, tuple]:
     try:
         index = json.loads((directory / INDEX_NAME).read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
-        raise ValueError(f"{directory / INDEX_NAME}: unreadable field cache ({exc}); remove "
-                         f"{directory} and the field is measured again") from None
+        raise UnreadableCache(directory / INDEX_NAME, str(exc)) from None
     if not isinstance(index, dict) or index.get("format") != FORMAT:
         raise ValueError(f"{directory / INDEX_NAME}: field cache format "
                          f"{index.get('format') if isinstance(index, dict) else None!r}, "
@@ -403,10 +402,22 @@ def load(directory) -> tuple[dict, tuple]:
     except (OSError, ValueError, KeyError, TypeError, EOFError) as exc:
         # e.g. a truncated .npy: named, with the fix (the cache is a copy of measurements).
         text = str(exc).strip().splitlines()
-        raise ValueError(f"{directory}: unreadable field cache ({type(exc).__name__}: "
-                         f"{text[0] if text else ''}); remove it and the field is measured "
-                         "again") from None
+        raise UnreadableCache(directory, f"{type(exc).__name__}: {text[0] if text else ''}") \
+            from None
     return items, tuple(maps)
+
+
+class UnreadableCache(ValueError):
+    """A field cache that cannot be read (e.g. a truncated file): ``path`` and ``why``.
+
+    The cache is a copy of measurements: removing it makes the field be measured again
+    (glaciar.run does so on its own when it opens a run's caches).
+    """
+
+    def __init__(self, path, why: str):
+        self.path, self.why = Path(path), why
+        super().__init__(f"{path}: unreadable field cache ({why}); remove it and the field is "
+                         "measured again")
 
 
 def exists(directory) -> bool:
