@@ -151,12 +151,23 @@ def run_subdir(run_dir, *parts: str, create: bool = True) -> Path:
 def check_run_tree(run_dir, names=RUN_SUBDIRS) -> None:
     """Refuse a run directory in which a sub-directory glaciar writes to is a symbolic link.
 
-    Checks ``names`` (default :data:`RUN_SUBDIRS`) and the run's lock file; creates
-    nothing.  Raises :class:`UnsafePathError` naming the first offending path.
+    Checks ``names`` (default :data:`RUN_SUBDIRS`), the partitions of compacted parts
+    and the run's lock file; creates nothing.  Raises :class:`UnsafePathError` naming the first offending path.
     """
     root = Path(run_dir)
     for name in names:
         run_subdir(root, name, create=False)
+    # The partitions of compacted parts (results/compact/field=*/z=*/): parts are written,
+    # and corrupt ones moved, below them.
+    compact = root / "results" / "compact"
+    if compact.is_dir():
+        for field_dir in compact.iterdir():
+            if field_dir.is_symlink():
+                raise _refuse_link(field_dir)
+            if field_dir.is_dir():
+                for z_dir in field_dir.iterdir():
+                    if z_dir.is_symlink():
+                        raise _refuse_link(z_dir)
     lock = root / ".lock"
     if lock.is_symlink():
         raise _refuse_link(lock)

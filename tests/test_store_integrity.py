@@ -136,6 +136,20 @@ def test_a_run_subdirectory_that_is_a_link_is_refused(tmp_path):
     assert run_subdir(run, "fit") == run / "fit" and (run / "fit").is_dir()
 
 
+def test_a_linked_partition_of_compacted_parts_is_refused(tmp_path):
+    from glaciar.paths import check_run_tree
+
+    _store(tmp_path)
+    compact(tmp_path)
+    field_dir = next((tmp_path / C.RESULTS_DIRNAME / "compact").iterdir())
+    z_dir = next(field_dir.iterdir())
+    outside = tmp_path.parent / (tmp_path.name + "_outside")
+    z_dir.rename(outside)
+    z_dir.symlink_to(outside, target_is_directory=True)
+    with pytest.raises(UnsafePathError, match=rf"^{_at(z_dir)}: is a symbolic link"):
+        check_run_tree(tmp_path)
+
+
 # --------------------------------------------------------------------------
 # 7. Full disks: one line naming the file; mapped files allocated before they are mapped
 # --------------------------------------------------------------------------
