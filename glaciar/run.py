@@ -49,7 +49,7 @@ from .store import (RunLock, StoreMismatchError, StoreWarning, atomic_write_text
                     COMPACT_EVERY, compact, field_file_prefix, file_fingerprint, finished_task_names, manifest_text,
                     read_manifest, store_format, task_filename, task_key, verified_task_names,
                     write_manifest, write_task_table)
-from .paths import check_run_tree, run_subdir
+from .paths import check_run_tree, disk_full, run_subdir
 from .survey import Survey, clear_cache as clear_survey_cache
 
 __all__ = ["FieldContext", "band_pixels", "build_field_context", "open_field_context",
@@ -1250,7 +1250,10 @@ def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor
         manifest["glaciar_version"] = old.get("glaciar_version", __version__)
     config_text = yaml.safe_dump(config_to_dict(cfg), sort_keys=False, allow_unicode=True)
     # ---- everything is checked: from here on the directory is created or modified ----
-    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise (disk_full(run_dir, exc) or exc) from None
     lock.acquire()
     try:
         if read_manifest(run_dir) != old or finished_task_names(run_dir) - finished:
