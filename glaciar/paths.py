@@ -96,7 +96,8 @@ def file_stem(name, reserved=()) -> str:
         ``~`` and the first 10 hex digits of the SHA-256 of ``name``.  The
         result never contains a path separator, never is ``.`` or ``..``, and
         distinct names give distinct stems (ordinary ones are unchanged, escaped
-        ones carry ``~`` which ordinary ones cannot, and differ by their hash).
+        ones carry ``~`` which ordinary ones cannot, and differ by their 40-bit
+        hash).  On a case-insensitive file system ``A`` and ``a`` still meet.
     """
     s = str(name)
     if _ORDINARY.fullmatch(s) and s not in set(reserved):
