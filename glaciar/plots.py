@@ -52,6 +52,8 @@ def plot_summary_maps(summary: pd.DataFrame, out_dir, label: str, mag_label: str
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from .tables import summary_stem   # the file name of a field's label (never a path)
+
     out = []
     titles = {"completeness": "C(m, z)", "selection_total": "C(m, z) · S(z, m)", "selection": "S(z, m)"}
     if not selection:
@@ -64,7 +66,8 @@ def plot_summary_maps(summary: pd.DataFrame, out_dir, label: str, mag_label: str
         ax.set_xlabel(mag_label)
         ax.set_ylabel("z")
         ax.set_title(f"{title} — {label}")
-        out.append(save_png(fig, Path(out_dir) / f"{column}_{label}.png", bbox_inches="tight"))
+        out.append(save_png(fig, Path(out_dir) / f"{column}_{summary_stem(label)}.png",
+                            bbox_inches="tight"))
     return out
 
 

@@ -134,6 +134,7 @@ def load_report_data(run_dir) -> dict:
         ``glaciar report RUN --html`` does).
     """
     from .store import read_manifest
+    from .tables import summary_stem
 
     run_dir = Path(run_dir)
     manifest = read_manifest(run_dir)
@@ -146,7 +147,7 @@ def load_report_data(run_dir) -> dict:
     fields = [str(f) for f in manifest.get("fields") or []]
     summaries = {"all": _read_ecsv(sdir / "summary_all.ecsv")}
     for f in fields:
-        p = sdir / f"summary_{f}.ecsv"
+        p = sdir / f"summary_{summary_stem(f)}.ecsv"
         if p.exists():
             summaries[f] = _read_ecsv(p)
     cfg_path = run_dir / C.RUN_CONFIG_NAME
@@ -359,7 +360,7 @@ def _statistics_section(d: dict) -> str:
 
 def _status_section(d: dict) -> str:
     from .plots import plot_status_fractions
-    from .tables import STATUS_COLUMNS
+    from .tables import STATUS_COLUMNS, summary_stem
 
     labels = {code: (STATUS_COLUMNS[code], C.STATUS_LABELS[code]) for code in C.STATUS_CODES}
     cols = [STATUS_COLUMNS[c] for c in C.STATUS_CODES]
@@ -384,7 +385,7 @@ def _status_section(d: dict) -> str:
         body += _note(f"{len(d['summaries']) - 1} fields: their per-cell tables are in "
                       f"{C.SUMMARY_DIRNAME}/summary_<field>.ecsv")
     for name, s in shown.items():
-        src = "summary_all.ecsv" if name == "all" else f"summary_{name}.ecsv"
+        src = "summary_all.ecsv" if name == "all" else f"summary_{summary_stem(name)}.ecsv"
         rows = [[r[c] for c in sum_cols] for r in s[sum_cols].to_dict("records")]
         body += (f"<details><summary>Per (z, m) cell: {_e(name)} ({_e(src)})</summary>"
                  + _table(sum_cols, rows, table_id=f"summary-{name}",

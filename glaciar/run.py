@@ -49,6 +49,7 @@ from .store import (RunLock, StoreMismatchError, StoreWarning, atomic_write_text
                     COMPACT_EVERY, compact, field_file_prefix, file_fingerprint, finished_task_names, manifest_text,
                     read_manifest, store_format, task_filename, task_key, verified_task_names,
                     write_manifest, write_task_table)
+from .paths import check_run_tree, disk_full, run_subdir
 from .survey import Survey, clear_cache as clear_survey_cache
 
 __all__ = ["FieldContext", "band_pixels", "build_field_context", "open_field_context",
@@ -508,8 +509,10 @@ def save_field_context(ctx: FieldContext, path) -> FieldContext:
         if not fieldcache.exists(path):
             fieldcache.save(_cache_items(ctx), path)
         items, maps = fieldcache.load(path)
-    except OSError as exc:
-        warnings.warn(f"{path}: field cache not written ({exc}); the field's arrays stay in "
+    except (OSError, ValueError) as exc:     # ValueError: fieldcache.load's unreadable cache
+        # One reason, not DiskFullError's whole advice: the run goes on.
+        why = os.strerror(exc.errno) if getattr(exc, "errno", None) else str(exc)
+        warnings.warn(f"{path}: field cache not written ({why}); the field's arrays stay in "
                       "memory", UserWarning)
         return ctx
     return dataclasses.replace(ctx, **items, _trimmer=fieldcache.Trimmer(maps))
@@ -538,11 +541,18 @@ def _prepare_context_cache(run_dir: Path, cfg: Config, cfg_hash: str, fields) ->
     and half-written ones, and put the context this process built (for the manifest) on disk,
     so its tasks, forked workers and spawned workers all map the same files."""
     keep = {_context_dir(run_dir, cfg_hash, f) for f in cfg.survey.fields}
-    root = Path(run_dir) / C.CONTEXT_DIRNAME
+    root = run_subdir(run_dir, C.CONTEXT_DIRNAME, create=False)     # refused if a link
     if root.is_dir():
         for entry in root.iterdir():
-            if entry not in keep:
+            if entry.is_symlink():
+                entry.unlink()          # the link only: nothing outside the run is touched
+            elif entry not in keep:
                 shutil.rmtree(entry, ignore_errors=True)
+            elif fieldcache.exists(entry):
+                try:                    # mapping only: a truncated file would fail the workers
+                    fieldcache.load(entry)
+                except fieldcache.UnreadableCache:
+                    shutil.rmtree(entry, ignore_errors=True)      # written again below
     for key, ctx in list(_CONTEXTS.items()):
         if key[0] == cfg_hash and key[2] in fields:
             _CONTEXTS[key] = save_field_context(ctx, _context_dir(run_dir, cfg_hash, key[2]))
@@ -672,8 +682,13 @@ def _context_of(cfg: Config, survey: Survey, field: str, cached: Path | None = N
     if ctx is None:
         _CONTEXTS.clear()
         if cached is not None and fieldcache.exists(cached):
-            ctx = open_field_context(cfg, survey, field, cached)
-        else:
+            try:
+                ctx = open_field_context(cfg, survey, field, cached)
+            except fieldcache.UnreadableCache as exc:
+                # A copy of measurements: measured again (the run replaces it, under its lock).
+                warnings.warn(f"{exc.path}: unreadable field cache ({exc.why}); the field is "
+                              "measured again", StoreWarning)
+        if ctx is None:
             ctx = build_field_context(cfg, survey, field)
         _CONTEXTS[key] = ctx
     return ctx
@@ -1216,6 +1231,10 @@ def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise FileExistsError(f"{run_dir}: exists and is not a directory")
+    if run_dir.is_dir():
+        # A results/, .context/, summary/, ... that is a symbolic link would receive task
+        # files, caches and reports outside the run: refused before anything is written.
+        check_run_tree(run_dir)
     lock = RunLock(run_dir)
     lock.check_free()
     old = read_manifest(run_dir) if run_dir.is_dir() else None
@@ -1274,7 +1293,10 @@ def _open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor
         manifest["glaciar_version"] = old.get("glaciar_version", __version__)
     config_text = yaml.safe_dump(config_to_dict(cfg), sort_keys=False, allow_unicode=True)
     # ---- everything is checked: from here on the directory is created or modified ----
-    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise (disk_full(run_dir, exc) or exc) from None
     lock.acquire()
     try:
         if read_manifest(run_dir) != old or finished_task_names(run_dir) - finished:

@@ -10,13 +10,18 @@ Layout of a run directory::
     RUN_DIR/results/compact/field=<name>-<hash>/z=<z>/part-<hash>.parquet
                                compacted tasks of one (field, z): their rows, and in the
                                footer their task list, counts and histograms (:func:`compact`)
+    RUN_DIR/results/corrupt/   task files and parts found corrupt, set aside by the run
+                               that found them (their tasks run again; :func:`set_aside`)
     RUN_DIR/.lock              advisory lock held by the run writing here (its pid inside)
     RUN_DIR/.input_fingerprints.json   cache of input-file hashes by (path, size, mtime)
 
 Every file is written to a temporary name in the same directory and then
 renamed, so an interrupted run never leaves a half-written file behind; a
-resumed run skips the tasks whose file exists and is a complete Parquet file
-of the right task (:func:`verified_task_names`).
+resumed run skips the tasks whose file exists and is an intact Parquet file
+of the right task (:func:`verified_task_names`).  Task files and parts are
+written with Parquet page checksums and footer digests of their pages, columns
+and row count, and footer tables (:func:`unit_problem`): a corrupt one is set
+aside and redone, and readers name it.
 
 Task files are named by :func:`task_filename`: a readable part plus a hash of
 the exact task key (field name, z and magnitude as ``repr(float)``,
@@ -30,7 +35,6 @@ import errno
 import hashlib
 import json
 import os
-import re
 import tempfile
 import warnings
 from pathlib import Path
@@ -40,6 +44,7 @@ import pandas as pd
 
 from .constants import (COL_FIELD, COL_ITERATION, COL_MAG, COL_Z, LOCK_NAME, MANIFEST_NAME,
                         RESULTS_DIRNAME)
+from .paths import UnsafePathError, allocate, disk_full, readable, run_subdir
 
 __all__ = ["atomic_write_bytes", "atomic_write_text", "task_key", "task_filename",
            "field_file_prefix", "write_task_table", "finished_task_names", "verified_task_names",
@@ -47,7 +52,8 @@ __all__ = ["atomic_write_bytes", "atomic_write_text", "task_key", "task_filename
            "file_fingerprint", "RunLock", "StoreMismatchError", "RunLockedError", "StoreWarning",
            "task_counts", "read_current_counts", "store_columns", "write_part", "compact", "COMPACT_EVERY",
            "COUNTS_MAG_RESOLUTION", "COUNT_COLUMNS", "task_histogram", "read_current_histograms",
-           "HIST_MIN_KEY", "HIST_MOBS_BIN", "HIST_COLUMNS"]
+           "HIST_MIN_KEY", "HIST_MOBS_BIN", "HIST_COLUMNS", "unit_problem", "set_aside",
+           "CORRUPT_DIRNAME"]
 
 #: Key-value metadata of every task file: the exact task key and the number of rows.
 _META_TASK = b"glaciar.task"
@@ -61,6 +67,14 @@ _META_HIST = b"glaciar.mobs_hist"
 _META_HIST_OBS = b"glaciar.mobs_hist_column"
 #: Suffix of the key of a footer table's BLAKE2b digest (checked on resume, :func:`_task_file_problem`).
 _DIGEST_SUFFIX = b".blake2b"
+#: Footer metadata: BLAKE2b of the rows' column names, types and row count
+#: (:func:`_schema_digest`).  Parquet checksums its data pages (written with
+#: ``write_page_checksum``) but not its footer: a garbled footer that still parses
+#: (a renamed column, another row count) is caught by this digest.
+_META_SCHEMA = b"glaciar.schema.blake2b"
+#: Footer metadata: BLAKE2b of every byte before the footer (pages and page headers,
+#: :func:`_parquet_bytes`).
+_META_PAGES = b"glaciar.pages.blake2b"
 #: Footer metadata of a compacted part: JSON list of [task file name, task key, n_rows].
 _META_PART_TASKS = b"glaciar.part_tasks"
 #: Characters of the field name kept in the readable part of a task file name.
@@ -121,23 +135,32 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` through a temporary file and an atomic rename.
 
     The file gets the permissions of a plain ``open(path, "w")``: 0666 minus
-    the umask (``mkstemp`` alone would leave it 0600).
+    the umask (``mkstemp`` alone would leave it 0600).  A full disk (or quota)
+    raises :class:`glaciar.paths.DiskFullError` naming ``path`` (the temporary
+    file removed, ``path`` unchanged).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         with os.fdopen(fd, "wb") as fh:
+            # Blocks reserved first: a full disk fails here, before any byte is written.
+            allocate(fh.fileno(), len(data), path)
             fh.write(data)
             fh.flush()
             os.fchmod(fh.fileno(), 0o666 & ~_umask())
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
+    except BaseException as exc:
+        if tmp is not None:
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
+        full = disk_full(path, exc)
+        if full is not None:
+            raise full from None
         raise
 
 
@@ -160,7 +183,7 @@ def task_key(field: str, z: float, mag: float, iteration: int) -> str:
 
 
 def _readable(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.+-]", "_", str(name))[:_READABLE_FIELD_CHARS]
+    return readable(name, _READABLE_FIELD_CHARS)
 
 
 def _short_hash(text: str, n: int) -> str:
@@ -201,10 +224,7 @@ def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
     :func:`task_histogram` as well (when the table has that column and
     ``mag_input``).
     """
-    import io
-
     import pyarrow as pa
-    import pyarrow.parquet as pq
 
     path = Path(run_dir) / RESULTS_DIRNAME / name
     t = pa.Table.from_pandas(table, preserve_index=False)
@@ -221,11 +241,42 @@ def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
     for k in (_META_COUNTS, _META_HIST):
         if k in meta:
             meta[k + _DIGEST_SUFFIX] = _digest(meta[k])
-    t = t.replace_schema_metadata(meta)
-    buf = io.BytesIO()
-    pq.write_table(t, buf)
-    atomic_write_bytes(path, buf.getvalue())
+    meta[_META_SCHEMA] = _schema_digest(t.schema, t.num_rows)
+    data = _parquet_bytes(t.replace_schema_metadata(meta))
+    atomic_write_bytes(run_subdir(run_dir, RESULTS_DIRNAME) / name, data)
     return path
+
+
+def _parquet_bytes(table) -> bytes:
+    """``table`` as Parquet bytes with page checksums and, in its footer, a digest of its pages.
+
+    Parquet's page checksums cover a page's data, not its header; a digest of every
+    byte before the footer (:data:`_META_PAGES`) covers both, and checking it costs one
+    hash of the file (:func:`unit_problem`).  The key-value metadata lives only in the
+    footer, so the file is written once to learn the bytes of its pages and once more
+    with their digest added: the pages come out the same (checked; if they ever did not,
+    the file keeps its page checksums only).
+    """
+    import io
+
+    import pyarrow.parquet as pq
+
+    def write(t) -> bytes:
+        buf = io.BytesIO()
+        pq.write_table(t, buf, write_page_checksum=True)
+        return buf.getvalue()
+
+    first = write(table)
+    pages = first[:_pages_end(first)]
+    meta = dict(table.schema.metadata or {})
+    meta[_META_PAGES] = _digest(pages)
+    second = write(table.replace_schema_metadata(meta))
+    return second if second[:len(pages)] == pages else first
+
+
+def _pages_end(data: bytes) -> int:
+    """Offset of the footer of complete Parquet bytes (the pages end there)."""
+    return len(data) - 8 - int.from_bytes(data[-8:-4], "little")
 
 
 # --------------------------------------------------------------------------
@@ -579,6 +630,13 @@ def _footer_table_problem(footer: bytes, meta_key: bytes) -> str | None:
     return None
 
 
+def _schema_digest(schema, n_rows: int) -> bytes:
+    """BLAKE2b of an Arrow schema's column names and types and a row count (metadata ignored)."""
+    text = json.dumps([[f.name, str(f.type)] for f in schema] + [int(n_rows)],
+                      ensure_ascii=False, separators=(",", ":"))
+    return _digest(text.encode("utf-8"))
+
+
 def _digest(data: bytes) -> bytes:
     return hashlib.blake2b(data, digest_size=16).hexdigest().encode("ascii")
 
@@ -616,9 +674,103 @@ def _varint(n: int) -> bytes:
 
 
 
+def unit_problem(path: str | os.PathLike) -> str | None:
+    """Why a task file or compacted part is not intact (None if it is): every byte checked.
+
+    Parses the footer (a garbled one fails, or no longer matches the digests
+    glaciar wrote into it: row count, column names and types, counts,
+    histograms, a part's task list), then checks every byte before the footer
+    against its recorded digest (pages and page headers: one hash of the file).
+    A file written before page digests has every page of every row group
+    decoded instead, with Parquet's page checksums verified where it has them
+    (without: pages that no longer decode).  Detection of random in-page
+    garbage: benchmarks/corruption.py.
+    """
+    import pyarrow.parquet as pq
+
+    path = Path(path)
+    try:
+        pf = pq.ParquetFile(path, page_checksum_verification=True)
+        md = pf.metadata
+        meta = md.metadata or {}
+        rows = meta.get(_META_ROWS)
+        if rows is not None and int(rows) != md.num_rows:
+            return (f"corrupt footer ({md.num_rows} rows where its metadata records "
+                    f"{int(rows)})")
+        want = meta.get(_META_SCHEMA)
+        if want is not None and _schema_digest(pf.schema_arrow, md.num_rows) != want:
+            return "corrupt footer (columns or row count differ from its recorded digest)"
+        for k in (_META_COUNTS, _META_HIST, _META_PART_TASKS):
+            digest = meta.get(k + _DIGEST_SUFFIX)
+            if digest is not None and (k not in meta or _digest(meta[k]) != digest):
+                return f"corrupt footer (unreadable {k.decode()} metadata: digest mismatch)"
+        pages = meta.get(_META_PAGES)
+        if pages is not None:
+            if _file_pages_digest(path) != pages:
+                return "corrupt data pages (digest mismatch)"
+        else:       # a file from before page digests: decode every page (checksums if any)
+            for _ in pf.iter_batches(batch_size=_VERIFY_BATCH_ROWS, use_threads=False):
+                pass
+    except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad bytes
+        text = str(exc).strip().splitlines()
+        return f"corrupt ({type(exc).__name__}: {text[0] if text else 'unreadable'})"
+    return None
+
+
+def _file_pages_digest(path: Path) -> bytes:
+    """BLAKE2b of the bytes of a Parquet file before its footer, read in blocks."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as fh:
+        size = fh.seek(0, os.SEEK_END)
+        fh.seek(max(size - 8, 0))
+        tail = fh.read(8)
+        left = size - 8 - int.from_bytes(tail[:4], "little") if size >= 12 else 0
+        fh.seek(0)
+        while left > 0:
+            block = fh.read(min(left, 1 << 22))
+            if not block:
+                break
+            h.update(block)
+            left -= len(block)
+    return h.hexdigest().encode("ascii")
+
+
+#: Rows decoded at a time when a unit's pages are verified (memory: one batch of columns).
+_VERIFY_BATCH_ROWS = 1 << 16
+#: Sub-directory of results/ where corrupt task files and parts are set aside.
+CORRUPT_DIRNAME = "corrupt"
+
+
+def set_aside(run_dir: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """Move a corrupt unit of the store to ``results/corrupt/`` (inside the run); return where.
+
+    Only the holder of the run's lock may call this.  The new name keeps the
+    unit's path below ``results/`` (``/`` as ``__``); an earlier file of that
+    name is kept (``.1``, ``.2``, ... appended).
+    """
+    run_dir, path = Path(run_dir), Path(path)
+    results = run_dir / RESULTS_DIRNAME
+    try:
+        rel = path.relative_to(results)
+    except ValueError:
+        rel = Path(path.name)
+    dest_dir = run_subdir(run_dir, RESULTS_DIRNAME, CORRUPT_DIRNAME)
+    base = "__".join(rel.parts)
+    dest, k = dest_dir / base, 0
+    while dest.exists():
+        k += 1
+        dest = dest_dir / f"{base}.{k}"
+    os.replace(path, dest)
+    return dest
+
+
 def verified_task_names(run_dir: str | os.PathLike, wanted: dict[str, str],
                         quarantine: bool = False) -> set[str]:
     """The names among ``wanted`` whose task is stored completely, as the right task.
+
+    Every compacted part and every wanted loose task file is checked whole
+    (:func:`unit_problem`: footer, recorded digests, every page's checksum), so
+    that a task counted as done here is one every reader can read.
 
     Parameters
     ----------
@@ -626,49 +778,95 @@ def verified_task_names(run_dir: str | os.PathLike, wanted: dict[str, str],
     wanted : dict
         ``{file name: task key}`` of the tasks to look for.
     quarantine : bool
-        Rename a corrupt part to ``<part>.corrupt`` so that readers stop
-        meeting it (only the holder of the run's lock may).
+        Move each corrupt part or task file to ``results/corrupt/``
+        (:func:`set_aside`) so that readers stop meeting it and its tasks are
+        run again (only the holder of the run's lock may).
 
     Returns
     -------
     set of str
-        Names listed with the expected key by a valid compacted part, or whose
-        loose file passes :func:`_task_file_problem` (complete Parquet footer
-        holding the expected task key).  Each other existing file gets a
-        :class:`StoreWarning` naming it (its tasks will be run again).
+        Names listed with the expected key by an intact compacted part, or
+        whose loose file is an intact task file of the expected key.  Each
+        other existing file gets one :class:`StoreWarning` naming it (its tasks
+        will be run again).
     """
-    d = Path(run_dir) / RESULTS_DIRNAME
+    run_dir = Path(run_dir)
+    d = run_dir / RESULTS_DIRNAME
     good = set()
+
+    def bad(path, problem, what):
+        where = ""
+        if quarantine:
+            where = f"; set aside as {set_aside(run_dir, path)}"
+        warnings.warn(f"{path}: {problem}{where}; {what} will be run again", StoreWarning,
+                      stacklevel=3)
+
     for p in _part_files(run_dir):
         tasks, meta = _part_tasks(p)
-        if tasks is None:
-            warnings.warn(f"{p}: {meta}; its tasks will be run again", StoreWarning, stacklevel=2)
-            if quarantine:
-                os.replace(p, p.with_name(p.name + ".corrupt"))
+        problem = meta if tasks is None else unit_problem(p)
+        if problem is not None:
+            bad(p, problem, "its tasks")
             continue
         good.update(n for n, k, _ in tasks if wanted.get(n) == k)
     for f in _loose_files(run_dir):
         name = f.name
         if name not in wanted or name in good:
             continue
-        problem = _task_file_problem(d / name, wanted[name])
+        problem = _task_file_problem(d / name, wanted[name]) or unit_problem(d / name)
         if problem is None:
             good.add(name)
         else:
-            warnings.warn(f"{d / name}: {problem}; the task will be run again", StoreWarning,
-                          stacklevel=2)
+            bad(d / name, problem, "the task")
     return good
 
 
 # --------------------------------------------------------------------------
 # Reading rows
 # --------------------------------------------------------------------------
-def _read_task_file(path: Path, columns):
+def _unreadable(path: Path, why: str) -> ValueError:
+    """The one-line error of a reader that met a corrupt or unreadable unit of the store.
+
+    ``glaciar simulate`` checks every unit whole before it counts a task as done
+    (:func:`verified_task_names`), so the advice holds: it sets the file aside
+    and redoes its tasks.
+    """
+    return ValueError(f"{path}: unreadable task file ({why}); `glaciar simulate` into this run "
+                      f"directory sets it aside in {RESULTS_DIRNAME}/{CORRUPT_DIRNAME}/ and "
+                      "redoes its tasks")
+
+
+def _footer_problem(path: Path) -> str | None:
+    """Why a unit's footer is not intact (parse, row count, recorded digests), or None.
+
+    Reads and parses the footer only (no data page): what readers check before
+    they decode rows, whose pages they then read with checksums verified.
+    """
+    import pyarrow.parquet as pq
+
     try:
-        return pd.read_parquet(path, columns=columns)
+        md = pq.read_metadata(path)
+        meta = md.metadata or {}
+        rows = meta.get(_META_ROWS)
+        if rows is not None and int(rows) != md.num_rows:
+            return f"corrupt footer ({md.num_rows} rows where its metadata records {int(rows)})"
+        want = meta.get(_META_SCHEMA)
+        if want is not None and _schema_digest(md.schema.to_arrow_schema(), md.num_rows) != want:
+            return "corrupt footer (columns or row count differ from its recorded digest)"
+    except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad bytes
+        text = str(exc).strip().splitlines()
+        return f"{type(exc).__name__}: {text[0] if text else 'unreadable'}"
+    return None
+
+
+def _read_task_file(path: Path, columns):
+    problem = _footer_problem(path)
+    if problem is not None:
+        raise _unreadable(path, problem) from None
+    try:
+        return pd.read_parquet(path, columns=columns, page_checksum_verification=True)
     except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad files
-        raise ValueError(f"{path}: unreadable task file ({type(exc).__name__}: {exc}); run "
-                         "`glaciar simulate` again to redo it") from None
+        text = str(exc).strip().splitlines()
+        raise _unreadable(path, f"{type(exc).__name__}: {text[0] if text else exc!r}") from None
 
 
 def store_columns(run_dir: str | os.PathLike) -> set[str]:
@@ -679,11 +877,10 @@ def store_columns(run_dir: str | os.PathLike) -> set[str]:
     first = parts[0] if parts else (loose[0] if loose else None)
     if first is None:
         return set()
-    try:
-        return set(pq.read_schema(first).names)
-    except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad files
-        raise ValueError(f"{first}: unreadable task file ({type(exc).__name__}: {exc}); "
-                         "run `glaciar simulate` again to redo it") from None
+    problem = _footer_problem(first)
+    if problem is not None:
+        raise _unreadable(first, problem)
+    return set(pq.read_schema(first).names)
 
 
 def read_results(run_dir: str | os.PathLike, columns: list[str] | None = None) -> pd.DataFrame:
@@ -816,6 +1013,12 @@ def _unit_tables(run_dir, meta_key: bytes, tag_key: bytes):
     """
     def table(path, meta):
         if meta is None or meta_key not in meta:
+            return None
+        digest = meta.get(meta_key + _DIGEST_SUFFIX)
+        if digest is not None and _digest(meta[meta_key]) != digest:
+            # Garbled bytes that may still decode: the rows say which file is corrupt.
+            warnings.warn(f"{path}: unreadable {meta_key.decode()} metadata (digest mismatch); "
+                          "reading rows instead", StoreWarning, stacklevel=4)
             return None
         try:
             return _ipc_table(meta[meta_key]), meta.get(tag_key)
@@ -1021,10 +1224,6 @@ def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.Dat
     obs_column : str or None
         The measured-magnitude column the histograms bin.
     """
-    import io
-
-    import pyarrow.parquet as pq
-
     meta = {**(extra_meta or {}),
             _META_PART_TASKS: json.dumps(tasks, ensure_ascii=False).encode("utf-8"),
             _META_ROWS: str(table.num_rows).encode()}
@@ -1034,11 +1233,16 @@ def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.Dat
     if hist is not None:
         meta[_META_HIST] = _ipc_bytes(hist)
         meta[_META_HIST_OBS] = obs_column.encode("utf-8")
-    buf = io.BytesIO()
-    pq.write_table(table.replace_schema_metadata(meta), buf)
+    for k in (_META_COUNTS, _META_HIST, _META_PART_TASKS):
+        if k in meta:
+            meta[k + _DIGEST_SUFFIX] = _digest(meta[k])
+    meta[_META_SCHEMA] = _schema_digest(table.schema, table.num_rows)
+    data = _parquet_bytes(table.replace_schema_metadata(meta))
     name = "part-" + _short_hash("\n".join(sorted(str(t[1]) for t in tasks)), 16) + ".parquet"
-    path = _partition_dir(Path(run_dir), field, float(z)) / name
-    atomic_write_bytes(path, buf.getvalue())
+    part_dir = _partition_dir(Path(run_dir), field, float(z))
+    run_subdir(run_dir, *part_dir.relative_to(Path(run_dir)).parts)
+    path = part_dir / name
+    atomic_write_bytes(path, data)
     return path
 
 
@@ -1051,7 +1255,10 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
     (footer: the task list and the tasks' counts), written to a temporary
     name, fsynced and renamed; then the task files are deleted.  Task files
     that a valid part already lists (a kill after a rename) are deleted;
-    task files that fail the footer check are left for resume to redo.
+    task files that fail the footer check are left for resume to redo; task
+    files whose footer digests or page checksums fail are set aside in
+    ``results/corrupt/`` (:func:`set_aside`), never copied into a part.
+    Parts are written with page checksums like task files.
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -1079,8 +1286,20 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
     for (field, z), items in sorted(groups.items()):
         tables, counts, tasks, mags, hists, obs = [], [], [], set(), [], set()
         pandas_meta = {}
+        intact = []
         for f, key, meta in items:
-            t = pq.read_table(f)
+            # Pages verified as they are read: a corrupt task file is set aside (and its
+            # task redone by the next simulate), never copied into a part.
+            problem = _footer_problem(f)
+            try:
+                t = None if problem else pq.read_table(f, page_checksum_verification=True)
+            except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad bytes
+                problem = f"corrupt ({type(exc).__name__}: {str(exc).strip()[:200]})"
+            if problem is not None:
+                warnings.warn(f"{f}: {problem}; set aside as {set_aside(run_dir, f)}; the task "
+                              "will be run again", StoreWarning, stacklevel=2)
+                continue
+            intact.append((f, key, meta))
             if b"pandas" in meta and not pandas_meta:
                 pandas_meta = {b"pandas": meta[b"pandas"]}
             tables.append(t.replace_schema_metadata(None))
@@ -1093,6 +1312,9 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
                         tags.add(meta.get(tk))
                     except Exception:  # noqa: BLE001 - a file from before digests, garbled:
                         pass           # the part goes without; readers then use the rows
+        items = intact
+        if not items:
+            continue
         table = pa.concat_tables(tables, promote_options="permissive")
         cnt = (pa.concat_tables(counts, promote_options="permissive").to_pandas()
                if counts and len(counts) == len(items) and len(mags) == 1 else None)
@@ -1188,6 +1410,10 @@ def file_fingerprint(path: str | os.PathLike, cache: dict | None = None) -> dict
 # --------------------------------------------------------------------------
 # Run-directory lock
 # --------------------------------------------------------------------------
+#: ``os.open`` flag that refuses a symbolic link as the last component (0 where unknown).
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+
+
 class RunLock:
     """Advisory, exclusive lock on a run directory (``fcntl.flock`` on ``RUN_DIR/.lock``).
 
@@ -1210,6 +1436,13 @@ class RunLock:
             text = ""
         return text if text.isdigit() else "unknown"
 
+    def _link_or(self, exc: OSError) -> Exception:
+        """A refusal naming a lock file that is a symbolic link, else ``exc`` itself."""
+        if exc.errno == errno.ELOOP or self.path.is_symlink():
+            return UnsafePathError(f"{self.path}: is a symbolic link; glaciar writes only inside "
+                                   "the run directory: remove it")
+        return exc
+
     def _refuse(self, fd: int):
         pid = self._holder(fd)
         return RunLockedError(f"{self.run_dir}: another glaciar run is writing here (pid {pid})")
@@ -1219,9 +1452,11 @@ class RunLock:
         import fcntl
 
         try:
-            fd = os.open(self.path, os.O_RDONLY)
+            fd = os.open(self.path, os.O_RDONLY | _NOFOLLOW)
         except FileNotFoundError:
             return
+        except OSError as exc:
+            raise self._link_or(exc) from None
         try:
             try:
                 fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
@@ -1237,7 +1472,11 @@ class RunLock:
         """Take the lock (creating the lock file) or raise :class:`RunLockedError`."""
         import fcntl
 
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+        try:
+            # Not through a symbolic link: the pid written below would land outside the run.
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | _NOFOLLOW, 0o666 & ~_umask())
+        except OSError as exc:
+            raise self._link_or(exc) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
@@ -1247,8 +1486,15 @@ class RunLock:
                 raise
             finally:
                 os.close(fd)
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError as exc:
+            # The pid only names the holder in refusals: on a full disk the lock holds
+            # without it, and the run's first real write says which file has no room.
+            if disk_full(self.path, exc) is None:
+                os.close(fd)
+                raise
         self._fd = fd
         return self
 

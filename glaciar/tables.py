@@ -37,9 +37,11 @@ import pandas as pd
 from astropy.table import Table
 
 from . import constants as C
+from .paths import file_stem, run_subdir
 from .store import atomic_write_bytes, atomic_write_text, field_file_prefix
 
-__all__ = ["summary_table", "box_summary_table", "write_summaries", "region_file", "STATUS_COLUMNS",
+__all__ = ["summary_table", "box_summary_table", "write_summaries", "summary_stem", "region_file",
+           "STATUS_COLUMNS",
            "TransferMatrix", "transfer_matrix", "slice_edges", "TRANSFER_KINDS",
            "transfer_from_histograms", "mobs_lattice_index", "mobs_lattice_edge",
            "MOBS_BIN_FAINT", "MOBS_BIN_BRIGHT"]
@@ -174,15 +176,39 @@ def _ecsv_bytes(df: pd.DataFrame, meta: dict) -> bytes:
     return buf.getvalue().encode()
 
 
+#: Stem of the summaries pooled over fields (``summary_all.ecsv``): a field of that name is
+#: escaped (:func:`summary_stem`).
+POOLED_STEM = "all"
+
+
+def summary_stem(field) -> str:
+    """The file-name part of a field's summaries (``summary_<stem>.ecsv``, maps ``*_<stem>.png``).
+
+    :func:`glaciar.paths.file_stem` with the pooled name ``all`` reserved: an
+    ordinary field name is kept as it is; ``../x``, ``a/b`` or a field called
+    ``all`` get an escaped name with a hash, inside the summary directory.
+    """
+    return file_stem(str(field), reserved=(POOLED_STEM,))
+
+
+def _own_dir(out_dir) -> Path:
+    """``out_dir`` created if missing and refused if it is a symbolic link (one line)."""
+    out_dir = Path(out_dir)
+    return run_subdir(out_dir.parent, out_dir.name)
+
+
 def write_summaries(rows: pd.DataFrame, out_dir, meta: dict | None = None,
                     box: dict | None = None) -> list[Path]:
     """Write one ECSV summary per field, plus ``summary_all.ecsv`` pooled over fields.
+
+    Per-field files are named by :func:`summary_stem` (``summary_<stem>.ecsv``):
+    never outside ``out_dir``, never shared by two fields or with the pooled file.
 
     With ``box`` (``{"points", "z_edges", "mag_edges"}``, a run with ``grid.box``),
     also ``box_summary_<field>.ecsv`` and ``box_summary_all.ecsv``: the box's points
     binned (:func:`box_summary_table`).  The per-cell tables list every point as it is.
     """
-    out_dir = Path(out_dir)
+    out_dir = _own_dir(out_dir)
     paths = []
     tables = [("summary", summary_table)]
     if box is not None:
@@ -191,7 +217,7 @@ def write_summaries(rows: pd.DataFrame, out_dir, meta: dict | None = None,
         tables.append(("box_summary", binned))
     for prefix, make in tables:
         for field, sub in rows.groupby(C.COL_FIELD, sort=True):
-            p = out_dir / f"{prefix}_{field}.ecsv"
+            p = out_dir / f"{prefix}_{summary_stem(field)}.ecsv"
             atomic_write_bytes(p, _ecsv_bytes(make(sub), {**(meta or {}), "field": str(field)}))
             paths.append(p)
         p = out_dir / f"{prefix}_all.ecsv"
@@ -223,7 +249,7 @@ def write_regions(rows: pd.DataFrame, out_dir) -> list[Path]:
     (:func:`glaciar.store.field_file_prefix`: readable name + hash), so that
     two fields never share a region file (``a b`` / ``a_b``).
     """
-    out_dir = Path(out_dir)
+    out_dir = _own_dir(out_dir)
     paths = []
     order = [c for c in (C.COL_Z, C.COL_MAG, C.COL_ITERATION, C.COL_SOURCE) if c in rows.columns]
     for f, sub in rows.groupby(C.COL_FIELD, sort=True):

@@ -39,3 +39,38 @@ def test_a_key_added_since_set_otherwise_is_refused_by_name(small_run, small_sur
     path.write_text(yaml.safe_dump(d))
     with pytest.raises(StoreMismatchError, match="CLEAN_STYLE: <unset> -> sep"):
         simulate(load_config(path), run, workers=1, progress=False)
+
+
+def test_task_files_without_checksums_or_digests_stay_done_and_readable(small_run, tmp_path):
+    """Task files written before page checksums and footer digests (issue 21): a resume
+    counts them as done (nothing set aside, no warning), readers read the same rows,
+    and compaction folds them into a part that has both."""
+    import warnings
+
+    import pandas as pd
+    import pyarrow.parquet as pq
+
+    from glaciar.store import compact, read_results, unit_problem
+
+    cfg, src = small_run
+    run = tmp_path / "run"
+    shutil.copytree(src, run, ignore=shutil.ignore_patterns(C.LOCK_NAME))
+    keys = [C.COL_Z, C.COL_MAG, C.COL_ITERATION, C.COL_SOURCE]
+    ref = read_results(run).sort_values(keys).reset_index(drop=True)
+    files = sorted((run / C.RESULTS_DIRNAME).glob("task_*.parquet"))
+    for f in files:                      # as glaciar wrote them before: no checksums, no digests
+        t = pq.read_table(f)
+        meta = {k: v for k, v in t.schema.metadata.items()
+                if k not in (b"glaciar.schema.blake2b", b"glaciar.pages.blake2b")}
+        pq.write_table(t.replace_schema_metadata(meta), f)
+        assert unit_problem(f) is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        stats = simulate(cfg, run, workers=1, progress=False)
+        assert stats["n_run"] == 0 and stats["n_done_before"] == len(files)
+        pd.testing.assert_frame_equal(read_results(run).sort_values(keys).reset_index(drop=True),
+                                      ref)
+        assert compact(run) == len(files)
+    part = next((run / C.RESULTS_DIRNAME / "compact").rglob("part-*.parquet"))
+    assert b"glaciar.pages.blake2b" in pq.read_metadata(part).metadata and unit_problem(part) is None
+    pd.testing.assert_frame_equal(read_results(run).sort_values(keys).reset_index(drop=True), ref)

@@ -204,7 +204,10 @@ def test_truncated_part_is_reported_and_its_tasks_not_counted(tmp_path):
     with pytest.warns(StoreWarning, match=rf"{part.name}.*will be run again"):
         good = verified_task_names(tmp_path, _wanted(), quarantine=True)
     assert len(good) == len(_wanted()) - len(MAGS) * N_ITER
-    assert not part.exists() and part.with_name(part.name + ".corrupt").exists()
+    # Set aside inside the run (results/corrupt/, its path below results/ kept in the name).
+    aside = tmp_path / C.RESULTS_DIRNAME / "corrupt" / "__".join(
+        part.relative_to(tmp_path / C.RESULTS_DIRNAME).parts)
+    assert not part.exists() and aside.read_bytes() == data[: len(data) // 2]
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         counts, _ = read_current_counts(tmp_path)           # the moved part is not met again

@@ -70,7 +70,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["save", "load", "exists", "release", "Trimmer", "trim", "TiledArray", "Tiled", "spill", "FORMAT",
+__all__ = ["save", "load", "exists", "UnreadableCache", "release", "Trimmer", "trim", "TiledArray", "Tiled", "spill", "FORMAT",
            "MMAP_MIN_BYTES", "RESIDENT_BUDGET_BYTES", "TILE"]
 
 #: Version of the on-disk layout (part of a cache's key: a new layout never reads an old one).
@@ -134,7 +134,7 @@ def _copy_rows(src: np.ndarray, out: np.ndarray) -> None:
     """``out[...] = src`` by blocks of rows (~:data:`COPY_BLOCK_BYTES`), dropping the mapped
     pages of both after each block: copying a mapped 16000^2 image does not make it resident."""
     if not src.size:
-        out.flush()
+        getattr(out, "flush", lambda: None)()     # an empty array is not mapped
         return
     if src.ndim == 0:
         out[...] = src
@@ -151,6 +151,43 @@ def _copy_rows(src: np.ndarray, out: np.ndarray) -> None:
     out.flush()
 
 
+def _allocated_npy(path, dtype, shape) -> np.memmap:
+    """A new ``.npy`` at ``path`` opened as a writable memory map, its blocks allocated first.
+
+    ``np.lib.format.open_memmap(mode="w+")`` makes a sparse file and maps it: on a
+    full disk the first write to a page without a block kills the process with
+    ``SIGBUS``.  Here the header is written and the data's blocks reserved
+    (:func:`glaciar.paths.allocate`) before the map exists, so a full disk is a
+    :class:`glaciar.paths.DiskFullError` naming ``path``.  Same bytes as
+    ``open_memmap`` (format 1.0 header, or 2.0 when it does not fit).
+    """
+    from ..paths import allocate, disk_full
+
+    dtype = np.dtype(dtype)
+    shape = tuple(int(n) for n in shape)
+    header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
+              "shape": shape}
+    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    try:
+        with open(path, "wb") as fh:
+            try:
+                np.lib.format.write_array_header_1_0(fh, header)
+            except ValueError:                     # header too long for format 1.0
+                fh.seek(0)
+                fh.truncate()
+                np.lib.format.write_array_header_2_0(fh, header)
+            offset = fh.tell()
+            allocate(fh.fileno(), offset + nbytes, path)
+            if nbytes == 0:
+                return np.zeros(shape, dtype)      # nothing to map (np.memmap refuses 0 bytes)
+        return np.memmap(path, dtype=dtype, mode="r+", offset=offset, shape=shape)
+    except OSError as exc:
+        full = disk_full(path, exc)
+        if full is not None:
+            raise full from None
+        raise
+
+
 def spill(arr: np.ndarray, directory=None) -> np.ndarray:
     """``arr`` moved to an unnamed file: a read-only memory map of a copy written to a temporary
     ``.npy`` in ``directory`` (default :data:`SCRATCH_DIR`, else the system temp directory).
@@ -165,7 +202,7 @@ def spill(arr: np.ndarray, directory=None) -> np.ndarray:
     os.close(fd)
     try:
         dtype = arr.dtype if arr.dtype.isnative else arr.dtype.newbyteorder("=")
-        out = np.lib.format.open_memmap(name, mode="w+", dtype=dtype, shape=arr.shape)
+        out = _allocated_npy(name, dtype, arr.shape)
         _copy_rows(arr, out)
         del out
         mapped = np.load(name, mmap_mode="r", allow_pickle=False)
@@ -191,7 +228,11 @@ def _write_tiled(arr: np.ndarray, path: Path, tile: int) -> None:
     # Format 2.0: magic (6) + version (2) + uint32 length (4) + header ending in "\n".
     total = -(-(12 + len(header) + 1) // TILE_ALIGN) * TILE_ALIGN
     header = header + " " * (total - 12 - len(header) - 1) + "\n"
+    from ..paths import allocate
+
     with open(path, "wb") as fh:
+        # The whole file reserved first: a full disk fails here, not half-way.
+        allocate(fh.fileno(), total + nty * ntx * tile * tile * dtype.itemsize, path)
         fh.write(np.lib.format.magic(2, 0))
         fh.write(np.uint32(len(header)).astype("<u4").tobytes())
         fh.write(header.encode("latin1"))
@@ -238,7 +279,7 @@ def _encode(obj, directory: Path, names: list) -> dict:
         name = f"a{len(names):04d}.npy"
         names.append(name)
         dtype = obj.dtype if obj.dtype.isnative else obj.dtype.newbyteorder("=")
-        out = np.lib.format.open_memmap(directory / name, mode="w+", dtype=dtype, shape=obj.shape)
+        out = _allocated_npy(directory / name, dtype, obj.shape)
         _copy_rows(obj, out)
         del out
         return {"npy": name}
@@ -269,11 +310,18 @@ def save(items: dict, directory) -> Path:
 
     Written to a temporary sibling and renamed: an existing ``directory`` (another
     process was faster) is kept and the new copy removed.  Returns ``directory``.
+    Every array file's blocks are allocated before it is mapped or written: a full
+    disk raises :class:`glaciar.paths.DiskFullError` naming ``directory`` (nothing
+    left behind), never ``SIGBUS``.
     """
+    from ..paths import disk_full
+
     directory = Path(directory)
-    directory.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", suffix=".tmp", dir=directory.parent))
+    tmp = None
     try:
+        directory.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", suffix=".tmp",
+                                    dir=directory.parent))
         names: list = []
         index = {"format": FORMAT, "items": _encode(dict(items), tmp, names)}
         (tmp / INDEX_NAME).write_text(json.dumps(index, indent=1, allow_nan=True), encoding="utf-8")
@@ -284,8 +332,14 @@ def save(items: dict, directory) -> Path:
             if not (directory / INDEX_NAME).is_file():
                 raise
             shutil.rmtree(tmp, ignore_errors=True)      # the same cache is already there
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+    except BaseException as exc:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+        # Named by the cache directory (the temporary copy that ran out of space is gone).
+        full = disk_full(directory, OSError(exc.errno, str(exc))) \
+            if isinstance(exc, OSError) else None
+        if full is not None:
+            raise full from None
         raise
     return directory
 
@@ -334,13 +388,36 @@ def load(directory) -> tuple[dict, tuple]:
     :func:`trim` / :func:`release`).
     """
     directory = Path(directory)
-    index = json.loads((directory / INDEX_NAME).read_text(encoding="utf-8"))
-    if index.get("format") != FORMAT:
-        raise ValueError(f"{directory / INDEX_NAME}: field cache format {index.get('format')!r}, "
+    try:
+        index = json.loads((directory / INDEX_NAME).read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise UnreadableCache(directory / INDEX_NAME, str(exc)) from None
+    if not isinstance(index, dict) or index.get("format") != FORMAT:
+        raise ValueError(f"{directory / INDEX_NAME}: field cache format "
+                         f"{index.get('format') if isinstance(index, dict) else None!r}, "
                          f"expected {FORMAT}")
     maps: list = []
-    items = _decode(index["items"], directory, maps)
+    try:
+        items = _decode(index["items"], directory, maps)
+    except (OSError, ValueError, KeyError, TypeError, EOFError) as exc:
+        # e.g. a truncated .npy: named, with the fix (the cache is a copy of measurements).
+        text = str(exc).strip().splitlines()
+        raise UnreadableCache(directory, f"{type(exc).__name__}: {text[0] if text else ''}") \
+            from None
     return items, tuple(maps)
+
+
+class UnreadableCache(ValueError):
+    """A field cache that cannot be read (e.g. a truncated file): ``path`` and ``why``.
+
+    The cache is a copy of measurements: removing it makes the field be measured again
+    (glaciar.run does so on its own when it opens a run's caches).
+    """
+
+    def __init__(self, path, why: str):
+        self.path, self.why = Path(path), why
+        super().__init__(f"{path}: unreadable field cache ({why}); remove it and the field is "
+                         "measured again")
 
 
 def exists(directory) -> bool:

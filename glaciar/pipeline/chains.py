@@ -22,8 +22,11 @@ __all__ = ["chains_key", "save_chains", "load_chains", "file_tag"]
 
 
 def file_tag(name: str) -> str:
-    """``name`` with every character other than letters, digits, ``-_.`` replaced by ``_``."""
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+    """The file-name part of a fit's name (:func:`glaciar.paths.file_stem`: ordinary names as
+    they are, others escaped with a hash, so two fields never share a fit's files)."""
+    from ..paths import file_stem
+
+    return file_stem(name)
 
 
 def chains_key(cells: Cells, model: SurfaceModel, seed, n_walkers) -> str:

@@ -355,8 +355,10 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, seed, n_walkers, max_
         meta["area_arcmin2_field"] = per_field_area
         meta["area_arcmin2"] = float(sum(per_field_area.values()))
 
-    # Saved chains are read from the current fit/ (resume); nothing is written there.
-    fit_dir = run_dir / "fit"
+    # Saved chains are read from the current fit/ (resume); nothing is written there. A fit/
+    # that is a symbolic link is refused rather than read.
+    from ..paths import run_subdir
+    fit_dir = run_subdir(run_dir, "fit", create=False)
     cells_all = data.cells(mag_resolution, depth_ref, mag_col)
     domain = {"z": (float(data.z.min()), float(data.z.max())),
               "mag": (float(np.min(data.mag_lo)), float(np.max(data.mag_hi)))}

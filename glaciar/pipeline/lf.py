@@ -268,8 +268,8 @@ def run_lf(run_dir, catalog=None, *, model: str = "schechter", fix: dict | None 
                  muv_range=muv_range, z_range=z_range, seed=seed, progress=progress)
 
     # Everything fitted: now write.
-    out = run_dir / LF_DIRNAME
-    out.mkdir(exist_ok=True)
+    from ..paths import run_subdir
+    out = run_subdir(run_dir, LF_DIRNAME)     # refused if a symbolic link (writes stay in the run)
     summary = {
         "model": res.model, "n_candidates": res.n_candidates,
         "parameters": res.parameters, "fixed": res.fixed,
