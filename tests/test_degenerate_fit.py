@@ -121,8 +121,8 @@ def test_detection_only_report_draws_no_s(detection_only_fit, tmp_path):
     assert "fig-selection-" not in html and "S = 1" in html
     table = pd.DataFrame({"z": [6.0, 6.0, 7.0, 7.0], "mag": [25.0, 26.0, 25.0, 26.0],
                           "completeness": 0.5, "selection_total": 0.5, "selection": 1.0})
-    paths = plot_summary_maps(table, tmp_path, "all", selection=False)
-    assert sorted(p.name for p in paths) == ["completeness_all.png", "selection_total_all.png"]
+    paths = plot_summary_maps(table, tmp_path, "deep", selection=False)
+    assert sorted(p.name for p in paths) == ["completeness_deep.png", "selection_total_deep.png"]
 
 
 # ------------------------------------------------------- bullet 3: NaN outside the box

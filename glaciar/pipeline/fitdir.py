@@ -115,6 +115,7 @@ def hold_run(run_dir, command: str):
     glaciar.store.RunLockedError
         Another process is writing the run.
     """
+    from ..paths import check_run_tree
     from ..store import RunLock, RunLockedError
 
     run_dir = Path(run_dir)
@@ -144,6 +145,9 @@ def hold_run(run_dir, command: str):
         yield lock
         return
     try:
+        # Linked sub-directories are refused before anything is read or cleaned, so a
+        # fit, report or next never writes (or deletes) outside the run.
+        check_run_tree(run_dir)
         recover_fit_outputs(run_dir)
         yield lock
     finally:
