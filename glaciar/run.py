@@ -36,8 +36,8 @@ from .engine.coadd import coadd
 from .engine import fieldcache
 from .engine.context import R_EFF_LOG_STEP, FieldContext
 from .engine.depth import depth_area_histogram, local_depth_map
-from .engine.noise import (CorrelatedNoise, empty_aperture_scatter, empty_sky, source_margin,
-                           weight_rescale_factor)
+from .engine.noise import (MAX_RISE_EXPONENT, CorrelatedNoise, background_excess, empty_aperture_scatter,
+                           empty_sky, rise_exponent, source_margin, weight_rescale_factor)
 from .engine.selection import compile_selection
 from .engine.positions import placement_capacity
 from .engine.task import TaskSpec, draw_task_sources, field_key, run_task
@@ -246,12 +246,67 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
     else:
         usable = sky["usable"]
     seq = np.random.SeedSequence([field_key(field), field_key(band)])
-    npix, ratio, n = empty_aperture_scatter(base, rms, usable, radii,
-                                            cfg.noise.n_empty_apertures,
-                                            np.random.default_rng(seq), sky=sky["centres"])
+    # The same apertures are also summed about their own local backgrounds: a background
+    # mesh too coarse for the image (a large galaxy in a small cutout) leaves residuals
+    # that the sums about the mesh would read as correlated noise.
+    npix, ratio, n, local = empty_aperture_scatter(base, rms, usable, radii,
+                                                   cfg.noise.n_empty_apertures,
+                                                   np.random.default_rng(seq), sky=sky["centres"],
+                                                   local=True)
     if len(npix) < 2:
         return CorrelatedNoise()        # too little empty sky to say: no correction
-    return CorrelatedNoise.fit(npix, ratio, n)
+    model = CorrelatedNoise.fit(npix, ratio, n)
+    if background_excess(ratio, local, n, cfg.noise.identity_tolerance) is not None:
+        # Measured about local backgrounds where every radius has them (else the mesh's).
+        model = dataclasses.replace(CorrelatedNoise.fit(npix, np.where(np.isfinite(local), local, ratio), n),
+                                    mesh_ratio=model.ratio)
+    if cfg.noise.correlated != "off":
+        rise = rise_exponent(model.npix, model.ratio)
+        if rise > MAX_RISE_EXPONENT and not model.is_identity(cfg.noise.identity_tolerance):
+            raise ValueError(
+                f"field {field!r}, band {band!r}: the empty-aperture noise ratio r(N) = "
+                f"{model.ratio[-1]:.2f} at N = {model.npix[-1]:.0f} pixels rises like N^{rise:.2f}, "
+                f"as a background residual does, not like correlated noise (which levels off); "
+                f"set a smaller detection.BACK_SIZE (now {cfg.detection.back_size}) or "
+                "noise.correlated: 'off'")
+    return model
+
+
+def noise_warning(field: str, band: str, model: CorrelatedNoise, back_size) -> str | None:
+    """The one-line warning for a model measured about local backgrounds, or None."""
+    if not model.mesh_ratio:
+        return None
+    k = int(np.argmax(np.asarray(model.mesh_ratio) / np.asarray(model.ratio)))
+    return (f"field {field!r}, band {band!r}: empty apertures scatter r({model.npix[k]:.0f} pixels) = "
+            f"{model.mesh_ratio[k]:.2f} about the background mesh (detection.BACK_SIZE "
+            f"{back_size}) but {model.ratio[k]:.2f} about their local background: background "
+            "residuals, not correlated noise; r(N) is taken about local backgrounds (a smaller "
+            "detection.BACK_SIZE follows this image's background better)")
+
+
+def noise_summary(noise_record: dict) -> list[str]:
+    """One line per field and band of a manifest's ``noise`` record: the factors applied.
+
+    The map scale (MAP_WEIGHT rescaling, 1 for an absolute map) and the range of
+    r(N), with whether it is applied to the errors and where it was measured.
+    """
+    lines = []
+    for field, bands in (noise_record or {}).items():
+        for band, rec in bands.items():
+            table = rec.get("correlated") or {}
+            npix, ratio = table.get("npix") or [], table.get("ratio") or []
+            if ratio:
+                span = " ".join(f"{r:.2f}" for r in ratio)
+                rn = (f"r(N) for N = {npix[0]:.0f}..{npix[-1]:.0f} pixels: {span}")
+            else:
+                rn = "r(N): not measured"
+            how = "applied" if rec.get("applied") else "not applied"
+            if table.get("mesh_ratio"):
+                how += (", about local backgrounds (about the mesh: up to "
+                        f"{max(table['mesh_ratio']):.2f})")
+            lines.append(f"noise {field} {band}: {rec.get('weight_type')}, map scale "
+                         f"{rec.get('weight_scale', 1.0):.3g}; {rn} ({how})")
+    return lines
 
 
 #: Pixels per block of the set-up's elementwise full-frame work (:func:`~glaciar.engine.blocks.row_blocks`).
@@ -264,6 +319,8 @@ def field_noise_record(cfg: Config, survey: Survey, field: str,
 
     Per band: the WEIGHT_TYPE, the MAP_WEIGHT rescaling factor (1 otherwise),
     the empty-aperture table r(N) and whether it is applied to the errors.
+    Warns (one line per band) where r(N) had to be measured about local
+    backgrounds (:func:`noise_warning`).
     ``ctx``: the field's context, if built (without a stacked detection image its
     noise maps and models are the ones measured here: nothing is measured twice).
     """
@@ -298,6 +355,10 @@ def field_noise_record(cfg: Config, survey: Survey, field: str,
 
 def _noise_entry(cfg: Config, survey: Survey, field: str, band: str, rms: np.ndarray,
                  from_background: bool, model: CorrelatedNoise) -> dict:
+    # Said here, once per field and run (the manifest's record), not in every worker.
+    message = noise_warning(field, band, model, cfg.detection.back_size)
+    if message is not None and cfg.noise.correlated != "off":
+        warnings.warn(message, UserWarning)
     scale = 1.0
     if cfg.detection.weight_type == "map_weight" and not from_background:
         raw = survey.rms(field, band)

@@ -34,7 +34,8 @@ from scipy import ndimage
 
 from glaciar.engine.blocks import row_blocks
 
-__all__ = ["weight_rescale_factor", "empty_aperture_scatter", "empty_sky_distance", "distance_cap",
+__all__ = ["weight_rescale_factor", "empty_aperture_scatter", "background_excess", "rise_exponent",
+           "MAX_RISE_EXPONENT", "robust_sigma", "empty_sky_distance", "distance_cap",
            "empty_sky", "EmptySky", "source_margin", "CorrelatedNoise",
            "DEFAULT_EMPTY_APERTURE_RADII_PIX", "MIN_EMPTY_APERTURES"]
 
@@ -82,7 +83,7 @@ def weight_rescale_factor(bkg_rms: np.ndarray, map_rms: np.ndarray, usable: np.n
     return float(np.median(np.asarray(bkg_rms, np.float64)[ok] / np.asarray(map_rms, np.float64)[ok]))
 
 
-def _robust_sigma(x: np.ndarray) -> float:
+def robust_sigma(x: np.ndarray) -> float:
     """Iteratively 3-sigma-clipped standard deviation, corrected to a Gaussian sigma.
 
     More efficient than the MAD (relative error ~1/sqrt(2n) against ~1.17/sqrt(n)).
@@ -273,8 +274,8 @@ def distance_cap(radii_pix) -> float:
 def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarray,
                            radii_pix=DEFAULT_EMPTY_APERTURE_RADII_PIX, n_per_radius: int = 1000,
                            rng: np.random.Generator | None = None,
-                           distance: np.ndarray | None = None, sky: EmptySky | None = None
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                           distance: np.ndarray | None = None, sky: EmptySky | None = None,
+                           local: bool = False) -> tuple[np.ndarray, ...]:
     """Measured over predicted scatter of sums in random empty circular apertures.
 
     Parameters
@@ -310,6 +311,10 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         the apertures: 1 for uncorrelated noise and a correct map.
     n_apertures : ndarray of int
         Apertures measured per radius.
+    ratio_local : ndarray
+        Only with ``local=True``: the same ratio for the same apertures, each sum taken
+        about its own local background (:func:`_local_background`); NaN where fewer than
+        :data:`MIN_EMPTY_APERTURES` apertures have enough empty sky around them.
 
     Notes
     -----
@@ -345,7 +350,7 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
             return _keep_beyond(flat_dist, candidates, limit)
     else:
         beyond = sky.beyond
-    out_n, out_r, out_k = [], [], []
+    out_n, out_r, out_k, out_l = [], [], [], []
     for r in radii:
         k = int(np.ceil(r))
         dy, dx = np.mgrid[-k:k + 1, -k:k + 1]
@@ -367,9 +372,71 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         if good.sum() < MIN_EMPTY_APERTURES:
             continue
         out_n.append(float(dy.size))
-        out_r.append(_robust_sigma(s[good] / np.sqrt(v[good])))
+        out_r.append(robust_sigma(s[good] / np.sqrt(v[good])))
         out_k.append(int(good.sum()))
+        if local:
+            out_l.append(_local_ratio(image, rms, usable, centres[pick], r, dy.size, s, v, good))
+    if local:
+        return (np.array(out_n), np.array(out_r), np.array(out_k, dtype=np.int64),
+                np.array(out_l, dtype=np.float64))
     return np.array(out_n), np.array(out_r), np.array(out_k, dtype=np.int64)
+
+
+#: Local background of an empty aperture (:func:`_local_ratio`): an annulus from the
+#: aperture radius + ANNULUS_GAP_PIX [pixels] (past the few-pixel correlation length of a
+#: drizzle kernel, so aperture and annulus noise are nearly independent) enclosing
+#: max(ANNULUS_AREA_FACTOR x N, ANNULUS_MIN_PIXELS) pixels for an aperture of N pixels.
+ANNULUS_GAP_PIX = 2.0
+ANNULUS_AREA_FACTOR = 4.0
+ANNULUS_MIN_PIXELS = 200
+
+
+def _annulus_offsets(radius: float, npix: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel offsets (dy, dx) of the local-background annulus of an aperture of ``npix`` pixels."""
+    r_in = float(radius) + ANNULUS_GAP_PIX
+    area = max(ANNULUS_AREA_FACTOR * npix, ANNULUS_MIN_PIXELS)
+    r_out = np.sqrt(area / np.pi + r_in * r_in)
+    k = int(np.ceil(r_out))
+    dy, dx = np.mgrid[-k:k + 1, -k:k + 1]
+    d2 = dy ** 2 + dx ** 2
+    ring = (d2 >= r_in * r_in) & (d2 < r_out * r_out)
+    return dy[ring], dx[ring]
+
+
+def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good) -> float:
+    """The empty-aperture ratio of sums taken about each aperture's local background.
+
+    The background is the mean of the usable pixels of the aperture's annulus
+    (:func:`_annulus_offsets`; at least half of them usable, else the aperture is
+    dropped). Subtracting ``N`` times a mean of ``m`` pixels adds ``(N/m)^2 sum_ann rms^2``
+    to the variance the map predicts, which enters the prediction: for uncorrelated
+    noise and a correct map the ratio is 1 exactly as without the annulus. For
+    correlated noise the ratio is a weighted mean of ``r(N)^2`` and the annulus's own
+    ``r^2`` with weight ~N/m <= 1/4 on the latter (equal once r(N) has levelled off).
+    A background varying on scales larger than the annulus cancels: that is the point.
+
+    Returns
+    -------
+    float
+        Clipped scatter (as :func:`empty_aperture_scatter`), NaN with too few apertures.
+    """
+    ny, nx = usable.shape
+    ay, ax = _annulus_offsets(radius, npix)
+    iy = centres[:, None] // nx + ay[None, :]
+    ix = centres[:, None] % nx + ax[None, :]
+    inside = (iy >= 0) & (iy < ny) & (ix >= 0) & (ix < nx)
+    flat = np.clip(iy, 0, ny - 1) * nx + np.clip(ix, 0, nx - 1)
+    ok = inside & usable.reshape(-1)[flat]
+    m = ok.sum(axis=1)
+    b = np.where(ok, _gather(image, flat).astype(np.float64), 0.0).sum(axis=1)
+    vb = np.where(ok, _gather(rms, flat).astype(np.float64) ** 2, 0.0).sum(axis=1)
+    keep = good & (2 * m >= ay.size) & np.isfinite(b) & np.isfinite(vb)
+    if keep.sum() < MIN_EMPTY_APERTURES:
+        return float("nan")
+    m, frac = m[keep], npix / m[keep]
+    t = s[keep] - frac * b[keep]
+    var = v[keep] + frac * frac * vb[keep]
+    return robust_sigma(t / np.sqrt(var))
 
 
 def _gather(a: np.ndarray, flat: np.ndarray) -> np.ndarray:
@@ -413,11 +480,16 @@ class CorrelatedNoise:
         Measured ``r(N)``.
     n_apertures : tuple of int
         Apertures behind each ratio (its standard error is ~1/sqrt(2n)).
+    mesh_ratio : tuple of float
+        Empty unless ``ratio`` was measured about local backgrounds because the sums
+        about the background mesh scattered more (:func:`background_excess`): then those
+        mesh ratios, per ``npix``, for the record.
     """
 
     npix: tuple = (1.0,)
     ratio: tuple = (1.0,)
     n_apertures: tuple = ()
+    mesh_ratio: tuple = ()
 
     @classmethod
     def fit(cls, npix, ratio, n_apertures=None) -> "CorrelatedNoise":
@@ -452,6 +524,73 @@ class CorrelatedNoise:
         return bool(np.all(np.abs(ratio - 1.0) <= tolerance + 3.0 / np.sqrt(2.0 * n)))
 
     def to_dict(self) -> dict:
-        """Plain values for the run's manifest."""
-        return {"npix": list(self.npix), "ratio": list(self.ratio),
-                "n_apertures": list(self.n_apertures)}
+        """Plain values for the run's manifest (``mesh_ratio`` only where local backgrounds were used)."""
+        out = {"npix": list(self.npix), "ratio": list(self.ratio),
+               "n_apertures": list(self.n_apertures)}
+        if self.mesh_ratio:
+            out["mesh_ratio"] = list(self.mesh_ratio)
+        return out
+
+
+#: Largest rise of ln r(N) per ln N over the largest measured areas that counts as
+#: correlated noise (:func:`rise_exponent`). Correlated noise levels off (exponent -> 0)
+#: once apertures exceed its correlation length; an offset common to the aperture (a
+#: background residual) makes the sum's scatter grow like N, i.e. r(N) like N^(1/2).
+#: 0.4 sits between: HFF A2744 F105W about local backgrounds rises with 0.28 over
+#: N = 57-401 pixels, about a 64-pixel mesh around its large galaxy with 0.45.
+MAX_RISE_EXPONENT = 0.4
+
+
+def background_excess(ratio_mesh, ratio_local, n_apertures, tolerance: float = 0.05) -> int | None:
+    """Where sums about the background mesh scatter more than about local backgrounds.
+
+    Parameters
+    ----------
+    ratio_mesh, ratio_local : array_like
+        :func:`empty_aperture_scatter`'s ``ratio`` and ``ratio_local`` of the same
+        apertures (NaN local ratios are skipped).
+    n_apertures : array_like of int
+        Apertures per area (each ratio's relative standard error ~1/sqrt(2n)).
+    tolerance : float
+        Relative excess always allowed (``noise.identity_tolerance``).
+
+    Returns
+    -------
+    int or None
+        Index of the area with the largest ``ratio_mesh / ratio_local`` among those
+        where it exceeds ``1 + tolerance + 3 sqrt(1/n)`` (three standard errors of
+        the ratio of two such estimates), or None: the mesh leaves no background
+        residual these apertures can see. Only an excess counts: a residual
+        background adds variance to the mesh sums, never removes it.
+    """
+    rm = np.asarray(ratio_mesh, np.float64)
+    rl = np.asarray(ratio_local, np.float64)
+    n = np.maximum(np.asarray(n_apertures, np.float64), 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = rm / rl
+    excess = np.isfinite(q) & (rl > 0) & (q > 1.0 + tolerance + 3.0 / np.sqrt(n))
+    if not excess.any():
+        return None
+    return int(np.flatnonzero(excess)[np.argmax(q[excess])])
+
+
+def rise_exponent(npix, ratio) -> float:
+    """Least-squares slope of ln r against ln N over the areas within a decade of the largest.
+
+    Parameters
+    ----------
+    npix, ratio : array_like
+        A :class:`CorrelatedNoise` table (areas [pixels], increasing).
+
+    Returns
+    -------
+    float
+        The slope (0 for noise that has levelled off, 1/2 for a coherent offset);
+        NaN with fewer than two such areas.
+    """
+    n = np.asarray(npix, np.float64)
+    r = np.asarray(ratio, np.float64)
+    sel = (n >= n.max() / 10.0) & (r > 0) if n.size else np.zeros(0, bool)
+    if sel.sum() < 2:
+        return float("nan")
+    return float(np.polyfit(np.log(n[sel]), np.log(r[sel]), 1)[0])
