@@ -266,9 +266,10 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
             raise ValueError(
                 f"field {field!r}, band {band!r}: the empty-aperture noise ratio r(N) = "
                 f"{model.ratio[-1]:.2f} at N = {model.npix[-1]:.0f} pixels rises like N^{rise:.2f}, "
-                f"as a background residual does, not like correlated noise (which levels off); "
-                f"set a smaller detection.BACK_SIZE (now {cfg.detection.back_size}) or "
-                "noise.correlated: 'off'")
+                "as a background varying across the apertures does (e.g. a large galaxy's "
+                "faint wings), not like correlated noise (which levels off); mask that region "
+                f"(survey.mask), set a smaller detection.BACK_SIZE (now {cfg.detection.back_size}) "
+                "or set noise.correlated: 'off'")
     return model
 
 
@@ -917,12 +918,47 @@ def _check_image(item: InputFile) -> None:
         raise ValueError("no finite pixel in the image")
 
 
+def _check_noise_maps(cfg: Config, items: list[InputFile], fingerprints: dict, cache: dict,
+                      fail, errors) -> None:
+    """Each noise map against its science image's pixel scatter (:func:`~glaciar.engine.noise.map_type_problem`).
+
+    Not for a relative weight map (WEIGHT_TYPE MAP_WEIGHT: its scale is rescaled to the
+    image) nor an unused one (BACKGROUND). A strided sample of <= 2^20 pixels of each
+    image; checked once per (noise file version, noise_type, science file version):
+    ``cache`` remembers it.
+    """
+    from .engine.noise import map_type_problem
+    from .survey import strided_sample
+
+    if cfg.detection.weight_type in ("map_weight", "background"):
+        return
+    science = {(it.field, it.band): it for it in items if it.kind == "science"}
+    ntype = cfg.survey.noise_type
+    for item in items:
+        sci = science.get((item.field, item.band))
+        if item.kind != "noise" or sci is None:
+            continue
+        entry = cache.get(str(item.path.resolve()), {})
+        stamp = [ntype, fingerprints[sci.key].get("blake2b")]
+        if entry.get("map_type_checked") == stamp:
+            continue
+        try:
+            problem = map_type_problem(strided_sample(sci.path), strided_sample(item.path), ntype)
+        except errors as exc:
+            raise fail(item, exc) from None
+        if problem is not None:
+            raise InputError(f"{item.key}: {item.path}: {problem}")
+        entry["map_type_checked"] = stamp
+
+
 def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None = None) -> dict:
     """Check every input file of ``cfg`` and return its fingerprint.
 
     Science and noise images must be readable FITS files with a 2-D image that
     has finite pixels (checked once per file version: ``cache`` remembers it by
-    path, size and mtime); FITS PSFs must be finite with a positive sum and a
+    path, size and mtime); a noise map must state a pixel sigma within a factor
+    :data:`~glaciar.engine.noise.MAP_TYPE_FACTOR` of its image's pixel scatter
+    (a weight map declared as RMS, or the reverse, is refused with the fix); FITS PSFs must be finite with a positive sum and a
     pixel scale (checked at every field's pixel scale); filter curves and
     detection files must parse.  Nothing is written.
 
@@ -975,6 +1011,7 @@ def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None =
         if item.kind in ("science", "noise"):
             entry["checked"] = True
         out[item.key] = {"path": str(item.path), **fp}
+    _check_noise_maps(cfg, items, out, cache, fail, errors)
     # Shapes agree within each field, pixel scales are known, PSFs resample at every scale.
     scales = set()
     for f in cfg.survey.fields:

@@ -35,7 +35,8 @@ from scipy import ndimage
 from glaciar.engine.blocks import row_blocks
 
 __all__ = ["weight_rescale_factor", "empty_aperture_scatter", "background_excess", "rise_exponent",
-           "MAX_RISE_EXPONENT", "robust_sigma", "empty_sky_distance", "distance_cap",
+           "MAX_RISE_EXPONENT", "robust_sigma", "map_scale_ratio", "map_type_problem",
+           "MAP_TYPE_FACTOR", "empty_sky_distance", "distance_cap",
            "empty_sky", "EmptySky", "source_margin", "CorrelatedNoise",
            "DEFAULT_EMPTY_APERTURE_RADII_PIX", "MIN_EMPTY_APERTURES"]
 
@@ -406,14 +407,16 @@ def _annulus_offsets(radius: float, npix: int) -> tuple[np.ndarray, np.ndarray]:
 def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good) -> float:
     """The empty-aperture ratio of sums taken about each aperture's local background.
 
-    The background is the mean of the usable pixels of the aperture's annulus
-    (:func:`_annulus_offsets`; at least half of them usable, else the aperture is
-    dropped). Subtracting ``N`` times a mean of ``m`` pixels adds ``(N/m)^2 sum_ann rms^2``
-    to the variance the map predicts, which enters the prediction: for uncorrelated
-    noise and a correct map the ratio is 1 exactly as without the annulus. For
+    The background is a plane fitted (weights 1/rms^2) to the usable pixels of the
+    aperture's annulus (:func:`_annulus_offsets`; at least half of them usable, else
+    the aperture is dropped) and evaluated at the aperture's centre: the aperture is
+    symmetric about it, so ``N`` times that value is the plane's sum over it, and a
+    background gradient cancels even where the annulus is cut by a masked source.
+    Subtracting it adds ``N^2 Var(plane at the centre)`` to the variance the map
+    predicts (``[(X^T W X)^-1]_00`` of the fit), which enters the prediction: for
+    uncorrelated noise and a correct map the ratio is 1, as without the annulus. For
     correlated noise the ratio is a weighted mean of ``r(N)^2`` and the annulus's own
-    ``r^2`` with weight ~N/m <= 1/4 on the latter (equal once r(N) has levelled off).
-    A background varying on scales larger than the annulus cancels: that is the point.
+    ``r^2``, with weight ~N/m <= 1/4 on the latter (equal once r(N) has levelled off).
 
     Returns
     -------
@@ -427,15 +430,26 @@ def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good) -> float
     inside = (iy >= 0) & (iy < ny) & (ix >= 0) & (ix < nx)
     flat = np.clip(iy, 0, ny - 1) * nx + np.clip(ix, 0, nx - 1)
     ok = inside & usable.reshape(-1)[flat]
-    m = ok.sum(axis=1)
-    b = np.where(ok, _gather(image, flat).astype(np.float64), 0.0).sum(axis=1)
-    vb = np.where(ok, _gather(rms, flat).astype(np.float64) ** 2, 0.0).sum(axis=1)
-    keep = good & (2 * m >= ay.size) & np.isfinite(b) & np.isfinite(vb)
+    b = np.where(ok, _gather(image, flat).astype(np.float64), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(ok, 1.0 / _gather(rms, flat).astype(np.float64) ** 2, 0.0)
+    w = np.where(np.isfinite(w) & np.isfinite(b), w, 0.0)
+    keep = good & (2 * np.count_nonzero(w > 0, axis=1) >= ay.size)
     if keep.sum() < MIN_EMPTY_APERTURES:
         return float("nan")
-    m, frac = m[keep], npix / m[keep]
-    t = s[keep] - frac * b[keep]
-    var = v[keep] + frac * frac * vb[keep]
+    # Plane a + c1 dx + c2 dy by weighted least squares, one 3x3 system per aperture.
+    design = np.stack([np.ones(ay.size), ax / float(radius + 1), ay / float(radius + 1)], axis=1)
+    w, b = w[keep], b[keep]
+    normal = np.einsum("nk,ki,kj->nij", w, design, design)
+    rhs = np.einsum("nk,ki->ni", w * np.where(w > 0, b, 0.0), design)
+    det = np.linalg.det(normal)
+    fine = np.isfinite(det) & (det > 0)
+    if fine.sum() < MIN_EMPTY_APERTURES:
+        return float("nan")
+    inv = np.linalg.inv(normal[fine])
+    level = np.einsum("ni,ni->n", inv[:, 0, :], rhs[fine])
+    t = s[keep][fine] - npix * level
+    var = v[keep][fine] + npix * npix * inv[:, 0, 0]
     return robust_sigma(t / np.sqrt(var))
 
 
@@ -594,3 +608,70 @@ def rise_exponent(npix, ratio) -> float:
     if sel.sum() < 2:
         return float("nan")
     return float(np.polyfit(np.log(n[sel]), np.log(r[sel]), 1)[0])
+
+
+#: A noise map whose implied pixel sigma differs from the image's measured pixel scatter
+#: by more than this factor (either way) is refused (:func:`map_type_problem`): a weight
+#: map read as RMS, or the reverse, is off by orders of magnitude unless sigma ~ 1.
+#: Drizzled noise (pixel scatter 0.5-0.8 x the map) and maps a few times off (what
+#: detection.WEIGHT_TYPE: MAP_WEIGHT rescales) stay well inside it.
+MAP_TYPE_FACTOR = 30.0
+
+
+def _implied_sigma(noise_map: np.ndarray, noise_type: str) -> np.ndarray:
+    """Per-pixel sigma a noise map states when read as ``noise_type`` (NaN without data)."""
+    a = np.asarray(noise_map, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        good = np.isfinite(a) & (a > 0)
+        return np.where(good, 1.0 / np.sqrt(a) if noise_type == "weight" else a, np.nan)
+
+
+def map_scale_ratio(science: np.ndarray, noise_map: np.ndarray, noise_type: str) -> float:
+    """Median sigma the map implies over the robust pixel scatter of the image (same pixels).
+
+    Parameters
+    ----------
+    science : ndarray
+        Science pixels [image units] (a sample is enough: :func:`glaciar.survey.strided_sample`).
+    noise_map : ndarray, same shape
+        Weight (inverse variance) or RMS map [image units^-2 or image units].
+    noise_type : {"weight", "rms"}
+
+    Returns
+    -------
+    float
+        ``median(implied sigma) / robust_sigma(science)`` over pixels with data in
+        both (exact zeros of the science image excluded: fill, not sky); NaN when fewer
+        than 100 such pixels or the image has no scatter (nothing to compare).
+    """
+    sig = _implied_sigma(noise_map, noise_type)
+    sci = np.asarray(science, np.float64)
+    ok = np.isfinite(sig) & np.isfinite(sci) & (sci != 0.0)
+    if ok.sum() < 100:
+        return float("nan")
+    scatter = robust_sigma(sci[ok])
+    if not scatter > 0:
+        return float("nan")
+    return float(np.median(sig[ok]) / scatter)
+
+
+def map_type_problem(science: np.ndarray, noise_map: np.ndarray, noise_type: str) -> str | None:
+    """Why a noise map cannot be what ``noise_type`` says, in one line without the path, or None.
+
+    Refused when the implied sigma is more than :data:`MAP_TYPE_FACTOR` times off the
+    image's pixel scatter (:func:`map_scale_ratio`); the fix named is the other
+    ``survey.noise_type`` when that reading fits within the factor, else the map's units.
+    """
+    q = map_scale_ratio(science, noise_map, noise_type)
+    if not np.isfinite(q) or 1.0 / MAP_TYPE_FACTOR <= q <= MAP_TYPE_FACTOR:
+        return None
+    other = "rms" if noise_type == "weight" else "weight"
+    q_other = map_scale_ratio(science, noise_map, other)
+    said = f"implied sigma {q:.3g}x the image's pixel scatter"
+    if np.isfinite(q_other) and 1.0 / MAP_TYPE_FACTOR <= q_other <= MAP_TYPE_FACTOR:
+        kind = "an RMS" if other == "rms" else "a weight (inverse-variance)"
+        return (f"survey.noise_type is {noise_type} but the map looks like {kind} map ({said}; "
+                f"read as {other}: {q_other:.3g}x); set survey.noise_type: {other}")
+    return (f"survey.noise_type is {noise_type} but the map does not fit the image's noise "
+            f"({said}; read as {other}: {q_other:.3g}x); check that the map is in the science "
+            "image's units (or, for a relative weight map, set detection.WEIGHT_TYPE: MAP_WEIGHT)")
