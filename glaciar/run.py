@@ -256,9 +256,10 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
     if len(npix) < 2:
         return CorrelatedNoise()        # too little empty sky to say: no correction
     model = CorrelatedNoise.fit(npix, ratio, n)
-    if background_excess(ratio, local, n, cfg.noise.identity_tolerance) is not None:
-        # Measured about local backgrounds where every radius has them (else the mesh's).
-        model = dataclasses.replace(CorrelatedNoise.fit(npix, np.where(np.isfinite(local), local, ratio), n),
+    excess = background_excess(ratio, local, n, cfg.noise.identity_tolerance)
+    if excess.any():
+        # The local-background scatter at the areas where the mesh's is in excess.
+        model = dataclasses.replace(CorrelatedNoise.fit(npix, np.where(excess, local, ratio), n),
                                     mesh_ratio=model.ratio)
     if cfg.noise.correlated != "off":
         rise = rise_exponent(model.npix, model.ratio)
@@ -274,15 +275,16 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
 
 
 def noise_warning(field: str, band: str, model: CorrelatedNoise, back_size) -> str | None:
-    """The one-line warning for a model measured about local backgrounds, or None."""
+    """The one-line warning for a model measured about local backgrounds (at the area where
+    the mesh's scatter exceeded it most), or None."""
     if not model.mesh_ratio:
         return None
     k = int(np.argmax(np.asarray(model.mesh_ratio) / np.asarray(model.ratio)))
     return (f"field {field!r}, band {band!r}: empty apertures scatter r({model.npix[k]:.0f} pixels) = "
             f"{model.mesh_ratio[k]:.2f} about the background mesh (detection.BACK_SIZE "
             f"{back_size}) but {model.ratio[k]:.2f} about their local background: background "
-            "residuals, not correlated noise; r(N) is taken about local backgrounds (a smaller "
-            "detection.BACK_SIZE follows this image's background better)")
+            "residuals, not correlated noise; r(N) is taken about local backgrounds there (a "
+            "smaller detection.BACK_SIZE follows this image's background better)")
 
 
 def noise_summary(noise_record: dict) -> list[str]:

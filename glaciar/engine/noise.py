@@ -555,14 +555,14 @@ class CorrelatedNoise:
 MAX_RISE_EXPONENT = 0.4
 
 
-def background_excess(ratio_mesh, ratio_local, n_apertures, tolerance: float = 0.05) -> int | None:
-    """Where sums about the background mesh scatter more than about local backgrounds.
+def background_excess(ratio_mesh, ratio_local, n_apertures, tolerance: float = 0.05) -> np.ndarray:
+    """Areas where sums about the background mesh scatter more than about local backgrounds.
 
     Parameters
     ----------
     ratio_mesh, ratio_local : array_like
         :func:`empty_aperture_scatter`'s ``ratio`` and ``ratio_local`` of the same
-        apertures (NaN local ratios are skipped).
+        apertures (NaN local ratios never count).
     n_apertures : array_like of int
         Apertures per area (each ratio's relative standard error ~1/sqrt(2n)).
     tolerance : float
@@ -570,22 +570,19 @@ def background_excess(ratio_mesh, ratio_local, n_apertures, tolerance: float = 0
 
     Returns
     -------
-    int or None
-        Index of the area with the largest ``ratio_mesh / ratio_local`` among those
-        where it exceeds ``1 + tolerance + 3 sqrt(1/n)`` (three standard errors of
-        the ratio of two such estimates), or None: the mesh leaves no background
-        residual these apertures can see. Only an excess counts: a residual
-        background adds variance to the mesh sums, never removes it.
+    ndarray of bool
+        True where ``ratio_mesh / ratio_local > 1 + tolerance + 3 sqrt(1/n)`` (three
+        standard errors of the ratio of two such estimates): the mesh leaves a
+        background residual these apertures see. Only an excess counts: a residual
+        adds variance to the sums, never removes it; where the local sums scatter
+        more (a background curved within the annulus), the mesh's are the better.
     """
     rm = np.asarray(ratio_mesh, np.float64)
     rl = np.asarray(ratio_local, np.float64)
     n = np.maximum(np.asarray(n_apertures, np.float64), 1.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         q = rm / rl
-    excess = np.isfinite(q) & (rl > 0) & (q > 1.0 + tolerance + 3.0 / np.sqrt(n))
-    if not excess.any():
-        return None
-    return int(np.flatnonzero(excess)[np.argmax(q[excess])])
+    return np.isfinite(q) & (rl > 0) & (q > 1.0 + tolerance + 3.0 / np.sqrt(n))
 
 
 def rise_exponent(npix, ratio) -> float:
