@@ -613,6 +613,9 @@ def rise_exponent(npix, ratio) -> float:
 #: Drizzled noise (pixel scatter 0.5-0.8 x the map) and maps a few times off (what
 #: detection.WEIGHT_TYPE: MAP_WEIGHT rescales) stay well inside it.
 MAP_TYPE_FACTOR = 30.0
+#: The other reading of a refused map is named as the fix when it fits within this factor
+#: (a map that fits neither reading that well is more likely in the wrong units).
+MAP_TYPE_ALTERNATIVE_FACTOR = 5.0
 
 
 def _implied_sigma(noise_map: np.ndarray, noise_type: str) -> np.ndarray:
@@ -657,7 +660,8 @@ def map_type_problem(science: np.ndarray, noise_map: np.ndarray, noise_type: str
 
     Refused when the implied sigma is more than :data:`MAP_TYPE_FACTOR` times off the
     image's pixel scatter (:func:`map_scale_ratio`); the fix named is the other
-    ``survey.noise_type`` when that reading fits within the factor, else the map's units.
+    ``survey.noise_type`` when that reading fits within :data:`MAP_TYPE_ALTERNATIVE_FACTOR`,
+    else the map's units.
     """
     q = map_scale_ratio(science, noise_map, noise_type)
     if not np.isfinite(q) or 1.0 / MAP_TYPE_FACTOR <= q <= MAP_TYPE_FACTOR:
@@ -665,7 +669,7 @@ def map_type_problem(science: np.ndarray, noise_map: np.ndarray, noise_type: str
     other = "rms" if noise_type == "weight" else "weight"
     q_other = map_scale_ratio(science, noise_map, other)
     said = f"implied sigma {q:.3g}x the image's pixel scatter"
-    if np.isfinite(q_other) and 1.0 / MAP_TYPE_FACTOR <= q_other <= MAP_TYPE_FACTOR:
+    if np.isfinite(q_other) and 1.0 / MAP_TYPE_ALTERNATIVE_FACTOR <= q_other <= MAP_TYPE_ALTERNATIVE_FACTOR:
         kind = "an RMS" if other == "rms" else "a weight (inverse-variance)"
         return (f"survey.noise_type is {noise_type} but the map looks like {kind} map ({said}; "
                 f"read as {other}: {q_other:.3g}x); set survey.noise_type: {other}")
