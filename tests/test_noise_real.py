@@ -199,13 +199,14 @@ def test_hff_dwarf_cutout_does_not_depend_on_the_mesh(tmp_path):
     # The noise model's 5-sigma depth in glaciar's depth aperture (radius = PSF FWHM),
     # r(N) x the map's aperture noise, against plain sep's empty apertures with local
     # annulus backgrounds (29.48 here): before, 28.69 (64) and 29.21 (32).
-    radius = hff.depth_radius_pix(hff.DATA)
-    rms = fits.getdata(hff.DATA / "abell_2744_dwarf_galaxy_f105w_rms.fits.gz").astype(float)
-    npix = math.pi * radius ** 2
+    # sep_depth is computed here with plain sep (benchmark's function, no glaciar code).
     sep_depth = hff.sep_depth(fits.getdata(hff.DATA / "abell_2744_dwarf_galaxy_f105w.fits.gz"),
-                              radius, hff.ZEROPOINT)
+                              hff.depth_radius_pix(hff.DATA), hff.ZEROPOINT)
+    assert 29.1 <= sep_depth <= 29.7                   # the 29.1-29.5
     for bs, r in rows.items():
-        ratio = np.interp(math.log(npix), np.log(r["npix"]), r["ratio"])
-        depth = hff.ZEROPOINT - 2.5 * math.log10(5 * ratio * math.sqrt(npix) * np.median(rms))
-        assert abs(depth - sep_depth) <= 0.3, (bs, depth, sep_depth)
+        assert abs(r["depth_model"] - sep_depth) <= 0.3, (bs, r["depth_model"], sep_depth)
         assert max(r["ratio"]) < 2.5            # before: 7.17 (64)
+        # m50 against sep's depth: 1.9 mag brighter (S/N >= 8 in isophotes of extended
+        # sources; completeness levelling at ~0.65), the same for both meshes (module docstring
+        # of benchmarks/hff_noise.py): bounded here, not equal.
+        assert 1.0 <= sep_depth - r["m50"] <= 2.5

@@ -430,9 +430,12 @@ def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good) -> float
     inside = (iy >= 0) & (iy < ny) & (ix >= 0) & (ix < nx)
     flat = np.clip(iy, 0, ny - 1) * nx + np.clip(ix, 0, nx - 1)
     ok = inside & usable.reshape(-1)[flat]
-    b = np.where(ok, _gather(image, flat).astype(np.float64), 0.0)
+    # In-memory images are indexed directly; memory maps by row blocks (:func:`_gather`).
+    take = (lambda a: _gather(a, flat)) if isinstance(image, np.memmap) or \
+        isinstance(rms, np.memmap) else (lambda a: np.asarray(a).reshape(-1)[flat])
+    b = np.where(ok, take(image).astype(np.float64), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        w = np.where(ok, 1.0 / _gather(rms, flat).astype(np.float64) ** 2, 0.0)
+        w = np.where(ok, 1.0 / take(rms).astype(np.float64) ** 2, 0.0)
     w = np.where(np.isfinite(w) & np.isfinite(b), w, 0.0)
     keep = good & (2 * np.count_nonzero(w > 0, axis=1) >= ay.size)
     if keep.sum() < MIN_EMPTY_APERTURES:
@@ -440,8 +443,9 @@ def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good) -> float
     # Plane a + c1 dx + c2 dy by weighted least squares, one 3x3 system per aperture.
     design = np.stack([np.ones(ay.size), ax / float(radius + 1), ay / float(radius + 1)], axis=1)
     w, b = w[keep], b[keep]
-    normal = np.einsum("nk,ki,kj->nij", w, design, design)
-    rhs = np.einsum("nk,ki->ni", w * np.where(w > 0, b, 0.0), design)
+    # Sums over the annulus as matrix products (BLAS): sum_k w_nk X_ki X_kj and sum_k w_nk b_nk X_ki.
+    normal = (w @ (design[:, :, None] * design[:, None, :]).reshape(-1, 9)).reshape(-1, 3, 3)
+    rhs = (w * b) @ design
     det = np.linalg.det(normal)
     fine = np.isfinite(det) & (det > 0)
     if fine.sum() < MIN_EMPTY_APERTURES:
