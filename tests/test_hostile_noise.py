@@ -179,3 +179,16 @@ def test_big_galaxy_warns_once_and_prints_the_factors(tmp_path, capsys):
     line = [s for s in out.splitlines() if s.startswith("noise f b:")]
     assert len(line) == 1 and "map scale 1" in line[0] and "applied" in line[0]
     assert "about local backgrounds" in line[0]
+
+
+@pytest.mark.skipif(not (synthetic.hff.DATA / "abell_2744_dwarf_galaxy_f105w_rms.fits.gz").is_file(),
+                    reason=f"HFF A2744 cutouts not present at {synthetic.hff.DATA}")
+def test_hff_rms_map_declared_weight_is_refused(tmp_path, capsys):
+    """The issue's case: before, it ran and gave C = 0 everywhere."""
+    data = synthetic.hff.hff_config(synthetic.hff.DATA, 64)
+    data["survey"]["noise_type"] = "weight"
+    cfg = tmp_path / "hff.yaml"
+    cfg.write_text(yaml.safe_dump(data, sort_keys=False))
+    err = refused_cli(capsys, tmp_path, cfg, tmp_path / "run")
+    assert "_rms.fits.gz: survey.noise_type is weight but the map looks like an RMS map" in err
+    assert err.endswith("set survey.noise_type: rms")
