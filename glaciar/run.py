@@ -945,7 +945,10 @@ def _check_noise_maps(cfg: Config, items: list[InputFile], fingerprints: dict, c
         if entry.get("map_type_checked") == stamp:
             continue
         try:
-            problem = map_type_problem(strided_sample(sci.path), strided_sample(item.path), ntype)
+            sci_pixels, map_pixels = strided_sample(sci.path), strided_sample(item.path)
+            # Shapes that differ are refused below, naming both (survey.shape).
+            problem = None if sci_pixels.shape != map_pixels.shape else \
+                map_type_problem(sci_pixels, map_pixels, ntype)
         except errors as exc:
             raise fail(item, exc) from None
         if problem is not None:
@@ -960,8 +963,9 @@ def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None =
     has finite pixels (checked once per file version: ``cache`` remembers it by
     path, size and mtime); a noise map must state a pixel sigma within a factor
     :data:`~glaciar.engine.noise.MAP_TYPE_FACTOR` of its image's pixel scatter
-    (a weight map declared as RMS, or the reverse, is refused with the fix); FITS PSFs must be finite with a positive sum and a
-    pixel scale (checked at every field's pixel scale); filter curves and
+    (a weight map declared as RMS, or the reverse, is refused with the fix:
+    :func:`_check_noise_maps`); FITS PSFs must be finite with a positive sum and
+    a pixel scale (checked at every field's pixel scale); filter curves and
     detection files must parse.  Nothing is written.
 
     Parameters
