@@ -78,9 +78,19 @@ def _cmd_simulate(args) -> int:
           f"({stats['setup_seconds']:.1f} s set-up), {1e3 * cpu / n:.3f} ms CPU per source "
           f"(whole process, all workers, set-up included; {1e3 * stats['cpu_seconds'] / n:.3f} "
           "inside the tasks)")
+    _print_noise(out)
     _report(out, regions=cfg.output.regions)
     print(f"results in {out}")
     return 0
+
+
+def _print_noise(out: Path) -> None:
+    """Each field's noise factors (map scale, r(N)) as the run's manifest records them."""
+    from .run import noise_summary
+    from .store import read_manifest
+
+    for line in noise_summary((read_manifest(out) or {}).get("noise")):
+        print(line)
 
 
 def _with_cells_option(cfg, path):

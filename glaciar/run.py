@@ -36,8 +36,8 @@ from .engine.coadd import coadd
 from .engine import fieldcache
 from .engine.context import R_EFF_LOG_STEP, FieldContext
 from .engine.depth import depth_area_histogram, local_depth_map
-from .engine.noise import (CorrelatedNoise, empty_aperture_scatter, empty_sky, source_margin,
-                           weight_rescale_factor)
+from .engine.noise import (MAX_RISE_EXPONENT, CorrelatedNoise, background_excess, empty_aperture_scatter,
+                           empty_sky, rise_exponent, source_margin, weight_rescale_factor)
 from .engine.selection import compile_selection
 from .engine.positions import placement_capacity
 from .engine.task import TaskSpec, draw_task_sources, field_key, run_task
@@ -247,12 +247,70 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
     else:
         usable = sky["usable"]
     seq = np.random.SeedSequence([field_key(field), field_key(band)])
-    npix, ratio, n = empty_aperture_scatter(base, rms, usable, radii,
-                                            cfg.noise.n_empty_apertures,
-                                            np.random.default_rng(seq), sky=sky["centres"])
+    # The same apertures are also summed about their own local backgrounds: a background
+    # mesh too coarse for the image (a large galaxy in a small cutout) leaves residuals
+    # that the sums about the mesh would read as correlated noise.
+    npix, ratio, n, local = empty_aperture_scatter(base, rms, usable, radii,
+                                                   cfg.noise.n_empty_apertures,
+                                                   np.random.default_rng(seq), sky=sky["centres"],
+                                                   local=True)
     if len(npix) < 2:
         return CorrelatedNoise()        # too little empty sky to say: no correction
-    return CorrelatedNoise.fit(npix, ratio, n)
+    model = CorrelatedNoise.fit(npix, ratio, n)
+    excess = background_excess(ratio, local, n, cfg.noise.identity_tolerance)
+    if excess.any():
+        # The local-background scatter at the areas where the mesh's is in excess.
+        model = dataclasses.replace(CorrelatedNoise.fit(npix, np.where(excess, local, ratio), n),
+                                    mesh_ratio=model.ratio)
+    if cfg.noise.correlated != "off":
+        rise = rise_exponent(model.npix, model.ratio)
+        if rise > MAX_RISE_EXPONENT and not model.is_identity(cfg.noise.identity_tolerance):
+            raise ValueError(
+                f"field {field!r}, band {band!r}: the empty-aperture noise ratio r(N) = "
+                f"{model.ratio[-1]:.2f} at N = {model.npix[-1]:.0f} pixels rises like N^{rise:.2f}, "
+                "as a background varying across the apertures does (e.g. a large galaxy's "
+                "faint wings), not like correlated noise (which levels off); mask that region "
+                f"(survey.mask), set a smaller detection.BACK_SIZE (now {cfg.detection.back_size}) "
+                "or set noise.correlated: 'off'")
+    return model
+
+
+def noise_warning(field: str, band: str, model: CorrelatedNoise, back_size) -> str | None:
+    """The one-line warning for a model measured about local backgrounds (at the area where
+    the mesh's scatter exceeded it most), or None."""
+    if not model.mesh_ratio:
+        return None
+    k = int(np.argmax(np.asarray(model.mesh_ratio) / np.asarray(model.ratio)))
+    return (f"field {field!r}, band {band!r}: empty apertures scatter r({model.npix[k]:.0f} pixels) = "
+            f"{model.mesh_ratio[k]:.2f} about the background mesh (detection.BACK_SIZE "
+            f"{back_size}) but {model.ratio[k]:.2f} about their local background: background "
+            "residuals, not correlated noise; r(N) is taken about local backgrounds there (a "
+            "smaller detection.BACK_SIZE follows this image's background better)")
+
+
+def noise_summary(noise_record: dict) -> list[str]:
+    """One line per field and band of a manifest's ``noise`` record: the factors applied.
+
+    The map scale (MAP_WEIGHT rescaling, 1 for an absolute map) and the range of
+    r(N), with whether it is applied to the errors and where it was measured.
+    """
+    lines = []
+    for field, bands in (noise_record or {}).items():
+        for band, rec in bands.items():
+            table = rec.get("correlated") or {}
+            npix, ratio = table.get("npix") or [], table.get("ratio") or []
+            if ratio:
+                span = " ".join(f"{r:.2f}" for r in ratio)
+                rn = (f"r(N) for N = {npix[0]:.0f}..{npix[-1]:.0f} pixels: {span}")
+            else:
+                rn = "r(N): not measured"
+            how = "applied" if rec.get("applied") else "not applied"
+            if table.get("mesh_ratio"):
+                how += (", about local backgrounds (about the mesh: up to "
+                        f"{max(table['mesh_ratio']):.2f})")
+            lines.append(f"noise {field} {band}: {rec.get('weight_type')}, map scale "
+                         f"{rec.get('weight_scale', 1.0):.3g}; {rn} ({how})")
+    return lines
 
 
 #: Pixels per block of the set-up's elementwise full-frame work (:func:`~glaciar.engine.blocks.row_blocks`).
@@ -265,6 +323,8 @@ def field_noise_record(cfg: Config, survey: Survey, field: str,
 
     Per band: the WEIGHT_TYPE, the MAP_WEIGHT rescaling factor (1 otherwise),
     the empty-aperture table r(N) and whether it is applied to the errors.
+    Warns (one line per band) where r(N) had to be measured about local
+    backgrounds (:func:`noise_warning`).
     ``ctx``: the field's context, if built (without a stacked detection image its
     noise maps and models are the ones measured here: nothing is measured twice).
     """
@@ -299,6 +359,10 @@ def field_noise_record(cfg: Config, survey: Survey, field: str,
 
 def _noise_entry(cfg: Config, survey: Survey, field: str, band: str, rms: np.ndarray,
                  from_background: bool, model: CorrelatedNoise) -> dict:
+    # Said here, once per field and run (the manifest's record), not in every worker.
+    message = noise_warning(field, band, model, cfg.detection.back_size)
+    if message is not None and cfg.noise.correlated != "off":
+        warnings.warn(message, UserWarning)
     scale = 1.0
     if cfg.detection.weight_type == "map_weight" and not from_background:
         raw = survey.rms(field, band)
@@ -894,13 +958,52 @@ def _check_image(item: InputFile) -> None:
         raise ValueError("no finite pixel in the image")
 
 
+def _check_noise_maps(cfg: Config, items: list[InputFile], fingerprints: dict, cache: dict,
+                      fail, errors) -> None:
+    """Each noise map against its science image's pixel scatter (:func:`~glaciar.engine.noise.map_type_problem`).
+
+    Not for a relative weight map (WEIGHT_TYPE MAP_WEIGHT: its scale is rescaled to the
+    image) nor an unused one (BACKGROUND). A strided sample of <= 2^20 pixels of each
+    image; checked once per (noise file version, noise_type, science file version):
+    ``cache`` remembers it.
+    """
+    from .engine.noise import map_type_problem
+    from .survey import strided_sample
+
+    if cfg.detection.weight_type in ("map_weight", "background"):
+        return
+    science = {(it.field, it.band): it for it in items if it.kind == "science"}
+    ntype = cfg.survey.noise_type
+    for item in items:
+        sci = science.get((item.field, item.band))
+        if item.kind != "noise" or sci is None:
+            continue
+        entry = cache.get(str(item.path.resolve()), {})
+        stamp = [ntype, fingerprints[sci.key].get("blake2b")]
+        if entry.get("map_type_checked") == stamp:
+            continue
+        try:
+            sci_pixels, map_pixels = strided_sample(sci.path), strided_sample(item.path)
+            # Shapes that differ are refused below, naming both (survey.shape).
+            problem = None if sci_pixels.shape != map_pixels.shape else \
+                map_type_problem(sci_pixels, map_pixels, ntype)
+        except errors as exc:
+            raise fail(item, exc) from None
+        if problem is not None:
+            raise InputError(f"{item.key}: {item.path}: {problem}")
+        entry["map_type_checked"] = stamp
+
+
 def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None = None) -> dict:
     """Check every input file of ``cfg`` and return its fingerprint.
 
     Science and noise images must be readable FITS files with a 2-D image that
     has finite pixels (checked once per file version: ``cache`` remembers it by
-    path, size and mtime); FITS PSFs must be finite with a positive sum and a
-    pixel scale (checked at every field's pixel scale); filter curves and
+    path, size and mtime); a noise map must state a pixel sigma within a factor
+    :data:`~glaciar.engine.noise.MAP_TYPE_FACTOR` of its image's pixel scatter
+    (a weight map declared as RMS, or the reverse, is refused with the fix:
+    :func:`_check_noise_maps`); FITS PSFs must be finite with a positive sum and
+    a pixel scale (checked at every field's pixel scale); filter curves and
     detection files must parse.  Nothing is written.
 
     Parameters
@@ -960,6 +1063,7 @@ def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None =
         if item.kind in ("science", "noise"):
             entry["checked"] = True
         out[item.key] = {"path": str(item.path), **fp}
+    _check_noise_maps(cfg, items, out, cache, fail, errors)
     # Shapes agree within each field, pixel scales are known, PSFs resample at every scale.
     scales = set()
     for f in cfg.survey.fields:

@@ -34,7 +34,9 @@ from scipy import ndimage
 
 from glaciar.engine.blocks import row_blocks
 
-__all__ = ["weight_rescale_factor", "empty_aperture_scatter", "empty_sky_distance", "distance_cap",
+__all__ = ["weight_rescale_factor", "empty_aperture_scatter", "background_excess", "rise_exponent",
+           "MAX_RISE_EXPONENT", "robust_sigma", "map_scale_ratio", "map_type_problem",
+           "MAP_TYPE_FACTOR", "empty_sky_distance", "distance_cap",
            "empty_sky", "EmptySky", "source_margin", "CorrelatedNoise",
            "DEFAULT_EMPTY_APERTURE_RADII_PIX", "MIN_EMPTY_APERTURES"]
 
@@ -82,7 +84,7 @@ def weight_rescale_factor(bkg_rms: np.ndarray, map_rms: np.ndarray, usable: np.n
     return float(np.median(np.asarray(bkg_rms, np.float64)[ok] / np.asarray(map_rms, np.float64)[ok]))
 
 
-def _robust_sigma(x: np.ndarray) -> float:
+def robust_sigma(x: np.ndarray) -> float:
     """Iteratively 3-sigma-clipped standard deviation, corrected to a Gaussian sigma.
 
     More efficient than the MAD (relative error ~1/sqrt(2n) against ~1.17/sqrt(n)).
@@ -273,8 +275,8 @@ def distance_cap(radii_pix) -> float:
 def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarray,
                            radii_pix=DEFAULT_EMPTY_APERTURE_RADII_PIX, n_per_radius: int = 1000,
                            rng: np.random.Generator | None = None,
-                           distance: np.ndarray | None = None, sky: EmptySky | None = None
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                           distance: np.ndarray | None = None, sky: EmptySky | None = None,
+                           local: bool = False) -> tuple[np.ndarray, ...]:
     """Measured over predicted scatter of sums in random empty circular apertures.
 
     Parameters
@@ -310,6 +312,10 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         the apertures: 1 for uncorrelated noise and a correct map.
     n_apertures : ndarray of int
         Apertures measured per radius.
+    ratio_local : ndarray
+        Only with ``local=True``: the same ratio for the same apertures, each sum taken
+        about its own local background (:func:`_local_background`); NaN where fewer than
+        :data:`MIN_EMPTY_APERTURES` apertures have enough empty sky around them.
 
     Notes
     -----
@@ -345,7 +351,7 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
             return _keep_beyond(flat_dist, candidates, limit)
     else:
         beyond = sky.beyond
-    out_n, out_r, out_k = [], [], []
+    out_n, out_r, out_k, out_l = [], [], [], []
     for r in radii:
         k = int(np.ceil(r))
         dy, dx = np.mgrid[-k:k + 1, -k:k + 1]
@@ -367,9 +373,88 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         if good.sum() < MIN_EMPTY_APERTURES:
             continue
         out_n.append(float(dy.size))
-        out_r.append(_robust_sigma(s[good] / np.sqrt(v[good])))
+        out_r.append(robust_sigma(s[good] / np.sqrt(v[good])))
         out_k.append(int(good.sum()))
+        if local:
+            out_l.append(_local_ratio(image, rms, usable, centres[pick], r, dy.size, s, v, good))
+    if local:
+        return (np.array(out_n), np.array(out_r), np.array(out_k, dtype=np.int64),
+                np.array(out_l, dtype=np.float64))
     return np.array(out_n), np.array(out_r), np.array(out_k, dtype=np.int64)
+
+
+#: Local background of an empty aperture (:func:`_local_ratio`): an annulus from the
+#: aperture radius + ANNULUS_GAP_PIX [pixels] (past the few-pixel correlation length of a
+#: drizzle kernel, so aperture and annulus noise are nearly independent) enclosing
+#: max(ANNULUS_AREA_FACTOR x N, ANNULUS_MIN_PIXELS) pixels for an aperture of N pixels.
+ANNULUS_GAP_PIX = 2.0
+ANNULUS_AREA_FACTOR = 4.0
+ANNULUS_MIN_PIXELS = 200
+
+
+def _annulus_offsets(radius: float, npix: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel offsets (dy, dx) of the local-background annulus of an aperture of ``npix`` pixels."""
+    r_in = float(radius) + ANNULUS_GAP_PIX
+    area = max(ANNULUS_AREA_FACTOR * npix, ANNULUS_MIN_PIXELS)
+    r_out = np.sqrt(area / np.pi + r_in * r_in)
+    k = int(np.ceil(r_out))
+    dy, dx = np.mgrid[-k:k + 1, -k:k + 1]
+    d2 = dy ** 2 + dx ** 2
+    ring = (d2 >= r_in * r_in) & (d2 < r_out * r_out)
+    return dy[ring], dx[ring]
+
+
+def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good) -> float:
+    """The empty-aperture ratio of sums taken about each aperture's local background.
+
+    The background is a plane fitted (weights 1/rms^2) to the usable pixels of the
+    aperture's annulus (:func:`_annulus_offsets`; at least half of them usable, else
+    the aperture is dropped) and evaluated at the aperture's centre: the aperture is
+    symmetric about it, so ``N`` times that value is the plane's sum over it, and a
+    background gradient cancels even where the annulus is cut by a masked source.
+    Subtracting it adds ``N^2 Var(plane at the centre)`` to the variance the map
+    predicts (``[(X^T W X)^-1]_00`` of the fit), which enters the prediction: for
+    uncorrelated noise and a correct map the ratio is 1, as without the annulus. For
+    correlated noise the ratio is a weighted mean of ``r(N)^2`` and the annulus's own
+    ``r^2``, with weight ~N/m <= 1/4 on the latter (equal once r(N) has levelled off).
+
+    Returns
+    -------
+    float
+        Clipped scatter (as :func:`empty_aperture_scatter`), NaN with too few apertures.
+    """
+    ny, nx = usable.shape
+    ay, ax = _annulus_offsets(radius, npix)
+    iy = centres[:, None] // nx + ay[None, :]
+    ix = centres[:, None] % nx + ax[None, :]
+    inside = (iy >= 0) & (iy < ny) & (ix >= 0) & (ix < nx)
+    flat = np.clip(iy, 0, ny - 1) * nx + np.clip(ix, 0, nx - 1)
+    ok = inside & usable.reshape(-1)[flat]
+    # In-memory images are indexed directly; memory maps by row blocks (:func:`_gather`).
+    take = (lambda a: _gather(a, flat)) if isinstance(image, np.memmap) or \
+        isinstance(rms, np.memmap) else (lambda a: np.asarray(a).reshape(-1)[flat])
+    b = np.where(ok, take(image).astype(np.float64), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(ok, 1.0 / take(rms).astype(np.float64) ** 2, 0.0)
+    w = np.where(np.isfinite(w) & np.isfinite(b), w, 0.0)
+    keep = good & (2 * np.count_nonzero(w > 0, axis=1) >= ay.size)
+    if keep.sum() < MIN_EMPTY_APERTURES:
+        return float("nan")
+    # Plane a + c1 dx + c2 dy by weighted least squares, one 3x3 system per aperture.
+    design = np.stack([np.ones(ay.size), ax / float(radius + 1), ay / float(radius + 1)], axis=1)
+    w, b = w[keep], b[keep]
+    # Sums over the annulus as matrix products (BLAS): sum_k w_nk X_ki X_kj and sum_k w_nk b_nk X_ki.
+    normal = (w @ (design[:, :, None] * design[:, None, :]).reshape(-1, 9)).reshape(-1, 3, 3)
+    rhs = (w * b) @ design
+    det = np.linalg.det(normal)
+    fine = np.isfinite(det) & (det > 0)
+    if fine.sum() < MIN_EMPTY_APERTURES:
+        return float("nan")
+    inv = np.linalg.inv(normal[fine])
+    level = np.einsum("ni,ni->n", inv[:, 0, :], rhs[fine])
+    t = s[keep][fine] - npix * level
+    var = v[keep][fine] + npix * npix * inv[:, 0, 0]
+    return robust_sigma(t / np.sqrt(var))
 
 
 def _gather(a: np.ndarray, flat: np.ndarray) -> np.ndarray:
@@ -413,11 +498,16 @@ class CorrelatedNoise:
         Measured ``r(N)``.
     n_apertures : tuple of int
         Apertures behind each ratio (its standard error is ~1/sqrt(2n)).
+    mesh_ratio : tuple of float
+        Empty unless ``ratio`` was measured about local backgrounds because the sums
+        about the background mesh scattered more (:func:`background_excess`): then those
+        mesh ratios, per ``npix``, for the record.
     """
 
     npix: tuple = (1.0,)
     ratio: tuple = (1.0,)
     n_apertures: tuple = ()
+    mesh_ratio: tuple = ()
 
     @classmethod
     def fit(cls, npix, ratio, n_apertures=None) -> "CorrelatedNoise":
@@ -452,6 +542,141 @@ class CorrelatedNoise:
         return bool(np.all(np.abs(ratio - 1.0) <= tolerance + 3.0 / np.sqrt(2.0 * n)))
 
     def to_dict(self) -> dict:
-        """Plain values for the run's manifest."""
-        return {"npix": list(self.npix), "ratio": list(self.ratio),
-                "n_apertures": list(self.n_apertures)}
+        """Plain values for the run's manifest (``mesh_ratio`` only where local backgrounds were used)."""
+        out = {"npix": list(self.npix), "ratio": list(self.ratio),
+               "n_apertures": list(self.n_apertures)}
+        if self.mesh_ratio:
+            out["mesh_ratio"] = list(self.mesh_ratio)
+        return out
+
+
+#: Largest rise of ln r(N) per ln N over the largest measured areas that counts as
+#: correlated noise (:func:`rise_exponent`). Correlated noise levels off (exponent -> 0)
+#: once apertures exceed its correlation length; an offset common to the aperture (a
+#: background residual) makes the sum's scatter grow like N, i.e. r(N) like N^(1/2).
+#: 0.4 sits between: HFF A2744 F105W about local backgrounds rises with 0.28 over
+#: N = 57-401 pixels, about a 64-pixel mesh around its large galaxy with 0.45.
+MAX_RISE_EXPONENT = 0.4
+
+
+def background_excess(ratio_mesh, ratio_local, n_apertures, tolerance: float = 0.05) -> np.ndarray:
+    """Areas where sums about the background mesh scatter more than about local backgrounds.
+
+    Parameters
+    ----------
+    ratio_mesh, ratio_local : array_like
+        :func:`empty_aperture_scatter`'s ``ratio`` and ``ratio_local`` of the same
+        apertures (NaN local ratios never count).
+    n_apertures : array_like of int
+        Apertures per area (each ratio's relative standard error ~1/sqrt(2n)).
+    tolerance : float
+        Relative excess always allowed (``noise.identity_tolerance``).
+
+    Returns
+    -------
+    ndarray of bool
+        True where ``ratio_mesh / ratio_local > 1 + tolerance + 3 sqrt(1/n)`` (three
+        standard errors of the ratio of two such estimates): the mesh leaves a
+        background residual these apertures see. Only an excess counts: a residual
+        adds variance to the sums, never removes it; where the local sums scatter
+        more (a background curved within the annulus), the mesh's are the better.
+    """
+    rm = np.asarray(ratio_mesh, np.float64)
+    rl = np.asarray(ratio_local, np.float64)
+    n = np.maximum(np.asarray(n_apertures, np.float64), 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = rm / rl
+    return np.isfinite(q) & (rl > 0) & (q > 1.0 + tolerance + 3.0 / np.sqrt(n))
+
+
+def rise_exponent(npix, ratio) -> float:
+    """Least-squares slope of ln r against ln N over the areas within a decade of the largest.
+
+    Parameters
+    ----------
+    npix, ratio : array_like
+        A :class:`CorrelatedNoise` table (areas [pixels], increasing).
+
+    Returns
+    -------
+    float
+        The slope (0 for noise that has levelled off, 1/2 for a coherent offset);
+        NaN with fewer than two such areas.
+    """
+    n = np.asarray(npix, np.float64)
+    r = np.asarray(ratio, np.float64)
+    sel = (n >= n.max() / 10.0) & (r > 0) if n.size else np.zeros(0, bool)
+    if sel.sum() < 2:
+        return float("nan")
+    return float(np.polyfit(np.log(n[sel]), np.log(r[sel]), 1)[0])
+
+
+#: A noise map whose implied pixel sigma differs from the image's measured pixel scatter
+#: by more than this factor (either way) is refused (:func:`map_type_problem`): a weight
+#: map read as RMS, or the reverse, is off by orders of magnitude unless sigma ~ 1.
+#: Drizzled noise (pixel scatter 0.5-0.8 x the map) and maps a few times off (what
+#: detection.WEIGHT_TYPE: MAP_WEIGHT rescales) stay well inside it.
+MAP_TYPE_FACTOR = 30.0
+#: The other reading of a refused map is named as the fix when it fits within this factor
+#: (a map that fits neither reading that well is more likely in the wrong units).
+MAP_TYPE_ALTERNATIVE_FACTOR = 5.0
+
+
+def _implied_sigma(noise_map: np.ndarray, noise_type: str) -> np.ndarray:
+    """Per-pixel sigma a noise map states when read as ``noise_type`` (NaN without data)."""
+    a = np.asarray(noise_map, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        good = np.isfinite(a) & (a > 0)
+        return np.where(good, 1.0 / np.sqrt(a) if noise_type == "weight" else a, np.nan)
+
+
+def map_scale_ratio(science: np.ndarray, noise_map: np.ndarray, noise_type: str) -> float:
+    """Median sigma the map implies over the robust pixel scatter of the image (same pixels).
+
+    Parameters
+    ----------
+    science : ndarray
+        Science pixels [image units] (a sample is enough: :func:`glaciar.survey.strided_sample`).
+    noise_map : ndarray, same shape
+        Weight (inverse variance) or RMS map [image units^-2 or image units].
+    noise_type : {"weight", "rms"}
+
+    Returns
+    -------
+    float
+        ``median(implied sigma) / robust_sigma(science)`` over pixels with data in
+        both (exact zeros of the science image excluded: fill, not sky); NaN when fewer
+        than 100 such pixels or the image has no scatter (nothing to compare).
+    """
+    sig = _implied_sigma(noise_map, noise_type)
+    sci = np.asarray(science, np.float64)
+    ok = np.isfinite(sig) & np.isfinite(sci) & (sci != 0.0)
+    if ok.sum() < 100:
+        return float("nan")
+    scatter = robust_sigma(sci[ok])
+    if not scatter > 0:
+        return float("nan")
+    return float(np.median(sig[ok]) / scatter)
+
+
+def map_type_problem(science: np.ndarray, noise_map: np.ndarray, noise_type: str) -> str | None:
+    """Why a noise map cannot be what ``noise_type`` says, in one line without the path, or None.
+
+    Refused when the implied sigma is more than :data:`MAP_TYPE_FACTOR` times off the
+    image's pixel scatter (:func:`map_scale_ratio`); the fix named is the other
+    ``survey.noise_type`` when that reading fits within :data:`MAP_TYPE_ALTERNATIVE_FACTOR`,
+    else the map's units.
+    """
+    q = map_scale_ratio(science, noise_map, noise_type)
+    if not np.isfinite(q) or 1.0 / MAP_TYPE_FACTOR <= q <= MAP_TYPE_FACTOR:
+        return None
+    other = "rms" if noise_type == "weight" else "weight"
+    q_other = map_scale_ratio(science, noise_map, other)
+    said = f"implied sigma {q:.3g}x the image's pixel scatter"
+    if np.isfinite(q_other) and 1.0 / MAP_TYPE_ALTERNATIVE_FACTOR <= q_other <= MAP_TYPE_ALTERNATIVE_FACTOR:
+        kind = "an RMS" if other == "rms" else "a weight (inverse-variance)"
+        return (f"survey.noise_type is {noise_type} but the map looks like {kind} map ({said}; "
+                f"read as {other}: {q_other:.3g}x); set survey.noise_type: {other}")
+    return (f"survey.noise_type is {noise_type} but the map does not fit the image's noise "
+            f"({said}; read as {other}: {q_other:.3g}x); check that the map is in the science "
+            "image's units (or, for a relative weight map, set detection.WEIGHT_TYPE: MAP_WEIGHT)")
