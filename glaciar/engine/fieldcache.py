@@ -73,8 +73,10 @@ import numpy as np
 __all__ = ["save", "load", "exists", "UnreadableCache", "release", "Trimmer", "trim", "TiledArray", "Tiled", "spill", "FORMAT",
            "MMAP_MIN_BYTES", "RESIDENT_BUDGET_BYTES", "TILE"]
 
-#: Version of the on-disk layout (part of a cache's key: a new layout never reads an old one).
-FORMAT = 1
+#: Version of the on-disk layout and of what it holds (part of a cache's key: a new layout
+#: never reads an old one). 2: r(N) measured about local backgrounds where the mesh leaves
+#: residuals (issue 21), so a cache holding the mesh-only r(N) is not reused.
+FORMAT = 2
 #: Arrays at least this large [bytes] are memory-mapped; smaller ones (catalogues) are read.
 MMAP_MIN_BYTES = 1 << 20
 #: File-backed resident pages [bytes] a worker lets accumulate before they are dropped: with
