@@ -44,6 +44,7 @@ from __future__ import annotations
 import argparse
 import math
 import tempfile
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -54,6 +55,9 @@ from astropy.io import fits
 from scipy import optimize
 
 from glaciar import constants as C
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from correlated_noise import m50_logistic  # noqa: E402  (the same m50 estimator as that benchmark)
 
 DATA = Path("/work/shared/data/hff-a2744-petrofit")
 FIELD, BAND = "abell_2744_dwarf_galaxy", "f105w"
@@ -79,20 +83,6 @@ def hff_config(data: Path, back_size: int, *, n_galaxies: int = 10, n_iterations
     }
 
 
-def m50_logistic(mag, recovered) -> float:
-    """m50 of P(recovered) = c / (1 + exp((m - m50) / w)) by maximum likelihood."""
-    mag = np.asarray(mag, float)
-    k = np.asarray(recovered, bool)
-
-    def nll(p):
-        c = 1.0 / (1.0 + math.exp(-p[0]))
-        prob = c / (1.0 + np.exp(np.clip((mag - p[1]) / math.exp(p[2]), -50, 50)))
-        prob = np.clip(prob, 1e-12, 1 - 1e-12)
-        return -np.sum(np.where(k, np.log(prob), np.log1p(-prob)))
-
-    res = optimize.minimize(nll, [3.0, float(np.median(mag)), math.log(0.3)], method="Nelder-Mead",
-                            options={"xatol": 1e-6, "fatol": 1e-8, "maxiter": 4000})
-    return float(res.x[1])
 
 
 def sep_depth(image: np.ndarray, radius_pix: float, zeropoint: float, *, nsigma: float = 5.0,

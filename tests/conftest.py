@@ -156,3 +156,21 @@ def two_depth_run(two_depth_survey, tmp_path_factory):
 def deep_corner_run(deep_corner_survey, tmp_path_factory):
     """``deep_corner_survey`` simulated once (2 workers): (Config, run directory)."""
     return _simulated(deep_corner_survey, tmp_path_factory.mktemp("deep_corner_run"))
+
+
+@pytest.fixture
+def fallocate_enospc(monkeypatch):
+    """``enospc(where=None)``: make ``os.posix_fallocate`` fail with ENOSPC (a full disk),
+    for files whose path contains ``where`` (every file when None)."""
+    import errno
+    import os
+
+    real = os.posix_fallocate
+
+    def enospc(where=None):
+        def fake(fd, offset, length):
+            if where is None or where in os.readlink(f"/proc/self/fd/{fd}"):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return real(fd, offset, length)
+        monkeypatch.setattr(os, "posix_fallocate", fake)
+    return enospc

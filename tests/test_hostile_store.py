@@ -104,15 +104,6 @@ def _task_files(run):
     return sorted((run / C.RESULTS_DIRNAME).glob("task_*.parquet"))
 
 
-def _fallocate_enospc(monkeypatch, where=None):
-    """``os.posix_fallocate`` fails with ENOSPC for files whose path contains ``where``."""
-    real = os.posix_fallocate
-
-    def fake(fd, offset, length):
-        if where is None or where in os.readlink(f"/proc/self/fd/{fd}"):
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        return real(fd, offset, length)
-    monkeypatch.setattr(os, "posix_fallocate", fake)
 
 
 # --------------------------------------------------------------------------
@@ -223,13 +214,13 @@ def test_field_names_holding_paths_stay_in_the_summary_directory(field, hostile_
 # --------------------------------------------------------------------------
 # 7. Full disks: one line naming the file; the same command resumes
 # --------------------------------------------------------------------------
-def test_full_disk_while_writing_a_task(run, two_task_run, capsys, monkeypatch):
+def test_full_disk_while_writing_a_task(run, two_task_run, capsys, monkeypatch, fallocate_enospc):
     cfg_path, _ = two_task_run
     ref = _rows(run)
     gone = _task_files(run)[1]
     gone.unlink()
     before_run = _snapshot(run)
-    _fallocate_enospc(monkeypatch, where=f"/{C.RESULTS_DIRNAME}/")
+    fallocate_enospc(where=f"/{C.RESULTS_DIRNAME}/")
     code, lines = _cli(capsys, "simulate", cfg_path, "--out", run, "--workers", 1, "--quiet")
     assert code == 2
     _one_error(lines, "simulate", rf"{re.escape(str(gone))}: no space left on device; free "
@@ -242,10 +233,11 @@ def test_full_disk_while_writing_a_task(run, two_task_run, capsys, monkeypatch):
     pd.testing.assert_frame_equal(_rows(run), ref)
 
 
-def test_full_disk_before_anything_is_written(two_task_run, tmp_path, capsys, monkeypatch):
+def test_full_disk_before_anything_is_written(two_task_run, tmp_path, capsys, monkeypatch,
+                                              fallocate_enospc):
     cfg_path, _ = two_task_run
     out = tmp_path / "new_run"
-    _fallocate_enospc(monkeypatch)
+    fallocate_enospc()
     code, lines = _cli(capsys, "simulate", cfg_path, "--out", out, "--workers", 1, "--quiet")
     assert code == 2
     _one_error(lines, "simulate", rf"{re.escape(str(out / C.MANIFEST_NAME))}: no space left")
@@ -253,9 +245,9 @@ def test_full_disk_before_anything_is_written(two_task_run, tmp_path, capsys, mo
     assert set(os.listdir(out)) <= {C.LOCK_NAME}
 
 
-def test_full_disk_while_reporting(run, capsys, monkeypatch):
+def test_full_disk_while_reporting(run, capsys, monkeypatch, fallocate_enospc):
     before_run = _snapshot(run)
-    _fallocate_enospc(monkeypatch)
+    fallocate_enospc()
     code, lines = _cli(capsys, "report", run)
     assert code == 2
     _one_error(lines, "report", rf"{re.escape(str(run / C.SUMMARY_DIRNAME))}/\S+: no space left")
@@ -263,12 +255,12 @@ def test_full_disk_while_reporting(run, capsys, monkeypatch):
 
 
 def test_field_cache_on_a_full_disk_warns_and_the_run_goes_on(run, two_task_run, capsys,
-                                                              monkeypatch):
+                                                              monkeypatch, fallocate_enospc):
     """Documented: the field's arrays stay in memory (one warning naming the cache)."""
     cfg_path, _ = two_task_run
     ref = _rows(run)
     _task_files(run)[0].unlink()
-    _fallocate_enospc(monkeypatch, where=f"/{C.CONTEXT_DIRNAME}/")
+    fallocate_enospc(where=f"/{C.CONTEXT_DIRNAME}/")
     code, lines = _cli(capsys, "simulate", cfg_path, "--out", run, "--workers", 1, "--quiet")
     assert code == 0
     warned = [ln for ln in lines if "field cache not written" in ln]

@@ -74,15 +74,6 @@ def _poke(path, at, junk=b"\xa5"):
     path.write_bytes(bytes(data))
 
 
-def _enospc_fallocate(monkeypatch, where=None):
-    """``os.posix_fallocate`` failing with ENOSPC (for files whose path contains ``where``)."""
-    real = os.posix_fallocate
-
-    def fake(fd, offset, length):
-        if where is None or where in os.readlink(f"/proc/self/fd/{fd}"):
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        return real(fd, offset, length)
-    monkeypatch.setattr(os, "posix_fallocate", fake)
 
 
 # --------------------------------------------------------------------------
@@ -153,10 +144,11 @@ def test_a_linked_partition_of_compacted_parts_is_refused(tmp_path):
 # --------------------------------------------------------------------------
 # 7. Full disks: one line naming the file; mapped files allocated before they are mapped
 # --------------------------------------------------------------------------
-def test_atomic_write_on_a_full_disk_names_the_file_and_changes_nothing(tmp_path, monkeypatch):
+def test_atomic_write_on_a_full_disk_names_the_file_and_changes_nothing(tmp_path, monkeypatch,
+                                                                        fallocate_enospc):
     p = tmp_path / "x.json"
     p.write_text("old")
-    _enospc_fallocate(monkeypatch)
+    fallocate_enospc()
     with pytest.raises(DiskFullError) as err:
         atomic_write_bytes(p, b"new")
     msg = str(err.value)
@@ -165,10 +157,10 @@ def test_atomic_write_on_a_full_disk_names_the_file_and_changes_nothing(tmp_path
     assert p.read_text() == "old" and sorted(os.listdir(tmp_path)) == ["x.json"]
 
 
-def test_field_cache_is_allocated_before_it_is_mapped(tmp_path, monkeypatch):
+def test_field_cache_is_allocated_before_it_is_mapped(tmp_path, monkeypatch, fallocate_enospc):
     """np.lib.format.open_memmap maps a sparse file: a full disk then kills with SIGBUS.
     The cache reserves its blocks first, so the full disk is an error naming the cache."""
-    _enospc_fallocate(monkeypatch)
+    fallocate_enospc()
     target = tmp_path / ".context" / "abc"
     with pytest.raises(DiskFullError, match=rf"^{_at(target)}: no space left on device"):
         fieldcache.save({"image": np.ones((64, 64), np.float32)}, target)
