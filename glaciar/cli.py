@@ -320,8 +320,31 @@ def _positive_int_number(text):
 _non_negative_int = _int_at_least(0)
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """Help text with each option's default appended, ``(default: X)``.
+
+    Only a default worth showing is appended: not for flags (``store_true``), not for a
+    default of None (whose help text says in words what happens without the option), and not
+    when the help already names its default.
+    """
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if ("%(default)" in text or "default" in text.lower() or action.default is None
+                or action.default is argparse.SUPPRESS or action.nargs == 0):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
 class _Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose errors are one line: ``glaciar: error: --workers: ...`` (exit 2)."""
+    """An ArgumentParser whose errors are one line: ``glaciar: error: --workers: ...`` (exit 2).
+
+    Its sub-parsers are of the same class, so every one shows defaults (``_HelpFormatter``).
+    """
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message):
         if message.startswith("argument "):
@@ -330,35 +353,56 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"glaciar: error: {message}\n")
 
 
+# Help strings shared by several sub-commands (one wording each).
+_HELP_QUIET = "no progress bar or per-step progress lines"
+_HELP_WORKERS = "worker processes, >= 1 (default: all CPUs)"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="glaciar", description=__doc__.splitlines()[0])
-    p.add_argument("--version", action="version", version=f"glaciar {__version__}")
-    sub = p.add_subparsers(dest="command", required=True)
+    """The ``glaciar`` argument parser: one sub-parser per command, help on every option."""
+    p = _Parser(prog="glaciar", description=__doc__.splitlines()[0],
+                epilog="Run `glaciar COMMAND --help` for a command's options; README.md and docs/ "
+                       "for the whole guide.")
+    p.add_argument("--version", action="version", version=f"glaciar {__version__}",
+                   help="print glaciar's version and exit")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND",
+                           help="one of the commands below")
 
     s = sub.add_parser("demo", help="build the embedded demo survey and run simulate → report → fit")
-    s.add_argument("--out", default="glaciar-demo")
-    s.add_argument("--workers", type=_positive_int, default=None)
-    s.add_argument("--seed", type=_non_negative_int, default=2018)
-    s.add_argument("--no-fit", action="store_true")
-    s.add_argument("--quiet", action="store_true")
+    s.add_argument("--out", default="glaciar-demo",
+                   help="output directory: the survey goes to OUT/survey, the run to OUT/run")
+    s.add_argument("--workers", type=_positive_int, default=None, help=_HELP_WORKERS)
+    s.add_argument("--seed", type=_non_negative_int, default=2018,
+                   help="seed of the synthetic survey's images, also written as the demo "
+                        "configuration's simulation.seed (an integer >= 0)")
+    s.add_argument("--no-fit", action="store_true",
+                   help="stop after simulate and report (no selection function)")
+    s.add_argument("--quiet", action="store_true", help=_HELP_QUIET)
     s.set_defaults(func=_cmd_demo)
 
     s = sub.add_parser("init", help="write a commented configuration template")
-    s.add_argument("path", nargs="?", default="glaciar.yaml")
-    s.add_argument("--force", action="store_true")
+    s.add_argument("path", nargs="?", default="glaciar.yaml",
+                   help="where to write the template (YAML)")
+    s.add_argument("--force", action="store_true", help="overwrite PATH if it exists")
     s.set_defaults(func=_cmd_init)
 
     s = sub.add_parser("simulate", help="run (or resume) the injection-recovery simulation")
-    s.add_argument("config")
+    s.add_argument("config", help="configuration file (YAML, or GLACiAR's parameters.yaml), or a "
+                                  "run's stored RUN/config.yaml")
     s.add_argument("--out", default=None, help="run directory (default: glaciar-run beside the config)")
-    s.add_argument("--workers", type=_positive_int, default=None,
-                   help="worker processes, >= 1 (default: all CPUs)")
+    s.add_argument("--workers", type=_positive_int, default=None, help=_HELP_WORKERS)
     s.add_argument("--seed", type=_non_negative_int, default=None,
-                   help="override simulation.seed (an integer >= 0)")
-    s.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
-    s.add_argument("--mode", choices=["windowed", "full"], default="windowed")
+                   help="override simulation.seed (an integer >= 0; default: the configuration's)")
+    s.add_argument("--scheduler", default=None,
+                   help="Dask scheduler address, e.g. tcp://host:8786 (default: local worker "
+                        "processes; needs pip install glaciar[dask])")
+    s.add_argument("--mode", choices=["windowed", "full"], default="windowed",
+                   help="windowed: detect each injected source in a window grown until it equals "
+                        "the full-frame answer; full: extract the whole frame per task (for "
+                        "validation, slower)")
     s.add_argument("--cells", default=None, metavar="CELLS_YAML",
-                   help="add the cells of this file (as written by `glaciar next --write`)")
+                   help="add the cells of this file (as written by `glaciar next --write`; "
+                        "default: none)")
     s.add_argument("--adaptive", action="store_true",
                    help="after the design, rounds of fit -> propose -> simulate until "
                         "--target-sd or --budget (glaciar.pipeline.adaptive). A design "
@@ -367,48 +411,58 @@ def build_parser() -> argparse.ArgumentParser:
                         "the budget (fewer iterations if even the corners cost more), "
                         "without grid.cells/box; the rounds fill in the rest")
     s.add_argument("--target-sd", type=_finite_positive, default=0.02,
-                   help="stop when the largest posterior sd of C*S over the grid is below this")
+                   help="with --adaptive: stop when the largest posterior sd of C*S over the "
+                        "candidate cells is below this")
     s.add_argument("--budget", type=_positive_int_number, default=None,
-                   help="stop at this many injected sources, exceeded by less than one "
-                        "task per field (default: 3x the design)")
+                   help="with --adaptive: stop at this many injected sources, exceeded by less "
+                        "than one task per field (default: 3x the design)")
     s.add_argument("--round-size", type=_positive_int_number, default=None,
-                   help="sources added per round (default: a tenth of the design)")
+                   help="with --adaptive: sources added per round (default: a tenth of the "
+                        "design, at least one task per field)")
     s.add_argument("--max-steps", type=_positive_int, default=None,
-                   help="cap on each round's sampler steps")
-    s.add_argument("--quiet", action="store_true")
+                   help="with --adaptive: cap on each round's sampler steps (default: 20000, as "
+                        "glaciar fit)")
+    s.add_argument("--quiet", action="store_true", help=_HELP_QUIET)
     s.set_defaults(func=_cmd_simulate)
 
     s = sub.add_parser("report", help="summary tables (ECSV) and plots of a run")
-    s.add_argument("run_dir")
+    s.add_argument("run_dir", help="a run directory written by `glaciar simulate`")
     s.add_argument("--regions", action="store_true", help="also write DS9 region files")
     s.add_argument("--html", action="store_true",
                    help="also write RUN_DIR/report.html, one self-contained page (glaciar.report)")
     s.set_defaults(func=_cmd_report)
 
     s = sub.add_parser("fit", help="fit C(m, z) and S(z, m) with emcee; write selection_function.fits")
-    s.add_argument("run_dir")
+    s.add_argument("run_dir", help="a run directory written by `glaciar simulate`")
     s.add_argument("--model", default="auto", choices=["auto", "logistic", "erf", "fleming", "sas"],
                    help="completeness step (auto: chosen by PSIS-LOO; sas: flexible monotone)")
     s.add_argument("--max-steps", type=_positive_int, default=None,
-                   help="cap on each chain's steps in this call (a re-run extends unconverged chains)")
+                   help="cap on each chain's steps in this call; chains stop earlier once converged, "
+                        "and a re-run extends unconverged ones (default: 20000)")
     s.add_argument("--depth", default="auto", choices=["auto", "on", "off"],
                    help="depth-aware completeness C(m - local depth, z) (auto: when depth varies)")
-    s.add_argument("--per-field", action="store_true")
-    s.add_argument("--seed", type=_non_negative_int, default=0)
+    s.add_argument("--per-field", action="store_true",
+                   help="fit every field separately instead of pooled (one fit per field in "
+                        "selection_function.fits; read one with field=)")
+    s.add_argument("--seed", type=_non_negative_int, default=0,
+                   help="seed of the sampler's start and draws (an integer >= 0)")
     s.add_argument("--area-arcmin2", type=_finite_positive, default=None,
                    help="survey area for V_eff (default: the footprint area in the run manifest)")
-    s.add_argument("--cosmology", default=None, help="astropy realisation for V_eff (default Planck18)")
-    s.add_argument("--quiet", action="store_true")
+    s.add_argument("--cosmology", default=None,
+                   help="astropy realisation for V_eff, e.g. WMAP9 (default: Planck18)")
+    s.add_argument("--quiet", action="store_true", help=_HELP_QUIET)
     s.set_defaults(func=_cmd_fit)
 
     s = sub.add_parser("next", help="(z, m) cells where the fitted selection is least certain")
-    s.add_argument("run_dir")
+    s.add_argument("run_dir", help="a run directory fitted by `glaciar fit`")
     s.add_argument("-n", type=_positive_int, default=5, help="number of cells (>= 1)")
-    s.add_argument("--field", default=None, help="which field's fit, for per-field files")
+    s.add_argument("--field", default=None,
+                   help="which field's fit, for per-field files (default: the survey's)")
     s.add_argument("--iterations", type=_positive_int, default=1,
                    help="iterations (n_galaxies sources per field each) to add per cell")
     s.add_argument("--write", default=None, metavar="CELLS_YAML",
-                   help="write the proposal as a cells file for `glaciar simulate --cells`")
+                   help="write the proposal as a cells file for `glaciar simulate --cells` "
+                        "(default: print only)")
     s.set_defaults(func=_cmd_next)
 
     s = sub.add_parser("catalog", help="detect, measure and select on the survey's own images "
@@ -420,24 +474,28 @@ def build_parser() -> argparse.ArgumentParser:
                         "or <config stem>_catalog.parquet beside the configuration)")
     s.add_argument("--regions", action="store_true",
                    help="also write a DS9 region file of the selected candidates (<out stem>.reg)")
-    s.add_argument("--quiet", action="store_true")
+    s.add_argument("--quiet", action="store_true", help=_HELP_QUIET)
     s.set_defaults(func=_cmd_catalog)
 
     s = sub.add_parser("lf", help="the UV luminosity function of a run's candidates: Poisson "
                                   "forward model through P = C*S and the transfer function")
-    s.add_argument("run_dir", metavar="RUN")
+    s.add_argument("run_dir", metavar="RUN", help="a run directory fitted by `glaciar fit`")
     s.add_argument("--catalog", default=None, metavar="CAT",
                    help="candidates from `glaciar catalog RUN` (default RUN/catalog.parquet)")
     s.add_argument("--model", default="schechter", choices=["schechter", "dpl", "double_power_law",
-                                                          "stepwise"])
+                                                          "stepwise"],
+                   help="LF shape: Schechter, double power law (dpl), or binned stepwise phi")
     s.add_argument("--fix", action="append", metavar="NAME=VALUE",
-                   help="hold a parameter fixed (repeatable), e.g. --fix M_star=-20.5")
+                   help="hold a parameter fixed (repeatable), e.g. --fix M_star=-20.5 "
+                        "(default: all free)")
     s.add_argument("--muv-range", type=float, nargs=2, metavar=("LO", "HI"), default=None,
-                   help="M_UV range of the LF [AB mag]")
+                   help="M_UV range of the LF [AB mag] (default: the M_UV range the candidates' "
+                        "observed-magnitude window reaches over the z range)")
     s.add_argument("--z-range", type=float, nargs=2, metavar=("LO", "HI"), default=None,
-                   help="redshift range (inside the simulated one)")
-    s.add_argument("--seed", type=_non_negative_int, default=0)
-    s.add_argument("--quiet", action="store_true")
+                   help="redshift range, inside the simulated one (default: the simulated range)")
+    s.add_argument("--seed", type=_non_negative_int, default=0,
+                   help="seed of the LF sampler (an integer >= 0)")
+    s.add_argument("--quiet", action="store_true", help=_HELP_QUIET)
     s.set_defaults(func=_cmd_lf)
     return p
 
