@@ -1,11 +1,17 @@
 """``glaciar report RUN --html``: one self-contained HTML page of a run.
 
-Sections: configuration, run statistics, status breakdown, C and S with credible
-bands, posterior-predictive check (PPC), depth map of completeness, adaptive
-rounds, selection-function summary.
+Sections: a summary in plain words (what was simulated, depth, m50 per field with
+its 68 % interval, the model kept and why, the fit's wall time), configuration,
+run statistics (with the definitions of grid cells, likelihood groups and PPC
+cells), status breakdown, C and S with credible bands, posterior-predictive
+check (PPC), depth map of completeness, adaptive rounds, selection-function
+summary.
 
-Everything shown is read from files the run already holds; nothing is refitted,
-resampled or recomputed here:
+Everything shown is read from files the run already holds; nothing is refitted
+or resampled.  Two things are evaluated from them for display: the credible
+bands at a simulated value between two rows of the file's grid (linear), and
+the m50 of each field of a pooled depth-aware fit (the file's draws, averaged
+over that field's depths):
 
 ==================================  ==================================================
 ``RUN/config.yaml``                 the configuration, verbatim
@@ -166,7 +172,35 @@ def load_report_data(run_dir) -> dict:
     fs = run_dir / "fit" / "summary.json"
     if fs.exists():
         data["fit_summary"] = json.loads(fs.read_text(encoding="utf-8"))
+    data["field_m50"] = _pooled_field_m50(sf_path, data, fields)
     return data
+
+
+def _pooled_field_m50(sf_path: Path, data: dict, fields: list) -> dict:
+    """m50 per field of a pooled, depth-aware fit of several fields, from the file's draws.
+
+    ``fit/summary.json`` holds the survey-averaged m50 only; each field's differs with its
+    depths (C(m | d) = C(m − (d − d_ref))).  Evaluated, not refitted: the file's posterior
+    draws averaged over that field's area-by-depth distribution
+    (:meth:`glaciar.SelectionFunction.magnitude_at` with ``field=``), at the redshifts of
+    the summary's m50.  Empty when not needed (one field, per-field fits, no depth).
+    """
+    sf, fs = data["selection_function"], data["fit_summary"]
+    if (sf is None or not fs or len(fields) < 2 or not sf["primary"].get("DEPTHAW")
+            or not ((fs.get("fits") or {}).get("all") or {}).get("m50")):
+        return {}
+    from .inference import SelectionFunction
+
+    pooled = SelectionFunction.read(sf_path, "all")
+    zs = [r["z"] for r in fs["fits"]["all"]["m50"]]
+    out = {}
+    for f in fields:
+        if f not in pooled.depth_area:
+            continue
+        r = pooled.magnitude_at(0.5, zs, field=f)
+        out[f] = [{"z": float(z), "m50": float(a), "ci68": [float(b), float(c)]}
+                  for z, a, b, c in zip(zs, r.median, r.lower, r.upper)]
+    return out
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -218,11 +252,19 @@ def _kv_table(items, table_id: str | None = None) -> str:
 
 
 def _figure(fig, caption: str, fig_id: str) -> str:
+    """A ``<figure>`` with the PNG embedded, shown at one PNG pixel per CSS pixel.
+
+    The ``width``/``height`` attributes are the PNG's own (read from its IHDR chunk), so
+    a figure is laid out at the size its fonts were drawn for (``plots.REPORT_DPI``) and
+    only shrinks (``max-width: 100%``) on a screen narrower than the figure.
+    """
     from .plots import png_bytes
 
-    b64 = base64.b64encode(png_bytes(fig)).decode("ascii")
-    return (f'<figure id="{_e(fig_id)}"><img alt="{_e(caption)}" src="data:image/png;base64,{b64}">'
-            f"<figcaption>{_e(caption)}</figcaption></figure>")
+    png = png_bytes(fig)
+    width, height = int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
+    b64 = base64.b64encode(png).decode("ascii")
+    return (f'<figure id="{_e(fig_id)}"><img alt="{_e(caption)}" width="{width}" height="{height}" '
+            f'src="data:image/png;base64,{b64}"><figcaption>{_e(caption)}</figcaption></figure>')
 
 
 def _note(text: str, cls: str = "note") -> str:
@@ -244,20 +286,165 @@ def _beta_interval(k, n):
     return (k + 1) / (n + 2), stats.beta.ppf(0.16, k + 1, n - k + 1), stats.beta.ppf(0.84, k + 1, n - k + 1)
 
 
-def _nearest(values, targets, max_n):
-    """Indices into ``values`` nearest each target (unique, at most ``max_n``, spread out)."""
-    values = np.asarray(values, float)
-    targets = np.unique(np.asarray(targets, float))
-    if targets.size == 0:
-        targets = values
-    if targets.size > max_n:
-        targets = targets[np.linspace(0, targets.size - 1, max_n).round().astype(int)]
-    return list(dict.fromkeys(int(np.argmin(np.abs(values - t))) for t in targets))
+def _simulated(values, max_n):
+    """At most ``max_n`` of the distinct simulated ``values``, evenly spread, ends included."""
+    v = np.unique(np.asarray(values, float))
+    if v.size > max_n:
+        v = v[np.linspace(0, v.size - 1, max_n).round().astype(int)]
+    return v
+
+
+def _planes_at(axis, q, value, dim):
+    """The quantile planes ``q`` at ``value`` of the grid ``axis`` (dimension ``dim`` of q).
+
+    Linear between the two grid rows around ``value`` (the file's grid is uniform and
+    need not hold the simulated values; the rows are <= 0.05 in z or mag apart for a
+    small run, so the interpolation is far inside the bands); the row itself when
+    ``value`` is on the grid.
+    """
+    axis = np.asarray(axis, float)
+    if axis.size == 1:
+        return np.take(q, 0, axis=dim)
+    j = int(np.clip(np.searchsorted(axis, value) - 1, 0, axis.size - 2))
+    w = float(np.clip((value - axis[j]) / (axis[j + 1] - axis[j]), 0.0, 1.0))
+    lo, hi = np.take(q, j, axis=dim), np.take(q, j + 1, axis=dim)
+    return lo if w == 0.0 else hi if w == 1.0 else (1.0 - w) * lo + w * hi
+
+
+def _points(sub, k: str, n: str, x: str):
+    """Binned fractions of the summary rows ``sub`` with data (``n`` > 0) for a curve.
+
+    A cell without injected (``n_input``) or recovered (``n_recovered``) sources has no
+    fraction: its Beta(1, 1) mean 0.50 ± 0.34 would only show the prior, so it is left out.
+    """
+    sub = sub[sub[n].to_numpy(float) > 0]
+    y, lo, hi = _beta_interval(sub[k], sub[n])
+    return sub[x].to_numpy(float), y, lo, hi
 
 
 # ----------------------------------------------------------------------------- sections
 def _section(sid: str, title: str, body: str) -> str:
     return f'<section id="{_e(sid)}"><h2>{_e(title)}</h2>{body}</section>'
+
+
+#: what each count of "cells" on the page is (one fact, one place: the page's definitions)
+CELL_TERMS = (
+    ("grid cells", "the simulated (z, m) pairs: one row of a summary table each"),
+    ("likelihood groups", "the fit's binomial terms: sources with the same redshift and the same "
+                          "magnitude covariate (input magnitude rounded to the fit's resolution, "
+                          "0.01 mag by default; relative to the local depth in a depth-aware fit) "
+                          "summed into one count; the file's NCELLS"),
+    ("PPC cells", "the posterior-predictive check's cells: simulated (z, m) pairs split into "
+                  "0.25 mag bins of local depth when depths are known; the file's PPC table rows"),
+)
+
+
+def _range_text(values, unit: str = "") -> str:
+    v = np.unique(np.asarray(values, float))
+    if not v.size:
+        return "none"
+    if v.size == 1:
+        return f"{v[0]:g}{unit}"
+    return f"{v.size} values, {v[0]:g}–{v[-1]:g}{unit}"
+
+
+def _pm(median, lower, upper) -> str:
+    """'27.31 +0.05/−0.04' (a 68 % interval in plain words); '—' when not reached."""
+    if median is None or not all(math.isfinite(float(v)) for v in (median, lower, upper)):
+        return "—"
+    return f"{median:.2f} +{upper - median:.2f}/−{median - lower:.2f}"
+
+
+def _field_m50(d: dict) -> list:
+    """Rows (field, z, m50, lower_68, upper_68, fit) of m50 per field, from the fit's files.
+
+    A per-field fit's own m50 (``fit/summary.json``); one pooled fit describes a single
+    field as it stands, and every field alike when it is not depth-aware; several fields
+    of a depth-aware pooled fit each have their own (``load_report_data``'s
+    ``field_m50``, from the file's draws).
+    """
+    fs = (d["fit_summary"] or {}).get("fits", {})
+    fields = [str(f) for f in d["manifest"].get("fields", [])]
+    rows = []
+    for f in fields:
+        if f in fs:
+            src, name = fs[f].get("m50") or [], f
+        elif "all" in fs and f in (d.get("field_m50") or {}):
+            src, name = d["field_m50"][f], "all"
+        elif "all" in fs:
+            src, name = fs["all"].get("m50") or [], "all"
+        else:
+            continue
+        rows += [(f, r["z"], r["m50"], r["ci68"][0], r["ci68"][1], name) for r in src]
+    return rows
+
+
+def _summary_section(d: dict) -> str:
+    """The run in plain words: what was simulated, depth, m50, the model kept, the fit time."""
+    m = d["manifest"]
+    s = d["summaries"]["all"]
+    fields = [str(f) for f in m.get("fields", [])]
+    n_in, n_rec, n_sel = (int(s[c].sum()) for c in ("n_input", "n_recovered", "n_selected"))
+    sel = m.get("selection")
+    mag_word = "absolute magnitudes M_UV" if m.get("magnitude_type") == "absolute" else \
+        f"{m.get('detection_band', 'detection-band')} magnitudes"
+    area = m.get("area_arcmin2_total")
+    where = ", ".join(fields) + (f"; {area:.3g} arcmin² in all" if area else "")
+    what = (f"{n_in} artificial galaxies were injected into {len(fields)} "
+            f"field{'s' if len(fields) != 1 else ''} ({where}), at {len(s)} grid cells: "
+            f"redshift {_range_text(s['z'])} × {mag_word} {_range_text(s['mag'])}")
+    if m.get("n_iterations") and m.get("n_galaxies"):
+        what += f", {m['n_iterations']} iterations of {m['n_galaxies']} sources per field and cell"
+    what += f". {n_rec} ({n_rec / max(n_in, 1):.1%}) were recovered"
+    if sel is not None and not sel:
+        what += "; there are no selection criteria (detection only)."
+    else:
+        what += (f", and {n_sel} ({n_sel / max(n_in, 1):.1%}) of them also passed the "
+                 f"{len(sel or [])} selection criteria.")
+    body = f'<p id="summary-simulated">{_e(what)}</p>'
+    rows = []
+    for f in fields:
+        lo, hi, med = _depth_range(m, f)
+        rows.append((f, (m.get("area_arcmin2") or {}).get(f), med, lo, hi))
+    body += _table(["field", "area_arcmin2", "depth_median", "depth_min", "depth_max"], rows,
+                   table_id="summary-depth",
+                   formats={"area_arcmin2": ".4g", "depth_median": ".2f", "depth_min": ".2f",
+                            "depth_max": ".2f"},
+                   headers={"area_arcmin2": "area [arcmin²]",
+                            "depth_median": "depth: area median [AB]",
+                            "depth_min": "shallowest", "depth_max": "deepest"})
+    body += _note("Depth: the local 5σ limit in a 1-FWHM aperture, over the field's footprint.")
+    fs = d["fit_summary"]
+    if not fs or d["selection_function"] is None:
+        return _section("summary", "Summary", body + _not_fitted(d))
+    mrows = _field_m50(d)
+    if mrows:
+        if "all" in fs.get("fits", {}) and len(fields) > 1 and not d.get("field_m50"):
+            body += _note("One pooled fit that is not depth-aware: C(m, z) is the same for every "
+                          "field, and so is m50.")
+        mname = "M_UV" if m.get("magnitude_type") == "absolute" else "m"
+        body += f"<h3>50 % completeness {_e(mname)}50 per field (68 % interval)</h3>"
+        body += _table(["field", "z", "m50", "lower_68", "upper_68", "m50_text"],
+                       [r[:5] + (_pm(*r[2:5]),) for r in mrows], table_id="summary-m50",
+                       formats={"z": "g", "m50": ".2f", "lower_68": ".2f", "upper_68": ".2f"},
+                       headers={"m50": f"{mname}50", "lower_68": "68 % lower",
+                                "upper_68": "68 % upper", "m50_text": "in words"})
+    sentences = []
+    for name, e in fs.get("fits", {}).items():
+        if not e.get("model"):
+            continue
+        ok = ("converged" if e.get("converged") else "NOT converged") + ", " + \
+             ("adequate by the posterior-predictive check" if e.get("adequate")
+              else "NOT adequate by the posterior-predictive check")
+        sentences.append(f"Fit {name}: the {e['model']} completeness step was kept — "
+                         f"{e.get('model_kept_because') or 'no reason recorded'} ({ok}).")
+    if fs.get("wall_time_s") is not None:
+        sentences.append(f"The fit took {float(fs['wall_time_s']):.1f} s of wall-clock time "
+                         "(the whole `glaciar fit`: every model compared, the checks and the files).")
+    else:
+        sentences.append("The fit's wall-clock time was not recorded by the glaciar that wrote it.")
+    body += '<p id="summary-fit">' + " ".join(_e(t) for t in sentences) + "</p>"
+    return _section("summary", "Summary", body)
 
 
 def _config_section(d: dict) -> str:
@@ -307,7 +494,7 @@ def _statistics_section(d: dict) -> str:
     n_tasks = (len(fields) * len(m.get("z_values", [])) * len(m.get("mag_values", []))
                * int(m.get("n_iterations") or 0))
     n_in, n_rec, n_sel = (int(s[c].sum()) for c in ("n_input", "n_recovered", "n_selected"))
-    items = [("fields", len(fields)), ("(z, m) cells", len(s)),
+    items = [("fields", len(fields)), ("grid cells (simulated z, m pairs)", len(s)),
              ("tasks (fields × z × m × iterations)", n_tasks),
              ("sources injected", n_in), ("recovered (status 0, 1, 2)", n_rec),
              ("recovered and selected", n_sel),
@@ -315,6 +502,8 @@ def _statistics_section(d: dict) -> str:
              ("selected fraction", n_sel / n_in if n_in else None),
              ("survey area [arcmin²]", m.get("area_arcmin2_total"))]
     body = _kv_table(items, "run-statistics")
+    body += ('<dl id="cell-terms">' + "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in CELL_TERMS)
+             + "</dl>")
     areas = m.get("area_arcmin2") or {}
     scales = m.get("pixel_scale_arcsec") or {}
     rows = []
@@ -341,12 +530,15 @@ def _statistics_section(d: dict) -> str:
                               (e.get("blocks") or {}).items())
             rows.append((name, e.get("model"), e.get("model_kept_because"), e.get("n_sources"),
                          e.get("n_cells"), e.get("wall_time_s"), steps))
-        body += "<h3>Fit</h3>" + _table(["fit", "model", "kept_because", "n_sources", "n_cells",
-                                         "wall_time_s", "steps × walkers"], rows,
-                                        table_id="fit-statistics",
+        # summary.json's "n_cells" is len(Cells): the likelihood groups (CELL_TERMS)
+        body += "<h3>Fit</h3>" + _table(["fit", "model", "kept_because", "n_sources",
+                                         "n_likelihood_groups", "wall_time_s", "steps × walkers"],
+                                        rows, table_id="fit-statistics",
                                         formats={"wall_time_s": ".1f"},
                                         headers={"wall_time_s": "wall time [s]",
-                                                 "kept_because": "kept because"})
+                                                 "kept_because": "kept because",
+                                                 "n_sources": "sources",
+                                                 "n_likelihood_groups": "likelihood groups"})
         if fs.get("wall_time_s") is not None:
             # The command's own clock (every model compared, checks, V_eff, files); a fit's
             # row is its share, without reading the run and writing the outputs.
@@ -413,11 +605,14 @@ def _curves_section(d: dict) -> str:
         return _section("curves", "Completeness C and selection S", _not_fitted(d))
     m = d["manifest"]
     mlabel = _mag_label(m)
-    body = _note("Lines: posterior median; bands: 68 % and 95 % credible intervals (the "
-                 "quantile planes of the file's C_GRID and SR_GRID: survey averages, weighted by "
-                 "area over fields and depths). Points: binned fractions of the summary table, "
-                 "(k+1)/(n+2) with Beta(k+1, n−k+1) 68 % intervals (pooled by injections, so fields of "
-                 "unequal depth or area can pull them off the area-weighted curve).")
+    body = _note("Curves at simulated redshifts and magnitudes only. Lines: posterior median; "
+                 "bands: 68 % and 95 % credible intervals (the quantile planes of the file's C_GRID "
+                 "and SR_GRID: survey averages, weighted by area over fields and depths; "
+                 "interpolated linearly between the two grid rows around a simulated value). "
+                 "Points: binned fractions of the summary table, (k+1)/(n+2) with Beta(k+1, n−k+1) "
+                 "68 % intervals (pooled by injections, so fields of unequal depth or area can pull "
+                 "them off the area-weighted curve); a cell with no injected source (C) or no "
+                 "recovered one (S) has no point.")
     for fit in sf["fits"]:
         name = fit["field"]
         pts = _points_for(d, name)
@@ -426,12 +621,11 @@ def _curves_section(d: dict) -> str:
             continue
         g = fit["C_GRID"]
         curves, points = [], []
-        for iz in _nearest(g["z"], m.get("z_values", []), 6):
-            z = g["z"][iz]
-            curves.append((f"z = {z:.2f}", g["q"][:, iz, :]))
-            sub = pts[np.isclose(pts["z"], z, atol=1e-6)]
-            y, lo, hi = _beta_interval(sub["n_recovered"], sub["n_input"])
-            points.append((sub["mag"].to_numpy(float), y, lo, hi))
+        # Only simulated redshifts: those of the fit's summary table with injected sources.
+        for z in _simulated(pts.loc[pts["n_input"] > 0, "z"], 6):
+            curves.append((f"z = {z:g}", _planes_at(g["z"], g["q"], z, 1)))
+            points.append(_points(pts[np.isclose(pts["z"], z, atol=1e-6)], "n_recovered", "n_input",
+                                  "mag"))
         body += _figure(plot_quantile_curves(g["m"], curves, xlabel=mlabel, ylabel="completeness C(m)",
                                              title=f"C(m) at the simulated z — fit {name}",
                                              points=points),
@@ -443,12 +637,10 @@ def _curves_section(d: dict) -> str:
             continue
         g = fit["SR_GRID"]
         curves, points = [], []
-        for im in _nearest(g["m"], m.get("mag_values", []), 4):
-            mv = g["m"][im]
-            curves.append((f"m = {mv:.2f}", g["q"][:, :, im]))
-            sub = pts[np.isclose(pts["mag"], mv, atol=1e-6)]
-            y, lo, hi = _beta_interval(sub["n_selected"], sub["n_recovered"])
-            points.append((sub["z"].to_numpy(float), y, lo, hi))
+        for mv in _simulated(pts.loc[pts["n_input"] > 0, "mag"], 4):
+            curves.append((f"m = {mv:g}", _planes_at(g["m"], g["q"], mv, 2)))
+            points.append(_points(pts[np.isclose(pts["mag"], mv, atol=1e-6)], "n_selected",
+                                  "n_recovered", "z"))
         body += _figure(plot_quantile_curves(g["z"], curves, xlabel="redshift z",
                                              ylabel="S(z, m) = P(selected | recovered)",
                                              title=f"S(z) at simulated magnitudes — fit {name}",
@@ -472,7 +664,7 @@ def _ppc_section(d: dict) -> str:
     body = _note("Per simulated (z, m, depth bin) cell: the observed counts against the posterior "
                  "predictive distribution (mid-p values); a cell is extreme when either mid-p is "
                  "below 0.01 or above 0.99. The fit is adequate unless more cells are extreme "
-                 "than chance allows (99 % quantile of Binomial(n_cells, 0.04)).")
+                 "than chance allows (99 % quantile of Binomial(PPC cells, 0.04)).")
     rows = []
     for fit in sf["fits"]:
         v = (fits_summary.get(fit["field"]) or {}).get("ppc") or {}
@@ -480,8 +672,10 @@ def _ppc_section(d: dict) -> str:
         n_ext = int(np.sum(ppc["extreme"])) if ppc is not None else v.get("n_extreme")
         rows.append((fit["field"], len(ppc) if ppc is not None else v.get("n_cells"), n_ext,
                      v.get("max_allowed"), v.get("adequate", fit["draws_header"].get("ADEQUATE"))))
-    body += _table(["fit", "n_cells", "n_extreme", "max_allowed", "adequate"], rows,
-                   table_id="ppc-verdict")
+    body += _table(["fit", "n_ppc_cells", "n_extreme", "max_allowed", "adequate"], rows,
+                   table_id="ppc-verdict",
+                   headers={"n_ppc_cells": "PPC cells", "n_extreme": "extreme cells",
+                            "max_allowed": "most extreme cells allowed"})
     for fit in sf["fits"]:
         ppc = fit["PPC"]
         if ppc is None or not len(ppc):
@@ -585,7 +779,6 @@ def _sf_section(d: dict) -> str:
     mlabel = "M_UV" if m.get("magnitude_type") == "absolute" else "m"
     body = _note(f"{sf['path']}: read it with glaciar.SelectionFunction.read(path), or without "
                  "glaciar as docs/selection-function-file.md describes.")
-    body += _kv_table(sorted(sf["primary"].items()), "sf-primary")
     # Is the file current?  (It describes the rows that were fitted.)
     n_now = int(d["summaries"]["all"]["n_input"].sum())
     if sf["primary"].get("CONFHASH") and m.get("config_hash") and \
@@ -602,7 +795,7 @@ def _sf_section(d: dict) -> str:
             body += _note(f"the fit used {int(dh['NSOURCES'])} sources, the run's summary tables now "
                           f"hold {n_now}: run `glaciar fit` again", "warning")
         facts = [("model", dh.get("MODEL")), ("posterior draws", fit["n_draws"]),
-                 ("sources", dh.get("NSOURCES")), ("cells", dh.get("NCELLS")),
+                 ("sources", dh.get("NSOURCES")), ("likelihood groups", dh.get("NCELLS")),
                  ("converged (every chain ≥ 50 τ)", dh.get("CONVERGE")),
                  ("adequate (PPC)", dh.get("ADEQUATE")), ("max τ", dh.get("TAUMAX")),
                  ("min ESS", dh.get("ESSMIN")), ("max split R-hat", dh.get("RHATMAX")),
@@ -649,23 +842,28 @@ def _sf_section(d: dict) -> str:
                 if c in p.columns]
         body += (f"<details><summary>Parameters (PARAMS, fit {_e(name)})</summary>"
                  + _table(cols, p[cols].itertuples(index=False), table_id=f"params-{name}") + "</details>")
+    # The raw keywords, for whoever reads the file by hand: the summary above says it in words.
+    body += ("<details><summary>The file's primary header (FITS keywords)</summary>"
+             + _kv_table(sorted(sf["primary"].items()), "sf-primary") + "</details>")
     return _section("selection-function", "Selection-function summary", body)
 
 
 _STYLE = """
-body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0 auto;max-width:1100px;
+body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0 auto;max-width:1200px;
 padding:0 1.2em 3em;color:#222;line-height:1.4}
 h1{margin-bottom:0.2em}h2{border-bottom:2px solid #ccc;padding-bottom:0.2em;margin-top:1.8em}
 nav a{margin-right:0.9em}table{border-collapse:collapse;margin:0.6em 0;font-size:0.85em}
 th,td{border:1px solid #ddd;padding:0.15em 0.5em;text-align:right}th{background:#f4f4f4}
 table.kv th{text-align:left}td:first-child{text-align:left}
 figure{margin:1em 0}figure img{max-width:100%;height:auto;border:1px solid #eee}
+dl{font-size:0.9em}dt{font-weight:600}dd{margin:0 0 0.3em 1.5em}
 figcaption{font-size:0.85em;color:#555}pre{background:#f8f8f8;padding:0.8em;overflow:auto;font-size:0.8em}
 .note{color:#444;font-size:0.9em}.missing{color:#8a5a00;font-weight:600}.warning{color:#b00020;font-weight:600}
 details{margin:0.5em 0}summary{cursor:pointer}
 """
 
-_SECTIONS = (("configuration", "Configuration", _config_section),
+_SECTIONS = (("summary", "Summary", _summary_section),
+             ("configuration", "Configuration", _config_section),
              ("statistics", "Run statistics", _statistics_section),
              ("status", "Status breakdown", _status_section),
              ("curves", "C and S", _curves_section),
