@@ -191,7 +191,7 @@ def plot_quantile_curves(x, curves, *, xlabel: str, ylabel: str, title: str = ""
 def plot_grid_map(x, y, grid, *, xlabel: str, ylabel: str, label: str, title: str = "",
                   vmin=0.0, vmax=1.0, cmap: str = "magma"):
     """A 2-D map of ``grid`` [len(y), len(x)] on cell centres ``x``, ``y`` (NaN left blank)."""
-    fig = new_figure((8.5, 5))
+    fig = new_figure((10, 5))
     ax = fig.subplots()
     pcm = ax.pcolormesh(_edges(np.asarray(x, float)), _edges(np.asarray(y, float)),
                         np.ma.masked_invalid(grid), vmin=vmin, vmax=vmax, cmap=cmap, shading="flat")
