@@ -339,13 +339,14 @@ CELL_TERMS = (
 )
 
 
-def _range_text(values, unit: str = "") -> str:
+def _range_text(values, max_listed: int = 6) -> str:
+    """'8, 10' (the distinct values, up to ``max_listed``) or '40 values from 6 to 8'."""
     v = np.unique(np.asarray(values, float))
     if not v.size:
         return "none"
-    if v.size == 1:
-        return f"{v[0]:g}{unit}"
-    return f"{v.size} values, {v[0]:g}–{v[-1]:g}{unit}"
+    if v.size <= max_listed:
+        return ", ".join(f"{x:g}" for x in v)
+    return f"{v.size} values from {v[0]:g} to {v[-1]:g}"
 
 
 def _pm(median, lower, upper) -> str:
@@ -358,6 +359,7 @@ def _pm(median, lower, upper) -> str:
 def _field_m50(d: dict) -> list:
     """Rows (field, z, m50, lower_68, upper_68, fit) of m50 per field, from the fit's files.
 
+    At the simulated redshifts among the summary's (all of them if none is simulated).
     A per-field fit's own m50 (``fit/summary.json``); one pooled fit describes a single
     field as it stands, and every field alike when it is not depth-aware; several fields
     of a depth-aware pooled fit each have their own (``load_report_data``'s
@@ -365,6 +367,7 @@ def _field_m50(d: dict) -> list:
     """
     fs = (d["fit_summary"] or {}).get("fits", {})
     fields = [str(f) for f in d["manifest"].get("fields", [])]
+    simulated = np.unique(d["summaries"]["all"]["z"].to_numpy(float))
     rows = []
     for f in fields:
         if f in fs:
@@ -375,7 +378,9 @@ def _field_m50(d: dict) -> list:
             src, name = fs["all"].get("m50") or [], "all"
         else:
             continue
-        rows += [(f, r["z"], r["m50"], r["ci68"][0], r["ci68"][1], name) for r in src]
+        # at the simulated redshifts when the summary has them (it spreads up to 5 over the range)
+        at_sim = [r for r in src if np.isclose(simulated, r["z"], rtol=0, atol=1e-6).any()]
+        rows += [(f, r["z"], r["m50"], r["ci68"][0], r["ci68"][1], name) for r in at_sim or src]
     return rows
 
 
@@ -386,13 +391,13 @@ def _summary_section(d: dict) -> str:
     fields = [str(f) for f in m.get("fields", [])]
     n_in, n_rec, n_sel = (int(s[c].sum()) for c in ("n_input", "n_recovered", "n_selected"))
     sel = m.get("selection")
-    mag_word = "absolute magnitudes M_UV" if m.get("magnitude_type") == "absolute" else \
-        f"{m.get('detection_band', 'detection-band')} magnitudes"
+    mag_word = "absolute magnitude M_UV =" if m.get("magnitude_type") == "absolute" else \
+        f"{m.get('detection_band', 'detection-band')} magnitude m ="
     area = m.get("area_arcmin2_total")
     where = ", ".join(fields) + (f"; {area:.3g} arcmin² in all" if area else "")
     what = (f"{n_in} artificial galaxies were injected into {len(fields)} "
             f"field{'s' if len(fields) != 1 else ''} ({where}), at {len(s)} grid cells: "
-            f"redshift {_range_text(s['z'])} × {mag_word} {_range_text(s['mag'])}")
+            f"redshift z = {_range_text(s['z'])} × {mag_word} {_range_text(s['mag'])}")
     if m.get("n_iterations") and m.get("n_galaxies"):
         what += f", {m['n_iterations']} iterations of {m['n_galaxies']} sources per field and cell"
     what += f". {n_rec} ({n_rec / max(n_in, 1):.1%}) were recovered"
