@@ -454,3 +454,37 @@ def test_chromium_loads_the_page_without_console_errors_and_shows_its_figures(re
         assert i["shown"] >= 800, i
     assert sorted((i["width"], i["height"]) for i in info["images"]) == sorted(sizes)
     assert math.isfinite(sum(i["shown"] for i in info["images"]))
+
+
+def test_pooled_depth_aware_fit_gives_each_field_its_own_m50(tmp_path):
+    """A pooled depth-aware fit: C(m | d) = C(m − (d − d_ref)), so a field 1 mag deeper (one
+    depth bin each) has its m50 exactly 1 mag fainter; before, every field showed the
+    survey-averaged m50 of fit/summary.json."""
+    from glaciar import report
+    from glaciar.inference import SelectionFunction, SurfaceModel
+    from glaciar.pipeline.selection_file import to_bytes
+
+    mdl = SurfaceModel.for_data(np.array([7.0, 8.0]), np.array([25.0, 27.0, 29.0]), depth_ref=27.5)
+    da = {"shallow": (np.array([27.0, 27.05]), np.array([1.0])),
+          "deep": (np.array([28.0, 28.05]), np.array([2.0]))}
+    dom = {"z": (7.0, 8.0), "mag": (24.0, 30.0), "depth": (27.0, 28.05)}
+    th = mdl.sample_prior(40, np.random.default_rng(0))
+    # draws whose root is inside the simulated range for both fields at both redshifts
+    probe = SelectionFunction(mdl, th, depth_area=da, domain=dom)
+    ok = np.all([np.isfinite(probe.magnitude_at(0.5, [7.0, 8.0], field=f).draws).all(axis=1)
+                 for f in da], axis=0)
+    assert ok.sum() >= 3
+    sf = SelectionFunction(mdl, th[ok], np.linspace(7, 8, 5), np.linspace(24, 30, 13),
+                           meta={"fields": list(da)}, field="all", depth_area=da, domain=dom)
+    path = tmp_path / C.SELECTION_FUNCTION_NAME
+    path.write_bytes(to_bytes([sf], {"fields": list(da)}))
+    pooled_m50 = [{"z": 7.0, "m50": 0.0, "ci68": [0.0, 0.0]}, {"z": 8.0, "m50": 0.0, "ci68": [0.0, 0.0]}]
+    data = {"selection_function": {"primary": {"DEPTHAW": True}},
+            "fit_summary": {"fits": {"all": {"m50": pooled_m50}}},
+            "manifest": {"fields": list(da)},
+            "summaries": {"all": Table({"z": [7.0, 8.0]}).to_pandas()}}
+    data["field_m50"] = report._pooled_field_m50(path, data, list(da))
+    rows = {(f, z): (m50, lo, hi) for f, z, m50, lo, hi, fit in report._field_m50(data)}
+    assert sorted(rows) == [("deep", 7.0), ("deep", 8.0), ("shallow", 7.0), ("shallow", 8.0)]
+    for z in (7.0, 8.0):
+        np.testing.assert_allclose(np.subtract(rows["deep", z], rows["shallow", z]), 1.0, atol=1e-6)
