@@ -1,4 +1,10 @@
-"""Plots of binned simulation summaries: C(m, z), C·S and S (PNG, matplotlib Agg)."""
+"""Plots of binned simulation summaries: C(m, z), C·S and S, and the HTML report's figures.
+
+Every figure is a :class:`matplotlib.figure.Figure` built without pyplot: glaciar
+never selects a backend nor registers figures with pyplot, so a notebook's inline
+backend (or any backend a user chose) is the same after a glaciar plot as before.
+PNGs are rendered by the Agg canvas that ``Figure.savefig`` picks for the format.
+"""
 from __future__ import annotations
 
 import io
@@ -13,12 +19,13 @@ __all__ = ["plot_summary_maps", "summary_grid", "save_png"]
 
 
 def save_png(fig, path, **savefig_kwargs) -> Path:
-    """Write a matplotlib figure as PNG atomically (temporary name, then rename) and close it."""
-    import matplotlib.pyplot as plt
+    """Write a matplotlib figure as PNG atomically (temporary name, then rename).
 
+    ``fig`` is a :class:`matplotlib.figure.Figure` (:func:`new_figure`): it belongs to
+    no pyplot figure manager, so there is nothing to close.
+    """
     buf = io.BytesIO()
     fig.savefig(buf, format="png", **savefig_kwargs)
-    plt.close(fig)
     path = Path(path)
     atomic_write_bytes(path, buf.getvalue())
     return path
@@ -48,10 +55,6 @@ def plot_summary_maps(summary: pd.DataFrame, out_dir, label: str, mag_label: str
 
     ``selection=False`` (a detection-only run: S = 1 by definition) omits the S map.
     """
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from .tables import summary_stem   # the file name of a field's label (never a path)
 
     out = []
@@ -60,7 +63,8 @@ def plot_summary_maps(summary: pd.DataFrame, out_dir, label: str, mag_label: str
         del titles["selection"]
     for column, title in titles.items():
         zs, ms, grid = summary_grid(summary, column)
-        fig, ax = plt.subplots(figsize=(6, 4.5), dpi=110)
+        fig = new_figure((6, 4.5), dpi=110)
+        ax = fig.subplots()
         pcm = ax.pcolormesh(_edges(ms), _edges(zs), grid, vmin=0, vmax=1, cmap="viridis", shading="flat")
         fig.colorbar(pcm, ax=ax, label=title)
         ax.set_xlabel(mag_label)
@@ -79,13 +83,30 @@ def plot_summary_maps(summary: pd.DataFrame, out_dir, label: str, mag_label: str
 #: plotting order and colours of the status codes (GLACiAR's meaning, see README)
 STATUS_COLOURS = {0: "#1b9e77", 1: "#66a61e", 2: "#a6d854", -1: "#e7298a", -2: "#e6ab02",
                   -3: "#d95f02"}
+#: resolution of the report's PNGs [dots per inch]; the page shows them at one PNG pixel
+#: per CSS pixel, so a 10 pt label is 14 px on screen and a 9.5 in figure 950 px wide
+REPORT_DPI = 100
+#: font sizes [pt] of legends and titles (axis labels and ticks keep matplotlib's 10 pt):
+#: at REPORT_DPI, 9 pt is 12.5 px, the smallest text a reader is asked to read
+LEGEND_PT = 9
+TITLE_PT = 11
+#: the faint end of V_eff(m) is shown down to this fraction of its largest value (4 decades)
+VEFF_LOG_RANGE = 1e-4
 
 
-def _figure(figsize):
-    """A matplotlib Figure outside pyplot: no global backend switch, nothing to close."""
+def new_figure(figsize, dpi: float | None = None):
+    """A matplotlib Figure outside pyplot: no backend switch, no global state, nothing to close.
+
+    Parameters
+    ----------
+    figsize : (float, float)
+        Width and height [inch].
+    dpi : float, optional
+        Resolution [dots per inch] (matplotlib's default when None).
+    """
     from matplotlib.figure import Figure
 
-    return Figure(figsize=figsize)
+    return Figure(figsize=figsize, dpi=dpi)
 
 
 def _cmap(name):
@@ -94,8 +115,8 @@ def _cmap(name):
     return matplotlib.colormaps[name]
 
 
-def png_bytes(fig, dpi: int = 90) -> bytes:
-    """The figure as PNG bytes."""
+def png_bytes(fig, dpi: int = REPORT_DPI) -> bytes:
+    """The figure as PNG bytes (``dpi`` [dots per inch]), cropped to its content."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
     return buf.getvalue()
@@ -111,11 +132,13 @@ def plot_status_fractions(summary: pd.DataFrame, labels: dict, mag_label: str = 
         ``n_status_*`` columns.
     labels : dict
         {status code: (summary column, legend text)}.
+    mag_label : str
+        Label of the magnitude axis.
     """
     g = summary.groupby("mag", sort=True)[["n_input"] + [c for c, _ in labels.values()]].sum()
     mags = g.index.to_numpy(float)
     width = 0.8 * (np.min(np.diff(mags)) if mags.size > 1 else 1.0)
-    fig = _figure((7, 3.6))
+    fig = new_figure((9.5, 4.5))
     ax = fig.subplots()
     bottom = np.zeros(mags.size)
     for code, (col, text) in labels.items():
@@ -126,8 +149,8 @@ def plot_status_fractions(summary: pd.DataFrame, labels: dict, mag_label: str = 
     ax.set_xlabel(mag_label)
     ax.set_ylabel("fraction of injected sources")
     ax.set_ylim(0, 1)
-    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
-    ax.set_title("status per magnitude (all z and fields pooled)", fontsize=9)
+    ax.legend(fontsize=LEGEND_PT, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    ax.set_title("status per magnitude (all z and fields pooled)", fontsize=TITLE_PT)
     return fig
 
 
@@ -140,11 +163,12 @@ def plot_quantile_curves(x, curves, *, xlabel: str, ylabel: str, title: str = ""
         Abscissa of the quantiles.
     curves : list of (label, q)
         ``q`` has shape (5, len(x)): the quantiles 0.5, 0.16, 0.84, 0.025, 0.975 (the planes
-        of the selection-function file's grids).
+        of the selection-function file's grids).  Each label is one legend entry.
     points : list of (x, y, lo, hi) or None, optional
-        Binned data per curve (same order), drawn with error bars.
+        Binned data per curve (same order), drawn with error bars as given: a caller
+        leaves out the cells without data (no point is drawn for them).
     """
-    fig = _figure((7, 4))
+    fig = new_figure((9.5, 5))
     ax = fig.subplots()
     colours = _cmap("viridis")(np.linspace(0, 0.9, max(len(curves), 1)))
     for i, ((label, q), col) in enumerate(zip(curves, colours)):
@@ -155,26 +179,26 @@ def plot_quantile_curves(x, curves, *, xlabel: str, ylabel: str, title: str = ""
         if points is not None and len(points[i][0]):
             px, py, lo, hi = (np.asarray(a, float) for a in points[i])
             ax.errorbar(px, py, yerr=[np.clip(py - lo, 0, None), np.clip(hi - py, 0, None)],
-                        fmt="o", ms=3, color=col, lw=0.8)
+                        fmt="o", ms=4, color=col, lw=0.9)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_ylim(-0.02, 1.02)
-    ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=7)
+    ax.set_title(title, fontsize=TITLE_PT)
+    ax.legend(fontsize=LEGEND_PT)
     return fig
 
 
 def plot_grid_map(x, y, grid, *, xlabel: str, ylabel: str, label: str, title: str = "",
                   vmin=0.0, vmax=1.0, cmap: str = "magma"):
     """A 2-D map of ``grid`` [len(y), len(x)] on cell centres ``x``, ``y`` (NaN left blank)."""
-    fig = _figure((6, 4))
+    fig = new_figure((10, 5))
     ax = fig.subplots()
     pcm = ax.pcolormesh(_edges(np.asarray(x, float)), _edges(np.asarray(y, float)),
                         np.ma.masked_invalid(grid), vmin=vmin, vmax=vmax, cmap=cmap, shading="flat")
     fig.colorbar(pcm, ax=ax, label=label)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
-    ax.set_title(title, fontsize=9)
+    ax.set_title(title, fontsize=TITLE_PT)
     return fig
 
 
@@ -182,13 +206,14 @@ def plot_ppc(ppc):
     """Posterior-predictive check: binned fractions against the model's cell means.
 
     ``ppc`` is the PPC table of the selection-function file (columns ``c_binned``,
-    ``c_model`` with ``_q16``/``_q84``, ``s_*`` likewise, ``k_rec``, ``extreme``).
-    Extreme cells are drawn in red.
+    ``c_model`` with ``_q16``/``_q84``, ``s_*`` likewise, ``n``, ``k_rec``, ``extreme``).
+    Extreme cells are drawn in red; a cell without injected sources (C panel) or without
+    a recovered one (S panel) has no fraction and gets no point.
     """
-    fig = _figure((9, 4))
+    fig = new_figure((11, 5))
     axes = fig.subplots(1, 2)
     ext = np.asarray(ppc["extreme"], bool)
-    for ax, name, title, keep in ((axes[0], "c", "C: recovered / injected", np.ones(len(ext), bool)),
+    for ax, name, title, keep in ((axes[0], "c", "C: recovered / injected", np.asarray(ppc["n"]) > 0),
                                   (axes[1], "s", "S: selected / recovered",
                                    np.asarray(ppc["k_rec"]) > 0)):
         for sel, colour, lab in ((keep & ~ext, "C0", "cell"), (keep & ext, "red", "extreme cell")):
@@ -202,14 +227,14 @@ def plot_ppc(ppc):
                                      0, None),
                         yerr=np.clip([by - col(f"{name}_binned_q16"), col(f"{name}_binned_q84") - by],
                                      0, None),
-                        fmt="o", ms=3, lw=0.6, color=colour, label=lab)
+                        fmt="o", ms=4, lw=0.7, color=colour, label=lab)
         ax.plot([0, 1], [0, 1], color="grey", lw=0.8, ls="--")
         ax.set_xlim(-0.02, 1.02)
         ax.set_ylim(-0.02, 1.02)
         ax.set_xlabel("model (posterior median, 68 %)")
         ax.set_ylabel("binned (k+1)/(n+2), 68 %")
-        ax.set_title(title, fontsize=9)
-        ax.legend(fontsize=7)
+        ax.set_title(title, fontsize=TITLE_PT)
+        ax.legend(fontsize=LEGEND_PT)
     fig.tight_layout()
     return fig
 
@@ -217,27 +242,28 @@ def plot_ppc(ppc):
 def plot_depth_completeness(mags, depth_lo, depth_step, observed, model, *, mag_label: str):
     """Completeness on a (magnitude, local depth) map: binned fractions and the model.
 
-    ``observed`` and ``model`` have shape (len(depth_lo), len(mags)); NaN where no source.
+    ``observed`` and ``model`` have shape (len(depth_lo), len(mags)); NaN where no source
+    (left blank).  ``depth_step`` is the depth bin width [mag].
     """
     mags = np.asarray(mags, float)
     dlo = np.asarray(depth_lo, float)
     dedges = np.append(dlo, dlo[-1] + depth_step)
-    fig = _figure((10, 4))
+    fig = new_figure((11, 4.8))
     axes = fig.subplots(1, 2, sharey=True)
     for ax, grid, title in ((axes[0], observed, "binned k_rec / n"),
                             (axes[1], model, "model C (posterior median of the cell means)")):
         pcm = ax.pcolormesh(_edges(mags), dedges, np.ma.masked_invalid(grid), vmin=0, vmax=1,
                             cmap="viridis", shading="flat")
         ax.set_xlabel(mag_label)
-        ax.set_title(title, fontsize=9)
+        ax.set_title(title, fontsize=TITLE_PT)
     axes[0].set_ylabel("local depth (5σ, AB)")
     fig.colorbar(pcm, ax=axes, label="completeness C")
     return fig
 
 
 def plot_area_by_depth(depth_area: dict):
-    """Each field's footprint area per 0.05 mag bin of local depth (manifest ``depth_area``)."""
-    fig = _figure((7, 3.2))
+    """Each field's footprint area [arcmin²] per bin of local depth (manifest ``depth_area``)."""
+    fig = new_figure((9.5, 4.2))
     ax = fig.subplots()
     for field, (edges, area) in sorted(depth_area.items()):
         e = np.asarray(edges, float)
@@ -245,26 +271,36 @@ def plot_area_by_depth(depth_area: dict):
         ax.stairs(a, e, label=f"{field} ({a.sum():.3g} arcmin²)")
     ax.set_xlabel("local depth (5σ, AB)")
     ax.set_ylabel("area per bin [arcmin²]")
-    ax.set_title("area by local depth", fontsize=9)
-    ax.legend(fontsize=7)
+    ax.set_title("area by local depth", fontsize=TITLE_PT)
+    ax.legend(fontsize=LEGEND_PT)
     return fig
 
 
 def plot_effective_volume(mag, median, lower, upper, *, mag_label: str, title: str = ""):
-    """V_eff(m) [Mpc³] with its credible interval (from ``fit/summary.json``)."""
-    fig = _figure((7, 3.6))
+    """V_eff(m) [Mpc³] with its credible interval (from ``fit/summary.json``), on a log axis.
+
+    A linear axis hides the faint end, where V_eff falls by decades; the log axis shows
+    it down to ``VEFF_LOG_RANGE`` times the top of the 68 % interval.  Values <= 0 (no volume at
+    all) have no logarithm and are left out rather than clipped.
+    """
+    fig = new_figure((9.5, 4.8))
     ax = fig.subplots()
     m = np.asarray(mag, float)
-    ax.fill_between(m, np.asarray(lower, float), np.asarray(upper, float), color="C1", alpha=0.35, lw=0,
-                    label="68 % interval")
-    ax.plot(m, np.asarray(median, float), color="C1", label="median")
+    med, lo, hi = (np.where(np.asarray(v, float) > 0, np.asarray(v, float), np.nan)
+                   for v in (median, lower, upper))
+    ax.fill_between(m, lo, hi, color="C1", alpha=0.35, lw=0, label="68 % interval")
+    ax.plot(m, med, color="C1", label="median")
+    ax.set_yscale("log")
+    top = np.nanmax(hi) if np.isfinite(hi).any() else np.nanmax(med) if np.isfinite(med).any() else None
+    if top is not None and np.isfinite(top):
+        ax.set_ylim(top * VEFF_LOG_RANGE, top * 2)
     ax.set_xlabel(mag_label)
     ax.set_ylabel("V_eff [Mpc³]")
-    ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=7)
+    ax.set_title(title, fontsize=TITLE_PT)
+    ax.legend(fontsize=LEGEND_PT)
     return fig
 
 
-__all__ += ["png_bytes", "plot_status_fractions", "plot_quantile_curves", "plot_grid_map",
-            "plot_ppc", "plot_depth_completeness", "plot_area_by_depth", "plot_effective_volume",
-            "STATUS_COLOURS"]
+__all__ += ["new_figure", "png_bytes", "plot_status_fractions", "plot_quantile_curves",
+            "plot_grid_map", "plot_ppc", "plot_depth_completeness", "plot_area_by_depth",
+            "plot_effective_volume", "STATUS_COLOURS", "REPORT_DPI", "LEGEND_PT", "TITLE_PT"]

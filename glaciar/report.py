@@ -1,11 +1,17 @@
 """``glaciar report RUN --html``: one self-contained HTML page of a run.
 
-Sections: configuration, run statistics, status breakdown, C and S with credible
-bands, posterior-predictive check (PPC), depth map of completeness, adaptive
-rounds, selection-function summary.
+Sections: a summary in plain words (what was simulated, depth, m50 per field with
+its 68 % interval, the model kept and why, the fit's wall time), configuration,
+run statistics (with the definitions of grid cells, likelihood groups and PPC
+cells), status breakdown, C and S with credible bands, posterior-predictive
+check (PPC), depth map of completeness, adaptive rounds, selection-function
+summary.
 
-Everything shown is read from files the run already holds; nothing is refitted,
-resampled or recomputed here:
+Everything shown is read from files the run already holds; nothing is refitted
+or resampled.  Two things are evaluated from them for display: the credible
+bands at a simulated value between two rows of the file's grid (linear), and
+the m50 of each field of a pooled depth-aware fit (the file's draws, averaged
+over that field's depths):
 
 ==================================  ==================================================
 ``RUN/config.yaml``                 the configuration, verbatim
@@ -23,15 +29,13 @@ The page is self-contained: figures are PNG (matplotlib) embedded as base64
 ``data:`` URIs, the style sheet is inline, and there is no script and no
 external URL.  Every number in a table carries its exact value in a
 ``data-value`` attribute (``repr`` of the float), so that tests and scripts
-can read the page back.
+can read the page back; :mod:`glaciar.html_page` holds these page pieces.
 
 :func:`load_report_data` reads (the I/O edge), :func:`render_html` turns that
 into the page, :func:`write_html_report` writes ``RUN/report.html``.
 """
 from __future__ import annotations
 
-import base64
-import html
 import json
 import math
 from pathlib import Path
@@ -39,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from . import constants as C
+from .html_page import STYLE, esc, figure, kv_table, note, section, table
 
 __all__ = ["load_report_data", "render_html", "write_html_report", "write_summary_files", "REPORT_NAME",
            "ADAPTIVE_ROUNDS_NAME"]
@@ -166,69 +171,38 @@ def load_report_data(run_dir) -> dict:
     fs = run_dir / "fit" / "summary.json"
     if fs.exists():
         data["fit_summary"] = json.loads(fs.read_text(encoding="utf-8"))
+    data["field_m50"] = _pooled_field_m50(sf_path, data, fields)
     return data
 
 
+def _pooled_field_m50(sf_path: Path, data: dict, fields: list) -> dict:
+    """m50 per field of a pooled, depth-aware fit of several fields, from the file's draws.
+
+    ``fit/summary.json`` holds the survey-averaged m50 only; each field's differs with its
+    depths (C(m | d) = C(m − (d − d_ref))).  Evaluated, not refitted: the file's posterior
+    draws averaged over that field's area-by-depth distribution
+    (:meth:`glaciar.SelectionFunction.magnitude_at` with ``field=``), at the redshifts of
+    the summary's m50.  Empty when not needed (one field, per-field fits, no depth).
+    """
+    sf, fs = data["selection_function"], data["fit_summary"]
+    if (sf is None or not fs or len(fields) < 2 or not sf["primary"].get("DEPTHAW")
+            or not ((fs.get("fits") or {}).get("all") or {}).get("m50")):
+        return {}
+    from .inference import SelectionFunction
+
+    pooled = SelectionFunction.read(sf_path, "all")
+    zs = [r["z"] for r in fs["fits"]["all"]["m50"]]
+    out = {}
+    for f in fields:
+        if f not in pooled.depth_area:
+            continue
+        r = pooled.magnitude_at(0.5, zs, field=f)
+        out[f] = [{"z": float(z), "m50": float(a), "ci68": [float(b), float(c)]}
+                  for z, a, b, c in zip(zs, r.median, r.lower, r.upper)]
+    return out
+
+
 # ------------------------------------------------------------------------------ helpers
-def _e(x) -> str:
-    return html.escape(str(x), quote=True)
-
-
-def _fmt(v, fmt: str) -> str:
-    if v is None:
-        return "—"
-    if isinstance(v, (bool, np.bool_)):
-        return "yes" if v else "no"
-    if isinstance(v, (int, np.integer)):
-        return f"{int(v):d}"
-    if isinstance(v, (float, np.floating)):
-        return "—" if not math.isfinite(float(v)) else format(float(v), fmt)
-    return str(v)
-
-
-def _td(v, fmt: str = ".4g") -> str:
-    """A table cell showing ``v`` formatted, with its exact value in ``data-value``."""
-    if isinstance(v, (bool, np.bool_)):
-        exact = "true" if v else "false"
-    elif isinstance(v, (int, np.integer)):
-        exact = str(int(v))
-    elif isinstance(v, (float, np.floating)):
-        exact = repr(float(v))
-    else:
-        exact = str(v)
-    return f'<td data-value="{_e(exact)}">{_e(_fmt(v, fmt))}</td>'
-
-
-def _table(columns, rows, *, table_id: str | None = None, formats: dict | None = None,
-           headers: dict | None = None) -> str:
-    """An HTML table; ``rows`` are sequences aligned with ``columns``."""
-    formats = formats or {}
-    headers = headers or {}
-    tid = f' id="{_e(table_id)}"' if table_id else ""
-    head = "".join(f'<th data-column="{_e(c)}">{_e(headers.get(c, c))}</th>' for c in columns)
-    body = "".join("<tr>" + "".join(_td(v, formats.get(c, ".4g")) for c, v in zip(columns, r))
-                   + "</tr>" for r in rows)
-    return f"<table{tid}><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
-
-
-def _kv_table(items, table_id: str | None = None) -> str:
-    tid = f' id="{_e(table_id)}"' if table_id else ""
-    body = "".join(f'<tr><th data-key="{_e(k)}">{_e(k)}</th>{_td(v)}</tr>' for k, v in items)
-    return f"<table class=\"kv\"{tid}><tbody>{body}</tbody></table>"
-
-
-def _figure(fig, caption: str, fig_id: str) -> str:
-    from .plots import png_bytes
-
-    b64 = base64.b64encode(png_bytes(fig)).decode("ascii")
-    return (f'<figure id="{_e(fig_id)}"><img alt="{_e(caption)}" src="data:image/png;base64,{b64}">'
-            f"<figcaption>{_e(caption)}</figcaption></figure>")
-
-
-def _note(text: str, cls: str = "note") -> str:
-    return f'<p class="{cls}">{_e(text)}</p>'
-
-
 def _mag_label(manifest: dict) -> str:
     if manifest.get("magnitude_type") == "absolute":
         return "M_UV"
@@ -244,20 +218,166 @@ def _beta_interval(k, n):
     return (k + 1) / (n + 2), stats.beta.ppf(0.16, k + 1, n - k + 1), stats.beta.ppf(0.84, k + 1, n - k + 1)
 
 
-def _nearest(values, targets, max_n):
-    """Indices into ``values`` nearest each target (unique, at most ``max_n``, spread out)."""
-    values = np.asarray(values, float)
-    targets = np.unique(np.asarray(targets, float))
-    if targets.size == 0:
-        targets = values
-    if targets.size > max_n:
-        targets = targets[np.linspace(0, targets.size - 1, max_n).round().astype(int)]
-    return list(dict.fromkeys(int(np.argmin(np.abs(values - t))) for t in targets))
+def _simulated(values, max_n):
+    """At most ``max_n`` of the distinct simulated ``values``, evenly spread, ends included."""
+    v = np.unique(np.asarray(values, float))
+    if v.size > max_n:
+        v = v[np.linspace(0, v.size - 1, max_n).round().astype(int)]
+    return v
+
+
+def _planes_at(axis, q, value, dim):
+    """The quantile planes ``q`` at ``value`` of the grid ``axis`` (dimension ``dim`` of q).
+
+    Linear between the two grid rows around ``value`` (the file's grid is uniform and
+    need not hold the simulated values; the rows are <= 0.05 in z or mag apart for a
+    small run, so the interpolation is far inside the bands); the row itself when
+    ``value`` is on the grid.
+    """
+    axis = np.asarray(axis, float)
+    if axis.size == 1:
+        return np.take(q, 0, axis=dim)
+    j = int(np.clip(np.searchsorted(axis, value) - 1, 0, axis.size - 2))
+    w = float(np.clip((value - axis[j]) / (axis[j + 1] - axis[j]), 0.0, 1.0))
+    lo, hi = np.take(q, j, axis=dim), np.take(q, j + 1, axis=dim)
+    return lo if w == 0.0 else hi if w == 1.0 else (1.0 - w) * lo + w * hi
+
+
+def _points(sub, k: str, n: str, x: str):
+    """Binned fractions of the summary rows ``sub`` with data (``n`` > 0) for a curve.
+
+    A cell without injected (``n_input``) or recovered (``n_recovered``) sources has no
+    fraction: its Beta(1, 1) mean 0.50 ± 0.34 would only show the prior, so it is left out.
+    """
+    sub = sub[sub[n].to_numpy(float) > 0]
+    y, lo, hi = _beta_interval(sub[k], sub[n])
+    return sub[x].to_numpy(float), y, lo, hi
 
 
 # ----------------------------------------------------------------------------- sections
-def _section(sid: str, title: str, body: str) -> str:
-    return f'<section id="{_e(sid)}"><h2>{_e(title)}</h2>{body}</section>'
+#: what each count of "cells" on the page is (one fact, one place: the page's definitions)
+CELL_TERMS = (
+    ("grid cells", "the simulated (z, m) pairs: one row of a summary table each"),
+    ("likelihood groups", "the fit's binomial terms: sources with the same redshift and the same "
+                          "magnitude covariate (input magnitude rounded to the fit's resolution, "
+                          "0.01 mag by default; relative to the local depth in a depth-aware fit) "
+                          "summed into one count; the file's NCELLS"),
+    ("PPC cells", "the posterior-predictive check's cells: simulated (z, m) pairs split into "
+                  "0.25 mag bins of local depth when depths are known; the file's PPC table rows"),
+)
+
+
+def _range_text(values, max_listed: int = 6) -> str:
+    """'8, 10' (the distinct values, up to ``max_listed``) or '40 values from 6 to 8'."""
+    v = np.unique(np.asarray(values, float))
+    if not v.size:
+        return "none"
+    if v.size <= max_listed:
+        return ", ".join(f"{x:g}" for x in v)
+    return f"{v.size} values from {v[0]:g} to {v[-1]:g}"
+
+
+def _pm(median, lower, upper) -> str:
+    """'27.31 +0.05/−0.04' (a 68 % interval in plain words); '—' when not reached."""
+    if median is None or not all(math.isfinite(float(v)) for v in (median, lower, upper)):
+        return "—"
+    return f"{median:.2f} +{upper - median:.2f}/−{median - lower:.2f}"
+
+
+def _field_m50(d: dict) -> list:
+    """Rows (field, z, m50, lower_68, upper_68, fit) of m50 per field, from the fit's files.
+
+    At the simulated redshifts among the summary's (all of them if none is simulated).
+    A per-field fit's own m50 (``fit/summary.json``); one pooled fit describes a single
+    field as it stands, and every field alike when it is not depth-aware; several fields
+    of a depth-aware pooled fit each have their own (``load_report_data``'s
+    ``field_m50``, from the file's draws).
+    """
+    fs = (d["fit_summary"] or {}).get("fits", {})
+    fields = [str(f) for f in d["manifest"].get("fields", [])]
+    simulated = np.unique(d["summaries"]["all"]["z"].to_numpy(float))
+    rows = []
+    for f in fields:
+        if f in fs:
+            src, name = fs[f].get("m50") or [], f
+        elif "all" in fs and f in (d.get("field_m50") or {}):
+            src, name = d["field_m50"][f], "all"
+        elif "all" in fs:
+            src, name = fs["all"].get("m50") or [], "all"
+        else:
+            continue
+        # at the simulated redshifts when the summary has them (it spreads up to 5 over the range)
+        at_sim = [r for r in src if np.isclose(simulated, r["z"], rtol=0, atol=1e-6).any()]
+        rows += [(f, r["z"], r["m50"], r["ci68"][0], r["ci68"][1], name) for r in at_sim or src]
+    return rows
+
+
+def _summary_section(d: dict) -> str:
+    """The run in plain words: what was simulated, depth, m50, the model kept, the fit time."""
+    m = d["manifest"]
+    s = d["summaries"]["all"]
+    fields = [str(f) for f in m.get("fields", [])]
+    n_in, n_rec, n_sel = (int(s[c].sum()) for c in ("n_input", "n_recovered", "n_selected"))
+    sel = m.get("selection")
+    mag_word = "absolute magnitude M_UV =" if m.get("magnitude_type") == "absolute" else \
+        f"{m.get('detection_band', 'detection-band')} magnitude m ="
+    area = m.get("area_arcmin2_total")
+    where = ", ".join(fields) + (f"; {area:.3g} arcmin² in all" if area else "")
+    what = (f"{n_in} artificial galaxies were injected into {len(fields)} "
+            f"field{'s' if len(fields) != 1 else ''} ({where}), at {len(s)} grid cells: "
+            f"redshift z = {_range_text(s['z'])} × {mag_word} {_range_text(s['mag'])}")
+    if m.get("n_iterations") and m.get("n_galaxies"):
+        what += f", {m['n_iterations']} iterations of {m['n_galaxies']} sources per field and cell"
+    what += f". {n_rec} ({n_rec / max(n_in, 1):.1%}) were recovered"
+    if sel is not None and not sel:
+        what += "; there are no selection criteria (detection only)."
+    else:
+        what += (f", and {n_sel} ({n_sel / max(n_in, 1):.1%}) of them also passed the "
+                 f"{len(sel or [])} selection criteria.")
+    body = f'<p id="summary-simulated">{esc(what)}</p>'
+    rows = []
+    for f in fields:
+        lo, hi, med = _depth_range(m, f)
+        rows.append((f, (m.get("area_arcmin2") or {}).get(f), med, lo, hi))
+    body += table(["field", "area_arcmin2", "depth_median", "depth_min", "depth_max"], rows,
+                   table_id="summary-depth",
+                   formats={"area_arcmin2": ".4g", "depth_median": ".2f", "depth_min": ".2f",
+                            "depth_max": ".2f"},
+                   headers={"area_arcmin2": "area [arcmin²]",
+                            "depth_median": "depth: area median [AB]",
+                            "depth_min": "shallowest", "depth_max": "deepest"})
+    body += note("Depth: the local 5σ limit in a 1-FWHM aperture, over the field's footprint.")
+    fs = d["fit_summary"]
+    if not fs or d["selection_function"] is None:
+        return section("summary", "Summary", body + _not_fitted(d))
+    mrows = _field_m50(d)
+    if mrows:
+        if "all" in fs.get("fits", {}) and len(fields) > 1 and not d.get("field_m50"):
+            body += note("One pooled fit that is not depth-aware: C(m, z) is the same for every "
+                          "field, and so is m50.")
+        mname = "M_UV" if m.get("magnitude_type") == "absolute" else "m"
+        body += f"<h3>50 % completeness {esc(mname)}50 per field (68 % interval)</h3>"
+        body += table(["field", "z", "m50", "lower_68", "upper_68", "m50_text"],
+                       [r[:5] + (_pm(*r[2:5]),) for r in mrows], table_id="summary-m50",
+                       formats={"z": "g", "m50": ".2f", "lower_68": ".2f", "upper_68": ".2f"},
+                       headers={"m50": f"{mname}50", "lower_68": "68 % lower",
+                                "upper_68": "68 % upper", "m50_text": "in words"})
+    sentences = []
+    for name, e in fs.get("fits", {}).items():
+        if not e.get("model"):
+            continue
+        ok = ("converged" if e.get("converged") else "NOT converged") + ", " + \
+             ("adequate by the posterior-predictive check" if e.get("adequate")
+              else "NOT adequate by the posterior-predictive check")
+        sentences.append(f"Fit {name}: the {e['model']} completeness step was kept — "
+                         f"{e.get('model_kept_because') or 'no reason recorded'} ({ok}).")
+    if fs.get("wall_time_s") is not None:
+        sentences.append(f"The fit took {float(fs['wall_time_s']):.1f} s of wall-clock time "
+                         "(the whole `glaciar fit`: every model compared, the checks and the files).")
+    else:
+        sentences.append("The fit's wall-clock time was not recorded by the glaciar that wrote it.")
+    body += '<p id="summary-fit">' + " ".join(esc(t) for t in sentences) + "</p>"
+    return section("summary", "Summary", body)
 
 
 def _config_section(d: dict) -> str:
@@ -275,15 +395,15 @@ def _config_section(d: dict) -> str:
              ("glaciar version", m.get("glaciar_version")),
              ("store format", m.get("store_format"))]
     sel = m.get("selection") or []
-    body = _kv_table([(k, v) for k, v in items if v is not None], "config-facts")
-    body += "<h3>Selection criteria</h3>" + ("<ul>" + "".join(f"<li><code>{_e(s)}</code></li>" for s in sel)
-                                             + "</ul>" if sel else _note("none"))
+    body = kv_table([(k, v) for k, v in items if v is not None], "config-facts")
+    body += "<h3>Selection criteria</h3>" + ("<ul>" + "".join(f"<li><code>{esc(s)}</code></li>" for s in sel)
+                                             + "</ul>" if sel else note("none"))
     if d["config_text"] is not None:
-        body += (f"<details><summary>{_e(C.RUN_CONFIG_NAME)} (the resolved configuration of the "
-                 f"run)</summary><pre>{_e(d['config_text'])}</pre></details>")
+        body += (f"<details><summary>{esc(C.RUN_CONFIG_NAME)} (the resolved configuration of the "
+                 f"run)</summary><pre>{esc(d['config_text'])}</pre></details>")
     else:
-        body += _note(f"no {C.RUN_CONFIG_NAME} in the run directory")
-    return _section("configuration", "Configuration", body)
+        body += note(f"no {C.RUN_CONFIG_NAME} in the run directory")
+    return section("configuration", "Configuration", body)
 
 
 def _depth_range(manifest: dict, field: str):
@@ -307,14 +427,16 @@ def _statistics_section(d: dict) -> str:
     n_tasks = (len(fields) * len(m.get("z_values", [])) * len(m.get("mag_values", []))
                * int(m.get("n_iterations") or 0))
     n_in, n_rec, n_sel = (int(s[c].sum()) for c in ("n_input", "n_recovered", "n_selected"))
-    items = [("fields", len(fields)), ("(z, m) cells", len(s)),
+    items = [("fields", len(fields)), ("grid cells (simulated z, m pairs)", len(s)),
              ("tasks (fields × z × m × iterations)", n_tasks),
              ("sources injected", n_in), ("recovered (status 0, 1, 2)", n_rec),
              ("recovered and selected", n_sel),
              ("recovered fraction", n_rec / n_in if n_in else None),
              ("selected fraction", n_sel / n_in if n_in else None),
              ("survey area [arcmin²]", m.get("area_arcmin2_total"))]
-    body = _kv_table(items, "run-statistics")
+    body = kv_table(items, "run-statistics")
+    body += ('<dl id="cell-terms">' + "".join(f"<dt>{esc(k)}</dt><dd>{esc(v)}</dd>" for k, v in CELL_TERMS)
+             + "</dl>")
     areas = m.get("area_arcmin2") or {}
     scales = m.get("pixel_scale_arcsec") or {}
     rows = []
@@ -325,7 +447,7 @@ def _statistics_section(d: dict) -> str:
                      int(sf["n_input"].sum()) if sf is not None else None,
                      int(sf["n_recovered"].sum()) if sf is not None else None,
                      int(sf["n_selected"].sum()) if sf is not None else None, lo, med, hi))
-    body += "<h3>Fields</h3>" + _table(
+    body += "<h3>Fields</h3>" + table(
         ["field", "area_arcmin2", "pixel_scale_arcsec", "n_input", "n_recovered", "n_selected",
          "depth_min", "depth_median", "depth_max"], rows, table_id="fields",
         formats={"area_arcmin2": ".4g", "pixel_scale_arcsec": ".4g", "depth_min": ".2f",
@@ -341,21 +463,24 @@ def _statistics_section(d: dict) -> str:
                               (e.get("blocks") or {}).items())
             rows.append((name, e.get("model"), e.get("model_kept_because"), e.get("n_sources"),
                          e.get("n_cells"), e.get("wall_time_s"), steps))
-        body += "<h3>Fit</h3>" + _table(["fit", "model", "kept_because", "n_sources", "n_cells",
-                                         "wall_time_s", "steps × walkers"], rows,
-                                        table_id="fit-statistics",
+        # summary.json's "n_cells" is len(Cells): the likelihood groups (CELL_TERMS)
+        body += "<h3>Fit</h3>" + table(["fit", "model", "kept_because", "n_sources",
+                                         "n_likelihood_groups", "wall_time_s", "steps × walkers"],
+                                        rows, table_id="fit-statistics",
                                         formats={"wall_time_s": ".1f"},
                                         headers={"wall_time_s": "wall time [s]",
-                                                 "kept_because": "kept because"})
+                                                 "kept_because": "kept because",
+                                                 "n_sources": "sources",
+                                                 "n_likelihood_groups": "likelihood groups"})
         if fs.get("wall_time_s") is not None:
             # The command's own clock (every model compared, checks, V_eff, files); a fit's
             # row is its share, without reading the run and writing the outputs.
-            body += _note(f"Fit wall time: {float(fs['wall_time_s']):.1f} s for the whole "
+            body += note(f"Fit wall time: {float(fs['wall_time_s']):.1f} s for the whole "
                           "`glaciar fit` (every model compared, the checks and the outputs).")
         else:
-            body += _note("Fit wall time: not recorded by the glaciar that wrote this fit (its "
+            body += note("Fit wall time: not recorded by the glaciar that wrote this fit (its "
                           "per-fit times count one model's sampler only).")
-    return _section("statistics", "Run statistics", body)
+    return section("statistics", "Run statistics", body)
 
 
 def _status_section(d: dict) -> str:
@@ -370,33 +495,33 @@ def _status_section(d: dict) -> str:
         rows.append([name, n] + [int(s[c].sum()) for c in cols]
                     + [int(s["n_recovered"].sum()), int(s["n_selected"].sum())])
     heads = {STATUS_COLUMNS[c]: f"{c}: {C.STATUS_LABELS[c]}" for c in C.STATUS_CODES}
-    body = _note("Counts of injected sources by status (GLACiAR's codes: 0, 1, 2 recovered; "
+    body = note("Counts of injected sources by status (GLACiAR's codes: 0, 1, 2 recovered; "
                  "−1 blended with a brighter source and failing the overlap or flux test; "
                  "−2 detected below the S/N threshold; −3 not detected).")
-    body += _table(["field", "n_input"] + cols + ["n_recovered", "n_selected"], rows,
+    body += table(["field", "n_input"] + cols + ["n_recovered", "n_selected"], rows,
                    table_id="status-totals", headers=heads)
-    body += _figure(plot_status_fractions(d["summaries"]["all"], labels, _mag_label(d["manifest"])),
+    body += figure(plot_status_fractions(d["summaries"]["all"], labels, _mag_label(d["manifest"])),
                     "Fraction of injected sources in each status per magnitude", "fig-status")
     sum_cols = (["z", "mag", "n_input"] + cols + ["n_recovered", "n_selected", "completeness",
                                                    "selection_total", "selection"])
     shown = d["summaries"] if len(d["summaries"]) <= _MAX_FIELD_TABLES + 1 else \
         {"all": d["summaries"]["all"]}
     if len(shown) < len(d["summaries"]):
-        body += _note(f"{len(d['summaries']) - 1} fields: their per-cell tables are in "
+        body += note(f"{len(d['summaries']) - 1} fields: their per-cell tables are in "
                       f"{C.SUMMARY_DIRNAME}/summary_<field>.ecsv")
     for name, s in shown.items():
         src = "summary_all.ecsv" if name == "all" else f"summary_{summary_stem(name)}.ecsv"
         rows = [[r[c] for c in sum_cols] for r in s[sum_cols].to_dict("records")]
-        body += (f"<details><summary>Per (z, m) cell: {_e(name)} ({_e(src)})</summary>"
-                 + _table(sum_cols, rows, table_id=f"summary-{name}",
+        body += (f"<details><summary>Per (z, m) cell: {esc(name)} ({esc(src)})</summary>"
+                 + table(sum_cols, rows, table_id=f"summary-{name}",
                           formats={"completeness": ".4f", "selection_total": ".4f",
                                    "selection": ".4f", "z": "g", "mag": "g"})
                  + "</details>")
-    return _section("status", "Status breakdown", body)
+    return section("status", "Status breakdown", body)
 
 
 def _not_fitted(d: dict) -> str:
-    return _note(f"not fitted: no {C.SELECTION_FUNCTION_NAME} in the run directory; run "
+    return note(f"not fitted: no {C.SELECTION_FUNCTION_NAME} in the run directory; run "
                  f"`glaciar fit {d['run_dir']}` and then `glaciar report {d['run_dir']} --html` again",
                  "missing")
 
@@ -410,56 +535,56 @@ def _curves_section(d: dict) -> str:
 
     sf = d["selection_function"]
     if sf is None:
-        return _section("curves", "Completeness C and selection S", _not_fitted(d))
+        return section("curves", "Completeness C and selection S", _not_fitted(d))
     m = d["manifest"]
     mlabel = _mag_label(m)
-    body = _note("Lines: posterior median; bands: 68 % and 95 % credible intervals (the "
-                 "quantile planes of the file's C_GRID and SR_GRID: survey averages, weighted by "
-                 "area over fields and depths). Points: binned fractions of the summary table, "
-                 "(k+1)/(n+2) with Beta(k+1, n−k+1) 68 % intervals (pooled by injections, so fields of "
-                 "unequal depth or area can pull them off the area-weighted curve).")
+    body = note("Curves at simulated redshifts and magnitudes only. Lines: posterior median; "
+                 "bands: 68 % and 95 % credible intervals (the quantile planes of the file's C_GRID "
+                 "and SR_GRID: survey averages, weighted by area over fields and depths; "
+                 "interpolated linearly between the two grid rows around a simulated value). "
+                 "Points: binned fractions of the summary table, (k+1)/(n+2) with Beta(k+1, n−k+1) "
+                 "68 % intervals (pooled by injections, so fields of unequal depth or area can pull "
+                 "them off the area-weighted curve); a cell with no injected source (C) or no "
+                 "recovered one (S) has no point.")
     for fit in sf["fits"]:
         name = fit["field"]
         pts = _points_for(d, name)
         if "C_GRID" not in fit:
-            body += _note(f"fit {name}: the file holds no grids")
+            body += note(f"fit {name}: the file holds no grids")
             continue
         g = fit["C_GRID"]
         curves, points = [], []
-        for iz in _nearest(g["z"], m.get("z_values", []), 6):
-            z = g["z"][iz]
-            curves.append((f"z = {z:.2f}", g["q"][:, iz, :]))
-            sub = pts[np.isclose(pts["z"], z, atol=1e-6)]
-            y, lo, hi = _beta_interval(sub["n_recovered"], sub["n_input"])
-            points.append((sub["mag"].to_numpy(float), y, lo, hi))
-        body += _figure(plot_quantile_curves(g["m"], curves, xlabel=mlabel, ylabel="completeness C(m)",
+        # Only simulated redshifts: those of the fit's summary table with injected sources.
+        for z in _simulated(pts.loc[pts["n_input"] > 0, "z"], 6):
+            curves.append((f"z = {z:g}", _planes_at(g["z"], g["q"], z, 1)))
+            points.append(_points(pts[np.isclose(pts["z"], z, atol=1e-6)], "n_recovered", "n_input",
+                                  "mag"))
+        body += figure(plot_quantile_curves(g["m"], curves, xlabel=mlabel, ylabel="completeness C(m)",
                                              title=f"C(m) at the simulated z — fit {name}",
                                              points=points),
                         f"Completeness C(m, z) with 68 % and 95 % credible bands (fit {name})",
                         f"fig-completeness-{name}")
         if fit["draws_header"].get("SELFIT", True) is False:
-            body += _note(f"fit {name}: detection only (no selection criteria), so S = 1 "
+            body += note(f"fit {name}: detection only (no selection criteria), so S = 1 "
                           "exactly and P = C; there is no S to show.")
             continue
         g = fit["SR_GRID"]
         curves, points = [], []
-        for im in _nearest(g["m"], m.get("mag_values", []), 4):
-            mv = g["m"][im]
-            curves.append((f"m = {mv:.2f}", g["q"][:, :, im]))
-            sub = pts[np.isclose(pts["mag"], mv, atol=1e-6)]
-            y, lo, hi = _beta_interval(sub["n_selected"], sub["n_recovered"])
-            points.append((sub["z"].to_numpy(float), y, lo, hi))
-        body += _figure(plot_quantile_curves(g["z"], curves, xlabel="redshift z",
+        for mv in _simulated(pts.loc[pts["n_input"] > 0, "mag"], 4):
+            curves.append((f"m = {mv:g}", _planes_at(g["m"], g["q"], mv, 2)))
+            points.append(_points(pts[np.isclose(pts["mag"], mv, atol=1e-6)], "n_selected",
+                                  "n_recovered", "z"))
+        body += figure(plot_quantile_curves(g["z"], curves, xlabel="redshift z",
                                              ylabel="S(z, m) = P(selected | recovered)",
                                              title=f"S(z) at simulated magnitudes — fit {name}",
                                              points=points),
                         f"Selection given recovery S(z, m) with 68 % and 95 % credible bands (fit {name})",
                         f"fig-selection-{name}")
         g = fit["P_GRID"]
-        body += _figure(plot_grid_map(g["m"], g["z"], g["q"][0], xlabel=mlabel, ylabel="redshift z",
+        body += figure(plot_grid_map(g["m"], g["z"], g["q"][0], xlabel=mlabel, ylabel="redshift z",
                                       label="median P = C·S", title=f"P(z, m) = C·S — fit {name}"),
                         f"Median selection probability P = C·S (fit {name})", f"fig-p-{name}")
-    return _section("curves", "Completeness C and selection S", body)
+    return section("curves", "Completeness C and selection S", body)
 
 
 def _ppc_section(d: dict) -> str:
@@ -467,12 +592,12 @@ def _ppc_section(d: dict) -> str:
 
     sf = d["selection_function"]
     if sf is None:
-        return _section("ppc", "Posterior-predictive check", _not_fitted(d))
+        return section("ppc", "Posterior-predictive check", _not_fitted(d))
     fits_summary = (d["fit_summary"] or {}).get("fits", {})
-    body = _note("Per simulated (z, m, depth bin) cell: the observed counts against the posterior "
+    body = note("Per simulated (z, m, depth bin) cell: the observed counts against the posterior "
                  "predictive distribution (mid-p values); a cell is extreme when either mid-p is "
                  "below 0.01 or above 0.99. The fit is adequate unless more cells are extreme "
-                 "than chance allows (99 % quantile of Binomial(n_cells, 0.04)).")
+                 "than chance allows (99 % quantile of Binomial(PPC cells, 0.04)).")
     rows = []
     for fit in sf["fits"]:
         v = (fits_summary.get(fit["field"]) or {}).get("ppc") or {}
@@ -480,25 +605,27 @@ def _ppc_section(d: dict) -> str:
         n_ext = int(np.sum(ppc["extreme"])) if ppc is not None else v.get("n_extreme")
         rows.append((fit["field"], len(ppc) if ppc is not None else v.get("n_cells"), n_ext,
                      v.get("max_allowed"), v.get("adequate", fit["draws_header"].get("ADEQUATE"))))
-    body += _table(["fit", "n_cells", "n_extreme", "max_allowed", "adequate"], rows,
-                   table_id="ppc-verdict")
+    body += table(["fit", "n_ppc_cells", "n_extreme", "max_allowed", "adequate"], rows,
+                   table_id="ppc-verdict",
+                   headers={"n_ppc_cells": "PPC cells", "n_extreme": "extreme cells",
+                            "max_allowed": "most extreme cells allowed"})
     for fit in sf["fits"]:
         ppc = fit["PPC"]
         if ppc is None or not len(ppc):
-            body += _note(f"fit {fit['field']}: the file holds no PPC table")
+            body += note(f"fit {fit['field']}: the file holds no PPC table")
             continue
-        body += _figure(plot_ppc(ppc), f"Binned fractions against the model per cell (fit {fit['field']})",
+        body += figure(plot_ppc(ppc), f"Binned fractions against the model per cell (fit {fit['field']})",
                         f"fig-ppc-{fit['field']}")
         ext = ppc[ppc["extreme"].astype(bool)]
         cols = ["z", "mag", "depth_lo", "n", "k_rec", "k_sel", "c_binned", "c_model", "s_binned",
                 "s_model", "ppc_p_rec", "ppc_p_sel"]
         if len(ext):
-            body += f"<h3>Extreme cells (fit {_e(fit['field'])})</h3>" + _table(
+            body += f"<h3>Extreme cells (fit {esc(fit['field'])})</h3>" + table(
                 cols, ext[cols].itertuples(index=False), table_id=f"ppc-extreme-{fit['field']}",
                 formats={"z": "g", "mag": "g", "depth_lo": ".2f"})
         else:
-            body += _note(f"fit {fit['field']}: no extreme cells")
-    return _section("ppc", "Posterior-predictive check", body)
+            body += note(f"fit {fit['field']}: no extreme cells")
+    return section("ppc", "Posterior-predictive check", body)
 
 
 def _depth_section(d: dict) -> str:
@@ -509,15 +636,15 @@ def _depth_section(d: dict) -> str:
     da = {f: (v["bin_edges_mag"], v["area_arcmin2"]) for f, v in (m.get("depth_area") or {}).items()
           if len(v.get("area_arcmin2", [])) and len(v["bin_edges_mag"]) == len(v["area_arcmin2"]) + 1}
     if da:
-        body += _figure(plot_area_by_depth(da), "Footprint area per local-depth bin (manifest depth_area)",
+        body += figure(plot_area_by_depth(da), "Footprint area per local-depth bin (manifest depth_area)",
                         "fig-area-by-depth")
     else:
-        body += _note("the manifest holds no area-by-depth distribution")
+        body += note("the manifest holds no area-by-depth distribution")
     sf = d["selection_function"]
     if sf is None:
-        return _section("depth", "Depth map of completeness", body + _not_fitted(d))
+        return section("depth", "Depth map of completeness", body + _not_fitted(d))
     depth_aware = bool(sf["primary"].get("DEPTHAW", False))
-    body = _note("Completeness against magnitude and the local depth under each source "
+    body = note("Completeness against magnitude and the local depth under each source "
                  "(5σ limit in a 1-FWHM aperture), from the file's PPC table: counts summed over "
                  "redshift per (m, 0.25 mag depth bin) cell; the model map is the posterior median "
                  "of the cell means, averaged over redshift with the cells' source counts as "
@@ -526,7 +653,7 @@ def _depth_section(d: dict) -> str:
     for fit in sf["fits"]:
         ppc = fit["PPC"]
         if ppc is None or not len(ppc) or not np.isfinite(ppc["depth_lo"].to_numpy(float)).any():
-            body += _note(f"fit {fit['field']}: no local depths in the PPC table")
+            body += note(f"fit {fit['field']}: no local depths in the PPC table")
             continue
         p = ppc[np.isfinite(ppc["depth_lo"].to_numpy(float))].copy()
         p["c_model_n"] = p["c_model"] * p["n"]
@@ -543,10 +670,10 @@ def _depth_section(d: dict) -> str:
         n = g["n"].to_numpy(float)
         obs[idl, im] = g["k_rec"].to_numpy(float) / n
         mod[idl, im] = g["c_model_n"].to_numpy(float) / n
-        body += _figure(plot_depth_completeness(mags, dl, step, obs, mod, mag_label=_mag_label(m)),
+        body += figure(plot_depth_completeness(mags, dl, step, obs, mod, mag_label=_mag_label(m)),
                         f"Completeness by magnitude and local depth, all z (fit {fit['field']})",
                         f"fig-depth-{fit['field']}")
-    return _section("depth", "Depth map of completeness", body)
+    return section("depth", "Depth map of completeness", body)
 
 
 def _round_value(column: str, value):
@@ -570,59 +697,58 @@ def _adaptive_section(d: dict) -> str:
     else:
         cols = list(dict.fromkeys(k for r in rounds for k in r))
         rows = [[_round_value(c, r.get(c)) for c in cols] for r in rounds]
-        body = _table(cols, rows, table_id="adaptive-rounds")
-    return _section("adaptive", "Adaptive rounds", body)
+        body = table(cols, rows, table_id="adaptive-rounds")
+    return section("adaptive", "Adaptive rounds", body)
 
 
 def _sf_section(d: dict) -> str:
     sf = d["selection_function"]
     if sf is None:
-        return _section("selection-function", "Selection-function summary", _not_fitted(d))
+        return section("selection-function", "Selection-function summary", _not_fitted(d))
     from .plots import plot_effective_volume
 
     m = d["manifest"]
     fs = d["fit_summary"] or {}
     mlabel = "M_UV" if m.get("magnitude_type") == "absolute" else "m"
-    body = _note(f"{sf['path']}: read it with glaciar.SelectionFunction.read(path), or without "
+    body = note(f"{sf['path']}: read it with glaciar.SelectionFunction.read(path), or without "
                  "glaciar as docs/selection-function-file.md describes.")
-    body += _kv_table(sorted(sf["primary"].items()), "sf-primary")
     # Is the file current?  (It describes the rows that were fitted.)
     n_now = int(d["summaries"]["all"]["n_input"].sum())
     if sf["primary"].get("CONFHASH") and m.get("config_hash") and \
             sf["primary"]["CONFHASH"] != m["config_hash"]:
-        body += _note("the file was fitted to another configuration than the run's: fit again",
+        body += note("the file was fitted to another configuration than the run's: fit again",
                       "warning")
     fsum = fs.get("fits", {})
     for fit in sf["fits"]:
         name = fit["field"]
         e = fsum.get(name) or {}
         dh = fit["draws_header"]
-        body += f"<h3>Fit {_e(name)}</h3>"
+        body += f"<h3>Fit {esc(name)}</h3>"
         if name == "all" and dh.get("NSOURCES") is not None and int(dh["NSOURCES"]) != n_now:
-            body += _note(f"the fit used {int(dh['NSOURCES'])} sources, the run's summary tables now "
+            body += note(f"the fit used {int(dh['NSOURCES'])} sources, the run's summary tables now "
                           f"hold {n_now}: run `glaciar fit` again", "warning")
         facts = [("model", dh.get("MODEL")), ("posterior draws", fit["n_draws"]),
-                 ("sources", dh.get("NSOURCES")), ("cells", dh.get("NCELLS")),
+                 ("sources", dh.get("NSOURCES")), ("likelihood groups", dh.get("NCELLS")),
                  ("converged (every chain ≥ 50 τ)", dh.get("CONVERGE")),
                  ("adequate (PPC)", dh.get("ADEQUATE")), ("max τ", dh.get("TAUMAX")),
                  ("min ESS", dh.get("ESSMIN")), ("max split R-hat", dh.get("RHATMAX")),
                  ("depth reference d_ref", dh.get("DEPTHREF")),
                  ("simulated z", f"{dh.get('ZMIN')} – {dh.get('ZMAX')}"),
                  ("simulated m", f"{dh.get('MMIN')} – {dh.get('MMAX')}")]
-        body += _kv_table(facts, f"sf-fit-{name}")
+        body += kv_table(facts, f"sf-fit-{name}")
         if e.get("m50"):
-            body += f"<h4>{_e(mlabel)} at C = 0.5</h4>" + _table(
+            body += f"<h4>{esc(mlabel)} at C = 0.5</h4>" + table(
                 ["z", "m50", "lower_68", "upper_68"],
                 [(r["z"], r["m50"], r["ci68"][0], r["ci68"][1]) for r in e["m50"]],
                 table_id=f"m50-{name}", formats={"z": "g", "m50": ".3f", "lower_68": ".3f",
                                                  "upper_68": ".3f"})
         if e.get("c_max"):
             cm = e["c_max"]
-            body += _kv_table([(f"C_max(z = {cm['z']:g}) median", cm["median"]),
+            body += kv_table([(f"C_max(z = {cm['z']:g}) median", cm["median"]),
                                ("C_max 68 % lower", cm["ci68"][0]), ("C_max 68 % upper", cm["ci68"][1])],
                               f"cmax-{name}")
         if e.get("model_comparison"):
-            body += "<h4>PSIS-LOO comparison of completeness steps</h4>" + _table(
+            body += "<h4>PSIS-LOO comparison of completeness steps</h4>" + table(
                 ["model", "delta_elpd", "se_delta"],
                 [(r["model"], r["delta_elpd"], r["se_delta"]) for r in e["model_comparison"]],
                 table_id=f"loo-{name}", formats={"delta_elpd": "+.2f", "se_delta": ".2f"})
@@ -631,41 +757,32 @@ def _sf_section(d: dict) -> str:
             q = ve["quoted"]
             what = (f"{ve['area_arcmin2']:.4g} arcmin², z {ve['z_range'][0]:g}–{ve['z_range'][1]:g}, "
                     f"{ve.get('cosmology')}")
-            body += f"<h4>Effective volume ({_e(what)})</h4>"
-            body += _table(["mag", "median_mpc3", "lower_mpc3", "upper_mpc3"],
+            body += f"<h4>Effective volume ({esc(what)})</h4>"
+            body += table(["mag", "median_mpc3", "lower_mpc3", "upper_mpc3"],
                            zip(q["mag"], q["median_mpc3"], q["lower_mpc3"], q["upper_mpc3"]),
                            table_id=f"veff-{name}", formats={"mag": ".2f"},
                            headers={"median_mpc3": "V_eff median [Mpc³]", "lower_mpc3": "68 % lower",
                                     "upper_mpc3": "68 % upper"})
-            body += _figure(plot_effective_volume(ve["mag"], ve["median_mpc3"], ve["lower_mpc3"],
+            body += figure(plot_effective_volume(ve["mag"], ve["median_mpc3"], ve["lower_mpc3"],
                                                   ve["upper_mpc3"], mag_label=_mag_label(m),
                                                   title=f"V_eff(m), fit {name}"),
                             f"Effective volume V_eff(m) with its 68 % interval (fit {name})",
                             f"fig-veff-{name}")
         elif e.get("effective_volume_note"):
-            body += _note(f"V_eff: not computed ({e['effective_volume_note']})")
+            body += note(f"V_eff: not computed ({e['effective_volume_note']})")
         p = fit["params"]
         cols = [c for c in ("name", "median", "q16", "q84", "prior_mean", "prior_sd", "tau", "ess", "rhat")
                 if c in p.columns]
-        body += (f"<details><summary>Parameters (PARAMS, fit {_e(name)})</summary>"
-                 + _table(cols, p[cols].itertuples(index=False), table_id=f"params-{name}") + "</details>")
-    return _section("selection-function", "Selection-function summary", body)
+        body += (f"<details><summary>Parameters (PARAMS, fit {esc(name)})</summary>"
+                 + table(cols, p[cols].itertuples(index=False), table_id=f"params-{name}") + "</details>")
+    # The raw keywords, for whoever reads the file by hand: the summary above says it in words.
+    body += ("<details><summary>The file's primary header (FITS keywords)</summary>"
+             + kv_table(sorted(sf["primary"].items()), "sf-primary") + "</details>")
+    return section("selection-function", "Selection-function summary", body)
 
 
-_STYLE = """
-body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0 auto;max-width:1100px;
-padding:0 1.2em 3em;color:#222;line-height:1.4}
-h1{margin-bottom:0.2em}h2{border-bottom:2px solid #ccc;padding-bottom:0.2em;margin-top:1.8em}
-nav a{margin-right:0.9em}table{border-collapse:collapse;margin:0.6em 0;font-size:0.85em}
-th,td{border:1px solid #ddd;padding:0.15em 0.5em;text-align:right}th{background:#f4f4f4}
-table.kv th{text-align:left}td:first-child{text-align:left}
-figure{margin:1em 0}figure img{max-width:100%;height:auto;border:1px solid #eee}
-figcaption{font-size:0.85em;color:#555}pre{background:#f8f8f8;padding:0.8em;overflow:auto;font-size:0.8em}
-.note{color:#444;font-size:0.9em}.missing{color:#8a5a00;font-weight:600}.warning{color:#b00020;font-weight:600}
-details{margin:0.5em 0}summary{cursor:pointer}
-"""
-
-_SECTIONS = (("configuration", "Configuration", _config_section),
+_SECTIONS = (("summary", "Summary", _summary_section),
+             ("configuration", "Configuration", _config_section),
              ("statistics", "Run statistics", _statistics_section),
              ("status", "Status breakdown", _status_section),
              ("curves", "C and S", _curves_section),
@@ -680,14 +797,14 @@ def render_html(data: dict) -> str:
     from . import __version__
 
     title = f"glaciar report — {Path(data['run_dir']).name}"
-    nav = "".join(f'<a href="#{sid}">{_e(label)}</a>' for sid, label, _ in _SECTIONS)
+    nav = "".join(f'<a href="#{sid}">{esc(label)}</a>' for sid, label, _ in _SECTIONS)
     body = "".join(fn(data) for _, _, fn in _SECTIONS)
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
             '<link rel="icon" href="data:,">'
-            f"<title>{_e(title)}</title><style>{_STYLE}</style></head><body>"
-            f"<header><h1>{_e(title)}</h1><p class=\"note\">{_e(data['run_dir'])} · written by "
-            f"glaciar {_e(__version__)}</p><nav>{nav}</nav></header>"
+            f"<title>{esc(title)}</title><style>{STYLE}</style></head><body>"
+            f"<header><h1>{esc(title)}</h1><p class=\"note\">{esc(data['run_dir'])} · written by "
+            f"glaciar {esc(__version__)}</p><nav>{nav}</nav></header>"
             f"<main>{body}</main></body></html>\n")
 
 

@@ -5,10 +5,13 @@ copied, reported before a fit, fitted (logistic step), and reported again.  The 
 parsed back: its numbers must equal those of the run's summary tables, the selection-
 function file and ``fit/summary.json``; every image must decode; nothing may point outside
 the page.  Headless Chromium (Debian package ``chromium``; ``.ci/run`` installs it) then
-loads the page over the DevTools protocol (a pipe, no network port) and must report no
-console error and every figure decoded and laid out.  Without Chromium that test skips.
+loads the page over the DevTools protocol (a pipe, no network port) in a 1280 px wide
+window and must report no console error and every figure decoded and laid out at its own
+(readable) size.  Without Chromium that test skips.  The figures' contents (legends, log
+axes, empty cells) are checked on the Figure objects in ``test_report_figures.py``.
 """
 import base64
+import html
 import io
 import json
 import math
@@ -34,7 +37,7 @@ from glaciar.report import ADAPTIVE_ROUNDS_NAME, REPORT_NAME, load_report_data
 #: every figure a fitted single-fit report shows (ids of <figure> elements)
 FITTED_FIGURES = ("fig-status", "fig-completeness-all", "fig-selection-all", "fig-p-all",
                   "fig-ppc-all", "fig-area-by-depth", "fig-depth-all", "fig-veff-all")
-SECTIONS = ("configuration", "statistics", "status", "curves", "ppc", "depth", "adaptive",
+SECTIONS = ("summary", "configuration", "statistics", "status", "curves", "ppc", "depth", "adaptive",
             "selection-function")
 
 
@@ -175,6 +178,73 @@ def test_fit_numbers_equal_the_fit_outputs(reported):
     assert int(facts["sources"][0]) == hd["NSOURCES"]
     assert facts["adequate (PPC)"][0] == ("true" if hd["ADEQUATE"] else "false")
     np.testing.assert_array_equal(_exact(page.column("params-all", "median")), params["median"])
+
+
+def test_summary_says_in_plain_words_what_was_simulated_m50_the_model_and_the_fit_time(reported):
+    run, _, html_text = reported
+    page = _Page(html_text)
+    manifest = json.loads((run / C.MANIFEST_NAME).read_text())
+    fs = json.loads((run / "fit" / "summary.json").read_text())
+    t = Table.read(run / C.SUMMARY_DIRNAME / "summary_all.ecsv")
+    text = re.sub(r"<[^>]+>", "", re.search(r'<p id="summary-simulated">(.*?)</p>', html_text).group(1))
+    n_in = int(t["n_input"].sum())
+    assert text.startswith(f"{n_in} artificial galaxies were injected into 1 field")
+    assert f"at {len(t)} grid cells: redshift z = 8, 10 × f160w magnitude m = 11 values from 23.5 to 28.5" \
+        in text
+    # m50 per field (one field, one pooled fit: the fit's m50) with its 68 % interval
+    (field,) = manifest["fields"]
+    # at the simulated redshifts (8 and 10; the fit summary also has 8.5, 9 and 9.5)
+    m50 = [r for r in fs["fits"]["all"]["m50"] if r["z"] in manifest["z_values"]]
+    assert sorted(r["z"] for r in m50) == sorted(manifest["z_values"])
+    assert [v for v, _ in page.column("summary-m50", "field")] == [field] * len(m50)
+    np.testing.assert_array_equal(_exact(page.column("summary-m50", "m50")), [r["m50"] for r in m50])
+    np.testing.assert_array_equal(_exact(page.column("summary-m50", "upper_68")),
+                                  [r["ci68"][1] for r in m50])
+    r = m50[0]
+    assert page.column("summary-m50", "m50_text")[0][1] == (
+        f"{r['m50']:.2f} +{r['ci68'][1] - r['m50']:.2f}/−{r['m50'] - r['ci68'][0]:.2f}")
+    # the depth of the field, from the manifest's area-by-depth distribution
+    assert [v for v, _ in page.column("summary-depth", "field")] == [field]
+    assert float(page.column("summary-depth", "depth_median")[0][0]) > 20
+    # the model kept, why, and the fit's own clock
+    fit_text = html.unescape(re.search(r'<p id="summary-fit">(.*?)</p>', html_text).group(1))
+    e = fs["fits"]["all"]
+    assert f"the {e['model']} completeness step was kept — {e['model_kept_because']}" in fit_text
+    assert f"The fit took {fs['wall_time_s']:.1f} s of wall-clock time" in fit_text
+    # the raw FITS keywords are no longer the summary: only in a closed <details>
+    head = html_text[:html_text.index('id="sf-primary"')]
+    assert head.rfind("<details>") > head.rfind("</details>")
+
+
+def test_every_count_of_cells_is_named_and_defined(reported):
+    """Three different counts were all called "n_cells" (or "cells"), undefined."""
+    run, _, html_text = reported
+    page = _Page(html_text)
+    fs = json.loads((run / "fit" / "summary.json").read_text())
+    columns = {c for t in page.tables.values() for c in t["columns"]}
+    keys = {k for t in page.tables.values() for k in t["keys"]}
+    assert not {"n_cells", "cells", "(z, m) cells"} & (columns | keys)
+    terms = re.search(r'<dl id="cell-terms">(.*?)</dl>', html_text).group(1)
+    assert re.findall(r"<dt>(.*?)</dt>", terms) == ["grid cells", "likelihood groups", "PPC cells"]
+    with fits.open(run / C.SELECTION_FUNCTION_NAME) as h:
+        n_ppc, ncells = len(h["PPC", 1].data), h["DRAWS", 1].header["NCELLS"]
+    assert int(page.column("fit-statistics", "n_likelihood_groups")[0][0]) == \
+        fs["fits"]["all"]["n_cells"] == ncells
+    assert int(page.kv("sf-fit-all")["likelihood groups"][0]) == ncells
+    assert int(page.column("ppc-verdict", "n_ppc_cells")[0][0]) == n_ppc
+    t = Table.read(run / C.SUMMARY_DIRNAME / "summary_all.ecsv")
+    assert int(page.kv("run-statistics")["grid cells (simulated z, m pairs)"][0]) == len(t)
+
+
+def test_images_carry_their_own_size_and_are_wide_enough_to_read(reported):
+    """Before: no size on the <img>, PNGs ~600 px wide with 7 pt legends."""
+    _, before, after = reported
+    for text in (before, after):
+        for img in _Page(text).images:
+            png = base64.b64decode(img["src"].split(",", 1)[1])
+            w, h = int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
+            assert (int(img["width"]), int(img["height"])) == (w, h)
+            assert w >= 800, (img.get("alt"), w)
 
 
 def test_every_image_is_an_embedded_png_that_decodes(reported):
@@ -321,14 +391,18 @@ class _DevTools:
             shutil.rmtree(self._profile, ignore_errors=True)
 
 
+#: the browser window's width [CSS px] in the Chromium test
+VIEWPORT_PX = 1280
+
 _IMAGES_JS = """JSON.stringify({
   title: document.title,
   figures: document.querySelectorAll("figure").length,
   sections: Array.from(document.querySelectorAll("section")).map(s => s.id),
+  column: document.querySelector("main").getBoundingClientRect().width,
   images: Array.from(document.images).map(i => ({
     id: i.closest("figure") ? i.closest("figure").id : null, complete: i.complete,
     width: i.naturalWidth, height: i.naturalHeight,
-    shown: i.getBoundingClientRect().width}))})"""
+    shown: i.clientWidth}))})"""
 
 
 def test_chromium_loads_the_page_without_console_errors_and_shows_its_figures(reported):
@@ -345,6 +419,10 @@ def test_chromium_loads_the_page_without_console_errors_and_shows_its_figures(re
         sid = browser.call("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
         for domain in ("Runtime", "Log", "Page"):
             browser.call(f"{domain}.enable", session=sid)
+        # a laptop's window: 1280 CSS px (headless Chromium's default is 800)
+        browser.call("Emulation.setDeviceMetricsOverride", {"width": VIEWPORT_PX, "height": 900,
+                                                            "deviceScaleFactor": 1, "mobile": False},
+                     session=sid)
         browser.call("Page.navigate", {"url": (run / REPORT_NAME).resolve().as_uri()}, session=sid)
         browser.wait(lambda m: m.get("method") == "Page.loadEventFired" and m.get("sessionId") == sid)
         res = browser.call("Runtime.evaluate", {"expression": _IMAGES_JS, "returnByValue": True},
@@ -370,6 +448,43 @@ def test_chromium_loads_the_page_without_console_errors_and_shows_its_figures(re
         sizes.append((a.shape[1], a.shape[0]))
     for i in info["images"]:
         assert i["complete"] and i["width"] > 100 and i["height"] > 100, i
-        assert i["shown"] > 100, i
+        # shown at one PNG pixel per CSS pixel (the size its fonts were drawn for), or
+        # shrunk to the page's column only when wider than it; never under 800 px
+        assert abs(i["shown"] - min(i["width"], info["column"])) <= 1, i
+        assert i["shown"] >= 800, i
     assert sorted((i["width"], i["height"]) for i in info["images"]) == sorted(sizes)
     assert math.isfinite(sum(i["shown"] for i in info["images"]))
+
+
+def test_pooled_depth_aware_fit_gives_each_field_its_own_m50(tmp_path):
+    """A pooled depth-aware fit: C(m | d) = C(m − (d − d_ref)), so a field 1 mag deeper (one
+    depth bin each) has its m50 exactly 1 mag fainter; before, every field showed the
+    survey-averaged m50 of fit/summary.json."""
+    from glaciar import report
+    from glaciar.inference import SelectionFunction, SurfaceModel
+    from glaciar.pipeline.selection_file import to_bytes
+
+    mdl = SurfaceModel.for_data(np.array([7.0, 8.0]), np.array([25.0, 27.0, 29.0]), depth_ref=27.5)
+    da = {"shallow": (np.array([27.0, 27.05]), np.array([1.0])),
+          "deep": (np.array([28.0, 28.05]), np.array([2.0]))}
+    dom = {"z": (7.0, 8.0), "mag": (24.0, 30.0), "depth": (27.0, 28.05)}
+    th = mdl.sample_prior(40, np.random.default_rng(0))
+    # draws whose root is inside the simulated range for both fields at both redshifts
+    probe = SelectionFunction(mdl, th, depth_area=da, domain=dom)
+    ok = np.all([np.isfinite(probe.magnitude_at(0.5, [7.0, 8.0], field=f).draws).all(axis=1)
+                 for f in da], axis=0)
+    assert ok.sum() >= 3
+    sf = SelectionFunction(mdl, th[ok], np.linspace(7, 8, 5), np.linspace(24, 30, 13),
+                           meta={"fields": list(da)}, field="all", depth_area=da, domain=dom)
+    path = tmp_path / C.SELECTION_FUNCTION_NAME
+    path.write_bytes(to_bytes([sf], {"fields": list(da)}))
+    pooled_m50 = [{"z": 7.0, "m50": 0.0, "ci68": [0.0, 0.0]}, {"z": 8.0, "m50": 0.0, "ci68": [0.0, 0.0]}]
+    data = {"selection_function": {"primary": {"DEPTHAW": True}},
+            "fit_summary": {"fits": {"all": {"m50": pooled_m50}}},
+            "manifest": {"fields": list(da)},
+            "summaries": {"all": Table({"z": [7.0, 8.0]}).to_pandas()}}
+    data["field_m50"] = report._pooled_field_m50(path, data, list(da))
+    rows = {(f, z): (m50, lo, hi) for f, z, m50, lo, hi, fit in report._field_m50(data)}
+    assert sorted(rows) == [("deep", 7.0), ("deep", 8.0), ("shallow", 7.0), ("shallow", 8.0)]
+    for z in (7.0, 8.0):
+        np.testing.assert_allclose(np.subtract(rows["deep", z], rows["shallow", z]), 1.0, atol=1e-6)

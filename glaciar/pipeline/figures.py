@@ -1,23 +1,22 @@
 """Figures of a fitted selection function: C and S with credible bands over binned points.
 
 Each function takes a :class:`~glaciar.inference.SelectionFunction` and
-returns a matplotlib Figure; :func:`glaciar.pipeline.fit.run_fit` saves them
-(:func:`glaciar.plots.save_png`) under ``RUN_DIR/fit/``.
+returns a :class:`matplotlib.figure.Figure` built without pyplot (no backend is
+selected, so a user's notebook backend is left alone);
+:func:`glaciar.pipeline.fit.run_fit` saves them (:func:`glaciar.plots.save_png`)
+under ``RUN_DIR/fit/``.  Legends name only simulated redshifts and magnitudes:
+those of the file's PPC table (the simulated cells), else the ends of the
+simulated range.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from ..plots import LEGEND_PT, TITLE_PT, new_figure
+
 __all__ = ["completeness_figure", "selection_figure", "FIGURE_DPI"]
 
 FIGURE_DPI = 110    #: resolution of the saved PNGs [dots per inch]
-
-
-def _pyplot():
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    return plt
 
 
 def _credible_band(ax, x, draws, color, label):
@@ -28,11 +27,20 @@ def _credible_band(ax, x, draws, color, label):
     ax.plot(x, q[0], color=color, label=label)
 
 
+def _spread(values, max_n):
+    """At most ``max_n`` of the sorted ``values``, evenly spread, ends included."""
+    values = np.unique(values)
+    if len(values) > max_n:
+        values = values[np.linspace(0, len(values) - 1, max_n).round().astype(int)]
+    return values
+
+
 def _zs_to_show(sf, max_panels=6):
+    """Simulated redshifts: the PPC table's, else the two ends of the simulated range."""
     if sf.ppc is not None and len(sf.ppc):
         zs = np.unique(sf.ppc["z"])
     else:
-        zs = np.linspace(sf.z_grid[0], sf.z_grid[-1], max_panels)
+        zs = np.unique([sf.z_grid[0], sf.z_grid[-1]])
     if len(zs) > max_panels:
         zs = zs[np.linspace(0, len(zs) - 1, max_panels).round().astype(int)]
     return zs
@@ -66,14 +74,16 @@ def completeness_figure(sf):
     -------
     matplotlib.figure.Figure
     """
-    plt = _pyplot()
+    from matplotlib import colormaps
 
     zs = _zs_to_show(sf)
     m = np.linspace(sf.m_grid[0], sf.m_grid[-1], 200)
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    colors = plt.cm.viridis(np.linspace(0, 0.9, len(zs)))
+    fig = new_figure((8, 5))
+    ax = fig.subplots()
+    colors = colormaps["viridis"](np.linspace(0, 0.9, len(zs)))
     for z, col in zip(zs, colors):
-        _credible_band(ax, m, sf.completeness(m, z, draws=True), col, f"z = {z:.2f}")
+        # ``g``: the simulated value as configured (9.125, not a rounded 9.12)
+        _credible_band(ax, m, sf.completeness(m, z, draws=True), col, f"z = {z:g}")
         if sf.ppc is not None:
             at_z = np.isclose(sf.ppc["z"], z)
             x, y, lo, hi = _binned(sf.ppc, at_z, "k_rec", "n")
@@ -88,8 +98,8 @@ def completeness_figure(sf):
     ax.set_ylabel("completeness C(m)")
     ax.set_ylim(-0.02, 1.02)
     ax.set_title(f"C, area-weighted ({sf.model.shape}, field {sf.field}); points: (k+1)/(n+2)",
-                 fontsize=9)
-    ax.legend(fontsize=7)
+                 fontsize=TITLE_PT)
+    ax.legend(fontsize=LEGEND_PT)
     fig.tight_layout()
     return fig
 
@@ -107,18 +117,18 @@ def selection_figure(sf, n_mags: int = 4):
     -------
     matplotlib.figure.Figure
     """
-    plt = _pyplot()
+    from matplotlib import colormaps
 
     z = np.linspace(sf.z_grid[0], sf.z_grid[-1], 200)
     if sf.ppc is not None and len(sf.ppc):
-        mags = np.unique(sf.ppc["mag"])
-        mags = mags[np.linspace(0, len(mags) - 1, min(n_mags, len(mags))).round().astype(int)]
+        mags = _spread(sf.ppc["mag"], n_mags)            # the simulated (nominal) magnitudes
     else:
-        mags = np.linspace(sf.m_grid[0], sf.m_grid[-1], n_mags)
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.5))
-    colors = plt.cm.plasma(np.linspace(0, 0.85, len(mags)))
+        mags = np.unique([sf.m_grid[0], sf.m_grid[-1]])  # the ends of the simulated range
+    fig = new_figure((12, 5))
+    ax, ax2 = fig.subplots(1, 2)
+    colors = colormaps["plasma"](np.linspace(0, 0.85, len(mags)))
     for mv, col in zip(mags, colors):
-        _credible_band(ax, z, sf.selection_given_recovered(z, mv, draws=True), col, f"m = {mv:.2f}")
+        _credible_band(ax, z, sf.selection_given_recovered(z, mv, draws=True), col, f"m = {mv:g}")
         if sf.ppc is not None:
             zs = np.unique(sf.ppc["z"])
             pts = [_binned(sf.ppc, np.isclose(sf.ppc["z"], zz) & np.isclose(sf.ppc["mag"], mv),
@@ -129,13 +139,13 @@ def selection_figure(sf, n_mags: int = 4):
     ax.set_xlabel("redshift z")
     ax.set_ylabel("S(z, m) = P(selected | recovered)")
     ax.set_ylim(-0.02, 1.02)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=LEGEND_PT)
     P = sf.grid_quantiles("P", quantiles=(0.5,))[0]
     im = ax2.imshow(P, origin="lower", aspect="auto", vmin=0, vmax=1, cmap="magma",
                     extent=[sf.m_grid[0], sf.m_grid[-1], sf.z_grid[0], sf.z_grid[-1]])
     fig.colorbar(im, ax=ax2, label="median selection probability P = C S")
     ax2.set_xlabel("input magnitude [AB]")
     ax2.set_ylabel("redshift z")
-    fig.suptitle(f"selection (field {sf.field})")
+    fig.suptitle(f"selection (field {sf.field})", fontsize=TITLE_PT + 1)
     fig.tight_layout()
     return fig

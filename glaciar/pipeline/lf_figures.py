@@ -1,6 +1,7 @@
 """Figure of a fitted luminosity function: the data against the model, in m_obs and in M_UV.
 
-:func:`lf_figure` takes a :class:`glaciar.lf.LFResult` and returns a matplotlib Figure;
+:func:`lf_figure` takes a :class:`glaciar.lf.LFResult` and returns a
+:class:`matplotlib.figure.Figure` built without pyplot (no backend is selected);
 :func:`glaciar.pipeline.lf.run_lf` saves it (:func:`glaciar.plots.save_png`) as
 ``RUN_DIR/lf/lf.png``.
 """
@@ -8,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .figures import FIGURE_DPI, _pyplot
+from ..plots import LEGEND_PT, TITLE_PT, new_figure
+from .figures import FIGURE_DPI
 
 __all__ = ["lf_figure", "FIGURE_DPI"]
 
@@ -29,8 +31,8 @@ def lf_figure(res):
     -------
     matplotlib.figure.Figure
     """
-    plt = _pyplot()
-    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.5))
+    fig = new_figure((12, 5))
+    ax0, ax1 = fig.subplots(1, 2)
     c = res.counts
     mc = 0.5 * (c["m_lo"] + c["m_hi"])
     edges = np.append(c["m_lo"], c["m_hi"][-1])
@@ -48,7 +50,7 @@ def lf_figure(res):
     ax0.set_ylabel("candidates per bin")
     ax0.set_yscale("symlog", linthresh=1.0)
     ax0.set_ylim(bottom=0)
-    ax0.legend(fontsize=8)
+    ax0.legend(fontsize=LEGEND_PT)
 
     b = res.binned_phi
     M = np.linspace(res.muv_range[0], res.muv_range[1], 300)
@@ -71,7 +73,7 @@ def lf_figure(res):
     ax1.set_ylim(max(top * 1e-6, 1e-12), top * 3)
     ax1.set_xlabel("M_UV [AB mag]")
     ax1.set_ylabel("phi [Mpc^-3 mag^-1]")
-    ax1.set_title(f"z = {res.z_range[0]:.2f}-{res.z_range[1]:.2f}", fontsize=9)
-    ax1.legend(fontsize=8)
+    ax1.set_title(f"z = {res.z_range[0]:.2f}-{res.z_range[1]:.2f}", fontsize=TITLE_PT)
+    ax1.legend(fontsize=LEGEND_PT)
     fig.tight_layout()
     return fig
