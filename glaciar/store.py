@@ -42,8 +42,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .constants import (COL_FIELD, COL_ITERATION, COL_MAG, COL_Z, LOCK_NAME, MANIFEST_NAME,
-                        RESULTS_DIRNAME)
+from .constants import (COL_DEPTH, COL_FIELD, COL_ITERATION, COL_MAG, COL_MAG_INPUT,
+                        COL_RECOVERED, COL_SELECTED, COL_STATUS, COL_Z, DEPTH_BIN_MAG, LOCK_NAME,
+                        MANIFEST_NAME, RESULTS_DIRNAME)
+from .counting import MOBS_BIN_FAINT, STATUS_COLUMNS, mobs_lattice_index
 from .paths import UnsafePathError, allocate, disk_full, readable, run_subdir
 
 __all__ = ["atomic_write_bytes", "atomic_write_text", "task_key", "task_filename",
@@ -98,7 +100,7 @@ COUNT_MAG_MIN, COUNT_MAG_MAX = "mag_min", "mag_max"
 COUNT_DEPTH_MIN, COUNT_DEPTH_MAX = "depth_min", "depth_max"
 #: Histogram columns (beside the identity columns and COUNT_N, COUNT_K_REC, COUNT_K_SEL).
 HIST_MIN_KEY = "m_in_key"          #: round(mag_input / COUNTS_MAG_RESOLUTION), float (NaN if non-finite)
-HIST_MOBS_BIN = "mobs_bin"         #: m_obs lattice index (glaciar.tables.mobs_lattice_index), int32
+HIST_MOBS_BIN = "mobs_bin"         #: m_obs lattice index (glaciar.counting.mobs_lattice_index), int32
 HIST_COLUMNS = (HIST_MIN_KEY, HIST_MOBS_BIN, COUNT_N, COUNT_K_REC, COUNT_K_SEL)
 
 
@@ -282,11 +284,6 @@ def _pages_end(data: bytes) -> int:
 # --------------------------------------------------------------------------
 # Counts
 # --------------------------------------------------------------------------
-def _status_columns() -> dict:
-    from .tables import STATUS_COLUMNS     # the report's names of the status counts
-    return STATUS_COLUMNS
-
-
 def task_counts(rows: pd.DataFrame, mag_column: str) -> pd.DataFrame:
     """Binomial counts of per-source rows per group of identical covariates.
 
@@ -313,7 +310,6 @@ def task_counts(rows: pd.DataFrame, mag_column: str) -> pd.DataFrame:
     """
     import numpy as np
 
-    from .constants import COL_DEPTH, COL_RECOVERED, COL_SELECTED, COL_STATUS, DEPTH_BIN_MAG
 
     ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
     m = rows[mag_column].to_numpy(float)
@@ -325,7 +321,7 @@ def task_counts(rows: pd.DataFrame, mag_column: str) -> pd.DataFrame:
     g[COUNT_K_REC] = rows[COL_RECOVERED].to_numpy().astype(np.int64)
     g[COUNT_K_SEL] = rows[COL_SELECTED].to_numpy().astype(np.int64)
     st = rows[COL_STATUS].to_numpy() if COL_STATUS in rows.columns else None
-    for code, col in _status_columns().items():
+    for code, col in STATUS_COLUMNS.items():
         g[col] = (st == code).astype(np.int64) if st is not None else np.zeros(len(rows), np.int64)
     g[COUNT_SUM_MAG] = m
     g[COUNT_MAG_MIN] = m
@@ -393,8 +389,6 @@ def _group_sums(g, keys: list) -> pd.DataFrame:
 
 
 def _has_hist_columns(columns, obs_column: str) -> bool:
-    from .constants import COL_MAG_INPUT, COL_RECOVERED, COL_SELECTED
-
     return all(c in columns for c in (obs_column, COL_MAG_INPUT, COL_RECOVERED, COL_SELECTED))
 
 
@@ -406,7 +400,7 @@ def task_histogram(rows: pd.DataFrame, obs_column: str) -> pd.DataFrame:
     columns (field, z, mag, iteration), input-magnitude key
     ``round(mag_input / COUNTS_MAG_RESOLUTION)`` and measured-magnitude bin
     on the global lattice of ``TRANSFER_MOBS_STEP`` anchored at 0
-    (:func:`glaciar.tables.mobs_lattice_index`; integer indices, so any edges
+    (:func:`glaciar.counting.mobs_lattice_index`; integer indices, so any edges
     that are unions of lattice bins are rebuilt exactly), the number of
     sources and of recovered and selected ones.  Sources not recovered, and
     recovered ones whose measured magnitude is NaN or +inf (flux <= 0), are
@@ -427,9 +421,6 @@ def task_histogram(rows: pd.DataFrame, obs_column: str) -> pd.DataFrame:
         The identity columns present, ``m_in_key``, ``mobs_bin``, ``n``,
         ``k_recovered``, ``k_selected``.
     """
-    from .constants import COL_MAG_INPUT, COL_RECOVERED, COL_SELECTED
-    from .tables import MOBS_BIN_FAINT, mobs_lattice_index
-
     ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
     m_in = rows[COL_MAG_INPUT].to_numpy(float)
     rec = rows[COL_RECOVERED].to_numpy().astype(bool)

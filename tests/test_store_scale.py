@@ -22,7 +22,8 @@ from glaciar.store import (COMPACT_DIRNAME, task_key,
                            StoreWarning, compact, finished_task_names, read_current_counts,
                            read_current_results, read_results, task_filename,
                            verified_task_names, write_manifest, write_task_table)
-from glaciar.tables import STATUS_COLUMNS, region_file, summary_table, write_regions
+from glaciar.counting import STATUS_COLUMNS
+from glaciar.tables import region_file, summary_table, write_regions
 
 FIELDS = ("f a", "g")
 ZS = (8.0, 9.0)
