@@ -53,7 +53,7 @@ import pandas as pd
 
 from glaciar import constants as C
 from glaciar import store as S
-from glaciar.tables import STATUS_COLUMNS
+from glaciar.counting import STATUS_COLUMNS
 
 Z_VALUES = np.round(np.linspace(6.5, 11.5, 15), 4)
 MAG_VALUES = np.round(24.0 + 0.25 * np.arange(20), 4)
@@ -90,7 +90,7 @@ def _manifest(fields, n_iter):
 def _task_histograms(rng, field, z, mags, its, k_rec, k_sel) -> pd.DataFrame:
     """Per-task m_obs histograms (:func:`glaciar.store.task_histogram` columns) of tasks whose
     recovered and selected totals are ``k_rec``, ``k_sel``: m_obs = m + 0.05 + 0.3 N(0, 1)."""
-    from glaciar.tables import MOBS_BIN_FAINT, mobs_lattice_index
+    from glaciar.counting import MOBS_BIN_FAINT, mobs_lattice_index
 
     n_t = len(mags)
     t = np.repeat(np.arange(n_t), N_PER_TASK)
@@ -296,7 +296,7 @@ def main(argv=None):
     fit = _measure(f"""
         from glaciar.pipeline.fit import run_fit
         from glaciar.pipeline.inputs import fit_inputs
-        import glaciar.pipeline.selection_file as sfm
+        import glaciar.pipeline.fit as sfm   # the add_lf_products run_fit calls
         # The transfer matrices come from the parts' m_obs histograms (no rows here): timed.
         lf = sfm.add_lf_products
 
