@@ -55,7 +55,7 @@ __all__ = ["atomic_write_bytes", "atomic_write_text", "task_key", "task_filename
            "task_counts", "read_current_counts", "store_columns", "write_part", "compact", "COMPACT_EVERY",
            "COUNTS_MAG_RESOLUTION", "COUNT_COLUMNS", "task_histogram", "read_current_histograms",
            "HIST_MIN_KEY", "HIST_MOBS_BIN", "HIST_COLUMNS", "unit_problem", "set_aside",
-           "CORRUPT_DIRNAME"]
+           "CORRUPT_DIRNAME", "process_umask"]
 
 #: Key-value metadata of every task file: the exact task key and the number of rows.
 _META_TASK = b"glaciar.task"
@@ -119,7 +119,7 @@ class StoreWarning(UserWarning):
 # --------------------------------------------------------------------------
 # Atomic writes
 # --------------------------------------------------------------------------
-def _umask() -> int:
+def process_umask() -> int:
     """The process umask, read without changing it where the OS allows."""
     try:
         with open("/proc/self/status", encoding="ascii") as fh:
@@ -151,7 +151,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
             allocate(fh.fileno(), len(data), path)
             fh.write(data)
             fh.flush()
-            os.fchmod(fh.fileno(), 0o666 & ~_umask())
+            os.fchmod(fh.fileno(), 0o666 & ~process_umask())
             os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException as exc:
@@ -1465,7 +1465,7 @@ class RunLock:
 
         try:
             # Not through a symbolic link: the pid written below would land outside the run.
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | _NOFOLLOW, 0o666 & ~_umask())
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | _NOFOLLOW, 0o666 & ~process_umask())
         except OSError as exc:
             raise self._link_or(exc) from None
         try:
