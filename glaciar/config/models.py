@@ -26,12 +26,14 @@ from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, ValidationE
                       ValidationInfo, field_validator, model_validator)
 
 from .. import constants
-from ..engine.classify import ClassificationParams
+from ..box import box_points
 from ..engine import noise as _noise
+from ..engine.classify import ClassificationParams
 from ..engine.detect import BACKENDS, CLEAN_STYLES, THRESHOLD_RMS, DetectionParams, builtin_filter_names
+from ..engine.selection import DEFAULT_JDROPOUT, MAX_EXPRESSIONS, SelectionError, compile_selection
 from ..galaxy import psf as _psf
+from ..galaxy.filters import FILE_SUFFIXES as FILTER_FILE_SUFFIXES, get_filter, looks_like_path
 from ..galaxy.population import SourceModel
-from ..galaxy.filters import FILE_SUFFIXES as FILTER_FILE_SUFFIXES, looks_like_path
 from ..galaxy.sersic import Q_MIN
 from .common import (At, Choice, ConfigError, Float, Int, add_warning, parse_bool, read_yaml,
                      resolve_filter_name, resolve_path, show, unknown_key_error, yaml_bool_hint)
@@ -245,7 +247,6 @@ class BandConfig(Section):
         value = value.strip()
         if looks_like_path(value, FILTER_FILE_SUFFIXES):
             return resolve_path(_base_dir(info), value)
-        from ..galaxy.filters import get_filter
         try:
             get_filter(value.lower())
         except (ValueError, KeyError, FileNotFoundError) as exc:
@@ -662,8 +663,6 @@ class GridBox(Section):
 
     def points(self, seed: int) -> list[tuple[float, float]]:
         """The box's (z, mag) points for a run seed (:func:`glaciar.box.box_points`)."""
-        from ..box import box_points
-
         return box_points(self.z, self.mag, self.n_points, seed)
 
 
@@ -1085,9 +1084,6 @@ class Config(Section):
 
     @model_validator(mode="after")
     def _cross_checks(self, info: ValidationInfo):
-        from ..engine.selection import (DEFAULT_JDROPOUT, MAX_EXPRESSIONS, SelectionError,
-                                        compile_selection)
-
         wt, nt = self.detection.weight_type, self.survey.noise_type
         if wt in ("map_weight", "map_rms"):
             wanted = {"map_weight": "weight", "map_rms": "rms"}[wt]
