@@ -127,8 +127,8 @@ class Module:
     private: set = field(default_factory=set)        # "imported_module._name"
 
 
-def _module_name(path: Path) -> tuple[str, bool]:
-    parts = list(path.relative_to(ROOT.parent).with_suffix("").parts)
+def _module_name(path: Path, root: Path) -> tuple[str, bool]:
+    parts = list(path.relative_to(root.parent).with_suffix("").parts)
     if parts[-1] == "__init__":
         return ".".join(parts[:-1]), True
     return ".".join(parts), False
@@ -159,10 +159,11 @@ def _nodes(tree: ast.AST):
     return imports, attributes
 
 
-def _read_package() -> dict[str, Module]:
+def _read_package(root: Path = ROOT) -> dict[str, Module]:
+    """Every module of the package at ``root`` (a directory named ``PACKAGE``), read."""
     modules = {}
-    for path in sorted(ROOT.rglob("*.py")):
-        name, is_package = _module_name(path)
+    for path in sorted(root.rglob("*.py")):
+        name, is_package = _module_name(path, root)
         text = path.read_text(encoding="utf-8")
         modules[name] = Module(name, path, is_package, ast.parse(text, str(path)),
                                len(text.splitlines()))
@@ -335,3 +336,29 @@ def test_allow_lists_are_current():
              + [m for m in ALLOWED_LONG_MODULES if m not in long_modules]
              + [f for f in ALLOWED_LONG_SIGNATURES if f not in long_signatures])
     assert not stale, f"allow-listed offenders that are gone (remove them): {stale}"
+
+
+def test_the_reader_sees_what_python_would_import(tmp_path):
+    """The graph holds function-level and relative imports, ``from package import module``
+    and ``alias._name`` reads, and leaves out ``if TYPE_CHECKING:`` blocks."""
+    pkg = tmp_path / PACKAGE
+    (pkg / "sub").mkdir(parents=True)
+    files = {
+        "__init__.py": "",
+        "a.py": "def f():\n    from .sub import b\n    return b._hidden\n",
+        "sub/__init__.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .. import c\n",
+        "sub/b.py": "from ..c import _private_name\n",
+        "c.py": "import glaciar.a as A\n",
+        "sub/_impl.py": "",
+        "d.py": "from glaciar.sub._impl import x\n",
+    }
+    for name, text in files.items():
+        (pkg / name).write_text(text)
+    modules = _read_package(pkg)
+    assert modules["glaciar.a"].imports == {"glaciar.sub.b"}
+    assert modules["glaciar.sub"].imports == set()                 # TYPE_CHECKING only
+    assert modules["glaciar.a"].private == {"glaciar.sub.b._hidden"}
+    assert modules["glaciar.sub.b"].private == {"glaciar.c._private_name"}
+    assert modules["glaciar.d"].private == {"glaciar.sub._impl"}
+    assert _cycles(modules, ()) == [["glaciar.a", "glaciar.c", "glaciar.sub.b"]]
+    assert _cycles(modules, {"glaciar.c -> glaciar.a"}) == []
