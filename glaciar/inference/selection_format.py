@@ -28,7 +28,6 @@ import json
 import numpy as np
 
 from ..galaxy.filters import Filter
-from ..tables import TransferMatrix
 from ..version import __version__
 from .models import SurfaceModel
 from .products import GRID_QUANTILES, EffectiveVolume, InjectionSED, VeffTable
@@ -136,7 +135,8 @@ def _veff_hdus(vt: VeffTable, field: str, extver: int) -> list:
     return [h, d]
 
 
-def _transfer_hdus(tm: TransferMatrix, field: str, extver: int) -> list:
+def _transfer_hdus(tm, field: str, extver: int) -> list:
+    """The extensions of a :class:`glaciar.tables.TransferMatrix`."""
     from astropy.io import fits
     from astropy.table import Table
 
@@ -330,6 +330,9 @@ def _read_veff(hdul, v):
 
 
 def _read_transfer(hdul, v):
+    # glaciar.tables imports astropy.table: only when a file with transfer matrices is read
+    from ..tables import TransferMatrix
+
     if ("TRANSFER", v) not in hdul:
         return None
     h = hdul["TRANSFER", v].header
