@@ -38,10 +38,9 @@ from astropy.table import Table
 
 from . import constants as C
 from .paths import file_stem, run_subdir
-from .counting import (MOBS_BIN_BRIGHT, MOBS_BIN_FAINT, STATUS_COLUMNS, TRANSFER_MOBS_STEP,
-                       mobs_lattice_edge, mobs_lattice_index)
-from .store import (COUNT_K_REC, COUNT_K_SEL, COUNT_N, COUNTS_MAG_RESOLUTION, atomic_write_bytes,
-                    atomic_write_text, field_file_prefix)
+from .counting import (COUNT_K_REC, COUNT_K_SEL, COUNT_N, COUNTS_MAG_RESOLUTION, STATUS_COLUMNS,
+                       TRANSFER_MOBS_STEP, mobs_lattice_edge)
+from .store import atomic_write_bytes, atomic_write_text, field_file_prefix
 
 __all__ = ["summary_table", "box_summary_table", "write_summaries", "summary_stem", "region_file",
            "TransferMatrix", "transfer_matrix", "slice_edges", "TRANSFER_KINDS",
@@ -54,7 +53,7 @@ def summary_table(rows: pd.DataFrame) -> pd.DataFrame:
     ----------
     rows : pandas.DataFrame
         Per-source rows with at least ``z``, ``mag``, ``status``, ``recovered``,
-        ``selected``; or stored counts (:func:`glaciar.store.task_counts`
+        ``selected``; or stored counts (:func:`glaciar.counting.task_counts`
         columns, recognised by their ``n`` column), summed per cell.
 
     Returns
@@ -439,14 +438,14 @@ def transfer_from_histograms(z, m_in_key, mobs_bin, n, k_recovered, k_selected, 
                              seed=0) -> TransferMatrix:
     """:func:`transfer_matrix` from stored histograms of the measured magnitude (no rows).
 
-    The histograms are :func:`glaciar.store.task_histogram` rows (any sum of
+    The histograms are :func:`glaciar.counting.task_histogram` rows (any sum of
     them): per (z, input-magnitude key, m_obs lattice bin) the number of
     sources and of recovered and selected ones.  The result equals
     :func:`transfer_matrix` on the rows (same counts; same draws for the
     same seed) when each input magnitude is its key's value
     (``m_in_key * COUNTS_MAG_RESOLUTION``, true for a magnitude grid on that
     resolution) or the ``m_in_edges`` fall between keys, and the m_obs edges
-    are lattice edges (:func:`mobs_lattice_edge`; the defaults are); the mean z
+    are lattice edges (:func:`glaciar.counting.mobs_lattice_edge`; the defaults are); the mean z
     of a slice agrees to rounding.  Otherwise an input magnitude is binned
     by its key's value (to ``COUNTS_MAG_RESOLUTION``).
 
@@ -457,7 +456,7 @@ def transfer_from_histograms(z, m_in_key, mobs_bin, n, k_recovered, k_selected, 
     m_in_key : array_like (K,)
         ``round(mag_input / COUNTS_MAG_RESOLUTION)`` (NaN: non-finite input magnitude).
     mobs_bin : array_like of int (K,)
-        :func:`mobs_lattice_index` of the measured magnitude (``MOBS_BIN_FAINT`` for
+        :func:`glaciar.counting.mobs_lattice_index` of the measured magnitude (``MOBS_BIN_FAINT`` for
         sources not recovered).
     n, k_recovered, k_selected : array_like of int (K,)
         Sources, recovered, selected.

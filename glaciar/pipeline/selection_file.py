@@ -17,8 +17,8 @@ from ..galaxy.filters import get_filter
 from ..galaxy.population import get_cosmology
 from ..inference.products import InjectionSED, VeffTable
 from ..inference.selection_function import SelectionFunction
-from ..store import (COUNT_K_REC, COUNT_K_SEL, COUNT_N, HIST_MIN_KEY, HIST_MOBS_BIN,
-                     read_current_histograms)
+from ..counting import COUNT_K_REC, COUNT_K_SEL, COUNT_N, HIST_MIN_KEY, HIST_MOBS_BIN
+from ..store import read_current_histograms
 from ..tables import transfer_from_histograms, transfer_matrix
 from .inputs import read_columns
 
