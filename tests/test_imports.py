@@ -3,7 +3,11 @@
 ``MAX_MODULE_LINES`` lines, no function over ``MAX_PARAMETERS`` parameters.
 
 Everything is read with :mod:`ast` -- nothing is imported -- so a cycle is found even where
-a function-level import keeps it from failing at import time.
+a function-level import keeps it from failing at import time.  A node is a module (a
+package's ``__init__`` is the package's node); an edge is an explicit import, at any
+level: ``from glaciar.a.b import x`` is an edge to ``glaciar.a.b`` only (Python runs
+``glaciar/a/__init__`` first, but only its module-level code), ``from glaciar.a import b``
+to the submodule ``b``.  Imports under ``if TYPE_CHECKING:`` never run and are left out.
 
 The ``ALLOWED_*`` lists name today's offenders, each with the issue-22 point whose branch
 removes it; the lead empties them as those branches merge.  Any offender not listed fails
