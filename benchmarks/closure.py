@@ -323,7 +323,7 @@ def mean_redshift(sf, M_ref):
     import astropy.units as u
 
     from glaciar.galaxy.population import get_cosmology
-    from glaciar.inference.selection_function import kcorrection
+    from glaciar.inference.products import kcorrection
 
     sed = sf.sed
     cosmo = get_cosmology(sed.cosmology)
@@ -339,7 +339,7 @@ def mean_redshift(sf, M_ref):
 
 def veff_binned(sf, boost, m_obs):
     """(b) Binned 1/V_eff in observed magnitude, M_UV from one mean redshift; a binned fit."""
-    from glaciar.inference.selection_function import kcorrection
+    from glaciar.inference.products import kcorrection
 
     sed = sf.sed
     kc = lambda z: float(kcorrection([z], [sed.beta_mean], sed.detection_filter, igm=sed.igm,

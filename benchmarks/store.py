@@ -22,7 +22,7 @@ scaled linearly to the task counts above; the memory figure is the rows' in-memo
 size scaled the same way.
 
 Each part's footer also holds its tasks' histograms of the measured detection-band
-magnitude (:func:`glaciar.store.task_histogram` columns; m_obs = m + 0.05 + 0.3 N(0, 1)
+magnitude (:func:`glaciar.counting.task_histogram` columns; m_obs = m + 0.05 + 0.3 N(0, 1)
 for the recovered sources), from which ``run_fit``'s LF products build the photometric
 transfer matrices (:func:`glaciar.pipeline.selection_file.add_lf_products`, timed apart
 inside the fit; V_eff(M_UV) is skipped: the manifest records no injection SED).  Today's
@@ -52,8 +52,9 @@ import numpy as np
 import pandas as pd
 
 from glaciar import constants as C
+from glaciar import counting as K
 from glaciar import store as S
-from glaciar.tables import STATUS_COLUMNS
+from glaciar.counting import STATUS_COLUMNS
 
 Z_VALUES = np.round(np.linspace(6.5, 11.5, 15), 4)
 MAG_VALUES = np.round(24.0 + 0.25 * np.arange(20), 4)
@@ -88,9 +89,9 @@ def _manifest(fields, n_iter):
 
 
 def _task_histograms(rng, field, z, mags, its, k_rec, k_sel) -> pd.DataFrame:
-    """Per-task m_obs histograms (:func:`glaciar.store.task_histogram` columns) of tasks whose
+    """Per-task m_obs histograms (:func:`glaciar.counting.task_histogram` columns) of tasks whose
     recovered and selected totals are ``k_rec``, ``k_sel``: m_obs = m + 0.05 + 0.3 N(0, 1)."""
-    from glaciar.tables import MOBS_BIN_FAINT, mobs_lattice_index
+    from glaciar.counting import MOBS_BIN_FAINT, mobs_lattice_index
 
     n_t = len(mags)
     t = np.repeat(np.arange(n_t), N_PER_TASK)
@@ -104,10 +105,10 @@ def _task_histograms(rng, field, z, mags, its, k_rec, k_sel) -> pd.DataFrame:
     tu, bu = u // 1024, u % 1024
     return pd.DataFrame({
         C.COL_FIELD: field, C.COL_Z: z, C.COL_MAG: mags[tu], C.COL_ITERATION: its[tu],
-        S.HIST_MIN_KEY: np.round(mags[tu] / S.COUNTS_MAG_RESOLUTION),
-        S.HIST_MOBS_BIN: np.where(bu == 1023, MOBS_BIN_FAINT, bu).astype(np.int32),
-        S.COUNT_N: np.bincount(inv), S.COUNT_K_REC: np.bincount(inv, weights=rec).astype(np.int64),
-        S.COUNT_K_SEL: np.bincount(inv, weights=sel).astype(np.int64)})
+        K.HIST_MIN_KEY: np.round(mags[tu] / K.COUNTS_MAG_RESOLUTION),
+        K.HIST_MOBS_BIN: np.where(bu == 1023, MOBS_BIN_FAINT, bu).astype(np.int32),
+        K.COUNT_N: np.bincount(inv), K.COUNT_K_REC: np.bincount(inv, weights=rec).astype(np.int64),
+        K.COUNT_K_SEL: np.bincount(inv, weights=sel).astype(np.int64)})
 
 
 def write_counts_store(run_dir: Path, n_fields: int, n_iter: int, seed: int = 1) -> int:
@@ -136,18 +137,18 @@ def write_counts_store(run_dir: Path, n_fields: int, n_iter: int, seed: int = 1)
             k_sel = rng.binomial(k_rec, _s(z))
             counts = pd.DataFrame({
                 C.COL_FIELD: f, C.COL_Z: float(z), C.COL_MAG: m, C.COL_ITERATION: it[t_idx],
-                S.COUNT_MAG_KEY: np.round(m / S.COUNTS_MAG_RESOLUTION),
-                S.COUNT_DEPTH_KEY: dkeys[b_idx].astype(float),
-                S.COUNT_N: nn, S.COUNT_K_REC: k_rec, S.COUNT_K_SEL: k_sel})
+                K.COUNT_MAG_KEY: np.round(m / K.COUNTS_MAG_RESOLUTION),
+                K.COUNT_DEPTH_KEY: dkeys[b_idx].astype(float),
+                K.COUNT_N: nn, K.COUNT_K_REC: k_rec, K.COUNT_K_SEL: k_sel})
             for code, col in STATUS_COLUMNS.items():
                 counts[col] = (k_rec if code == C.STATUS_ISOLATED else
                                nn - k_rec if code == C.STATUS_NOT_DETECTED else 0)
-            counts[S.COUNT_SUM_MAG] = m * nn
-            counts[S.COUNT_MAG_MIN] = m
-            counts[S.COUNT_MAG_MAX] = m
-            counts[S.COUNT_SUM_DEPTH] = dmean * nn
-            counts[S.COUNT_DEPTH_MIN] = dkeys[b_idx] * C.DEPTH_BIN_MAG
-            counts[S.COUNT_DEPTH_MAX] = (dkeys[b_idx] + 1) * C.DEPTH_BIN_MAG
+            counts[K.COUNT_SUM_MAG] = m * nn
+            counts[K.COUNT_MAG_MIN] = m
+            counts[K.COUNT_MAG_MAX] = m
+            counts[K.COUNT_SUM_DEPTH] = dmean * nn
+            counts[K.COUNT_DEPTH_MIN] = dkeys[b_idx] * C.DEPTH_BIN_MAG
+            counts[K.COUNT_DEPTH_MAX] = (dkeys[b_idx] + 1) * C.DEPTH_BIN_MAG
             tasks = [[S.task_filename(f, float(z), float(a), int(b)),
                       S.task_key(f, float(z), float(a), int(b)), N_PER_TASK]
                      for a, b in zip(mm, it)]
@@ -204,7 +205,7 @@ def depth_effect(n: int = 200_000, seed: int = 0) -> None:
     Per-source flags from benchmarks/fit.py's known depth-aware surfaces (continuous
     mag_input, two depths with 0.1 mag scatter); cells from the rows
     (:func:`aggregate_cells`, per-source relative magnitude) against cells from the counts
-    (:func:`glaciar.store.task_counts` grouped as stored, placed by group mean); both fitted
+    (:func:`glaciar.counting.task_counts` grouped as stored, placed by group mean); both fitted
     with the same seed; the shift of each parameter's posterior median in posterior sds.
     """
     sys.path.insert(0, str(Path(__file__).parent))
@@ -220,10 +221,10 @@ def depth_effect(n: int = 200_000, seed: int = 0) -> None:
     df[C.COL_STATUS] = np.where(df[C.COL_RECOVERED], 0, -3)
     ref = round(float(np.median(df[C.COL_DEPTH])), 2)
     a = aggregate_cells(df, 0.01, ref)
-    g = S._merge_counts(S.task_counts(df, C.COL_MAG_INPUT))
-    b = cells_from_counts(g[C.COL_Z], g[S.COUNT_SUM_MAG] / g[S.COUNT_N],
-                          g[S.COUNT_SUM_DEPTH] / g[S.COUNT_N], g[S.COUNT_N], g[S.COUNT_K_REC],
-                          g[S.COUNT_K_SEL], 0.01, ref)
+    g = S._merge_counts(K.task_counts(df, C.COL_MAG_INPUT))
+    b = cells_from_counts(g[C.COL_Z], g[K.COUNT_SUM_MAG] / g[K.COUNT_N],
+                          g[K.COUNT_SUM_DEPTH] / g[K.COUNT_N], g[K.COUNT_N], g[K.COUNT_K_REC],
+                          g[K.COUNT_K_SEL], 0.01, ref)
     out = []
     for cells in (a, b):
         mdl = SurfaceModel.for_data(a.z, a.mag, depth_ref=ref)
@@ -296,7 +297,7 @@ def main(argv=None):
     fit = _measure(f"""
         from glaciar.pipeline.fit import run_fit
         from glaciar.pipeline.inputs import fit_inputs
-        import glaciar.pipeline.selection_file as sfm
+        import glaciar.pipeline.fit as sfm   # the add_lf_products run_fit calls
         # The transfer matrices come from the parts' m_obs histograms (no rows here): timed.
         lf = sfm.add_lf_products
 

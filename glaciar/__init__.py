@@ -16,7 +16,7 @@ The public API, the functions the ``glaciar`` command calls (imported lazily, so
 """
 from __future__ import annotations
 
-__version__ = "0.1.0"
+from .version import __version__
 
 __all__ = ["load_config", "simulate", "catalog", "fit", "lf", "sersic_stamp", "SelectionFunction",
            "__version__"]

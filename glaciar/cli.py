@@ -96,7 +96,7 @@ def _print_noise(out: Path) -> None:
 def _with_cells_option(cfg, path):
     """``cfg`` plus the cells of the ``--cells`` file; errors name the file."""
     from .config import ConfigError
-    from .config._types import At
+    from .config.common import At
     from .config.models import read_cells_file
     from .pipeline.adaptive import with_cells
 

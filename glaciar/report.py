@@ -485,7 +485,8 @@ def _statistics_section(d: dict) -> str:
 
 def _status_section(d: dict) -> str:
     from .plots import plot_status_fractions
-    from .tables import STATUS_COLUMNS, summary_stem
+    from .counting import STATUS_COLUMNS
+    from .tables import summary_stem
 
     labels = {code: (STATUS_COLUMNS[code], C.STATUS_LABELS[code]) for code in C.STATUS_CODES}
     cols = [STATUS_COLUMNS[c] for c in C.STATUS_CODES]

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from . import __version__
+from .version import __version__
 from . import constants as C
 from .config import Config, check_files, config_from_dict, config_hash, config_to_dict
 from .engine.detect import (DetectionParams, background_model, builtin_filter, read_conv_file,

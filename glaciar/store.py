@@ -5,8 +5,8 @@ Layout of a run directory::
     RUN_DIR/config.yaml        the resolved configuration of the run
     RUN_DIR/manifest.json      store format, settings, input fingerprints, seed, glaciar version
     RUN_DIR/results/task_*.parquet  one file per finished task (rows; counts and m_obs
-                               histograms in its footer, :func:`task_counts`,
-                               :func:`task_histogram`)
+                               histograms in its footer, :func:`glaciar.counting.task_counts`,
+                               :func:`glaciar.counting.task_histogram`)
     RUN_DIR/results/compact/field=<name>-<hash>/z=<z>/part-<hash>.parquet
                                compacted tasks of one (field, z): their rows, and in the
                                footer their task list, counts and histograms (:func:`compact`)
@@ -42,18 +42,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .constants import (COL_FIELD, COL_ITERATION, COL_MAG, COL_Z, LOCK_NAME, MANIFEST_NAME,
-                        RESULTS_DIRNAME)
+from .constants import COL_FIELD, COL_ITERATION, COL_MAG, COL_Z, LOCK_NAME, MANIFEST_NAME, RESULTS_DIRNAME
+from .counting import (COUNT_DEPTH_KEY, COUNT_K_REC, COUNT_K_SEL, COUNT_MAG_KEY, COUNT_N, HIST_MIN_KEY,
+                       HIST_MOBS_BIN, group_sums, has_hist_columns, task_counts, task_histogram)
 from .paths import UnsafePathError, allocate, disk_full, readable, run_subdir
 
 __all__ = ["atomic_write_bytes", "atomic_write_text", "task_key", "task_filename",
            "field_file_prefix", "write_task_table", "finished_task_names", "verified_task_names",
            "read_results", "read_current_results", "read_manifest", "write_manifest",
            "file_fingerprint", "RunLock", "StoreMismatchError", "RunLockedError", "StoreWarning",
-           "task_counts", "read_current_counts", "store_columns", "write_part", "compact", "COMPACT_EVERY",
-           "COUNTS_MAG_RESOLUTION", "COUNT_COLUMNS", "task_histogram", "read_current_histograms",
-           "HIST_MIN_KEY", "HIST_MOBS_BIN", "HIST_COLUMNS", "unit_problem", "set_aside",
-           "CORRUPT_DIRNAME"]
+           "read_current_counts", "store_columns", "write_part", "compact", "COMPACT_EVERY",
+           "read_current_histograms", "unit_problem", "set_aside",
+           "CORRUPT_DIRNAME", "process_umask"]
 
 #: Key-value metadata of every task file: the exact task key and the number of rows.
 _META_TASK = b"glaciar.task"
@@ -61,7 +61,7 @@ _META_ROWS = b"glaciar.n_rows"
 #: Footer metadata of the counts: an Arrow IPC stream, and the magnitude covariate they key on.
 _META_COUNTS = b"glaciar.counts"
 _META_COUNTS_MAG = b"glaciar.counts_mag_column"
-#: Footer metadata of the histograms of the measured magnitude (:func:`task_histogram`): an
+#: Footer metadata of the histograms of the measured magnitude (:func:`glaciar.counting.task_histogram`): an
 #: Arrow IPC stream, and the measured-magnitude column they bin.
 _META_HIST = b"glaciar.mobs_hist"
 _META_HIST_OBS = b"glaciar.mobs_hist_column"
@@ -83,23 +83,6 @@ _READABLE_FIELD_CHARS = 40
 COMPACT_DIRNAME = "compact"
 #: Compact when at least this many task files are loose (end of simulate, and during a run).
 COMPACT_EVERY = 1024
-#: Magnitude key resolution of the counts [mag]: the fit's default grouping resolution, so the
-#: fit's (z, magnitude) cells are unions of count groups (identical partition) at that default.
-COUNTS_MAG_RESOLUTION = 0.01
-#: Counts columns (beside the identity columns field, z, mag, iteration).
-COUNT_MAG_KEY = "mag_key"          #: round(covariate / COUNTS_MAG_RESOLUTION), float (NaN if non-finite)
-COUNT_DEPTH_KEY = "depth_key"      #: floor(depth_local / DEPTH_BIN_MAG), float (NaN if unknown)
-COUNT_N = "n"
-COUNT_K_REC = "k_recovered"
-COUNT_K_SEL = "k_selected"
-COUNT_SUM_MAG = "sum_mag"          #: sum of the magnitude covariate over the group [mag]
-COUNT_SUM_DEPTH = "sum_depth"      #: sum of depth_local over the group [AB mag]
-COUNT_MAG_MIN, COUNT_MAG_MAX = "mag_min", "mag_max"
-COUNT_DEPTH_MIN, COUNT_DEPTH_MAX = "depth_min", "depth_max"
-#: Histogram columns (beside the identity columns and COUNT_N, COUNT_K_REC, COUNT_K_SEL).
-HIST_MIN_KEY = "m_in_key"          #: round(mag_input / COUNTS_MAG_RESOLUTION), float (NaN if non-finite)
-HIST_MOBS_BIN = "mobs_bin"         #: m_obs lattice index (glaciar.tables.mobs_lattice_index), int32
-HIST_COLUMNS = (HIST_MIN_KEY, HIST_MOBS_BIN, COUNT_N, COUNT_K_REC, COUNT_K_SEL)
 
 
 class StoreMismatchError(RuntimeError):
@@ -117,7 +100,7 @@ class StoreWarning(UserWarning):
 # --------------------------------------------------------------------------
 # Atomic writes
 # --------------------------------------------------------------------------
-def _umask() -> int:
+def process_umask() -> int:
     """The process umask, read without changing it where the OS allows."""
     try:
         with open("/proc/self/status", encoding="ascii") as fh:
@@ -149,7 +132,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
             allocate(fh.fileno(), len(data), path)
             fh.write(data)
             fh.flush()
-            os.fchmod(fh.fileno(), 0o666 & ~_umask())
+            os.fchmod(fh.fileno(), 0o666 & ~process_umask())
             os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException as exc:
@@ -219,9 +202,9 @@ def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
     metadata, so that :func:`verified_task_names` can tell a complete file of
     the right task from a truncated or foreign one without reading the rows.
     With ``mag_column`` (the fit's magnitude covariate, ``mag_input`` or
-    ``M_uv``), the task's :func:`task_counts` are stored in the footer too;
+    ``M_uv``), the task's :func:`glaciar.counting.task_counts` are stored in the footer too;
     with ``obs_column`` (the measured detection-band magnitude) its
-    :func:`task_histogram` as well (when the table has that column and
+    :func:`glaciar.counting.task_histogram` as well (when the table has that column and
     ``mag_input``).
     """
     import pyarrow as pa
@@ -235,7 +218,7 @@ def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
     if mag_column is not None:
         meta[_META_COUNTS] = _ipc_bytes(task_counts(table, mag_column))
         meta[_META_COUNTS_MAG] = mag_column.encode("utf-8")
-    if obs_column is not None and _has_hist_columns(table.columns, obs_column):
+    if obs_column is not None and has_hist_columns(table.columns, obs_column):
         meta[_META_HIST] = _ipc_bytes(task_histogram(table, obs_column))
         meta[_META_HIST_OBS] = obs_column.encode("utf-8")
     for k in (_META_COUNTS, _META_HIST):
@@ -277,188 +260,6 @@ def _parquet_bytes(table) -> bytes:
 def _pages_end(data: bytes) -> int:
     """Offset of the footer of complete Parquet bytes (the pages end there)."""
     return len(data) - 8 - int.from_bytes(data[-8:-4], "little")
-
-
-# --------------------------------------------------------------------------
-# Counts
-# --------------------------------------------------------------------------
-def _status_columns() -> dict:
-    from .tables import STATUS_COLUMNS     # the report's names of the status counts
-    return STATUS_COLUMNS
-
-
-def task_counts(rows: pd.DataFrame, mag_column: str) -> pd.DataFrame:
-    """Binomial counts of per-source rows per group of identical covariates.
-
-    Groups are (field, z, mag, iteration, magnitude key, depth key): the
-    identity columns of the task, ``round(rows[mag_column] /
-    COUNTS_MAG_RESOLUTION)`` and ``floor(depth_local / DEPTH_BIN_MAG)`` (NaN
-    keys, e.g. unknown depth, form their own group).
-
-    Parameters
-    ----------
-    rows : pandas.DataFrame
-        Per-source rows (one or several tasks) with ``recovered``, ``selected``,
-        ``status``, ``mag_column`` and the identity columns that exist.
-    mag_column : str
-        The fit's magnitude covariate (``mag_input`` [AB mag] or ``M_uv``).
-
-    Returns
-    -------
-    pandas.DataFrame
-        One row per group: the identity columns present, ``mag_key``,
-        ``depth_key``, ``n``, ``k_recovered``, ``k_selected``, one
-        ``n_status_*`` column per status code, ``sum_mag``, ``mag_min``,
-        ``mag_max`` [mag], ``sum_depth``, ``depth_min``, ``depth_max`` [AB mag].
-    """
-    import numpy as np
-
-    from .constants import COL_DEPTH, COL_RECOVERED, COL_SELECTED, COL_STATUS, DEPTH_BIN_MAG
-
-    ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
-    m = rows[mag_column].to_numpy(float)
-    dep = rows[COL_DEPTH].to_numpy(float) if COL_DEPTH in rows.columns else np.full(len(rows), np.nan)
-    g = {c: rows[c].to_numpy() for c in ids}     # a dict: column-wise DataFrame building is slow
-    g[COUNT_MAG_KEY] = np.where(np.isfinite(m), np.round(m / COUNTS_MAG_RESOLUTION), np.nan)
-    g[COUNT_DEPTH_KEY] = np.where(np.isfinite(dep), np.floor(dep / DEPTH_BIN_MAG), np.nan)
-    g[COUNT_N] = np.ones(len(rows), np.int64)
-    g[COUNT_K_REC] = rows[COL_RECOVERED].to_numpy().astype(np.int64)
-    g[COUNT_K_SEL] = rows[COL_SELECTED].to_numpy().astype(np.int64)
-    st = rows[COL_STATUS].to_numpy() if COL_STATUS in rows.columns else None
-    for code, col in _status_columns().items():
-        g[col] = (st == code).astype(np.int64) if st is not None else np.zeros(len(rows), np.int64)
-    g[COUNT_SUM_MAG] = m
-    g[COUNT_MAG_MIN] = m
-    g[COUNT_MAG_MAX] = m
-    g[COUNT_SUM_DEPTH] = dep
-    g[COUNT_DEPTH_MIN] = dep
-    g[COUNT_DEPTH_MAX] = dep
-    keys = ids + [COUNT_MAG_KEY, COUNT_DEPTH_KEY]
-    return _group_sums(g, keys)
-
-
-def _groups(g, keys: list):
-    """Group of each row by ``keys`` (sorted as pandas' groupby(sort=True, dropna=False):
-    lexicographic, NaN last) and one row of each group.
-
-    Hash-based (``pandas.factorize``) codes per key, combined into one integer, so a
-    task's few rows skip pandas' groupby set-up (~10 ms) and millions of merged counts
-    never sort strings."""
-    import numpy as np
-
-    n = len(np.asarray(g[keys[0]]))        # callers always group by at least one key
-    combined = np.zeros(n, dtype=np.int64)
-    span = 1
-    for k in keys:
-        codes, uniq = pd.factorize(np.asarray(g[k]), sort=True, use_na_sentinel=False)
-        card = max(len(uniq), 1)
-        if span * card >= 2 ** 62:       # would overflow: re-code what is combined so far
-            combined = pd.factorize(combined, sort=True)[0].astype(np.int64)
-            span = int(combined.max(initial=0)) + 1
-        combined = combined * card + codes
-        span *= card
-    inverse, _ = pd.factorize(combined, sort=True)
-    inverse = inverse.astype(np.int64)
-    first = np.empty(int(inverse.max(initial=-1)) + 1, dtype=np.int64)
-    first[inverse[::-1]] = np.arange(n - 1, -1, -1)      # the first row of each group
-    return inverse, first
-
-
-def _group_sums(g, keys: list) -> pd.DataFrame:
-    """Counts summed per ``keys``: ints and sums added, extremes kept; an all-NaN sum stays NaN.
-
-    ``g``: a DataFrame or a dict of column arrays."""
-    import numpy as np
-
-    grp, first = _groups(g, keys)
-    ng = first.size
-    out = {k: np.asarray(g[k])[first] for k in keys}
-    sums = [c for c in g if c not in keys and (c == COUNT_N or c.startswith(("k_", "n_status_", "sum_")))]
-    for c in sums:
-        v = np.asarray(g[c])
-        if v.dtype.kind in "iub":
-            out[c] = np.bincount(grp, weights=v, minlength=ng).astype(np.int64)
-        else:       # NaN skipped, as pandas' sum
-            out[c] = np.bincount(grp, weights=np.nan_to_num(v.astype(float), nan=0.0), minlength=ng)
-    for c, lo, hi in ((COUNT_SUM_MAG, COUNT_MAG_MIN, COUNT_MAG_MAX),
-                      (COUNT_SUM_DEPTH, COUNT_DEPTH_MIN, COUNT_DEPTH_MAX)):
-        vlo, vhi = np.asarray(g[lo], dtype=float), np.asarray(g[hi], dtype=float)
-        mn, mx = np.full(ng, np.nan), np.full(ng, np.nan)
-        np.fmin.at(mn, grp, vlo)          # fmin/fmax skip NaN; an all-NaN group stays NaN
-        np.fmax.at(mx, grp, vhi)
-        out[lo], out[hi] = mn, mx
-        # Unknown depth (NaN) in every source of a group: the sum stays NaN, not 0.
-        out[c] = np.where(np.isnan(mn), np.nan, out[c])
-    return pd.DataFrame(out)
-
-
-def _has_hist_columns(columns, obs_column: str) -> bool:
-    from .constants import COL_MAG_INPUT, COL_RECOVERED, COL_SELECTED
-
-    return all(c in columns for c in (obs_column, COL_MAG_INPUT, COL_RECOVERED, COL_SELECTED))
-
-
-def task_histogram(rows: pd.DataFrame, obs_column: str) -> pd.DataFrame:
-    """Histograms of the measured magnitude of recovered and selected sources.
-
-    What the photometric transfer matrices need (:func:`glaciar.tables.
-    transfer_from_histograms`), without the rows: per group of identity
-    columns (field, z, mag, iteration), input-magnitude key
-    ``round(mag_input / COUNTS_MAG_RESOLUTION)`` and measured-magnitude bin
-    on the global lattice of ``TRANSFER_MOBS_STEP`` anchored at 0
-    (:func:`glaciar.tables.mobs_lattice_index`; integer indices, so any edges
-    that are unions of lattice bins are rebuilt exactly), the number of
-    sources and of recovered and selected ones.  Sources not recovered, and
-    recovered ones whose measured magnitude is NaN or +inf (flux <= 0), are
-    in the faint overflow bin ``MOBS_BIN_FAINT``; -inf in ``MOBS_BIN_BRIGHT``.
-    Only non-empty groups are stored (sparse).
-
-    Parameters
-    ----------
-    rows : pandas.DataFrame
-        Per-source rows with ``mag_input`` [AB mag], ``obs_column`` [AB mag],
-        ``recovered``, ``selected`` and the identity columns that exist.
-    obs_column : str
-        The measured detection-band magnitude column, e.g. ``mag_f160w``.
-
-    Returns
-    -------
-    pandas.DataFrame
-        The identity columns present, ``m_in_key``, ``mobs_bin``, ``n``,
-        ``k_recovered``, ``k_selected``.
-    """
-    from .constants import COL_MAG_INPUT, COL_RECOVERED, COL_SELECTED
-    from .tables import MOBS_BIN_FAINT, mobs_lattice_index
-
-    ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
-    m_in = rows[COL_MAG_INPUT].to_numpy(float)
-    rec = rows[COL_RECOVERED].to_numpy().astype(bool)
-    g = {c: rows[c].to_numpy() for c in ids}
-    g[HIST_MIN_KEY] = np.where(np.isfinite(m_in), np.round(m_in / COUNTS_MAG_RESOLUTION), np.nan)
-    b = mobs_lattice_index(rows[obs_column].to_numpy(float))
-    g[HIST_MOBS_BIN] = np.where(rec, b, MOBS_BIN_FAINT).astype(np.int32)
-    g[COUNT_N] = np.ones(len(rows), np.int64)
-    g[COUNT_K_REC] = rec.astype(np.int64)
-    g[COUNT_K_SEL] = rows[COL_SELECTED].to_numpy().astype(np.int64)
-    return _hist_sums(g, ids)
-
-
-def _hist_sums(g, ids: list) -> pd.DataFrame:
-    """Histogram rows summed per (ids, m_in key, m_obs bin); ``g`` a DataFrame or dict of arrays."""
-    import numpy as np
-
-    keys = list(ids) + [HIST_MIN_KEY, HIST_MOBS_BIN]
-    grp, first = _groups(g, keys)
-    out = {k: np.asarray(g[k])[first] for k in keys}
-    for c in (COUNT_N, COUNT_K_REC, COUNT_K_SEL):
-        out[c] = np.bincount(grp, weights=np.asarray(g[c]), minlength=first.size).astype(np.int64)
-    return pd.DataFrame(out)
-
-
-#: Counts columns in the order :func:`task_counts` writes them (after the identity columns).
-COUNT_COLUMNS = (COUNT_MAG_KEY, COUNT_DEPTH_KEY, COUNT_N, COUNT_K_REC, COUNT_K_SEL,
-                 COUNT_SUM_MAG, COUNT_MAG_MIN, COUNT_MAG_MAX, COUNT_SUM_DEPTH, COUNT_DEPTH_MIN,
-                 COUNT_DEPTH_MAX)
 
 
 def _ipc_bytes(df: pd.DataFrame) -> bytes:
@@ -1049,7 +850,7 @@ def _merge_counts(df: pd.DataFrame) -> pd.DataFrame:
     """Counts summed over iterations: one row per (field, z, mag, mag key, depth key)."""
     keys = [c for c in (COL_FIELD, COL_Z, COL_MAG) if c in df.columns] + [COUNT_MAG_KEY,
                                                                           COUNT_DEPTH_KEY]
-    return _group_sums(df.drop(columns=[COL_ITERATION], errors="ignore"), keys)
+    return group_sums(df.drop(columns=[COL_ITERATION], errors="ignore"), keys)
 
 
 def read_current_counts(run_dir: str | os.PathLike, merge_iterations: bool = True):
@@ -1069,7 +870,7 @@ def read_current_counts(run_dir: str | os.PathLike, merge_iterations: bool = Tru
     Returns
     -------
     (pandas.DataFrame, str) or None
-        The counts (:func:`task_counts` columns; without ``iteration`` when
+        The counts (:func:`glaciar.counting.task_counts` columns; without ``iteration`` when
         merged) and the magnitude covariate they are keyed on; ``None`` when
         some task has no counts (a store written before them: read the rows)
         or tasks disagree on the covariate.
@@ -1167,7 +968,7 @@ def _merge_histograms(df: pd.DataFrame) -> pd.DataFrame:
 
 
 def read_current_histograms(run_dir: str | os.PathLike):
-    """The stored m_obs histograms (:func:`task_histogram`) of the current tasks, merged.
+    """The stored m_obs histograms (:func:`glaciar.counting.task_histogram`) of the current tasks, merged.
 
     The tasks are those :func:`read_current_counts` keeps (same rule, read
     from footers only, no row data; it warns about the rest, this does not).
@@ -1216,11 +1017,11 @@ def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.Dat
     tasks : list of [name, key, n_rows]
         The task files it replaces (name, :func:`task_key`, row count).
     counts : pandas.DataFrame or None
-        The tasks' :func:`task_counts` (None: a part without counts).
+        The tasks' :func:`glaciar.counting.task_counts` (None: a part without counts).
     mag_column : str or None
         The covariate the counts are keyed on.
     hist : pandas.DataFrame or None
-        The tasks' :func:`task_histogram` (None: a part without histograms).
+        The tasks' :func:`glaciar.counting.task_histogram` (None: a part without histograms).
     obs_column : str or None
         The measured-magnitude column the histograms bin.
     """
@@ -1474,7 +1275,7 @@ class RunLock:
 
         try:
             # Not through a symbolic link: the pid written below would land outside the run.
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | _NOFOLLOW, 0o666 & ~_umask())
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | _NOFOLLOW, 0o666 & ~process_umask())
         except OSError as exc:
             raise self._link_or(exc) from None
         try:

@@ -38,18 +38,13 @@ from astropy.table import Table
 
 from . import constants as C
 from .paths import file_stem, run_subdir
+from .counting import (COUNT_K_REC, COUNT_K_SEL, COUNT_N, COUNTS_MAG_RESOLUTION, STATUS_COLUMNS,
+                       TRANSFER_MOBS_STEP, mobs_lattice_edge)
 from .store import atomic_write_bytes, atomic_write_text, field_file_prefix
 
 __all__ = ["summary_table", "box_summary_table", "write_summaries", "summary_stem", "region_file",
-           "STATUS_COLUMNS",
            "TransferMatrix", "transfer_matrix", "slice_edges", "TRANSFER_KINDS",
-           "transfer_from_histograms", "mobs_lattice_index", "mobs_lattice_edge",
-           "MOBS_BIN_FAINT", "MOBS_BIN_BRIGHT"]
-
-#: summary column of each status code
-STATUS_COLUMNS = {code: f"n_status_{code}" if code >= 0 else f"n_status_m{-code}"
-                  for code in C.STATUS_CODES}
-
+           "transfer_from_histograms"]
 
 def summary_table(rows: pd.DataFrame) -> pd.DataFrame:
     """Counts per (z, mag) cell from per-source rows (one field, or several pooled).
@@ -58,7 +53,7 @@ def summary_table(rows: pd.DataFrame) -> pd.DataFrame:
     ----------
     rows : pandas.DataFrame
         Per-source rows with at least ``z``, ``mag``, ``status``, ``recovered``,
-        ``selected``; or stored counts (:func:`glaciar.store.task_counts`
+        ``selected``; or stored counts (:func:`glaciar.counting.task_counts`
         columns, recognised by their ``n`` column), summed per cell.
 
     Returns
@@ -66,7 +61,6 @@ def summary_table(rows: pd.DataFrame) -> pd.DataFrame:
     pandas.DataFrame
         One row per (z, mag) cell, columns as in the module docstring.
     """
-    from .store import COUNT_K_REC, COUNT_K_SEL, COUNT_N
     if COUNT_N in rows.columns:
         cols = [COUNT_N, *STATUS_COLUMNS.values(), COUNT_K_REC, COUNT_K_SEL]
         out = rows.groupby([C.COL_Z, C.COL_MAG], sort=True)[cols].sum()
@@ -263,7 +257,6 @@ def write_regions(rows: pd.DataFrame, out_dir) -> list[Path]:
 # --------------------------------------------------------------------------
 # Photometric transfer function p(m_obs | m_in, z)
 # --------------------------------------------------------------------------
-TRANSFER_MOBS_STEP = C.TRANSFER_MOBS_STEP
 #: Width of the input-magnitude (and redshift) slices when the injections are not on a
 #: grid (more distinct values than TRANSFER_MAX_UNIQUE) [mag, z].
 TRANSFER_MIN_STEP = 0.25
@@ -276,35 +269,6 @@ TRANSFER_MOBS_MARGIN = 1.5
 TRANSFER_DRAWS = 100
 #: The two matrices: entry 0 of the last axis is "not recovered" or "not selected".
 TRANSFER_KINDS = ("recovered", "selected")
-#: Overflow bins of the m_obs lattice (int32 extremes): NaN or +inf measured magnitude (flux
-#: <= 0) and sources not recovered in the faint one, -inf in the bright one.
-MOBS_BIN_FAINT = np.iinfo(np.int32).max
-MOBS_BIN_BRIGHT = np.iinfo(np.int32).min
-
-
-def mobs_lattice_edge(b) -> np.ndarray:
-    """Lower edge [mag] of lattice bin ``b`` of the measured magnitude: ``b * TRANSFER_MOBS_STEP``
-    rounded to 1e-6 mag, as :func:`transfer_matrix` rounds its default edges."""
-    return np.round(np.asarray(b, float) * TRANSFER_MOBS_STEP, 6)
-
-
-def mobs_lattice_index(m_obs) -> np.ndarray:
-    """Index ``b`` of the lattice bin [edge(b), edge(b + 1)) holding each measured magnitude.
-
-    The global lattice of ``TRANSFER_MOBS_STEP`` anchored at 0 mag (:func:`mobs_lattice_edge`);
-    NaN and +inf give ``MOBS_BIN_FAINT``, -inf ``MOBS_BIN_BRIGHT`` (int32).
-    """
-    m = np.asarray(m_obs, float)
-    fin = np.isfinite(m)
-    lim = float(MOBS_BIN_FAINT - 2)
-    b = np.floor(np.clip(np.where(fin, m, 0.0) / TRANSFER_MOBS_STEP, -lim, lim))
-    # floor(m / step) can miss by one against the rounded edges: correct both ways.
-    b = np.where(m < mobs_lattice_edge(b), b - 1, b)
-    b = np.where(m >= mobs_lattice_edge(b + 1), b + 1, b)
-    out = np.where(fin, b, np.where(m == -np.inf, MOBS_BIN_BRIGHT, MOBS_BIN_FAINT))
-    return out.astype(np.int32)
-
-
 @dataclass(frozen=True)
 class TransferMatrix:
     """The photometric transfer function p(m_obs | m_in, z) as row-normalised matrices.
@@ -474,14 +438,14 @@ def transfer_from_histograms(z, m_in_key, mobs_bin, n, k_recovered, k_selected, 
                              seed=0) -> TransferMatrix:
     """:func:`transfer_matrix` from stored histograms of the measured magnitude (no rows).
 
-    The histograms are :func:`glaciar.store.task_histogram` rows (any sum of
+    The histograms are :func:`glaciar.counting.task_histogram` rows (any sum of
     them): per (z, input-magnitude key, m_obs lattice bin) the number of
     sources and of recovered and selected ones.  The result equals
     :func:`transfer_matrix` on the rows (same counts; same draws for the
     same seed) when each input magnitude is its key's value
     (``m_in_key * COUNTS_MAG_RESOLUTION``, true for a magnitude grid on that
     resolution) or the ``m_in_edges`` fall between keys, and the m_obs edges
-    are lattice edges (:func:`mobs_lattice_edge`; the defaults are); the mean z
+    are lattice edges (:func:`glaciar.counting.mobs_lattice_edge`; the defaults are); the mean z
     of a slice agrees to rounding.  Otherwise an input magnitude is binned
     by its key's value (to ``COUNTS_MAG_RESOLUTION``).
 
@@ -492,7 +456,7 @@ def transfer_from_histograms(z, m_in_key, mobs_bin, n, k_recovered, k_selected, 
     m_in_key : array_like (K,)
         ``round(mag_input / COUNTS_MAG_RESOLUTION)`` (NaN: non-finite input magnitude).
     mobs_bin : array_like of int (K,)
-        :func:`mobs_lattice_index` of the measured magnitude (``MOBS_BIN_FAINT`` for
+        :func:`glaciar.counting.mobs_lattice_index` of the measured magnitude (``MOBS_BIN_FAINT`` for
         sources not recovered).
     n, k_recovered, k_selected : array_like of int (K,)
         Sources, recovered, selected.
@@ -508,7 +472,6 @@ def transfer_from_histograms(z, m_in_key, mobs_bin, n, k_recovered, k_selected, 
     ValueError
         No sources, a selected count above the recovered one, or m_obs edges off the lattice.
     """
-    from .store import COUNTS_MAG_RESOLUTION
 
     z = np.asarray(z, float)
     key = np.asarray(m_in_key, float)

@@ -163,7 +163,7 @@ def test_box_simulates_resumes_to_the_same_table_grows_by_a_prefix_and_fits(smal
     assert manifest["box"]["n_points"] == 5
     # The fit reads every point of grid and box at its own z (1 grid z + 5 box z).
     from glaciar.pipeline.inputs import fit_inputs
-    from glaciar.store import COUNTS_MAG_RESOLUTION
+    from glaciar.counting import COUNTS_MAG_RESOLUTION
 
     fi = fit_inputs(a, C.COL_MAG_INPUT, COUNTS_MAG_RESOLUTION)
     assert sorted(np.unique(fi.z)) == sorted({8.0, *ez, *_expected_points(

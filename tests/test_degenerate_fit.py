@@ -206,7 +206,7 @@ def test_killed_fit_leaves_previous_result_and_its_leftovers_go(detection_only_f
     """
     import shutil
 
-    from glaciar.pipeline import selection_file
+    from glaciar.inference.selection_function import SelectionFunction
 
     run = shutil.copytree(detection_only_fit[0], tmp_path / "run")
     before = _snapshot(run)
@@ -220,7 +220,7 @@ def test_killed_fit_leaves_previous_result_and_its_leftovers_go(detection_only_f
     def die(*a, **k):
         raise RuntimeError("killed while writing the file")
 
-    monkeypatch.setattr(selection_file, "to_bytes", die)
+    monkeypatch.setattr(SelectionFunction, "to_bytes", staticmethod(die))
     with pytest.raises(RuntimeError, match="killed"), warnings.catch_warnings():
         warnings.simplefilter("ignore")
         run_fit(run, model="logistic", max_steps=100, seed=7, plots=False)   # other chains

@@ -10,7 +10,7 @@ from scipy.stats import norm
 
 from glaciar.galaxy.filters import get_filter
 from glaciar.inference import SelectionFunction, SurfaceModel
-from glaciar.inference.selection_function import InjectionSED
+from glaciar.inference.products import InjectionSED
 from glaciar.tables import TransferMatrix, slice_edges
 
 M_LIM = 27.5          # step of the synthetic selection [AB mag]

@@ -252,7 +252,7 @@ def test_other_settings_are_refused_naming_the_key(run_copy, tmp_path):
 
 def test_rows_no_longer_listed_are_excluded_by_report_and_fit_alike(base, tmp_path):
     from glaciar.cli import _report
-    from glaciar.pipeline import _read_columns
+    from glaciar.pipeline.inputs import read_columns
 
     d = _tiny(base, z=(8.0, 10.4), n_iter=2)
     run = tmp_path / "run"
@@ -265,7 +265,7 @@ def test_rows_no_longer_listed_are_excluded_by_report_and_fit_alike(base, tmp_pa
         rows = read_current_results(run)
     assert set(rows[C.COL_Z]) == {8.0} and set(rows[C.COL_ITERATION]) == {0} and len(rows) == 3
     with pytest.warns(StoreWarning):
-        fit_rows = _read_columns(run, [C.COL_FIELD, C.COL_Z, C.COL_MAG, C.COL_RECOVERED])
+        fit_rows = read_columns(run, [C.COL_FIELD, C.COL_Z, C.COL_MAG, C.COL_RECOVERED])
     pd.testing.assert_frame_equal(fit_rows, rows[fit_rows.columns.tolist()])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", StoreWarning)

@@ -6,7 +6,7 @@ from scipy.stats import poisson
 
 from glaciar.galaxy.filters import get_filter
 from glaciar.inference import SelectionFunction, SurfaceModel
-from glaciar.inference.selection_function import InjectionSED
+from glaciar.inference.products import InjectionSED
 from glaciar.lf import (LFPosterior, default_window, double_power_law, fit_lf, get_model,
                         parse_fix, schechter, stepwise)
 from test_expected_counts import gauss_matrix

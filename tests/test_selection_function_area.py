@@ -3,7 +3,6 @@ import numpy as np
 import pytest
 
 from glaciar.inference import SelectionFunction, SurfaceModel
-from glaciar.pipeline import selection_file
 
 
 def _sf(field, area):
@@ -40,5 +39,5 @@ def test_file_header_area_is_total(tmp_path):
     from astropy.io import fits
 
     path = tmp_path / "sf.fits"
-    selection_file.write([_sf("a", {"a": 1.0, "b": 3.0})], path)
+    _sf("a", {"a": 1.0, "b": 3.0}).write(path)
     assert fits.getheader(path)["AREA"] == pytest.approx(4.0)

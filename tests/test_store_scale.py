@@ -22,7 +22,8 @@ from glaciar.store import (COMPACT_DIRNAME, task_key,
                            StoreWarning, compact, finished_task_names, read_current_counts,
                            read_current_results, read_results, task_filename,
                            verified_task_names, write_manifest, write_task_table)
-from glaciar.tables import STATUS_COLUMNS, region_file, summary_table, write_regions
+from glaciar.counting import STATUS_COLUMNS
+from glaciar.tables import region_file, summary_table, write_regions
 
 FIELDS = ("f a", "g")
 ZS = (8.0, 9.0)
@@ -303,7 +304,7 @@ def test_truncated_part_and_task_file_are_redone_on_resume(tiny_cfg, tmp_path):
 def test_task_counts_equal_a_pandas_groupby_of_the_rows():
     """The numpy grouping behind the footer counts and histograms equals pandas' groupby
     (sorted keys, NaN keys their own group, NaN skipped in sums, all-NaN extremes NaN)."""
-    from glaciar import store as S
+    from glaciar import counting as K
 
     rng = np.random.default_rng(0)
     for trial in range(12):
@@ -317,10 +318,10 @@ def test_task_counts_equal_a_pandas_groupby_of_the_rows():
             "recovered": rng.random(n) < 0.5, "status": rng.integers(-3, 3, n).astype(np.int8),
             "mag_f160w": np.where(rng.random(n) < 0.2, np.inf, rng.normal(26, 1, n))})
         rows["selected"] = rows["recovered"] & (rng.random(n) < 0.5)
-        got = S.task_counts(rows, "mag_input")
-        keys = ["field", "z", "mag", "iteration", S.COUNT_MAG_KEY, S.COUNT_DEPTH_KEY]
-        r = rows.assign(**{S.COUNT_MAG_KEY: np.round(rows["mag_input"] / S.COUNTS_MAG_RESOLUTION),
-                           S.COUNT_DEPTH_KEY: np.floor(rows["depth_local"] / C.DEPTH_BIN_MAG)})
+        got = K.task_counts(rows, "mag_input")
+        keys = ["field", "z", "mag", "iteration", K.COUNT_MAG_KEY, K.COUNT_DEPTH_KEY]
+        r = rows.assign(**{K.COUNT_MAG_KEY: np.round(rows["mag_input"] / K.COUNTS_MAG_RESOLUTION),
+                           K.COUNT_DEPTH_KEY: np.floor(rows["depth_local"] / C.DEPTH_BIN_MAG)})
         gb = r.groupby(keys, sort=True, dropna=False)
         want = gb.agg(n=("recovered", "size"), k_recovered=("recovered", "sum"), k_selected=("selected", "sum"),
                       sum_mag=("mag_input", "sum"), mag_min=("mag_input", "min"),
@@ -333,8 +334,8 @@ def test_task_counts_equal_a_pandas_groupby_of_the_rows():
             np.testing.assert_array_equal(got[c].to_numpy(), want[c].to_numpy(), err_msg=c)
         s = np.where(np.isnan(want["mag_min"]), np.nan, want["sum_mag"])
         np.testing.assert_allclose(got["sum_mag"].to_numpy(), s, rtol=1e-12)
-        h = S.task_histogram(rows, "mag_f160w")
-        assert h[S.COUNT_N].sum() == n and h[S.COUNT_K_SEL].sum() == rows["selected"].sum()
+        h = K.task_histogram(rows, "mag_f160w")
+        assert h[K.COUNT_N].sum() == n and h[K.COUNT_K_SEL].sum() == rows["selected"].sum()
         ids = ["field", "z", "mag", "iteration"]
-        np.testing.assert_array_equal(h.groupby(ids, dropna=False)[S.COUNT_N].sum().to_numpy(),
+        np.testing.assert_array_equal(h.groupby(ids, dropna=False)[K.COUNT_N].sum().to_numpy(),
                                       rows.groupby(ids, dropna=False).size().to_numpy())

@@ -3,7 +3,8 @@ import pandas as pd
 from astropy.table import Table
 
 from glaciar import constants as C
-from glaciar.tables import STATUS_COLUMNS, region_file, summary_table, write_summaries
+from glaciar.counting import STATUS_COLUMNS
+from glaciar.tables import region_file, summary_table, write_summaries
 
 
 def _rows(seed=0, n=2000):

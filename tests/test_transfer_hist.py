@@ -14,8 +14,8 @@ from glaciar.pipeline import selection_file
 from glaciar.store import (COMPACT_DIRNAME, StoreWarning, compact, read_current_histograms,
                            task_filename, task_key, verified_task_names, write_manifest,
                            write_task_table)
-from glaciar.tables import (MOBS_BIN_BRIGHT, MOBS_BIN_FAINT, mobs_lattice_index,
-                            transfer_from_histograms, transfer_matrix)
+from glaciar.counting import MOBS_BIN_BRIGHT, MOBS_BIN_FAINT, mobs_lattice_index
+from glaciar.tables import transfer_from_histograms, transfer_matrix
 
 OBS = C.band_column(C.OBS_MAG_QUANTITY, "f160w")
 FIELDS = ("a", "b")

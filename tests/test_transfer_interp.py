@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from glaciar.inference.selection_function import InjectionSED, kcorrection
+from glaciar.inference.products import InjectionSED, kcorrection
 from glaciar.inference.transfer import (row_magnitudes, transfer_function,
                                         transfer_probability_muv)
 from glaciar.tables import TransferMatrix, slice_edges, transfer_matrix

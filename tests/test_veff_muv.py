@@ -7,7 +7,7 @@ from scipy.optimize import brentq
 
 from glaciar.galaxy.filters import get_filter
 from glaciar.inference import SelectionFunction, SurfaceModel
-from glaciar.inference.selection_function import InjectionSED, beta_nodes, kcorrection
+from glaciar.inference.products import InjectionSED, beta_nodes, kcorrection
 
 M_LIM = 27.5          # the step of the synthetic selection [AB mag]
 AREA = 10.0           # [arcmin^2]
@@ -117,7 +117,7 @@ def test_absolute_magnitude_fit_is_its_own_veff_and_needs_no_sed():
 
 
 def test_veff_muv_file_round_trip_is_exact(tmp_path):
-    from glaciar.inference.selection_function import VeffTable
+    from glaciar.inference.products import VeffTable
 
     filt = get_filter(F160W)
     sed = InjectionSED(filt, -2.2, 0.4, "madau95", "Planck18")

@@ -7,7 +7,7 @@
 - :mod:`glaciar.config.schema` -- ``glaciar init``'s template and the documented
   schema, both generated from the models.
 """
-from ._types import ConfigError
+from .common import ConfigError
 from .glaciar_compat import is_glaciar_parameters
 from .io import (check_files, config_from_dict, config_hash, config_to_dict, load_config,
                  missing_files, store_hash)

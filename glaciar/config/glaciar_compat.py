@@ -30,8 +30,7 @@ import re
 from pathlib import Path
 from typing import Mapping
 
-from ._types import At, show
-from .models import parse_bool
+from .common import At, parse_bool, show
 
 __all__ = ["is_glaciar_parameters", "glaciar_to_schema", "GLACIAR_TO_SCHEMA", "TOP_KEYS"]
 

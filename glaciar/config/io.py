@@ -17,27 +17,15 @@ import os
 from pathlib import Path
 from typing import Mapping
 
-import yaml
 from pydantic import ValidationError
 
-from ._types import At, ConfigError, format_validation_error, show, unknown_key_error
+from .common import (At, ConfigError, format_validation_error, read_yaml, show,
+                     unknown_key_error)
 from .glaciar_compat import GLACIAR_TO_SCHEMA, TOP_KEYS, glaciar_to_schema, is_glaciar_parameters
 from .models import Config
 
 __all__ = ["config_from_dict", "load_config", "config_to_dict", "config_hash", "store_hash",
-           "missing_files", "check_files", "MAX_CONFIG_BYTES", "MAX_YAML_ALIASES",
-           "MAX_YAML_DEPTH", "MAX_YAML_VALUES"]
-
-#: Largest configuration file read [bytes].
-MAX_CONFIG_BYTES = 1_000_000
-#: Most YAML aliases (``*name``) a configuration may use: enough for any real
-#: file, too few for an alias bomb (each level of which doubles the data).
-MAX_YAML_ALIASES = 100
-#: Deepest nesting of YAML collections.
-MAX_YAML_DEPTH = 50
-#: Most values a configuration may hold once its aliases are expanded.
-MAX_YAML_VALUES = 100_000
-
+           "missing_files", "check_files"]
 
 def config_from_dict(data: Mapping, base_dir: str | os.PathLike = ".",
                      source_name: str = "<dict>", *, path: str | os.PathLike | None = None
@@ -94,98 +82,6 @@ def config_from_dict(data: Mapping, base_dir: str | os.PathLike = ".",
     return cfg.model_copy(update={"path": None if path is None else Path(path).resolve(),
                                   "base_dir": base_dir,
                                   "warnings": tuple(context["warnings"])})
-
-
-class _BoundedLoader(yaml.SafeLoader):
-    """SafeLoader that refuses duplicate keys, alias bombs and absurd nesting."""
-
-    def __init__(self, stream):
-        super().__init__(stream)
-        self._aliases = 0
-        self._depth = 0
-
-    def compose_document(self):
-        # Aliases share nodes: count the values as if expanded (memoised per node,
-        # so this is linear in the file) and refuse a document that would explode.
-        node = super().compose_document()
-        sizes: dict[int, int] = {}
-
-        def size(n) -> int:
-            key = id(n)
-            if key not in sizes:
-                sizes[key] = 1      # a recursive alias counts once
-                if isinstance(n, yaml.SequenceNode):
-                    total = 1 + sum(size(c) for c in n.value)
-                elif isinstance(n, yaml.MappingNode):
-                    total = 1 + sum(size(k) + size(v) for k, v in n.value)
-                else:
-                    total = 1
-                sizes[key] = min(total, 10 * MAX_YAML_VALUES)
-            return sizes[key]
-        if node is not None and size(node) > MAX_YAML_VALUES:
-            raise yaml.constructor.ConstructorError(
-                None, None, f"its aliases (*name) expand to more than {MAX_YAML_VALUES} values; "
-                            "refusing to expand them (YAML alias limit)", node.start_mark)
-        return node
-
-    def compose_node(self, parent, index):
-        if self.check_event(yaml.AliasEvent):
-            self._aliases += 1
-            if self._aliases > MAX_YAML_ALIASES:
-                mark = self.peek_event().start_mark
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"more than {MAX_YAML_ALIASES} aliases (*name); refusing to "
-                                "expand them (YAML alias limit)", mark)
-        self._depth += 1
-        try:
-            if self._depth > MAX_YAML_DEPTH:
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"collections nested deeper than {MAX_YAML_DEPTH} levels",
-                    self.peek_event().start_mark)
-            return super().compose_node(parent, index)
-        finally:
-            self._depth -= 1
-
-
-def _unique_mapping(loader, node, deep=False):
-    seen = set()
-    for key_node, _ in node.value:
-        key = loader.construct_object(key_node, deep=deep)
-        try:
-            if key in seen:
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"duplicate key {show(key)}", key_node.start_mark)
-            seen.add(key)
-        except TypeError:
-            pass
-    return loader.construct_mapping(node, deep)
-
-
-_BoundedLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping)
-
-
-def read_yaml(path: str | os.PathLike):
-    """Parse a YAML file with the bounded loader; errors name the file, line and column."""
-    path = Path(path)
-    size = path.stat().st_size
-    if size > MAX_CONFIG_BYTES:
-        raise ConfigError(f"{path}: {size} bytes; a configuration is at most "
-                          f"{MAX_CONFIG_BYTES} bytes (is this the right file?)")
-    raw = path.read_bytes()
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start}); save "
-                          "the file as UTF-8") from None
-    try:
-        return yaml.load(text, Loader=_BoundedLoader)  # noqa: S506 (a SafeLoader)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError(f"{path}: {where}invalid YAML ({problem})") from None
-    except RecursionError:
-        raise ConfigError(f"{path}: invalid YAML (nested too deeply)") from None
 
 
 def load_config(path: str | os.PathLike) -> Config:

@@ -26,19 +26,23 @@ from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, ValidationE
                       ValidationInfo, field_validator, model_validator)
 
 from .. import constants
-from ..engine.classify import ClassificationParams
+from ..box import box_points
 from ..engine import noise as _noise
+from ..engine.classify import ClassificationParams
 from ..engine.detect import BACKENDS, CLEAN_STYLES, THRESHOLD_RMS, DetectionParams, builtin_filter_names
+from ..engine.selection import DEFAULT_JDROPOUT, MAX_EXPRESSIONS, SelectionError, compile_selection
 from ..galaxy import psf as _psf
+from ..galaxy.filters import FILE_SUFFIXES as FILTER_FILE_SUFFIXES, get_filter, looks_like_path
 from ..galaxy.population import SourceModel
-from ..galaxy.filters import FILE_SUFFIXES as FILTER_FILE_SUFFIXES, looks_like_path
 from ..galaxy.sersic import Q_MIN
-from ._types import At, Choice, Float, Int, show, unknown_key_error, yaml_bool_hint
+from .common import (At, Choice, ConfigError, Float, Int, add_warning, parse_bool, read_yaml,
+                     resolve_filter_name, resolve_path, show, unknown_key_error, yaml_bool_hint)
+from .sextractor import detection_keys_from_sex
 
 __all__ = ["Section", "PsfProfile", "BandConfig", "SurveyConfig", "AxisSpec", "GridCell", "GridConfig",
            "GridBox", "SimulationConfig", "SourceConfig", "DetectionImageConfig", "DetectionConfig", "ClassificationConfig",
            "OutputConfig", "NoiseConfig", "Config", "SECTIONS", "MAX_TASKS", "MAX_GRID_VALUES",
-           "selection_columns", "read_fields_file", "read_cells_file", "resolve_path", "looks_like_path"]
+           "selection_columns", "read_fields_file", "read_cells_file"]
 
 #: Largest number of tasks a configuration may plan (fields x z x mag x iterations):
 #: the planner holds one small object per task (~10**7 is ~2 GB).
@@ -79,18 +83,8 @@ def _arg_default(func, name: str):
     return inspect.signature(func).parameters[name].default
 
 
-def resolve_path(base_dir, value: str) -> str:
-    """``value`` (``~`` expanded) made absolute against ``base_dir``."""
-    p = Path(os.path.expanduser(value))
-    return str(p if p.is_absolute() else (Path(base_dir) / p).resolve())
-
-
 def _base_dir(info: ValidationInfo) -> Path:
     return Path((info.context or {}).get("base_dir", "."))
-
-
-def _warn(info: ValidationInfo, message: str) -> None:
-    (info.context or {}).setdefault("warnings", []).append(message)
 
 
 def _float_list(*, min_length=1, max_length=None, **bounds):
@@ -102,22 +96,6 @@ def _float_list(*, min_length=1, max_length=None, **bounds):
         return value
     return Annotated[tuple[item, ...], BeforeValidator(as_list),
                      Field(min_length=min_length, max_length=max_length)]
-
-
-#: Words read as true / false: YAML 1.1 and SExtractor spell them yes, No, Y, N.
-TRUE_WORDS = frozenset(("yes", "y", "true", "t", "on", "1"))
-FALSE_WORDS = frozenset(("no", "n", "false", "f", "off", "0"))
-
-
-def parse_bool(value) -> bool | None:
-    """``value`` as a bool (bool, 0/1 or one of the words above), or None if it is none."""
-    if isinstance(value, bool):
-        return value
-    if isinstance(value, int) and value in (0, 1):
-        return bool(value)
-    if isinstance(value, str) and value.strip().lower() in TRUE_WORDS | FALSE_WORDS:
-        return value.strip().lower() in TRUE_WORDS
-    return None
 
 
 def _bool(value):
@@ -269,7 +247,6 @@ class BandConfig(Section):
         value = value.strip()
         if looks_like_path(value, FILTER_FILE_SUFFIXES):
             return resolve_path(_base_dir(info), value)
-        from ..galaxy.filters import get_filter
         try:
             get_filter(value.lower())
         except (ValueError, KeyError, FileNotFoundError) as exc:
@@ -640,9 +617,6 @@ class GridCell(Section):
 
 def read_cells_file(path) -> list:
     """The ``cells:`` list of a YAML file written by ``glaciar next --write``."""
-    from ._types import ConfigError
-    from .io import read_yaml
-
     try:
         data = read_yaml(path)
     except ConfigError as exc:
@@ -689,8 +663,6 @@ class GridBox(Section):
 
     def points(self, seed: int) -> list[tuple[float, float]]:
         """The box's (z, mag) points for a run seed (:func:`glaciar.box.box_points`)."""
-        from ..box import box_points
-
         return box_points(self.z, self.mag, self.n_points, seed)
 
 
@@ -943,8 +915,6 @@ class DetectionConfig(Section):
 
     @classmethod
     def _prepare(cls, data: dict, info: ValidationInfo) -> dict:
-        from .sextractor import detection_keys_from_sex
-
         base = _base_dir(info)
         merged: dict[str, Any] = {}
         if "sex_file" in data:
@@ -963,7 +933,7 @@ class DetectionConfig(Section):
                     origins[f"detection.{key}"] = f"from {path}"
         for key, value in data.items():
             if key == "FILTER_NAME":
-                value = _filter_name(value, [base])
+                value = resolve_filter_name(value, [base])
             if key != "sex_file":
                 merged[key] = value
         return merged
@@ -976,22 +946,6 @@ class DetectionConfig(Section):
             hint = f"; did you mean {close[0]!r}?" if close else ""
             raise At(f"unknown built-in filter {value!r} (and not a .conv file){hint}")
         return value
-
-
-def _filter_name(value, base_dirs) -> str:
-    """A FILTER_NAME: a built-in kernel name as is, a ``.conv`` path made absolute."""
-    if not isinstance(value, str) or not value.strip():
-        raise At(f"expected a built-in kernel name or a .conv file, got {show(value)}"
-                 f"{yaml_bool_hint(value)}",
-                 "FILTER_NAME")
-    value = value.strip()
-    if not looks_like_path(value, (".conv",)):
-        return value
-    for d in base_dirs:
-        p = resolve_path(d, value)
-        if Path(p).is_file():
-            return p
-    return resolve_path(base_dirs[0], value)    # missing: check_files reports it
 
 
 def _cls(name):
@@ -1130,9 +1084,6 @@ class Config(Section):
 
     @model_validator(mode="after")
     def _cross_checks(self, info: ValidationInfo):
-        from ..engine.selection import (DEFAULT_JDROPOUT, MAX_EXPRESSIONS, SelectionError,
-                                        compile_selection)
-
         wt, nt = self.detection.weight_type, self.survey.noise_type
         if wt in ("map_weight", "map_rms"):
             wanted = {"map_weight": "weight", "map_rms": "rms"}[wt]
@@ -1182,7 +1133,7 @@ class Config(Section):
                 compile_selection(DEFAULT_JDROPOUT, columns)
                 selection = DEFAULT_JDROPOUT
             except SelectionError:
-                _warn(info, "selection: no selection given and the default BoRG J-dropout "
+                add_warning(info, "selection: no selection given and the default BoRG J-dropout "
                             "criteria need bands f160w, f125w, f098m and f606w; no selection "
                             "is applied (selected = recovered)")
                 selection = ()

@@ -16,7 +16,9 @@ import yaml
 from pydantic import BaseModel
 from pydantic_core import PydanticUndefined
 
-from .models import SECTIONS, BandConfig, Section, SurveyConfig
+from ..engine.selection import DEFAULT_JDROPOUT
+from .models import (SECTIONS, AxisSpec, BandConfig, DetectionImageConfig, PsfProfile, Section,
+                     SurveyConfig)
 
 __all__ = ["template_yaml", "schema_yaml"]
 
@@ -122,7 +124,6 @@ def template_yaml() -> str:
     for section, info in SECTIONS.items():
         model = _section_model(info.annotation)
         if model is None:      # selection: a list of expressions
-            from ..engine.selection import DEFAULT_JDROPOUT
             out.append(_line(0, section, "", info.description))
             out += [f"  - {_flow(e)}" for e in DEFAULT_JDROPOUT]
         elif model is SurveyConfig:
@@ -204,8 +205,6 @@ def _describe_model(model: type[Section]) -> dict:
 
 def schema_yaml() -> str:
     """Every key of the configuration: type, default (or required), constraints, meaning."""
-    from .models import AxisSpec, DetectionImageConfig, PsfProfile
-
     doc = {}
     for section, info in SECTIONS.items():
         model = _section_model(info.annotation)

@@ -17,7 +17,8 @@ import re
 from pathlib import Path
 from typing import Any
 
-from ._types import At
+from ..galaxy.filters import looks_like_path
+from .common import At, add_warning, resolve_filter_name
 
 __all__ = ["read_sex_file", "detection_keys_from_sex", "HONOURED_KEYS", "NO_EFFECT_KEYS",
            "DEFAULT_ONLY_KEYS", "GLACIAR_ONLY_KEYS"]
@@ -111,8 +112,6 @@ def detection_keys_from_sex(path, base_dir, info=None) -> dict[str, Any]:
     used and a warning says so (SExtractor resolves it from its working
     directory, which we do not know).
     """
-    from .models import _filter_name, _warn, looks_like_path
-
     keys = read_sex_file(path)
     ttype = keys.get("THRESH_TYPE", "RELATIVE")
     ttype = ttype[0] if isinstance(ttype, list) and ttype else ttype
@@ -128,7 +127,7 @@ def detection_keys_from_sex(path, base_dir, info=None) -> dict[str, Any]:
             # fills it per band from gain_values before each SExtractor call: the same
             # per-band gain glaciar takes from survey.bands.<band>.gain.
             if info is not None:
-                _warn(info, f"{path}: GAIN without a value: each band's gain is "
+                add_warning(info, f"{path}: GAIN without a value: each band's gain is "
                             "survey.bands.<band>.gain, as GLACiAR fills it per band "
                             "(a band without one gets no source Poisson noise)")
             continue
@@ -158,7 +157,7 @@ def detection_keys_from_sex(path, base_dir, info=None) -> dict[str, Any]:
             value = kinds.pop()
             if value == "NONE":
                 if info is not None:
-                    _warn(info, f"{path}: WEIGHT_TYPE NONE: the survey's noise maps "
+                    add_warning(info, f"{path}: WEIGHT_TYPE NONE: the survey's noise maps "
                                 "(survey.noise) are used as configured; set WEIGHT_TYPE "
                                 "BACKGROUND to ignore them")
                 continue
@@ -171,12 +170,12 @@ def detection_keys_from_sex(path, base_dir, info=None) -> dict[str, Any]:
             value = kinds.pop()
         if key == "FILTER_NAME":
             value = value[0] if isinstance(value, list) else value
-            resolved = _filter_name(value, [Path(path).parent, Path(base_dir)])
+            resolved = resolve_filter_name(value, [Path(path).parent, Path(base_dir)])
             if looks_like_path(value, (".conv",)) and not Path(resolved).is_file():
                 stem = Path(value).name
                 stem = stem[:-5] if stem.lower().endswith(".conv") else stem
                 if info is not None:
-                    _warn(info, f"{path}: FILTER_NAME {value!r} not found next to the .sex file "
+                    add_warning(info, f"{path}: FILTER_NAME {value!r} not found next to the .sex file "
                                 f"or the config; using the built-in kernel {stem!r}")
                 resolved = stem
             value = resolved

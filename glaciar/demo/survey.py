@@ -89,14 +89,14 @@ class _FitsRowWriter:
     def __init__(self, path: Path, shape: tuple[int, int], header):
         from astropy.io import fits
 
-        from ..store import _umask
+        from ..store import process_umask
 
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         fd, self._tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp",
                                          dir=self.path.parent)
         os.close(fd)                 # an empty file: StreamingHDU writes it as a new one
-        os.chmod(self._tmp, 0o666 & ~_umask())
+        os.chmod(self._tmp, 0o666 & ~process_umask())
         self._hdu = fits.StreamingHDU(self._tmp, _stream_header(shape, header))
         self._done = False
 

@@ -49,6 +49,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .products import beta_nodes, kcorrection
+from .transfer import transfer_function
+
 __all__ = ["CountKernel", "ExpectedCounts", "count_kernel", "expected_counts",
            "COUNTS_EXTRAPOLATION_TOLERANCE", "TRANSFER_MARGIN", "M_STEP", "M_TABLE_STEP"]
 
@@ -255,8 +258,6 @@ def count_kernel(sf, m_obs_edges, M_edges=None, *, z_min=None, z_max=None, area=
     from scipy import sparse
 
     from ..galaxy.population import get_cosmology
-    from .selection_function import beta_nodes, kcorrection
-    from .transfer import transfer_function
 
     E = _check_edges(m_obs_edges, who)
     sed = sf.sed if sed is None else sed
@@ -535,7 +536,6 @@ def expected_counts(sf, phi, m_obs_edges, *, z_min=None, z_max=None, M_uv_range=
 def _default_M_edges(sf, E, z_min, z_max, cosmology, sed, transfer, n_z, n_beta, dM):
     """The M_UV cells :func:`count_kernel` uses by default (without evaluating anything)."""
     from ..galaxy.population import get_cosmology
-    from .selection_function import beta_nodes, kcorrection
 
     sed = sf.sed if sed is None else sed
     if sed is None:

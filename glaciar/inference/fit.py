@@ -27,7 +27,8 @@ import pandas as pd
 from scipy import optimize
 
 from ..constants import COL_DEPTH, COL_MAG_INPUT, COL_RECOVERED, COL_SELECTED, COL_Z
-from .models import Cells, SurfaceModel
+from .diagnostics import compare_models, psis_loo
+from .models import COMPLETENESS_SHAPES, Cells, SurfaceModel
 from .sampling import (DEFAULT_MAX_STEPS, BlockChain, ConvergenceWarning, FitResult,
                        sample_block, split_rhat)
 
@@ -362,9 +363,6 @@ def fit_and_choose(cells: Cells, shapes=None, *, depth_ref=None, seed=0, n_walke
     comparison : list of dict
         :func:`compare_models` table (empty for a single shape).
     """
-    from .diagnostics import compare_models, psis_loo
-    from .models import COMPLETENESS_SHAPES
-
     shapes = list(COMPLETENESS_SHAPES if shapes is None else shapes)
     if fit is None:
         def fit(c, mdl):

@@ -20,25 +20,27 @@ counted by :func:`glaciar.tables.transfer_matrix`; anywhere in the box:
 :meth:`SelectionFunction.transfer_function`), and the expected counts per measured-magnitude
 bin of a luminosity function (:meth:`SelectionFunction.expected_counts`).
 
-No file I/O here: the file (layout in ``docs/selection-function-file.md``, so
-that it can be read without glaciar) is written and read by
-:mod:`glaciar.pipeline.selection_file`; ``SelectionFunction.read`` and
-``write`` forward to it.
+The file (layout in ``docs/selection-function-file.md``, so that it can be read
+without glaciar) is encoded and decoded on bytes by
+:mod:`glaciar.inference.selection_format`; ``SelectionFunction.read`` and ``write``
+are the inference layer's one file access: they move the whole file's bytes.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from ..store import atomic_write_bytes
+from . import selection_format
+from .counts import count_kernel, expected_counts
 from .models import SurfaceModel
+from .products import (GRID_QUANTILES, EffectiveVolume, MagnitudeAt, TransferSlice, band_colour,
+                       beta_nodes, kcorrection)
+from .transfer import transfer_function
 
-__all__ = ["SelectionFunction", "EffectiveVolume", "MagnitudeAt", "InjectionSED", "VeffTable",
-           "TransferSlice", "kcorrection", "beta_nodes", "GRID_QUANTILES", "MAX_DEPTH_NODES",
-           "EXTRAPOLATION_TOLERANCE"]
+__all__ = ["SelectionFunction", "MAX_DEPTH_NODES", "EXTRAPOLATION_TOLERANCE"]
 
-#: Posterior quantiles tabulated per grid point (and per parameter) in the file.
-GRID_QUANTILES = (0.5, 0.16, 0.84, 0.025, 0.975)
 #: The area-by-depth histogram (0.05 mag bins) is merged into at most this many
 #: depth nodes, each at the area-weighted mean depth of its bins: the surfaces
 #: are smooth in depth on the scale of w (~0.3 mag), so the error of the mixture
@@ -47,230 +49,6 @@ MAX_DEPTH_NODES = 12
 #: V_eff(M_UV) is NaN (``outside="nan"``) when more than this fraction of it would come
 #: from (z, m) points outside the simulated magnitude range (the surface's extrapolation).
 EXTRAPOLATION_TOLERANCE = 1e-3
-#: Redshift step of the exactly computed band colours behind :func:`kcorrection`.
-KCORR_DZ = 0.05
-
-
-@dataclass(frozen=True)
-class EffectiveVolume:
-    """V_eff(m) with its credible interval (astropy Quantities in Mpc^3).
-
-    Attributes
-    ----------
-    median, lower, upper : Quantity
-        Posterior median and the bounds of the requested credible interval.
-    draws : Quantity, shape (n_draws,) + m.shape
-    """
-
-    median: object
-    lower: object
-    upper: object
-    draws: object
-
-
-@dataclass(frozen=True)
-class MagnitudeAt:
-    """Magnitude at which completeness reaches a level, per posterior draw.
-
-    Attributes
-    ----------
-    median, lower, upper : ndarray
-        Posterior median and central-interval bounds [mag]; NaN where the
-        level is above C_max (never reached), and NaN where a bound (or the
-        median) lies outside the simulated magnitude range or z outside the
-        simulated redshift range (no extrapolation is reported as a value).
-    draws : ndarray (n_draws,) + shape
-        Per draw; -inf / +inf where the draw's level lies brighter / fainter
-        than the simulated range, NaN where it is not reached.
-    """
-
-    median: np.ndarray
-    lower: np.ndarray
-    upper: np.ndarray
-    draws: np.ndarray
-
-
-@dataclass(frozen=True)
-class InjectionSED:
-    """The spectra the injections were made with: what maps M_UV to the detection band.
-
-    Attributes
-    ----------
-    detection_filter : glaciar.galaxy.filters.Filter
-        Throughput of the detection band (the file stores the curve, ``DETFILT``).
-    beta_mean, beta_sd : float
-        UV slope beta ~ N(beta_mean, beta_sd), f_lambda ∝ lambda^beta.
-    igm : str
-        IGM attenuation model ("inoue14", "madau95", "sharp").
-    cosmology : str
-        astropy realisation the injections used (e.g. "Planck18").
-    """
-
-    detection_filter: object
-    beta_mean: float
-    beta_sd: float
-    igm: str = "inoue14"
-    cosmology: str = "Planck18"
-
-
-@dataclass(frozen=True)
-class VeffTable:
-    """V_eff(M_UV) tabulated in the file (``VEFF_MUV``).
-
-    Attributes
-    ----------
-    M_uv : ndarray (n,)
-        Absolute UV magnitudes at rest 1600 A [AB mag].
-    volume : EffectiveVolume
-        Median, bounds and draws [Mpc^3].
-    interval : float
-        Probability of the central credible interval of ``lower``/``upper``.
-    area_arcmin2 : float
-        Survey area integrated over [arcmin^2].
-    cosmology : str
-        Cosmology of dV/dz and of the M_UV -> m mapping.
-    """
-
-    M_uv: np.ndarray
-    volume: EffectiveVolume
-    interval: float
-    area_arcmin2: float
-    cosmology: str
-
-
-@dataclass(frozen=True)
-class TransferSlice:
-    """p(m_obs | m_in) at one redshift slice (:meth:`SelectionFunction.transfer`).
-
-    Attributes
-    ----------
-    m_in_edges : ndarray (n_in + 1,)
-        Input detection-band magnitude bins [AB mag].
-    m_obs_edges : ndarray (n_obs + 1,)
-        Measured detection-band magnitude bins [AB mag]; the first edge is -inf,
-        the last +inf.
-    matrix : ndarray (n_in, 1 + n_obs)
-        Column 0: fraction not recovered (or not selected); column 1 + b:
-        fraction recovered (selected) with m_obs in bin b.  Rows sum to 1.
-    draws : ndarray (n_draws, n_in, 1 + n_obs)
-        Dirichlet posterior draws of the rows.
-    counts : ndarray (n_in, 1 + n_obs)
-        Injected sources per entry.
-    z_lo, z_hi : float
-        The redshift slice [z_lo, z_hi).
-    kind : str
-        "recovered" or "selected".
-    """
-
-    m_in_edges: np.ndarray
-    m_obs_edges: np.ndarray
-    matrix: np.ndarray
-    draws: np.ndarray
-    counts: np.ndarray
-    z_lo: float
-    z_hi: float
-    kind: str
-
-
-def beta_nodes(beta_mean: float, beta_sd: float, n: int = 7):
-    """Gauss-Hermite nodes and weights of beta ~ N(beta_mean, beta_sd).
-
-    The average of a smooth function of beta over the normal distribution is
-    Σ_k w_k f(beta_k), exact for polynomials of degree < 2n.  One node for beta_sd = 0.
-    """
-    if not (np.isfinite(beta_mean) and np.isfinite(beta_sd) and beta_sd >= 0):
-        raise ValueError(f"beta distribution: need finite beta_mean and beta_sd >= 0, "
-                         f"not {beta_mean}, {beta_sd}")
-    if beta_sd == 0 or int(n) <= 1:
-        return np.array([float(beta_mean)]), np.array([1.0])
-    x, w = np.polynomial.hermite_e.hermegauss(int(n))
-    return beta_mean + beta_sd * x, w / w.sum()
-
-
-def _colour(z, beta, detection_filter, igm, cosmology):
-    """c(beta) = m_det - m(observed 1600 A (1+z)) at one z, +inf where the band has no flux."""
-    from ..constants import FAINT_MAG_LIMIT
-    from ..galaxy import sed
-
-    k = sed.band_magnitudes(z, beta, [detection_filter], M_uv=0.0, cosmology=cosmology,
-                            igm=igm, faint_limit=None)[:, 0]
-    c = k - sed.apparent_uv_magnitude(0.0, z, cosmology=cosmology)
-    return np.where(c <= FAINT_MAG_LIMIT, c, np.inf)
-
-
-def kcorrection(z, beta, detection_filter, *, igm: str = "inoue14", cosmology=None,
-                dz: float | None = KCORR_DZ) -> np.ndarray:
-    """m_det - M_UV of a UV power law at redshift ``z``: the map from M_UV to the detection band.
-
-    m_det = M_UV + DM(z) - 2.5 log10(1 + z) + c(beta, z), c the band's magnitude
-    relative to observed 1600 A (1 + z) (:func:`glaciar.galaxy.sed.band_magnitudes`,
-    the function the injections used).
-
-    Parameters
-    ----------
-    z : array_like (n_z,)
-        Redshifts (> 0).
-    beta : array_like (n_beta,)
-        UV slopes.
-    detection_filter : Filter or str
-    igm : str
-    cosmology : str or astropy Cosmology, optional
-        Default Planck18.
-    dz : float or None
-        The colour c (one band integral per z, ~16 ms) is computed exactly on
-        the multiples of ``dz`` that cover the z asked and interpolated by a cubic spline in z, when that
-        takes fewer nodes than ``z`` has: with dz = 0.05 the error is < 2e-8 mag
-        while the band is redward of Lyman-alpha and < 3e-4 mag where the IGM
-        enters it (F160W, z = 6-12.5, measured).  The distance term is exact.
-        None: exact at every z.
-
-    Returns
-    -------
-    ndarray (n_z, n_beta)
-        [mag]; ``+inf`` where the band receives no flux (a source of AB
-        magnitude 0 at rest 1600 A would be fainter than ``FAINT_MAG_LIMIT``).
-    """
-    from scipy.interpolate import CubicSpline
-
-    from ..galaxy.population import get_cosmology
-    from ..galaxy.sed import distance_term
-
-    cosmology = get_cosmology(cosmology)
-    z = np.atleast_1d(np.asarray(z, float))
-    b = np.atleast_1d(np.asarray(beta, float))
-    if z.size and not np.all(np.isfinite(z) & (z > 0)):
-        raise ValueError("kcorrection: z must be finite and > 0")
-    dist = distance_term(z, cosmology) if z.size else np.zeros(0)
-    lo, hi = (float(z.min()), float(z.max())) if z.size else (0.0, 0.0)
-    # Nodes on multiples of dz (covering [lo, hi]): they lie on the z lattice of
-    # glaciar.galaxy.sed, whose tables are exact and cached there (another z costs
-    # the five lattice tables around it).
-    k = np.arange(np.floor(lo / dz), np.ceil(hi / dz) + 1) if dz else np.zeros(z.size + 1)
-    n_nodes = k.size
-    if n_nodes >= z.size or n_nodes < 4:
-        col = np.array([_colour(zi, b, detection_filter, igm, cosmology) for zi in z])
-        return dist[:, None] + col.reshape(len(z), len(b))
-    zn = np.round(k * dz, 10)
-    zn[0] = max(zn[0], lo)           # never below the lowest z asked (z = 0 has no distance)
-    cn = np.array([_colour(zi, b, detection_filter, igm, cosmology) for zi in zn])
-    fin = np.isfinite(cn).all(axis=1)
-    # No flux happens above a redshift (the IGM eats the band): the finite nodes are a prefix.
-    last = int(np.argmin(fin)) - 1 if not fin.all() else len(zn) - 1
-    col = np.full((len(z), len(b)), np.inf)
-    if last >= 3:
-        inside = z <= zn[last]
-        col[inside] = CubicSpline(zn[:last + 1], cn[:last + 1], axis=0)(z[inside])
-    elif last >= 0:
-        inside = z <= zn[last]
-        col[inside] = np.array([_colour(zi, b, detection_filter, igm, cosmology)
-                                for zi in z[inside]])
-    if 0 <= last < len(zn) - 1:
-        # Between the last node with flux and the first without: exact (flux may end there).
-        edge = (z > zn[last]) & (z < zn[last + 1])
-        if np.any(edge):
-            col[edge] = np.array([_colour(zi, b, detection_filter, igm, cosmology)
-                                  for zi in z[edge]])
-    return dist[:, None] + col
 
 
 def _depth_nodes(edges, area, max_nodes=MAX_DEPTH_NODES):
@@ -390,7 +168,7 @@ class SelectionFunction:
         sed, cosmo = self.sed, get_cosmology(self.sed.cosmology)
 
         def flux(z):
-            return bool(np.isfinite(_colour(z, np.array([sed.beta_mean]), sed.detection_filter,
+            return bool(np.isfinite(band_colour(z, np.array([sed.beta_mean]), sed.detection_filter,
                                             sed.igm, cosmo)).all())
 
         lo_z = max(self.domain.get("z", self._z_range())[0], 0.01)
@@ -981,7 +759,6 @@ class SelectionFunction:
         ValueError
             No transfer matrix in this fit, or a bad ``kind``.
         """
-        from .transfer import transfer_function
         if self.transfer_matrix is None:
             raise ValueError("transfer_function: this selection function has no transfer "
                              "matrix (a file written before glaciar recorded one?)")
@@ -992,7 +769,6 @@ class SelectionFunction:
 
         :func:`glaciar.inference.counts.count_kernel` (keywords and defaults there).
         """
-        from .counts import count_kernel
         return count_kernel(self, m_obs_edges, M_edges, **kw)
 
     def expected_counts(self, phi, m_obs_edges, *, z_min=None, z_max=None, M_uv_range=None,
@@ -1032,7 +808,6 @@ class SelectionFunction:
         -------
         glaciar.inference.counts.ExpectedCounts
         """
-        from .counts import expected_counts
         return expected_counts(self, phi, m_obs_edges, z_min=z_min, z_max=z_max,
                                M_uv_range=M_uv_range, area=area, cosmology=cosmology,
                                draws=draws, transfer=transfer, **kw)
@@ -1098,29 +873,51 @@ class SelectionFunction:
                            quantiles, axis=0)
 
     # ------------------------------------------------------------------ the file
-    # The FITS layout is written and read at the edge, glaciar.pipeline.selection_file
-    # (docs/selection-function-file.md); these forward to it, because
+    # The FITS layout (docs/selection-function-file.md) is encoded and decoded on bytes by
+    # glaciar.inference.selection_format; ``read``/``write`` only move those bytes, because
     # ``glaciar.SelectionFunction.read(path)`` is how a luminosity-function code reads it.
     @staticmethod
     def to_bytes(fits_list: list["SelectionFunction"], meta: dict | None = None) -> bytes:
-        """One or more fits as the bytes of one file (:func:`glaciar.pipeline.selection_file.to_bytes`)."""
-        from ..pipeline import selection_file
-        return selection_file.to_bytes(fits_list, meta)
+        """One or more fits (e.g. one per field) as the bytes of one FITS file.
+
+        Parameters
+        ----------
+        fits_list : list of SelectionFunction
+            EXTVER 1, 2, ... in this order; all share one model shape.
+        meta : dict, optional
+            Run metadata for the primary header and ``META`` (default: the first fit's).
+        """
+        return selection_format.encode(fits_list, meta)
+
+    @classmethod
+    def from_bytes(cls, data: bytes, source: str = "<bytes>") -> dict[str, "SelectionFunction"]:
+        """All fits in the bytes of a file, keyed by field (``source`` names it in errors).
+
+        Raises
+        ------
+        ValueError
+            Not a selection-function file of format
+            :data:`glaciar.inference.selection_format.FILE_FORMAT`.
+        """
+        return {field: cls(**kw) for field, kw in selection_format.decode(data, source).items()}
 
     def write(self, path) -> None:
-        """This fit alone, to ``path`` (:func:`glaciar.pipeline.selection_file.write`)."""
-        from ..pipeline import selection_file
-        selection_file.write([self], path)
+        """This fit alone, to ``path`` (written atomically: temp file + rename)."""
+        atomic_write_bytes(Path(path), self.to_bytes([self]))
 
     @classmethod
     def read_all(cls, path) -> dict[str, "SelectionFunction"]:
-        """All fits in a file, keyed by field (:func:`glaciar.pipeline.selection_file.read_all`)."""
-        from ..pipeline import selection_file
-        return selection_file.read_all(path)
+        """All fits in the file at ``path``, keyed by field name.
+
+        Raises
+        ------
+        FileNotFoundError, ValueError
+        """
+        return cls.from_bytes(Path(path).read_bytes(), str(path))
 
     @classmethod
     def read(cls, path, field: str | None = None) -> "SelectionFunction":
-        """One fit of a file (:func:`glaciar.pipeline.selection_file.read`).
+        """One fit of the selection-function file at ``path``.
 
         Parameters
         ----------
@@ -1130,10 +927,22 @@ class SelectionFunction:
 
         Raises
         ------
-        FileNotFoundError, ValueError
+        FileNotFoundError
+            No file at ``path``.
+        ValueError
+            Not a selection-function file, several fits and no ``field``, or no
+            fit for ``field``.
         """
-        from ..pipeline import selection_file
-        return selection_file.read(path, field)
+        if not Path(path).exists():
+            raise FileNotFoundError(f"{path}: no such selection-function file")
+        fits_ = cls.read_all(path)
+        if field is None:
+            if len(fits_) == 1:
+                return next(iter(fits_.values()))
+            raise ValueError(f"{path} holds fits for fields {sorted(fits_)}; pass field=")
+        if field not in fits_:
+            raise ValueError(f"{path}: no fit for field {field!r} (have {sorted(fits_)})")
+        return fits_[field]
 
     def __repr__(self):
         return (f"SelectionFunction(model={self.model.shape!r}, field={self.field!r}, "

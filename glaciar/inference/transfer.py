@@ -59,6 +59,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .products import beta_nodes, kcorrection
+
 __all__ = ["TransferFunction", "transfer_function", "row_magnitudes", "quantile_levels",
            "transfer_probability_muv", "MIN_ROW_COUNT", "REFINE", "N_LEVELS"]
 
@@ -415,7 +417,7 @@ def transfer_probability_muv(tf: TransferFunction, M_uv, z, m_obs_edges, sed, *,
                              cosmology=None, n_beta: int = 7, weight=None) -> np.ndarray:
     """p(m_obs in bin k | M_UV, z): the transfer function of a source of absolute magnitude M_UV.
 
-    m_in = M_UV + K(z, beta) (:func:`glaciar.inference.selection_function.kcorrection`,
+    m_in = M_UV + K(z, beta) (:func:`glaciar.inference.products.kcorrection`,
     the map the injections used), averaged over beta ~ N(sed.beta_mean, sed.beta_sd) by
     Gauss-Hermite quadrature (``n_beta`` nodes).  Beta nodes for which the band receives
     no flux are left out (weights renormalised over the others; all zero if none has flux).
@@ -429,7 +431,7 @@ def transfer_probability_muv(tf: TransferFunction, M_uv, z, m_obs_edges, sed, *,
         Redshifts (> 0).
     m_obs_edges : array_like (n_k + 1,)
         Measured-magnitude bin edges [AB mag].
-    sed : glaciar.inference.selection_function.InjectionSED
+    sed : glaciar.inference.products.InjectionSED
     cosmology : astropy Cosmology or str, optional
         Default the sed's.
     n_beta : int
@@ -443,8 +445,6 @@ def transfer_probability_muv(tf: TransferFunction, M_uv, z, m_obs_edges, sed, *,
     ndarray
         ``(n_z, n_M, n_k)`` for a counts' estimate, ``(n_d, n_z, n_M, n_k)`` per draw.
     """
-    from .selection_function import beta_nodes, kcorrection
-
     M = np.atleast_1d(np.asarray(M_uv, float))
     z = np.atleast_1d(np.asarray(z, float))
     b, w = beta_nodes(sed.beta_mean, sed.beta_sd, n_beta)

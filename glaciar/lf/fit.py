@@ -73,6 +73,7 @@ from ..inference.counts import (COUNTS_EXTRAPOLATION_TOLERANCE, M_STEP, count_ke
 from .models import LFModel, get_model
 
 __all__ = ["LFResult", "LFPosterior", "fit_lf", "expected_counts", "default_window", "step_width",
+           "gehrels_limits",
            "STEP_WIDTH", "WINDOW_BRIGHT_MARGIN", "MAX_SF_DRAWS", "MAX_TRANSFER_DRAWS",
            "STEP_MIN_SENSITIVITY"]
 
@@ -367,8 +368,9 @@ def _as_list(sf):
     return out
 
 
-def _gehrels(n):
-    """1-sigma Poisson limits (Gehrels 1986, eqs. 7 and 11 with S = 1)."""
+def gehrels_limits(n):
+    """1-sigma Poisson limits (Gehrels 1986, eqs. 7 and 11 with S = 1) of counts ``n``:
+    (lower, upper), also for non-integer (apportioned) counts."""
     n = np.asarray(n, float)
     up = n + np.sqrt(n + 0.75) + 1.0
     nn = np.maximum(n, 1.0)            # the lower limit of n < 1 (apportioned counts) is ~0
@@ -676,7 +678,7 @@ def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None, z_r
         Bad model, ``fix`` naming an unknown parameter (the allowed ones are listed),
         bad ranges, no candidate in the window.
     """
-    from ..inference.selection_function import beta_nodes, kcorrection
+    from ..inference.products import beta_nodes, kcorrection
 
     sfs = _as_list(sf)
     if marginalise not in ("mixture", "likelihood"):
@@ -822,7 +824,7 @@ def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None, z_r
         sq = np.quantile(10.0 ** samples, [0.5, 0.16, 0.84], axis=0)
         phi, plo, phi_hi = sq[0], sq[1], sq[2]
     else:
-        glo, ghi = _gehrels(nb_obs)
+        glo, ghi = gehrels_limits(nb_obs)
         with np.errstate(invalid="ignore", divide="ignore"):
             r = np.where(nb_exp > 0, phi_bar / np.where(nb_exp > 0, nb_exp, 1.0), np.nan)
         phi, plo, phi_hi = r * nb_obs, r * glo, r * ghi

@@ -6,13 +6,13 @@ touches a file for the fit is here:
 - :mod:`~glaciar.pipeline.fit` -- :func:`run_fit`, what ``glaciar fit`` calls;
 - :mod:`~glaciar.pipeline.inputs` -- the flag columns and the manifest's areas of a run;
 - :mod:`~glaciar.pipeline.chains` -- saved chains, so that a re-run resumes them;
-- :mod:`~glaciar.pipeline.selection_file` -- the selection-function FITS file
-  (``SelectionFunction.read`` and ``write`` forward here);
+- :mod:`~glaciar.pipeline.selection_file` -- what the fit adds to the selection-function
+  file for LF codes (the injections' SED, V_eff(M_UV), transfer matrices; the file's
+  layout is :mod:`glaciar.inference.selection_format`);
 - :mod:`~glaciar.pipeline.figures` -- C and S with credible bands (Figures);
 - :mod:`~glaciar.pipeline.summary` -- the summary and the lines ``glaciar fit`` prints.
 """
 from .fit import MODEL_CHOICES, FitWarning, run_fit
-from .inputs import read_columns as _read_columns  # noqa: F401  (tests/test_integrity.py)
 from .summary import format_summary
 
 __all__ = ["run_fit", "FitWarning", "format_summary", "MODEL_CHOICES"]

@@ -307,7 +307,8 @@ def cells_yaml(cells: list[dict], header: str = "") -> str:
 
 def _sources_in_store(run_dir) -> int:
     """Injected sources of the run's current tasks: from the stored counts, else the rows."""
-    from ..store import COUNT_N, read_current_counts
+    from ..counting import COUNT_N
+    from ..store import read_current_counts
     from .inputs import read_columns
 
     with warnings.catch_warnings():

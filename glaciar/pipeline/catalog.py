@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .. import __version__
+from ..version import __version__
 from .. import constants as C
 
 __all__ = ["run_catalog", "write_catalog", "read_catalog", "catalog_identity", "check_identity",

@@ -13,7 +13,8 @@ the run or a field) are refused before anything is sampled
 (:func:`check_not_degenerate`); a detection-only run fits C alone (S = 1 exactly):
 
 ``RUN_DIR/selection_function.fits``
-    :mod:`glaciar.pipeline.selection_file`.
+    :meth:`glaciar.SelectionFunction.to_bytes` (layout: :mod:`glaciar.inference.selection_format`),
+    with the LF products of :mod:`glaciar.pipeline.selection_file`.
 ``RUN_DIR/fit/``
     ``summary.json`` and ``summary.txt`` (:mod:`glaciar.pipeline.summary`),
     ``parameters_<field>.ecsv``, ``ppc_<field>.ecsv``, the saved chains
@@ -42,6 +43,7 @@ from .chains import chains_key, file_tag, load_chains, save_chains
 from .fitdir import FitStage, hold_run
 from .inputs import depth_area as _depth_area
 from .inputs import fit_inputs, manifest_areas
+from .selection_file import add_lf_products
 from .summary import (cmax_summary, format_summary, json_default, m50_summary, param_summary,
                       param_table, veff_summary)
 
@@ -283,7 +285,6 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, seed, n_walkers, max_
                     write):
     """:func:`run_fit` once the arguments are checked and the run's lock is held."""
     from ..store import atomic_write_bytes, atomic_write_text, read_manifest
-    from .selection_file import to_bytes
 
     manifest = read_manifest(run_dir) or {}
     magnitude_type = str(manifest.get("magnitude_type", "apparent"))
@@ -468,7 +469,6 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, seed, n_walkers, max_
     if not write:
         return [sf for *_, sf in outputs]
     # V_eff(M_UV) and the transfer matrices (issue 8.4), also before anything is written.
-    from .selection_file import add_lf_products
     add_lf_products(run_dir, manifest, [sf for *_, sf in outputs], cosmology=cosmology, seed=seed)
 
     # Everything sampled and checked: now write, into a stage swapped in as one unit.
@@ -490,7 +490,8 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, seed, n_walkers, max_
                     save_png(selection_figure(sf), new_dir / f"selection_{file_tag(name)}.png",
                              dpi=FIGURE_DPI)
         _keep_other_chains(fit_dir, new_dir)
-        atomic_write_bytes(stage.selection_file, to_bytes([sf for *_, sf in outputs], meta))
+        atomic_write_bytes(stage.selection_file,
+                           SelectionFunction.to_bytes([sf for *_, sf in outputs], meta))
         # The whole command's wall time, up to the commit (what `glaciar report` shows).
         summary["wall_time_s"] = time.perf_counter() - t_start
         atomic_write_text(new_dir / "summary.json",

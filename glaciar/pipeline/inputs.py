@@ -171,31 +171,32 @@ def fit_inputs(run_dir, mag_col: str, mag_resolution) -> FitInputs:
     """The fit's view of a run: from the stored counts whenever they serve, else the rows.
 
     Counts serve when every task has them, keyed on ``mag_col``, and
-    ``mag_resolution`` is :data:`glaciar.store.COUNTS_MAG_RESOLUTION` (their
+    ``mag_resolution`` is :data:`glaciar.counting.COUNTS_MAG_RESOLUTION` (their
     key); otherwise the rows' columns the fit needs are read (projection).
     """
+    from .. import counting as K
     from .. import store as S
 
     got = None
-    if mag_resolution is not None and float(mag_resolution) == S.COUNTS_MAG_RESOLUTION:
+    if mag_resolution is not None and float(mag_resolution) == K.COUNTS_MAG_RESOLUTION:
         got = S.read_current_counts(run_dir)
     if got is not None and got[1] == mag_col:
         c = got[0]
-        n = c[S.COUNT_N].to_numpy(np.int64)
-        dkey = c[S.COUNT_DEPTH_KEY].to_numpy(float)
+        n = c[K.COUNT_N].to_numpy(np.int64)
+        dkey = c[K.COUNT_DEPTH_KEY].to_numpy(float)
         with np.errstate(invalid="ignore", divide="ignore"):
             return FitInputs(
                 field=(c[C.COL_FIELD].astype(str).to_numpy() if C.COL_FIELD in c.columns
                        else np.full(len(c), "all")),
                 z=c[C.COL_Z].to_numpy(float), mag_nominal=c[C.COL_MAG].to_numpy(float),
-                mag=c[S.COUNT_SUM_MAG].to_numpy(float) / n,
-                depth=c[S.COUNT_SUM_DEPTH].to_numpy(float) / n,
+                mag=c[K.COUNT_SUM_MAG].to_numpy(float) / n,
+                depth=c[K.COUNT_SUM_DEPTH].to_numpy(float) / n,
                 depth_bin=(dkey + 0.5) * C.DEPTH_BIN_MAG,
-                mag_lo=c[S.COUNT_MAG_MIN].to_numpy(float), mag_hi=c[S.COUNT_MAG_MAX].to_numpy(float),
-                depth_lo=c[S.COUNT_DEPTH_MIN].to_numpy(float),
-                depth_hi=c[S.COUNT_DEPTH_MAX].to_numpy(float),
-                n=n, k_rec=c[S.COUNT_K_REC].to_numpy(np.int64),
-                k_sel=c[S.COUNT_K_SEL].to_numpy(np.int64))
+                mag_lo=c[K.COUNT_MAG_MIN].to_numpy(float), mag_hi=c[K.COUNT_MAG_MAX].to_numpy(float),
+                depth_lo=c[K.COUNT_DEPTH_MIN].to_numpy(float),
+                depth_hi=c[K.COUNT_DEPTH_MAX].to_numpy(float),
+                n=n, k_rec=c[K.COUNT_K_REC].to_numpy(np.int64),
+                k_sel=c[K.COUNT_K_SEL].to_numpy(np.int64))
     want = [C.COL_FIELD, C.COL_Z, C.COL_MAG, mag_col, C.COL_RECOVERED, C.COL_SELECTED, C.COL_DEPTH]
     df = read_columns(run_dir, want)
     if C.COL_FIELD not in df.columns:

@@ -28,6 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import constants as C
+from ..lf.fit import fit_lf
+from ..lf.models import get_model, parse_fix
 
 __all__ = ["run_lf", "read_candidates", "LF_DIRNAME"]
 
@@ -227,7 +229,6 @@ def run_lf(run_dir, catalog=None, *, model: str = "schechter", fix: dict | None 
         another configuration (both hashes named) or without the needed columns, no
         candidates; nothing is written then.
     """
-    from ..lf import fit_lf, get_model, parse_fix
     from ..plots import save_png
     from ..store import atomic_write_text, read_manifest
     from .lf_figures import FIGURE_DPI, lf_figure

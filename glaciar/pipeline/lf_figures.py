@@ -42,8 +42,8 @@ def lf_figure(res):
     ax0.step(edges, np.append(c["n_exp"], c["n_exp"][-1]), where="post", color="C0",
              label=f"expected ({res.model})")
     n = c["n_obs"].astype(float)
-    from ..lf.fit import _gehrels
-    glo, ghi = _gehrels(n)
+    from ..lf.fit import gehrels_limits
+    glo, ghi = gehrels_limits(n)
     ax0.errorbar(mc, n, yerr=[n - glo, ghi - n], fmt="o", ms=3, color="k", lw=0.8,
                  label=f"observed ({res.n_candidates})")
     ax0.set_xlabel("measured magnitude m_obs [AB mag]")
@@ -55,7 +55,7 @@ def lf_figure(res):
     b = res.binned_phi
     M = np.linspace(res.muv_range[0], res.muv_range[1], 300)
     pick = res.samples[np.unique(np.linspace(0, len(res.samples) - 1, 400).round().astype(int))]
-    from ..lf import get_model
+    from ..lf.models import get_model
     mdl = get_model(res.model, edges=b["edges"] if res.model == "stepwise" else None)
     phi = mdl.phi(M, pick)
     q = np.quantile(phi, [0.5, 0.16, 0.84], axis=0)

@@ -11,7 +11,8 @@ import warnings
 import numpy as np
 
 from ..inference.sampling import FitResult
-from ..inference.selection_function import GRID_QUANTILES, SelectionFunction
+from ..inference.products import GRID_QUANTILES
+from ..inference.selection_function import SelectionFunction
 
 __all__ = ["param_table", "param_summary", "m50_summary", "cmax_summary", "veff_summary",
            "format_summary", "json_default"]

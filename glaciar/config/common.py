@@ -1,4 +1,8 @@
-"""Validation vocabulary shared by the configuration models.
+"""The leaf of :mod:`glaciar.config`: what its modules share, importing none of them.
+
+Validation vocabulary, path resolution, the context helpers of validators and the
+bounded YAML reader, used by ``models``, ``io``, ``sextractor`` and ``glaciar_compat``
+(which therefore never import one another to reach a helper).
 
 Pydantic does the type checking; this module turns its errors into the one
 line glaciar prints (``file: key.path: what was expected, got what``) and
@@ -11,13 +15,20 @@ from __future__ import annotations
 
 import difflib
 import math
+import os
 import reprlib
+from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BeforeValidator, ValidationError
+import yaml
+from pydantic import BeforeValidator, ValidationError, ValidationInfo
+
+from ..galaxy.filters import looks_like_path
 
 __all__ = ["ConfigError", "At", "Int", "Float", "Choice", "show", "yaml_bool_hint",
-           "format_validation_error", "unknown_key_error"]
+           "format_validation_error", "unknown_key_error", "resolve_path", "add_warning",
+           "resolve_filter_name", "TRUE_WORDS", "FALSE_WORDS", "parse_bool", "read_yaml",
+           "MAX_CONFIG_BYTES", "MAX_YAML_ALIASES", "MAX_YAML_DEPTH", "MAX_YAML_VALUES"]
 
 
 class ConfigError(ValueError):
@@ -220,3 +231,157 @@ def format_validation_error(exc: ValidationError, source: str,
         message += f" ({origin})"
     more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
     return ConfigError(f"{source}: {path}: {message}{more}")
+
+
+# ----------------------------------------------------------------------
+# paths, booleans and the validation context
+# ----------------------------------------------------------------------
+
+def resolve_path(base_dir, value: str) -> str:
+    """``value`` (``~`` expanded) made absolute against ``base_dir``."""
+    p = Path(os.path.expanduser(value))
+    return str(p if p.is_absolute() else (Path(base_dir) / p).resolve())
+
+
+def add_warning(info: ValidationInfo, message: str) -> None:
+    """Record ``message`` in the validation context (``Config.warnings``)."""
+    (info.context or {}).setdefault("warnings", []).append(message)
+
+
+def resolve_filter_name(value, base_dirs) -> str:
+    """A FILTER_NAME: a built-in kernel name as is, a ``.conv`` path made absolute."""
+    if not isinstance(value, str) or not value.strip():
+        raise At(f"expected a built-in kernel name or a .conv file, got {show(value)}"
+                 f"{yaml_bool_hint(value)}",
+                 "FILTER_NAME")
+    value = value.strip()
+    if not looks_like_path(value, (".conv",)):
+        return value
+    for d in base_dirs:
+        p = resolve_path(d, value)
+        if Path(p).is_file():
+            return p
+    return resolve_path(base_dirs[0], value)    # missing: check_files reports it
+
+
+#: Words read as true / false: YAML 1.1 and SExtractor spell them yes, No, Y, N.
+TRUE_WORDS = frozenset(("yes", "y", "true", "t", "on", "1"))
+FALSE_WORDS = frozenset(("no", "n", "false", "f", "off", "0"))
+
+
+def parse_bool(value) -> bool | None:
+    """``value`` as a bool (bool, 0/1 or one of the words above), or None if it is none."""
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, int) and value in (0, 1):
+        return bool(value)
+    if isinstance(value, str) and value.strip().lower() in TRUE_WORDS | FALSE_WORDS:
+        return value.strip().lower() in TRUE_WORDS
+    return None
+
+
+# ----------------------------------------------------------------------
+# bounded YAML
+# ----------------------------------------------------------------------
+
+#: Largest configuration file read [bytes].
+MAX_CONFIG_BYTES = 1_000_000
+#: Most YAML aliases (``*name``) a configuration may use: enough for any real
+#: file, too few for an alias bomb (each level of which doubles the data).
+MAX_YAML_ALIASES = 100
+#: Deepest nesting of YAML collections.
+MAX_YAML_DEPTH = 50
+#: Most values a configuration may hold once its aliases are expanded.
+MAX_YAML_VALUES = 100_000
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """SafeLoader that refuses duplicate keys, alias bombs and absurd nesting."""
+
+    def __init__(self, stream):
+        super().__init__(stream)
+        self._aliases = 0
+        self._depth = 0
+
+    def compose_document(self):
+        # Aliases share nodes: count the values as if expanded (memoised per node,
+        # so this is linear in the file) and refuse a document that would explode.
+        node = super().compose_document()
+        sizes: dict[int, int] = {}
+
+        def size(n) -> int:
+            key = id(n)
+            if key not in sizes:
+                sizes[key] = 1      # a recursive alias counts once
+                if isinstance(n, yaml.SequenceNode):
+                    total = 1 + sum(size(c) for c in n.value)
+                elif isinstance(n, yaml.MappingNode):
+                    total = 1 + sum(size(k) + size(v) for k, v in n.value)
+                else:
+                    total = 1
+                sizes[key] = min(total, 10 * MAX_YAML_VALUES)
+            return sizes[key]
+        if node is not None and size(node) > MAX_YAML_VALUES:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"its aliases (*name) expand to more than {MAX_YAML_VALUES} values; "
+                            "refusing to expand them (YAML alias limit)", node.start_mark)
+        return node
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            self._aliases += 1
+            if self._aliases > MAX_YAML_ALIASES:
+                mark = self.peek_event().start_mark
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"more than {MAX_YAML_ALIASES} aliases (*name); refusing to "
+                                "expand them (YAML alias limit)", mark)
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"collections nested deeper than {MAX_YAML_DEPTH} levels",
+                    self.peek_event().start_mark)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
+def _unique_mapping(loader, node, deep=False):
+    seen = set()
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        try:
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {show(key)}", key_node.start_mark)
+            seen.add(key)
+        except TypeError:
+            pass
+    return loader.construct_mapping(node, deep)
+
+
+_BoundedLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping)
+
+
+def read_yaml(path: str | os.PathLike):
+    """Parse a YAML file with the bounded loader; errors name the file, line and column."""
+    path = Path(path)
+    size = path.stat().st_size
+    if size > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{path}: {size} bytes; a configuration is at most "
+                          f"{MAX_CONFIG_BYTES} bytes (is this the right file?)")
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start}); save "
+                          "the file as UTF-8") from None
+    try:
+        return yaml.load(text, Loader=_BoundedLoader)  # noqa: S506 (a SafeLoader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(f"{path}: {where}invalid YAML ({problem})") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: invalid YAML (nested too deeply)") from None

@@ -1,0 +1,238 @@
+"""A task's counts: what the store keeps in each task file's footer instead of its rows.
+
+Binomial counts per group of identical covariates (:func:`task_counts`), histograms of
+the measured magnitude on the global m_obs lattice (:func:`task_histogram`,
+:func:`mobs_lattice_index`; the transfer matrices are rebuilt from them by
+:func:`glaciar.tables.transfer_from_histograms`), their column names and the names of
+the per-status counts.  A leaf (numpy, pandas and :mod:`glaciar.constants` only), so
+that ``store`` (which writes and merges the counts) and ``tables`` (which reads them and
+writes files through ``store``) do not import each other.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from . import constants as C
+from .constants import (COL_DEPTH, COL_FIELD, COL_ITERATION, COL_MAG, COL_MAG_INPUT, COL_RECOVERED,
+                        COL_SELECTED, COL_STATUS, COL_Z, DEPTH_BIN_MAG)
+
+__all__ = ["STATUS_COLUMNS", "TRANSFER_MOBS_STEP", "MOBS_BIN_FAINT", "MOBS_BIN_BRIGHT",
+           "mobs_lattice_edge", "mobs_lattice_index", "COUNTS_MAG_RESOLUTION", "COUNT_COLUMNS",
+           "HIST_COLUMNS", "task_counts", "task_histogram", "group_sums", "hist_sums",
+           "has_hist_columns"]
+
+#: Magnitude key resolution of the counts [mag]: the fit's default grouping resolution, so the
+#: fit's (z, magnitude) cells are unions of count groups (identical partition) at that default.
+COUNTS_MAG_RESOLUTION = 0.01
+#: Counts columns (beside the identity columns field, z, mag, iteration).
+COUNT_MAG_KEY = "mag_key"          #: round(covariate / COUNTS_MAG_RESOLUTION), float (NaN if non-finite)
+COUNT_DEPTH_KEY = "depth_key"      #: floor(depth_local / DEPTH_BIN_MAG), float (NaN if unknown)
+COUNT_N = "n"
+COUNT_K_REC = "k_recovered"
+COUNT_K_SEL = "k_selected"
+COUNT_SUM_MAG = "sum_mag"          #: sum of the magnitude covariate over the group [mag]
+COUNT_SUM_DEPTH = "sum_depth"      #: sum of depth_local over the group [AB mag]
+COUNT_MAG_MIN, COUNT_MAG_MAX = "mag_min", "mag_max"
+COUNT_DEPTH_MIN, COUNT_DEPTH_MAX = "depth_min", "depth_max"
+#: Histogram columns (beside the identity columns and COUNT_N, COUNT_K_REC, COUNT_K_SEL).
+HIST_MIN_KEY = "m_in_key"          #: round(mag_input / COUNTS_MAG_RESOLUTION), float (NaN if non-finite)
+HIST_MOBS_BIN = "mobs_bin"         #: m_obs lattice index (mobs_lattice_index), int32
+HIST_COLUMNS = (HIST_MIN_KEY, HIST_MOBS_BIN, COUNT_N, COUNT_K_REC, COUNT_K_SEL)
+
+#: summary column of each status code
+STATUS_COLUMNS = {code: f"n_status_{code}" if code >= 0 else f"n_status_m{-code}"
+                  for code in C.STATUS_CODES}
+
+#: Width of a bin of the m_obs lattice [mag] (anchored at 0 mag).
+TRANSFER_MOBS_STEP = C.TRANSFER_MOBS_STEP
+#: Overflow bins of the m_obs lattice (int32 extremes): NaN or +inf measured magnitude (flux
+#: <= 0) and sources not recovered in the faint one, -inf in the bright one.
+MOBS_BIN_FAINT = np.iinfo(np.int32).max
+MOBS_BIN_BRIGHT = np.iinfo(np.int32).min
+
+
+def mobs_lattice_edge(b) -> np.ndarray:
+    """Lower edge [mag] of lattice bin ``b`` of the measured magnitude: ``b * TRANSFER_MOBS_STEP``
+    rounded to 1e-6 mag, as :func:`glaciar.tables.transfer_matrix` rounds its default edges."""
+    return np.round(np.asarray(b, float) * TRANSFER_MOBS_STEP, 6)
+
+
+def mobs_lattice_index(m_obs) -> np.ndarray:
+    """Index ``b`` of the lattice bin [edge(b), edge(b + 1)) holding each measured magnitude.
+
+    The global lattice of ``TRANSFER_MOBS_STEP`` anchored at 0 mag (:func:`mobs_lattice_edge`);
+    NaN and +inf give ``MOBS_BIN_FAINT``, -inf ``MOBS_BIN_BRIGHT`` (int32).
+    """
+    m = np.asarray(m_obs, float)
+    fin = np.isfinite(m)
+    lim = float(MOBS_BIN_FAINT - 2)
+    b = np.floor(np.clip(np.where(fin, m, 0.0) / TRANSFER_MOBS_STEP, -lim, lim))
+    # floor(m / step) can miss by one against the rounded edges: correct both ways.
+    b = np.where(m < mobs_lattice_edge(b), b - 1, b)
+    b = np.where(m >= mobs_lattice_edge(b + 1), b + 1, b)
+    out = np.where(fin, b, np.where(m == -np.inf, MOBS_BIN_BRIGHT, MOBS_BIN_FAINT))
+    return out.astype(np.int32)
+
+
+# --------------------------------------------------------------------------
+# Counts and histograms of a task
+# --------------------------------------------------------------------------
+def task_counts(rows: pd.DataFrame, mag_column: str) -> pd.DataFrame:
+    """Binomial counts of per-source rows per group of identical covariates.
+
+    Groups are (field, z, mag, iteration, magnitude key, depth key): the
+    identity columns of the task, ``round(rows[mag_column] /
+    COUNTS_MAG_RESOLUTION)`` and ``floor(depth_local / DEPTH_BIN_MAG)`` (NaN
+    keys, e.g. unknown depth, form their own group).
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        Per-source rows (one or several tasks) with ``recovered``, ``selected``,
+        ``status``, ``mag_column`` and the identity columns that exist.
+    mag_column : str
+        The fit's magnitude covariate (``mag_input`` [AB mag] or ``M_uv``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per group: the identity columns present, ``mag_key``,
+        ``depth_key``, ``n``, ``k_recovered``, ``k_selected``, one
+        ``n_status_*`` column per status code, ``sum_mag``, ``mag_min``,
+        ``mag_max`` [mag], ``sum_depth``, ``depth_min``, ``depth_max`` [AB mag].
+    """
+
+    ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
+    m = rows[mag_column].to_numpy(float)
+    dep = rows[COL_DEPTH].to_numpy(float) if COL_DEPTH in rows.columns else np.full(len(rows), np.nan)
+    g = {c: rows[c].to_numpy() for c in ids}     # a dict: column-wise DataFrame building is slow
+    g[COUNT_MAG_KEY] = np.where(np.isfinite(m), np.round(m / COUNTS_MAG_RESOLUTION), np.nan)
+    g[COUNT_DEPTH_KEY] = np.where(np.isfinite(dep), np.floor(dep / DEPTH_BIN_MAG), np.nan)
+    g[COUNT_N] = np.ones(len(rows), np.int64)
+    g[COUNT_K_REC] = rows[COL_RECOVERED].to_numpy().astype(np.int64)
+    g[COUNT_K_SEL] = rows[COL_SELECTED].to_numpy().astype(np.int64)
+    st = rows[COL_STATUS].to_numpy() if COL_STATUS in rows.columns else None
+    for code, col in STATUS_COLUMNS.items():
+        g[col] = (st == code).astype(np.int64) if st is not None else np.zeros(len(rows), np.int64)
+    g[COUNT_SUM_MAG] = m
+    g[COUNT_MAG_MIN] = m
+    g[COUNT_MAG_MAX] = m
+    g[COUNT_SUM_DEPTH] = dep
+    g[COUNT_DEPTH_MIN] = dep
+    g[COUNT_DEPTH_MAX] = dep
+    keys = ids + [COUNT_MAG_KEY, COUNT_DEPTH_KEY]
+    return group_sums(g, keys)
+
+
+def _groups(g, keys: list):
+    """Group of each row by ``keys`` (sorted as pandas' groupby(sort=True, dropna=False):
+    lexicographic, NaN last) and one row of each group.
+
+    Hash-based (``pandas.factorize``) codes per key, combined into one integer, so a
+    task's few rows skip pandas' groupby set-up (~10 ms) and millions of merged counts
+    never sort strings."""
+    n = len(np.asarray(g[keys[0]]))        # callers always group by at least one key
+    combined = np.zeros(n, dtype=np.int64)
+    span = 1
+    for k in keys:
+        codes, uniq = pd.factorize(np.asarray(g[k]), sort=True, use_na_sentinel=False)
+        card = max(len(uniq), 1)
+        if span * card >= 2 ** 62:       # would overflow: re-code what is combined so far
+            combined = pd.factorize(combined, sort=True)[0].astype(np.int64)
+            span = int(combined.max(initial=0)) + 1
+        combined = combined * card + codes
+        span *= card
+    inverse, _ = pd.factorize(combined, sort=True)
+    inverse = inverse.astype(np.int64)
+    first = np.empty(int(inverse.max(initial=-1)) + 1, dtype=np.int64)
+    first[inverse[::-1]] = np.arange(n - 1, -1, -1)      # the first row of each group
+    return inverse, first
+
+
+def group_sums(g, keys: list) -> pd.DataFrame:
+    """Counts summed per ``keys``: ints and sums added, extremes kept; an all-NaN sum stays NaN.
+
+    ``g``: a DataFrame or a dict of column arrays."""
+    grp, first = _groups(g, keys)
+    ng = first.size
+    out = {k: np.asarray(g[k])[first] for k in keys}
+    sums = [c for c in g if c not in keys and (c == COUNT_N or c.startswith(("k_", "n_status_", "sum_")))]
+    for c in sums:
+        v = np.asarray(g[c])
+        if v.dtype.kind in "iub":
+            out[c] = np.bincount(grp, weights=v, minlength=ng).astype(np.int64)
+        else:       # NaN skipped, as pandas' sum
+            out[c] = np.bincount(grp, weights=np.nan_to_num(v.astype(float), nan=0.0), minlength=ng)
+    for c, lo, hi in ((COUNT_SUM_MAG, COUNT_MAG_MIN, COUNT_MAG_MAX),
+                      (COUNT_SUM_DEPTH, COUNT_DEPTH_MIN, COUNT_DEPTH_MAX)):
+        vlo, vhi = np.asarray(g[lo], dtype=float), np.asarray(g[hi], dtype=float)
+        mn, mx = np.full(ng, np.nan), np.full(ng, np.nan)
+        np.fmin.at(mn, grp, vlo)          # fmin/fmax skip NaN; an all-NaN group stays NaN
+        np.fmax.at(mx, grp, vhi)
+        out[lo], out[hi] = mn, mx
+        # Unknown depth (NaN) in every source of a group: the sum stays NaN, not 0.
+        out[c] = np.where(np.isnan(mn), np.nan, out[c])
+    return pd.DataFrame(out)
+
+
+def has_hist_columns(columns, obs_column: str) -> bool:
+    return all(c in columns for c in (obs_column, COL_MAG_INPUT, COL_RECOVERED, COL_SELECTED))
+
+
+def task_histogram(rows: pd.DataFrame, obs_column: str) -> pd.DataFrame:
+    """Histograms of the measured magnitude of recovered and selected sources.
+
+    What the photometric transfer matrices need (:func:`glaciar.tables.
+    transfer_from_histograms`), without the rows: per group of identity
+    columns (field, z, mag, iteration), input-magnitude key
+    ``round(mag_input / COUNTS_MAG_RESOLUTION)`` and measured-magnitude bin
+    on the global lattice of ``TRANSFER_MOBS_STEP`` anchored at 0
+    (:func:`glaciar.counting.mobs_lattice_index`; integer indices, so any edges
+    that are unions of lattice bins are rebuilt exactly), the number of
+    sources and of recovered and selected ones.  Sources not recovered, and
+    recovered ones whose measured magnitude is NaN or +inf (flux <= 0), are
+    in the faint overflow bin ``MOBS_BIN_FAINT``; -inf in ``MOBS_BIN_BRIGHT``.
+    Only non-empty groups are stored (sparse).
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        Per-source rows with ``mag_input`` [AB mag], ``obs_column`` [AB mag],
+        ``recovered``, ``selected`` and the identity columns that exist.
+    obs_column : str
+        The measured detection-band magnitude column, e.g. ``mag_f160w``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The identity columns present, ``m_in_key``, ``mobs_bin``, ``n``,
+        ``k_recovered``, ``k_selected``.
+    """
+    ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
+    m_in = rows[COL_MAG_INPUT].to_numpy(float)
+    rec = rows[COL_RECOVERED].to_numpy().astype(bool)
+    g = {c: rows[c].to_numpy() for c in ids}
+    g[HIST_MIN_KEY] = np.where(np.isfinite(m_in), np.round(m_in / COUNTS_MAG_RESOLUTION), np.nan)
+    b = mobs_lattice_index(rows[obs_column].to_numpy(float))
+    g[HIST_MOBS_BIN] = np.where(rec, b, MOBS_BIN_FAINT).astype(np.int32)
+    g[COUNT_N] = np.ones(len(rows), np.int64)
+    g[COUNT_K_REC] = rec.astype(np.int64)
+    g[COUNT_K_SEL] = rows[COL_SELECTED].to_numpy().astype(np.int64)
+    return hist_sums(g, ids)
+
+
+def hist_sums(g, ids: list) -> pd.DataFrame:
+    """Histogram rows summed per (ids, m_in key, m_obs bin); ``g`` a DataFrame or dict of arrays."""
+    keys = list(ids) + [HIST_MIN_KEY, HIST_MOBS_BIN]
+    grp, first = _groups(g, keys)
+    out = {k: np.asarray(g[k])[first] for k in keys}
+    for c in (COUNT_N, COUNT_K_REC, COUNT_K_SEL):
+        out[c] = np.bincount(grp, weights=np.asarray(g[c]), minlength=first.size).astype(np.int64)
+    return pd.DataFrame(out)
+
+
+#: Counts columns in the order :func:`task_counts` writes them (after the identity columns).
+COUNT_COLUMNS = (COUNT_MAG_KEY, COUNT_DEPTH_KEY, COUNT_N, COUNT_K_REC, COUNT_K_SEL,
+                 COUNT_SUM_MAG, COUNT_MAG_MIN, COUNT_MAG_MAX, COUNT_SUM_DEPTH, COUNT_DEPTH_MIN,
+                 COUNT_DEPTH_MAX)
