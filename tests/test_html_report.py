@@ -462,7 +462,6 @@ def test_pooled_depth_aware_fit_gives_each_field_its_own_m50(tmp_path):
     survey-averaged m50 of fit/summary.json."""
     from glaciar import report
     from glaciar.inference import SelectionFunction, SurfaceModel
-    from glaciar.pipeline.selection_file import to_bytes
 
     mdl = SurfaceModel.for_data(np.array([7.0, 8.0]), np.array([25.0, 27.0, 29.0]), depth_ref=27.5)
     da = {"shallow": (np.array([27.0, 27.05]), np.array([1.0])),
@@ -477,7 +476,7 @@ def test_pooled_depth_aware_fit_gives_each_field_its_own_m50(tmp_path):
     sf = SelectionFunction(mdl, th[ok], np.linspace(7, 8, 5), np.linspace(24, 30, 13),
                            meta={"fields": list(da)}, field="all", depth_area=da, domain=dom)
     path = tmp_path / C.SELECTION_FUNCTION_NAME
-    path.write_bytes(to_bytes([sf], {"fields": list(da)}))
+    path.write_bytes(SelectionFunction.to_bytes([sf], {"fields": list(da)}))
     pooled_m50 = [{"z": 7.0, "m50": 0.0, "ci68": [0.0, 0.0]}, {"z": 8.0, "m50": 0.0, "ci68": [0.0, 0.0]}]
     data = {"selection_function": {"primary": {"DEPTHAW": True}},
             "fit_summary": {"fits": {"all": {"m50": pooled_m50}}},

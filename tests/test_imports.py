@@ -85,7 +85,6 @@ ALLOWED_PRIVATE_IMPORTS = {
     "glaciar.engine.windows: glaciar.engine.detect._sep_extract": ENGINE,
     "glaciar.pipeline.catalog: glaciar.run._context_dir": RUN_SPLIT,
     "glaciar.pipeline.catalog: glaciar.run._settings_hash": RUN_SPLIT,
-    "glaciar.pipeline.lf_figures: glaciar.pipeline.figures._pyplot": REPORT,
     "glaciar.run: glaciar.survey._read_array": RUN_SPLIT,
 }
 
