@@ -1,4 +1,4 @@
-"""Parallel start and scheduling of :func:`glaciar.run.simulate` (issue 11, points 5 and 6).
+"""Parallel start and scheduling of :func:`glaciar.execute.simulate` (issue 11, points 5 and 6).
 
 * Guided chunks: every pending task once, in plan order, a chunk within one
   (field, z), chunk sizes shrinking to single tasks at the end of the run.
@@ -23,7 +23,9 @@ import yaml
 from glaciar import constants as C
 from glaciar.config import load_config
 from glaciar.engine.task import TaskSpec
-from glaciar.run import InputError, _chunks, simulate
+from glaciar.execute import _chunks, simulate
+from glaciar.inputs import InputError
+from glaciar.plan import plan_tasks
 from glaciar.store import read_manifest
 
 fork_only = pytest.mark.skipif(multiprocessing.get_start_method(allow_none=True) not in (None, "fork")
@@ -151,19 +153,19 @@ def test_a_callers_fork_pool_still_inherits_the_field_context(survey_copy, tmp_p
     measured and build no context of their own."""
     import os
 
-    import glaciar.run as run
+    from glaciar import contexts
 
     cfg = load_config(survey_copy)
-    run._CONTEXTS.clear()
+    contexts.clear_contexts()
     log = tmp_path / "builds.txt"
-    real = run.build_field_context
+    real = contexts.build_field_context
 
     def counting(*args, **kwargs):
         with open(log, "a") as fh:
             fh.write(f"{os.getpid()}\n")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(run, "build_field_context", counting)
+    monkeypatch.setattr(contexts, "build_field_context", counting)
     with cf.ProcessPoolExecutor(max_workers=2) as ex:
         stats = simulate(cfg, tmp_path / "run", executor=ex, progress=False, max_tasks=2)
     assert stats["n_run"] == 2
@@ -171,13 +173,13 @@ def test_a_callers_fork_pool_still_inherits_the_field_context(survey_copy, tmp_p
 
 
 def test_prewarm_fills_the_colour_tables_a_task_reads(survey_copy):
-    """A spawned worker's warm-up job (glaciar.run._prewarm) computes the SED tables of every
+    """A spawned worker's warm-up job (glaciar.manifest._prewarm) computes the SED tables of every
     redshift of the plan: the tasks' own draws then add no table (no cache miss)."""
     import types
 
     import numpy as np
 
-    from glaciar import run
+    from glaciar import fieldprep, manifest
     from glaciar.config import config_to_dict
     from glaciar.engine.context import FieldContext
     from glaciar.engine.task import draw_task_sources
@@ -186,12 +188,12 @@ def test_prewarm_fills_the_colour_tables_a_task_reads(survey_copy):
 
     cfg = load_config(survey_copy)
     sed._band_table.cache_clear()
-    run._prewarm(config_to_dict(cfg), str(cfg.base_dir))
+    manifest._prewarm(config_to_dict(cfg), str(cfg.base_dir))
     warmed = sed._band_table.cache_info()
     assert warmed.currsize >= len(cfg.grid.z_values) * len(cfg.survey.bands)
-    settings, _ = run._field_settings(cfg, Survey.from_config(cfg), cfg.survey.fields[0])
+    settings, _ = fieldprep.field_settings(cfg, Survey.from_config(cfg), cfg.survey.fields[0])
     # the settings the draws read, no pixel
     ctx = types.SimpleNamespace(**settings, quantise_r_eff=FieldContext.quantise_r_eff)
-    for spec in run.plan_tasks(cfg):
+    for spec in plan_tasks(cfg):
         draw_task_sources(np.random.default_rng(0), 5, spec.z, spec.mag, ctx)
     assert sed._band_table.cache_info().misses == warmed.misses
