@@ -28,12 +28,14 @@ from .paths import run_subdir
 from .store import StoreWarning, read_manifest
 from .survey import Survey, clear_cache as clear_survey_cache
 
+
 def open_field_context(cfg: Config, survey: Survey, field: str, path) -> FieldContext:
     """A field's context from its cache directory (:func:`save_field_context`): the measured
     arrays memory-mapped read-only, the rest set up from the configuration (no image read)."""
     settings, _ = field_settings(cfg, survey, field)
     items, maps = fieldcache.load(path)
     return FieldContext(**settings, **items, _trimmer=fieldcache.Trimmer(maps))
+
 
 def _cache_items(ctx: FieldContext) -> dict:
     """A context's measured fields as its cache stores them.
@@ -65,6 +67,7 @@ def _cache_items(ctx: FieldContext) -> dict:
         items["reference"] = dataclasses.replace(ctx.reference, segmap=tiled(ctx.reference.segmap))
     return items
 
+
 def save_field_context(ctx: FieldContext, path) -> FieldContext:
     """Write a context's measured fields to ``path`` (unless a cache is there already) and
     return the context with them memory-mapped from it (the in-memory arrays can go).
@@ -85,6 +88,7 @@ def save_field_context(ctx: FieldContext, path) -> FieldContext:
         return ctx
     return dataclasses.replace(ctx, **items, _trimmer=fieldcache.Trimmer(maps))
 
+
 def context_dir(run_dir, cfg_hash: str, field: str, inputs: dict | None = None) -> Path | None:
     """Cache directory of a field's context in a run (None: no manifest yet).
 
@@ -101,6 +105,7 @@ def context_dir(run_dir, cfg_hash: str, field: str, inputs: dict | None = None) 
     ident = json.dumps({"format": fieldcache.FORMAT, "glaciar": __version__, "config": cfg_hash,
                         "field": field, "inputs": inputs}, sort_keys=True)
     return Path(run_dir) / C.CONTEXT_DIRNAME / hashlib.sha256(ident.encode("utf-8")).hexdigest()[:24]
+
 
 def prepare_context_cache(run_dir: Path, cfg: Config, cfg_hash: str, fields) -> None:
     """Before tasks run (lock held, no worker yet): remove caches of other configs or inputs
@@ -125,12 +130,15 @@ def prepare_context_cache(run_dir: Path, cfg: Config, cfg_hash: str, fields) -> 
             # The masks the build left in the survey's cache: forked workers would inherit them.
             clear_survey_cache()
 
+
 def finish_context_cache(run_dir: Path, complete: bool) -> None:
     """A run with no task left pending removes its field caches; an unfinished one keeps them
     for its resume (they are as large as the images)."""
     if complete:
         shutil.rmtree(Path(run_dir) / C.CONTEXT_DIRNAME, ignore_errors=True)
 
+
+#: This process's field contexts, ``{(config hash, base_dir, field): FieldContext}``: one at a time.
 _CONTEXTS: dict = {}
 
 
@@ -140,7 +148,7 @@ def clear_contexts() -> None:
 
 
 def worker_context(cfg_dict: dict, base_dir: str, cfg_hash: str, field: str,
-             run_dir: str | None = None) -> FieldContext:
+                   run_dir: str | None = None) -> FieldContext:
     """The field's context in this process: kept from an earlier call, opened from the run's
     field cache, or built (and then cached for the other workers)."""
     key = (cfg_hash, base_dir, field)

@@ -25,6 +25,7 @@ from .plan import plan_tasks, spec_filename, spec_key
 from .store import COMPACT_EVERY, compact, verified_task_names, write_task_table
 from .workers import process_cpu_seconds, terminate_workers, worker_init
 
+
 def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed: int,
                specs: list[TaskSpec], mode: str = "windowed") -> list[tuple[str, int, float]]:
     """Run a chunk of tasks of one field and write each task's file; return (name, rows, seconds)."""
@@ -49,7 +50,10 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
             fieldcache.trim(ctx, watch=False)
     return done
 
+
+#: Guided scheduling: each chunk holds 1 / (this x workers) of the tasks not yet chunked.
 _GUIDED_CHUNK_DIVISOR = 4
+
 
 def _chunks(specs: list[TaskSpec], n_workers: int) -> list[list[TaskSpec]]:
     """Cut the ordered tasks into chunks of one (field, z) each, large ones first.
@@ -77,16 +81,19 @@ def _chunks(specs: list[TaskSpec], n_workers: int) -> list[list[TaskSpec]]:
             remaining -= len(chunk)
     return out
 
+
 def _run_chunk_measured(*args) -> tuple[list[tuple[str, int, float]], int, float]:
     """:func:`_run_chunk`, and the worker's pid and process CPU [s] it used (set-up included)."""
     c0 = process_cpu_seconds(children=False)
     done = _run_chunk(*args)
     return done, os.getpid(), process_cpu_seconds(children=False) - c0
 
+
 def _check_count(name: str, value, minimum: int) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise ValueError(f"{name}: expected an integer >= {minimum}, got {value!r}")
     return int(value)
+
 
 def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
              executor: cf.Executor | None = None, progress: bool = True, mode: str = "windowed",
@@ -168,6 +175,7 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
     stats["wall_seconds"] = time.perf_counter() - t0
     return stats
 
+
 def _setup_parallelism(workers: int, executor: cf.Executor | None) -> str | cf.Executor | None:
     """Where :func:`glaciar.manifest.open_run`'s side steps run (:class:`glaciar.manifest._SetupJobs`).
 
@@ -190,6 +198,7 @@ def _setup_parallelism(workers: int, executor: cf.Executor | None) -> str | cf.E
     if executor is not None:
         return executor
     return "fork" if workers >= 2 and method == "fork" else None
+
 
 def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_tasks, tqdm,
                      t_start):

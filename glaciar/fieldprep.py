@@ -37,11 +37,13 @@ from .galaxy.psf import measure_fwhm, prepare_psf
 from .galaxy.templates import TemplateCache
 from .survey import Survey, clear_cache as clear_survey_cache
 
+
 def resolve_filter(spec: str, base_dir: Path):
     p = Path(spec)
     if not p.is_absolute():
         p = base_dir / p
     return get_filter(str(p)) if p.is_file() else get_filter(spec)
+
 
 def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
                 params: DetectionParams, weight_type: str | None = None, background: dict | None = None
@@ -120,6 +122,7 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
         background[band] = back
     return base, r, from_background
 
+
 def noise_rms(noise: np.ndarray | None, weight_type: str | None, background_rms, nodata: np.ndarray
               ) -> tuple[np.ndarray, bool]:
     """The noise RMS a band is detected and measured with, by SExtractor's WEIGHT_TYPE.
@@ -182,6 +185,7 @@ def field_depth(rms: np.ndarray, zeropoint: float, psf: np.ndarray) -> tuple[np.
     # valid=None: the footprint is where the rms is finite and > 0, taken tile by tile.
     return local_depth_map(rms, None, zeropoint, radius_pix, nsigma=C.DEPTH_NSIGMA), radius_pix
 
+
 def detection_params(cfg: Config) -> DetectionParams:
     """The engine's detection settings from the validated ``detection:`` section.
 
@@ -204,11 +208,13 @@ def detection_params(cfg: Config) -> DetectionParams:
         backphoto_type=d.backphoto_type, backphoto_thick=d.backphoto_thick, mask_type=d.mask_type,
         satur_level=d.satur_level)
 
+
 def band_psf(cfg: Config, band, pixscale: float) -> np.ndarray:
     if band.psf is None:
         raise ValueError(f"survey.bands.{band.name}.psf: a PSF (FITS path or analytic profile) is required")
     return prepare_psf(band.psf, pixscale, base_dir=cfg.base_dir,
                        psf_pixel_scale_arcsec=band.psf_pixel_scale_arcsec)
+
 
 #: Pixels around every detected original source left out of the empty apertures.
 _EMPTY_SKY_MARGIN_PIX = 3
@@ -281,6 +287,7 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
                 "or set noise.correlated: 'off'")
     return model
 
+
 def noise_warning(field: str, band: str, model: CorrelatedNoise, back_size) -> str | None:
     """The one-line warning for a model measured about local backgrounds (at the area where
     the mesh's scatter exceeded it most), or None."""
@@ -318,8 +325,10 @@ def noise_summary(noise_record: dict) -> list[str]:
                          f"{rec.get('weight_scale', 1.0):.3g}; {rn} ({how})")
     return lines
 
+
 #: Pixels per block of the set-up's elementwise full-frame work (:func:`~glaciar.engine.blocks.row_blocks`).
 ROW_BLOCK_PIXELS = 1 << 22
+
 
 def field_noise_record(cfg: Config, survey: Survey, field: str,
                        ctx: FieldContext | None = None) -> dict:
@@ -381,6 +390,7 @@ def _applies(cfg: Config, model: CorrelatedNoise) -> bool:
     mode = cfg.noise.correlated
     return mode == "on" or (mode == "auto" and not model.is_identity(cfg.noise.identity_tolerance))
 
+
 def field_settings(cfg: Config, survey: Survey, field: str) -> tuple[dict, dict]:
     """The context fields that follow from the configuration (no pixel is read), and the PSFs.
 
@@ -409,6 +419,7 @@ def field_settings(cfg: Config, survey: Survey, field: str) -> tuple[dict, dict]
         enclosed_fraction=model.stamp_flux_fraction,
         isolation_fraction=cfg.simulation.isolation_fraction)
     return settings, psfs
+
 
 #: A field whose images and RMS maps (float32, every band) exceed this [bytes] is measured
 #: with each finished full-frame array spilled to disk (glaciar.engine.fieldcache.spill):
@@ -522,6 +533,7 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         measured_noise=noise_models,
         coadd_bands=coadd_bands, coadd_method=coadd_method, detection_image_rms=det_image_rms,
         detection_background=backgrounds[det])
+
 
 def field_depth_area(cfg: Config, survey: Survey, field: str, ctx: FieldContext | None = None) -> dict:
     """The manifest's footprint area by local depth of one field (one FFT; main process only).

@@ -14,8 +14,10 @@ from .galaxy.filters import get_filter
 from .store import file_fingerprint
 from .survey import Survey, _read_array, strided_sample
 
+
 class InputError(ValueError):
     """An input file of the configuration is unusable; the message names its key and path."""
+
 
 @dataclass(frozen=True)
 class InputFile:
@@ -27,6 +29,7 @@ class InputFile:
     field: str | None = None  #: the field whose tasks read it (None: every task)
     band: str | None = None
 
+
 def file_or_none(value, base_dir: Path) -> Path | None:
     """``value`` as an existing file (relative to ``base_dir``), or None (e.g. a built-in name)."""
     if not isinstance(value, str) or not value:
@@ -35,6 +38,7 @@ def file_or_none(value, base_dir: Path) -> Path | None:
     if not p.is_absolute():
         p = Path(base_dir) / p
     return p.resolve() if p.is_file() else None
+
 
 def input_files(cfg: Config) -> list[InputFile]:
     """Every input file of ``cfg``: images and noise maps, FITS PSFs, filter curves, .sex, .conv.
@@ -65,6 +69,7 @@ def input_files(cfg: Config) -> list[InputFile]:
             out.append(InputFile(f"detection.{key}", p, kind))
     return out
 
+
 def _reason(exc: BaseException, path: Path) -> str:
     """An exception's message without a leading copy of the path."""
     msg = str(exc).strip() or type(exc).__name__
@@ -72,6 +77,7 @@ def _reason(exc: BaseException, path: Path) -> str:
         if msg.startswith(prefix):
             msg = msg[len(prefix):]
     return msg.splitlines()[0]
+
 
 #: Longest part of a one-line error given to folded foreign-library warnings [characters].
 MAX_FOLDED_CHARS = 200
@@ -95,6 +101,7 @@ def _folded(caught) -> str:
         text = text[:MAX_FOLDED_CHARS - 3] + "..."
     return f" (warnings while reading it: {text})"
 
+
 def _check_image(item: InputFile) -> None:
     """A science or noise image: a readable FITS file with a 2-D image holding finite pixels."""
     with warnings.catch_warnings():
@@ -105,6 +112,7 @@ def _check_image(item: InputFile) -> None:
         raise ValueError(f"expected a non-empty 2-D image, got shape {arr.shape}")
     if not np.isfinite(arr).any():
         raise ValueError("no finite pixel in the image")
+
 
 def _check_noise_maps(cfg: Config, items: list[InputFile], fingerprints: dict, cache: dict,
                       fail, errors) -> None:
@@ -137,6 +145,7 @@ def _check_noise_maps(cfg: Config, items: list[InputFile], fingerprints: dict, c
         if problem is not None:
             raise InputError(f"{item.key}: {item.path}: {problem}")
         entry["map_type_checked"] = stamp
+
 
 def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None = None) -> dict:
     """Check every input file of ``cfg`` and return its fingerprint.

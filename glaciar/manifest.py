@@ -21,8 +21,8 @@ from . import constants as C
 from .config import Config, check_files, config_from_dict, config_hash, config_to_dict
 from .config.models import SECTIONS
 from .contexts import context_dir, main_context
-from .galaxy import sed
 from .fieldprep import field_depth_area, field_noise_record, field_settings
+from .galaxy import sed
 from .inputs import InputFile, check_inputs, file_or_none, input_files
 from .plan import detection_z_limit, manifest_cells, placement_preflight, plan_tasks
 from .store import (RunLock, StoreMismatchError, StoreWarning, atomic_write_text,
@@ -32,6 +32,7 @@ from .paths import check_run_tree, disk_full
 from .survey import Survey
 from .workers import terminate_workers, worker_init
 
+
 def _load_fingerprint_cache(run_dir: Path) -> dict:
     p = run_dir / C.FINGERPRINT_CACHE_NAME
     try:
@@ -39,6 +40,7 @@ def _load_fingerprint_cache(run_dir: Path) -> dict:
     except (OSError, ValueError):
         return {}
     return data if isinstance(data, dict) else {}
+
 
 # --------------------------------------------------------------------------
 # Store identity: the settings that fix every task's rows (no paths, no task list)
@@ -134,9 +136,14 @@ def _summary(diffs: list[str], limit: int = 3) -> str:
     more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
     return "; ".join(diffs[:limit]) + more
 
+
 def _manifest(cfg: Config, survey: Survey, seed: int, z_limit=None, cached: dict | None = None) -> dict:
-    """The run's manifest; ``z_limit``: a future of :func:`glaciar.plan.detection_z_limit` (None: computed here);
-    ``cached``: field -> its context's cache directory in the run (:func:`glaciar.contexts.main_context`)."""
+    """The run's manifest.
+
+    ``z_limit``: a future of :func:`glaciar.plan.detection_z_limit` (None: computed here);
+    ``cached``: field -> its context's cache directory in the run
+    (:func:`glaciar.contexts.main_context`).
+    """
     area = {}
     pixscale = {}
     settings = store_settings(cfg)
@@ -181,6 +188,7 @@ def _manifest(cfg: Config, survey: Survey, seed: int, z_limit=None, cached: dict
         "detection_z_limit": detection_z_limit(cfg) if z_limit is None else z_limit.result(),
     }
 
+
 def _check_same_store(run_dir: Path, old: dict, manifest: dict, items: list[InputFile],
                       finished: set[str]) -> None:
     """Refuse to add tasks to a store whose finished tasks were made differently."""
@@ -210,6 +218,7 @@ def _check_same_store(run_dir: Path, old: dict, manifest: dict, items: list[Inpu
         if used:
             raise StoreMismatchError(f"{item.key}: {item.path} changed since the run started "
                                      "(content differs); use another --out")
+
 
 def open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor | None = None,
               warm: int = 1) -> tuple[dict, RunLock]:
@@ -318,12 +327,14 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor 
         raise
     return manifest, lock
 
+
 def _recorded_inputs(old: dict | None, finished, inputs: dict) -> dict:
     """The manifest's input fingerprints: a store with finished tasks keeps the inputs of
     fields no longer listed (they are checked if the field returns)."""
     if old is not None and finished:
         return {**(old.get("inputs") or {}), **inputs}
     return inputs
+
 
 def _setup_job(cfg_dict: dict, base_dir: str, steps: tuple[str, ...], cache: dict | None = None):
     """Set-up steps of a run in another process: ``({step: result}, warnings)``.
@@ -352,6 +363,7 @@ def _setup_job(cfg_dict: dict, base_dir: str, steps: tuple[str, ...], cache: dic
                 raise ValueError(f"unknown set-up step {step!r}")
     return out, [(str(w.message), w.category) for w in caught]
 
+
 class _Later:
     """A future computed when its result is first asked for."""
 
@@ -364,11 +376,13 @@ class _Later:
             self._value, self._done = fn(*args), True
         return self._value
 
+
 def _preimport() -> None:
     """Import what measuring a field needs (before forking: the children share the modules)."""
     import astropy.cosmology  # noqa: F401
     import astropy.io.fits  # noqa: F401
     import astropy.wcs  # noqa: F401
+
 
 def _prewarm(cfg_dict: dict, base_dir: str) -> None:
     """In a spawned worker, during the run's set-up: what its first task would do before its
@@ -385,6 +399,7 @@ def _prewarm(cfg_dict: dict, base_dir: str) -> None:
         else:
             sed.band_magnitudes(z, np.zeros(1), settings["filters"], mag=np.full(1, 25.0),
                                 detection_index=settings["detection_index"], igm=igm)
+
 
 class _SetupJobs:
     """A run's set-up steps that do not need the field's context, beside the one that does.
@@ -477,6 +492,7 @@ class _SetupJobs:
                 terminate_workers(self._own)
             self._own.shutdown(wait=True, cancel_futures=True)
         return False
+
 
 def prepare_run_dir(cfg: Config, run_dir: Path, seed: int) -> dict:
     """Create or validate the run directory and return its manifest.

@@ -18,6 +18,7 @@ from .galaxy.psf import measure_fwhm
 from .store import task_filename, task_key
 from .survey import Survey
 
+
 def box_cells(cfg: Config) -> list[dict]:
     """The points of ``grid.box`` as cells (plain JSON, fields resolved); [] without a box.
 
@@ -30,6 +31,7 @@ def box_cells(cfg: Config) -> list[dict]:
     fields = list(box.fields or cfg.survey.fields)
     return [{"z": z, "mag": m, "n_iterations": int(box.n_iterations), "fields": fields}
             for z, m in box.points(cfg.simulation.seed)]
+
 
 def task_cells(cfg: Config) -> dict[tuple[str, float, float], int]:
     """Every simulated cell of a run: ``{(field, z, mag): n_iterations}``.
@@ -51,6 +53,7 @@ def task_cells(cfg: Config) -> dict[tuple[str, float, float], int]:
             cells[key] = max(cells.get(key, 0), cell["n_iterations"])
     return cells
 
+
 def plan_tasks(cfg: Config) -> list[TaskSpec]:
     """All tasks of a run, ordered field → z → mag → iteration (so per-process caches stay warm).
 
@@ -69,6 +72,7 @@ def plan_tasks(cfg: Config) -> list[TaskSpec]:
                                 mag_index=mi[m], iteration=it, z=z, mag=m))
     return out
 
+
 def manifest_cells(cfg: Config) -> list[dict]:
     """``grid.cells`` and the points of ``grid.box`` as the manifest records them.
 
@@ -80,13 +84,16 @@ def manifest_cells(cfg: Config) -> list[dict]:
              "fields": list(c.fields or cfg.survey.fields)} for c in cfg.grid.cells] \
         + box_cells(cfg)
 
+
 def spec_filename(spec: TaskSpec) -> str:
     """File name of a task's rows (:func:`glaciar.store.task_filename`)."""
     return task_filename(spec.field, spec.z, spec.mag, spec.iteration)
 
+
 def spec_key(spec: TaskSpec) -> str:
     """Exact identity of a task (:func:`glaciar.store.task_key`)."""
     return task_key(spec.field, spec.z, spec.mag, spec.iteration)
+
 
 def detection_z_limit(cfg: Config, z_max: float = 30.0) -> float | None:
     """Lowest z (to 0.005) where the detection band receives no flux (apparent-magnitude grids).
@@ -121,6 +128,7 @@ def detection_z_limit(cfg: Config, z_max: float = 30.0) -> float | None:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if ok(mid) else (lo, mid)
     return round(hi, 3)
+
 
 def placement_preflight(cfg: Config, survey: Survey) -> list[str]:
     """Fields where ``n_galaxies`` sources will not fit, one message each (before any task runs).

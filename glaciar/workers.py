@@ -10,11 +10,13 @@ import time
 
 _PR_SET_PDEATHSIG = 1
 
+
 def _watch_parent(parent_pid: int, period: float = 0.5) -> None:
     while True:
         time.sleep(period)
         if os.getppid() != parent_pid:
             os.kill(os.getpid(), signal.SIGKILL)
+
 
 def worker_init(parent_pid: int) -> None:
     """Initializer of the process pool's workers.
@@ -39,6 +41,7 @@ def worker_init(parent_pid: int) -> None:
     threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True,
                      name="glaciar-parent-watchdog").start()
 
+
 def terminate_workers(ex: cf.ProcessPoolExecutor) -> None:
     """Stop a process pool's workers now (on an interrupt: their tasks are redone on resume)."""
     stop = getattr(ex, "terminate_workers", None)        # Python >= 3.14
@@ -51,6 +54,7 @@ def terminate_workers(ex: cf.ProcessPoolExecutor) -> None:
         except (OSError, ValueError, AttributeError):    # already gone
             pass
 
+
 def process_cpu_seconds(children: bool = True) -> float:
     """CPU [s] used so far by this process and (``children``) its terminated (reaped) child processes."""
     import resource
@@ -60,6 +64,7 @@ def process_cpu_seconds(children: bool = True) -> float:
         return own.ru_utime + own.ru_stime
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
 
 def default_workers() -> int:
     """Worker processes to use by default: the CPUs this process may run on."""
