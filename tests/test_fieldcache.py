@@ -296,7 +296,7 @@ def test_spilled_build_equals_the_in_memory_one(small_survey, tmp_path, monkeypa
     built = fieldprep.build_field_context(cfg, Survey.from_config(cfg), field)
     scratch = tmp_path / "scratch"
     scratch.mkdir()
-    monkeypatch.setattr(run, "SPILL_MIN_BYTES", 0)
+    monkeypatch.setattr(fieldprep, "SPILL_MIN_BYTES", 0)
     monkeypatch.setattr(fieldcache, "SCRATCH_DIR", str(scratch))
     spilled = fieldprep.build_field_context(cfg, Survey.from_config(cfg), field)
     assert list(scratch.iterdir()) == []
@@ -346,7 +346,7 @@ def test_resume_maps_the_cache_instead_of_measuring_the_field(small_survey, tmp_
     def refuse(*args, **kwargs):
         raise AssertionError("the field was measured again")
 
-    monkeypatch.setattr(run, "build_field_context", refuse)
+    monkeypatch.setattr(contexts, "build_field_context", refuse)
     stats = simulate(cfg, out, workers=1, progress=False)
     assert stats["n_done_before"] == 3 and stats["n_done_before"] + stats["n_run"] == stats["n_tasks"]
     assert read_manifest(out) == read_manifest(whole)

@@ -20,15 +20,16 @@ import pytest
 
 import glaciar.survey as survey_module
 from glaciar.config import load_config
+from glaciar import contexts, fieldprep
 from glaciar.contexts import clear_contexts
 from glaciar.execute import simulate
 from glaciar.fieldprep import build_field_context
 from glaciar.survey import Survey
 
 
-def _count(monkeypatch, name, log=None):
+def _count(monkeypatch, module, name, log=None):
     calls = []
-    real = getattr(run, name)
+    real = getattr(module, name)
 
     def counting(*args, **kwargs):
         calls.append(os.getpid())
@@ -37,16 +38,16 @@ def _count(monkeypatch, name, log=None):
                 fh.write(f"{os.getpid()}\n")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(run, name, counting)
+    monkeypatch.setattr(module, name, counting)
     return calls
 
 
 def test_serial_run_measures_the_field_once(small_survey, tmp_path, monkeypatch):
     cfg = load_config(small_survey)
     clear_contexts()
-    builds = _count(monkeypatch, "build_field_context")
-    refs = _count(monkeypatch, "reference_extraction")
-    dists = _count(monkeypatch, "empty_sky")
+    builds = _count(monkeypatch, contexts, "build_field_context")
+    refs = _count(monkeypatch, fieldprep, "reference_extraction")
+    dists = _count(monkeypatch, fieldprep, "empty_sky")
     stats = simulate(cfg, tmp_path / "run", workers=1, progress=False)
     assert stats["n_run"] == 8
     assert len(builds) == 1 and len(refs) == 1
@@ -60,7 +61,7 @@ def test_forked_workers_inherit_the_field_context(small_survey, tmp_path, monkey
     cfg = load_config(small_survey)
     clear_contexts()
     log = tmp_path / "builds.txt"
-    _count(monkeypatch, "build_field_context", log)
+    _count(monkeypatch, contexts, "build_field_context", log)
     stats = simulate(cfg, tmp_path / "run", workers=2, progress=False)
     assert stats["n_run"] == 8
     assert log.read_text().split() == [str(os.getpid())]
