@@ -13,9 +13,22 @@ run -- ``simulate(..., max_tasks=0)``: inputs checked, field measured, manifest
 and field cache written, no task -- with the helper forced on (``fork``) and
 off (``serial``), for ``workers`` = 1 and 2.  Each start runs in its own child
 process (cold caches, as a real run), ``--repeat`` times, the two variants
-alternating; the median wall time and whole-process CPU (this child and its
+alternating (and which goes first); the median wall time and whole-process CPU (this child and its
 reaped helper) are printed, and the load average before and after: on a shared
 machine the wall times mean little beyond their ratio.
+
+Measured (2 shared cores, load average 4-5 from other jobs; wall [s], median)::
+
+    demo 1000^2, --repeat 4 (order alternated)   serial   fork   serial/fork
+      workers 1                                    6.37    7.08   0.90x
+      workers 2                                    6.51    7.23   0.90x
+    demo 1000^2, --repeat 3 (serial always first)  7.87    6.57   1.20x  (w=1)
+                                                   4.93    4.06   1.21x  (w=2)
+    demo 400^2, --repeat 3 (serial always first)   3.28    3.17   1.03x  (w=1)
+                                                   4.48    5.34   0.84x  (w=2)
+
+Once the order is alternated the helper gains nothing (issue 11's note: "no gain
+at idle" either): removed in the next commit (issue 22 point 1).
 
 Usage::
 
@@ -70,8 +83,9 @@ def main(argv=None) -> int:
     n = 0
     for workers in (1, 2):
         runs: dict = {"serial": [], "fork": []}
-        for _ in range(opt.repeat):
-            for where in ("serial", "fork"):
+        for k in range(opt.repeat):
+            # Alternating which goes first: neither gains from the other's warmed page cache.
+            for where in (("serial", "fork") if k % 2 == 0 else ("fork", "serial")):
                 n += 1
                 runs[where].append(_start(cfg_path, root / f"run{n}", workers, where))
         for where, rs in runs.items():
