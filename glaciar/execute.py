@@ -161,8 +161,7 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
     if max_tasks is not None:
         max_tasks = _check_count("max_tasks", max_tasks, 0)
     c0, t0 = process_cpu_seconds(), time.perf_counter()
-    _, lock = open_run(cfg, run_dir, seed, parallel=_setup_parallelism(workers, executor),
-                        warm=workers)
+    _, lock = open_run(cfg, run_dir, seed, parallel=_setup_parallelism(executor), warm=workers)
     try:
         stats = _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode,
                                  max_tasks, tqdm, t0)
@@ -176,28 +175,16 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
     return stats
 
 
-def _setup_parallelism(workers: int, executor: cf.Executor | None) -> str | cf.Executor | None:
-    """Where :func:`glaciar.manifest.open_run`'s side steps run (:class:`glaciar.manifest._SetupJobs`).
+def _setup_parallelism(executor: cf.Executor | None) -> cf.Executor | None:
+    """The executor :func:`glaciar.manifest.open_run` gives its set-up jobs to, if any.
 
-    A forked helper when >= 2 worker processes will run and forking is the
-    default (the run's own pool, or a caller's process pool: submitting to it
-    now would fork its workers before the field context exists, which they then
-    inherit no longer); another executor (Dask) itself; serially otherwise (one
-    worker: the steps would only compete with this process for the CPU; threads
-    share one interpreter).
+    Another executor (Dask) itself; None without one, and for a caller's process pool
+    (submitting to it now would fork its workers before the field context exists,
+    which they then inherit no longer) or thread pool (threads share one interpreter).
     """
-    import multiprocessing
-
-    method = multiprocessing.get_start_method(allow_none=True) or \
-        multiprocessing.get_all_start_methods()[0]        # the default, without fixing it
-    if isinstance(executor, cf.ProcessPoolExecutor):
-        workers = getattr(executor, "_max_workers", 2)
-        executor = None
-    if isinstance(executor, cf.ThreadPoolExecutor):
+    if isinstance(executor, (cf.ProcessPoolExecutor, cf.ThreadPoolExecutor)):
         return None
-    if executor is not None:
-        return executor
-    return "fork" if workers >= 2 and method == "fork" else None
+    return executor
 
 
 def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_tasks, tqdm,

@@ -1,15 +1,14 @@
 """A run's identity and start: the manifest, the store's settings, resume, the set-up steps.
 
 :func:`open_run` checks everything (inputs, store identity, lock) before it creates
-or modifies the run directory; the set-up steps that need no field context
-(:class:`_SetupJobs`) may run beside the field's measurement.
+or modifies the run directory; with an executor, the detection z limit is
+computed on one of its workers meanwhile (:class:`_SetupJobs`).
 """
 from __future__ import annotations
 
 import concurrent.futures as cf
 import hashlib
 import json
-import os
 import warnings
 from pathlib import Path
 
@@ -18,7 +17,7 @@ import yaml
 
 from . import __version__
 from . import constants as C
-from .config import Config, check_files, config_from_dict, config_hash, config_to_dict
+from .config import Config, config_from_dict, config_hash, config_to_dict
 from .config.models import SECTIONS
 from .contexts import context_dir, main_context
 from .fieldprep import field_depth_area, field_noise_record, field_settings
@@ -30,7 +29,6 @@ from .store import (RunLock, StoreMismatchError, StoreWarning, atomic_write_text
                     read_manifest, store_format, write_manifest)
 from .paths import check_run_tree, disk_full
 from .survey import Survey
-from .workers import terminate_workers, worker_init
 
 
 def _load_fingerprint_cache(run_dir: Path) -> dict:
@@ -220,8 +218,8 @@ def _check_same_store(run_dir: Path, old: dict, manifest: dict, items: list[Inpu
                                      "(content differs); use another --out")
 
 
-def open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor | None = None,
-              warm: int = 1) -> tuple[dict, RunLock]:
+def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None = None,
+             warm: int = 1) -> tuple[dict, RunLock]:
     """Validate everything, then create or update the run directory under its lock.
 
     Every check (inputs, store identity, lock) runs before anything is
@@ -229,11 +227,10 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor 
     byte-identical and creates no new one.  Returns the manifest and the held
     lock (the caller releases it).
 
-    ``parallel``: where the set-up steps that need neither the checked inputs'
-    results nor the field's context run while this process checks the inputs
-    and measures the field (:class:`_SetupJobs`): None (here, in order),
-    ``"fork"`` (a forked helper process) or an executor (the run's own, of
-    which ``warm`` workers are asked to import glaciar and warm their caches meanwhile).
+    ``parallel``: None, or an executor (not a process pool: its workers would start
+    before the field's context exists) that computes the detection z limit while
+    this process checks the inputs and measures the field, and of which ``warm``
+    workers are asked to import glaciar and warm their caches meanwhile (:class:`_SetupJobs`).
     """
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
@@ -261,29 +258,17 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: str | cf.Executor 
     # An interrupted run left its fields' contexts on disk: with the inputs checked first
     # (the cache's key holds their fingerprints), the resume maps them, not measuring again.
     resuming = old is not None and (run_dir / C.CONTEXT_DIRNAME).is_dir()
-    with _SetupJobs(cfg, survey, cache, parallel, warm) as jobs:
-        cached = None
-        if not jobs.in_background or resuming:
-            inputs = jobs.inputs()
-            jobs.preflight()        # before the field is measured: a field nothing fits fails fast
-        if resuming:
-            recorded, chash = _recorded_inputs(old, finished, inputs), config_hash(cfg)
-            cached = {f: context_dir(run_dir, chash, f, recorded) for f in cfg.survey.fields}
-        # Measuring the fields reads every input while the check runs beside it: a
-        # damaged file makes astropy warn here first.  Held back until the inputs are
-        # known to be good, so a refusal is the check's one line, not warnings and a line.
-        with warnings.catch_warnings(record=True) as measured:
-            warnings.simplefilter("always")
-            try:
-                manifest = _manifest(cfg, survey, seed, z_limit=jobs.z_limit, cached=cached)
-            except Exception:
-                if jobs.in_background:  # an unusable input or an empty field explains it
-                    jobs.inputs()
-                    jobs.preflight()
-                raise
-        if jobs.in_background and not resuming:
-            inputs = jobs.inputs()
-            jobs.preflight()
+    jobs = _SetupJobs(cfg, parallel, warm)
+    inputs = check_inputs(cfg, survey, cache)
+    _preflight(cfg, survey)        # before the field is measured: a field nothing fits fails fast
+    cached = None
+    if resuming:
+        recorded, chash = _recorded_inputs(old, finished, inputs), config_hash(cfg)
+        cached = {f: context_dir(run_dir, chash, f, recorded) for f in cfg.survey.fields}
+    # Each warning of measuring the fields is said once (not per field or band that repeats it).
+    with warnings.catch_warnings(record=True) as measured:
+        warnings.simplefilter("always")
+        manifest = _manifest(cfg, survey, seed, z_limit=jobs.z_limit, cached=cached)
     for w in {(str(w.message), w.category): w for w in measured}.values():
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     items = input_files(cfg)
@@ -336,32 +321,14 @@ def _recorded_inputs(old: dict | None, finished, inputs: dict) -> dict:
     return inputs
 
 
-def _setup_job(cfg_dict: dict, base_dir: str, steps: tuple[str, ...], cache: dict | None = None):
-    """Set-up steps of a run in another process: ``({step: result}, warnings)``.
-
-    ``steps``: any of ``"check"`` (:func:`glaciar.inputs.check_inputs` with the fingerprint
-    ``cache``: the result is ``(inputs, cache)``), ``"preflight"``
-    (:func:`glaciar.plan.placement_preflight`'s messages) and ``"z_limit"``
-    (:func:`glaciar.plan.detection_z_limit`), run in that order; the first to fail raises.
-    The warnings come back as ``(message, category)`` pairs for the run's own
-    process to raise.
-    """
+def _z_limit_job(cfg_dict: dict, base_dir: str) -> tuple[float | None, list]:
+    """:func:`glaciar.plan.detection_z_limit` on an executor's worker: ``(z limit, warnings)``,
+    the warnings as ``(message, category)`` pairs for the run's own process to raise."""
     cfg = config_from_dict(cfg_dict, base_dir)
-    out = {}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        survey = Survey.from_config(cfg) if {"check", "preflight"} & set(steps) else None
-        for step in steps:
-            if step == "check":
-                cache = {} if cache is None else cache
-                out[step] = (check_inputs(cfg, survey, cache), cache)
-            elif step == "preflight":
-                out[step] = placement_preflight(cfg, survey)
-            elif step == "z_limit":
-                out[step] = detection_z_limit(cfg)
-            else:
-                raise ValueError(f"unknown set-up step {step!r}")
-    return out, [(str(w.message), w.category) for w in caught]
+        z_limit = detection_z_limit(cfg)
+    return z_limit, [(str(w.message), w.category) for w in caught]
 
 
 class _Later:
@@ -375,13 +342,6 @@ class _Later:
             fn, args = self._call
             self._value, self._done = fn(*args), True
         return self._value
-
-
-def _preimport() -> None:
-    """Import what measuring a field needs (before forking: the children share the modules)."""
-    import astropy.cosmology  # noqa: F401
-    import astropy.io.fits  # noqa: F401
-    import astropy.wcs  # noqa: F401
 
 
 def _prewarm(cfg_dict: dict, base_dir: str) -> None:
@@ -401,97 +361,47 @@ def _prewarm(cfg_dict: dict, base_dir: str) -> None:
                                 detection_index=settings["detection_index"], igm=igm)
 
 
+def _preflight(cfg: Config, survey: Survey) -> None:
+    """Raise :func:`glaciar.plan.placement_preflight`'s error (no source fits a field) or warn
+    its messages."""
+    for message in placement_preflight(cfg, survey):
+        if "no source fits" in message:
+            raise ValueError(message)
+        warnings.warn(message, UserWarning)
+
+
 class _SetupJobs:
-    """A run's set-up steps that do not need the field's context, beside the one that does.
+    """The jobs a run's executor does while this process checks the inputs and measures the field.
 
-    :func:`glaciar.inputs.check_inputs` (fingerprints and reads every input file),
-    :func:`glaciar.plan.placement_preflight` (reads the footprints, draws sources) and
-    :func:`glaciar.plan.detection_z_limit` (a bisection over the SED) are pure functions of
-    the configuration and the input files: where ``where`` allows, they run,
-    exactly as they would here, while this process measures the field for the
-    manifest (:func:`open_run`), the rest of a run's serial start.
-
-    ``where``: None (serial: each runs here, in the order above, when its
-    result is asked for, before the field is measured); ``"fork"`` (all three,
-    in one forked helper process started after the file-existence check and
-    reaped at the end: its CPU counts in :func:`glaciar.workers.process_cpu_seconds`); or an
-    executor (the z limit only, on one of the run's workers, which then also
-    imports glaciar before its first task, and ``warm - 1`` jobs that set up
-    what a first task needs (:func:`_prewarm`), for other workers; the checks
-    and the preflight read images,
-    which a worker otherwise reads once, for its tasks).  Errors and
-    warnings are raised here; the input check's error first.  Nothing is
-    written either way.
+    With an executor (e.g. Dask's): :func:`glaciar.plan.detection_z_limit` (a
+    bisection over the SED, a pure function of the configuration) on one of its
+    workers, which then also imports glaciar before its first task, and ``warm - 1``
+    jobs that set up what a first task needs (:func:`_prewarm`) for other workers.
+    Without one, the z limit is computed here when the manifest asks for it.  (The
+    input check and the preflight ran in a forked helper beside the field's
+    measurement until issue 22; ``benchmarks/setup_helper.py`` of commit faa86f5
+    measured no gain: 0.90x on the demo, 1 and 2 workers.)
     """
 
-    def __init__(self, cfg: Config, survey: Survey, cache: dict, where: str | cf.Executor | None,
-                 warm: int = 1):
-        self._cfg, self._survey, self._cache = cfg, survey, cache
-        self._own = self._job = self.z_limit = None
-        self._steps: tuple[str, ...] = ()
-        self.in_background = where == "fork"        #: the checks run beside the field's measurement
-        self._results: dict = {}
+    def __init__(self, cfg: Config, where: cf.Executor | None, warm: int = 1):
+        self.z_limit = None
         if where is None:
             return
         args = (config_to_dict(cfg), str(cfg.base_dir))
-        if where == "fork":
-            import multiprocessing
+        job = where.submit(_z_limit_job, *args)
+        # Spawned workers import glaciar and set up a field's settings and colour tables
+        # when their first task arrives (~2 s each): jobs that only do that let up to
+        # ``warm`` workers do it now, beside the set-up.
+        for _ in range(max(0, warm - 1)):
+            where.submit(_prewarm, *args)
+        self.z_limit = _Later(self._result, job)
 
-            check_files(cfg)           # missing files: the one-line error at once, as serially
-            _preimport()               # this process needs them too: imported once, before the fork
-            self._own = cf.ProcessPoolExecutor(
-                max_workers=1, mp_context=multiprocessing.get_context("fork"),
-                initializer=worker_init, initargs=(os.getpid(),))
-            self._steps = ("check", "preflight", "z_limit")
-            self._job = self._own.submit(_setup_job, *args, self._steps, dict(cache))
-        else:
-            self._steps = ("z_limit",)
-            self._job = where.submit(_setup_job, *args, self._steps)
-            # Spawned workers import glaciar and set up a field's settings and colour tables
-            # when their first task arrives (~2 s each): jobs that only do that let up to
-            # ``warm`` workers do it now, beside the set-up.
-            for _ in range(max(0, warm - 1)):
-                where.submit(_prewarm, *args)
-        self.z_limit = _Later(self._step, "z_limit")
-
-    def _step(self, name: str):
-        if name in self._steps and not self._results:
-            results, caught = self._job.result()
-            self._results = results
-            for message, category in caught:
-                warnings.warn(message, category)
-        if name in self._results:
-            return self._results[name]
-        if name == "check":
-            return check_inputs(self._cfg, self._survey, self._cache), self._cache
-        if name == "preflight":
-            return placement_preflight(self._cfg, self._survey)
-        return detection_z_limit(self._cfg)
-
-    def inputs(self) -> dict:
-        """:func:`glaciar.inputs.check_inputs`'s result (raises its error); updates the fingerprint cache."""
-        inputs, cache = self._step("check")
-        if cache is not self._cache:
-            self._cache.clear()
-            self._cache.update(cache)
-        return inputs
-
-    def preflight(self) -> None:
-        """Raise the preflight's error (no source fits a field) or warn its messages."""
-        for message in self._step("preflight"):
-            if "no source fits" in message:
-                raise ValueError(message)
-            warnings.warn(message, UserWarning)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, exc_type, exc, tb):
-        if self._own is not None:
-            if exc_type is not None:
-                terminate_workers(self._own)
-            self._own.shutdown(wait=True, cancel_futures=True)
-        return False
+    @staticmethod
+    def _result(job):
+        z_limit, caught = job.result()
+        for message, category in caught:
+            warnings.warn(message, category)
+        return z_limit
 
 
 def prepare_run_dir(cfg: Config, run_dir: Path, seed: int) -> dict:

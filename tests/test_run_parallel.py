@@ -2,10 +2,10 @@
 
 * Guided chunks: every pending task once, in plan order, a chunk within one
   (field, z), chunk sizes shrinking to single tasks at the end of the run.
-* With >= 2 workers the input checks, the placement preflight and the z limit
-  run in a forked helper beside the field measurement: the manifest is the
-  serial run's, a bad input is refused with the same one-line error and nothing
-  written, the preflight's warnings reach the caller, no helper outlives the call.
+* A start with 2 workers is a start with 1 (the forked set-up helper of issue 11
+  is gone since issue 22): the same manifest, a bad input refused with the same
+  one-line error and nothing written, the preflight's warnings passed on, no
+  process left behind.
 * With an executor, the workers' CPU during their chunks is counted in
   ``process_cpu_seconds`` (``remote_cpu_seconds``).
 
@@ -84,20 +84,18 @@ def _with(config_path, tmp_path, **simulation):
     return load_config(p)
 
 
-@fork_only
 def test_parallel_start_writes_the_serial_manifest(survey_copy, tmp_path):
     cfg = load_config(survey_copy)
     simulate(cfg, tmp_path / "serial", workers=1, progress=False, max_tasks=0)
     stats = simulate(cfg, tmp_path / "two", workers=2, progress=False, max_tasks=0)
     assert read_manifest(tmp_path / "two") == read_manifest(tmp_path / "serial")
-    # The input check ran in the helper: its fingerprint cache came back and was stored.
+    # The same fingerprint cache and stored config, whatever the worker count.
     for name in (C.FINGERPRINT_CACHE_NAME, C.RUN_CONFIG_NAME):
         assert (tmp_path / "two" / name).read_bytes() == (tmp_path / "serial" / name).read_bytes()
     assert stats["n_run"] == 0 and stats["setup_seconds"] <= stats["wall_seconds"]
     assert multiprocessing.active_children() == []                # the helper was reaped
 
 
-@fork_only
 def test_parallel_start_refuses_a_bad_image_before_writing(survey_copy, tmp_path):
     cfg = load_config(survey_copy)
     image = survey_copy.parent / cfg.survey.image_dir / cfg.survey.science.format(
@@ -120,7 +118,6 @@ def test_parallel_start_refuses_a_bad_image_before_writing(survey_copy, tmp_path
     assert multiprocessing.active_children() == []
 
 
-@fork_only
 def test_parallel_start_passes_on_the_preflight_warning(survey_copy, tmp_path):
     cfg = _with(survey_copy, tmp_path, n_galaxies=5000)
     with warnings.catch_warnings(record=True) as caught:
