@@ -116,7 +116,8 @@ def _check_image(item: InputFile) -> None:
 
 def _check_noise_maps(cfg: Config, items: list[InputFile], fingerprints: dict, cache: dict,
                       fail, errors) -> None:
-    """Each noise map against its science image's pixel scatter (:func:`~glaciar.engine.noise.map_type_problem`).
+    """Each noise map against its science image's pixel scatter
+    (:func:`~glaciar.engine.noise.map_type_problem`).
 
     Not for a relative weight map (WEIGHT_TYPE MAP_WEIGHT: its scale is rescaled to the
     image) nor an unused one (BACKGROUND). A strided sample of <= 2^20 pixels of each
