@@ -67,7 +67,9 @@ def main(argv=None):
     from glaciar.demo import build_demo_survey
     from glaciar.inference import candidate_grid
     from glaciar.pipeline.adaptive import AdaptiveSettings, run_adaptive
-    from glaciar.run import detection_z_limit, process_cpu_seconds, simulate
+    from glaciar.execute import simulate
+    from glaciar.plan import detection_z_limit
+    from glaciar.workers import process_cpu_seconds
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3)

@@ -37,7 +37,8 @@ def measure(side: int, workdir: Path) -> dict:
     from glaciar.config import load_config
     from glaciar.demo import build_demo_survey
     from glaciar.engine.catalog import measure_catalog
-    from glaciar.run import build_field_context, open_field_context, save_field_context
+    from glaciar.contexts import open_field_context, save_field_context
+    from glaciar.fieldprep import build_field_context
     from glaciar.survey import Survey, clear_cache
 
     t0 = time.perf_counter()

@@ -126,7 +126,7 @@ def api_simulate(cfg_path, run_dir, *, workers, seed):
     if f is not None:
         return f(cfg_path, run_dir, workers=workers, seed=seed, progress=False)
     from glaciar.config import load_config
-    from glaciar.run import simulate
+    from glaciar.execute import simulate
 
     return simulate(load_config(cfg_path), run_dir, workers=workers, seed=seed, progress=False)
 

@@ -48,7 +48,7 @@ from scipy import optimize, signal
 from glaciar import constants as C
 from glaciar.config import load_config
 from glaciar.demo import DEMO_BANDS_SPEC, DEMO_FIELD, _drizzle_kernel_1d, build_demo_survey
-from glaciar.run import simulate
+from glaciar.execute import simulate
 from glaciar.store import read_results
 
 OVERESTIMATE = 2.3

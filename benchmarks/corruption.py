@@ -59,7 +59,7 @@ import pyarrow.parquet as pq
 def _tiny_run(root: Path) -> Path:
     from glaciar.config import load_config
     from glaciar.demo import build_demo_survey
-    from glaciar.run import simulate
+    from glaciar.execute import simulate
 
     cfg_path = build_demo_survey(root / "survey", shape=(200, 200), seed=5, n_galaxies=40,
                                  n_iterations=2, z_values=(8.0,), mag_values=(25.0,))

@@ -65,7 +65,7 @@ def main(argv=None) -> int:
 
     from glaciar.config import load_config
     from glaciar.demo import build_demo_survey
-    from glaciar.run import simulate
+    from glaciar.execute import simulate
 
     root = Path(tempfile.mkdtemp(prefix="glaciar-full-disk-"))
     mnt = root / "mnt"

@@ -81,13 +81,13 @@ def _write_inputs(config: str, sides: list[int], out: Path) -> None:
     """Crops of the sanitized detection band, its detection RMS and no-data mask, as .npy."""
     from glaciar.config import load_config
     from glaciar.engine.detect import detection_rms, sanitize
-    from glaciar.run import _detection_params, band_pixels
+    from glaciar.fieldprep import detection_params, band_pixels
     from glaciar.survey import Survey
 
     cfg = load_config(config)
     survey = Survey(cfg)
     field = list(survey.fields)[0]
-    params = _detection_params(cfg)
+    params = detection_params(cfg)
     fp = survey.footprint(field)
     base, rms, _ = band_pixels(survey, field, cfg.survey.detection_band, fp, params)
     data, err, nodata = sanitize(base, rms, ~fp)
@@ -108,9 +108,9 @@ def _child(opt) -> dict:
     from glaciar.config import load_config
     from glaciar.engine.detect import _sep_extract
     from glaciar.engine.segmentation import sep_extract_clean
-    from glaciar.run import _detection_params
+    from glaciar.fieldprep import detection_params
 
-    params = _detection_params(load_config(opt.config))
+    params = detection_params(load_config(opt.config))
     d = Path(opt.inputs)
     data, err, nodata = (np.load(d / f"{n}_{opt.side}.npy") for n in ("data", "err", "nodata"))
     with _PeakRSS() as m:

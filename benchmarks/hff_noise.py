@@ -153,7 +153,7 @@ def run(data: Path = DATA, back_sizes=(64, 32), n_galaxies: int = 10, n_iteratio
         workers: int = 1, root: Path | None = None) -> list[dict]:
     """Simulate each BACK_SIZE; one row per BACK_SIZE (r(N), applied, m50, depth, wall, warnings)."""
     from glaciar.config import config_from_dict
-    from glaciar.run import simulate
+    from glaciar.execute import simulate
     from glaciar.store import read_manifest, read_results
 
     tmp = None

@@ -3,11 +3,11 @@
 For each image side in ``--sizes`` the embedded 4-band demo survey is generated
 (in a child process, into a temporary directory on disk) and the same tasks
 (``--tasks`` x ``--n`` sources at ``--z``, ``--mag``) are simulated through
-:func:`glaciar.run.simulate` in another child process, with a one-worker
+:func:`glaciar.execute.simulate` in another child process, with a one-worker
 process pool so that the worker's memory is seen apart from the main
 process's (manifest, input checks, noise record).  Printed per size:
 
-* whole-process CPU per injected source: :func:`glaciar.run.process_cpu_seconds`
+* whole-process CPU per injected source: :func:`glaciar.workers.process_cpu_seconds`
   (the child's own CPU plus its reaped pool worker, field set-up included), and
   its ratio to the smallest size (target: within 1.3x);
 * CPU per source inside the tasks (``simulate``'s ``cpu_seconds``) and its ratio
@@ -132,7 +132,8 @@ def _child_run(opt) -> dict:
     import resource
 
     from glaciar.config import load_config
-    from glaciar.run import process_cpu_seconds, simulate
+    from glaciar.execute import simulate
+    from glaciar.workers import process_cpu_seconds
 
     cfg = load_config(opt.config)
     if opt.map_budget_mb is not None:
@@ -300,7 +301,7 @@ def main(argv=None):
                   f"{ms_w:>10.2f} {ms_w / base_w:>6.2f} {ms_t:>8.2f} {ms_t / base_t:>6.2f} "
                   f"{r['worker_rss_mb']:>14.0f} {r['main_rss_mb']:>12.0f} {b['rss_mb']:>11.0f} "
                   f"{b['wall_s']:>11.1f}")
-        print("(ms CPU/src: glaciar.run.process_cpu_seconds of simulate per injected source, main "
+        print("(ms CPU/src: glaciar.workers.process_cpu_seconds of simulate per injected source, main "
               "process + its 1-worker pool, set-up included, and its ratio to the first size "
               "(target <= 1.3); main ms / worker ms: the two parts (the main process checks the "
               "inputs, measures the field for the manifest and writes its field cache; the forked "

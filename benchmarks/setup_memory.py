@@ -1,4 +1,4 @@
-"""Peak memory and time of each step of a field's set-up (glaciar.run.build_field_context).
+"""Peak memory and time of each step of a field's set-up (glaciar.fieldprep.build_field_context).
 
 Usage::
 
@@ -12,7 +12,7 @@ CLEAN is turned off in the measured configuration unless ``--clean`` is given: s
 CLEAN of the full-frame reference extraction is quadratic in the number of objects
 (~30 min at 16000^2) and would hide everything else (benchmarks/scaling.py --no-clean
 does the same).  ``--save`` also writes the context's cache (what a run does next,
-glaciar.run.save_field_context) into a temporary directory.
+glaciar.contexts.save_field_context) into a temporary directory.
 
 Each step's peak is the kernel's high-water mark of the resident set (VmHWM of
 /proc/self/status), reset at the start of the step (``echo 5 > /proc/self/clear_refs``),
@@ -118,7 +118,8 @@ def main(argv=None) -> int:
     ap.add_argument("--save", action="store_true", help="also write the context's cache")
     opt = ap.parse_args(argv)
 
-    from glaciar import run
+    from glaciar import fieldprep
+    from glaciar.contexts import save_field_context
     from glaciar.survey import Survey
 
     tmp = Path(tempfile.mkdtemp(prefix="glaciar-setupmem-"))
@@ -129,16 +130,16 @@ def main(argv=None) -> int:
         ny, nx = survey.shape(field)
         npix = float(ny * nx)
         probe = StepProbe()
-        run.SETUP_STEP_HOOKS.append(probe)
+        fieldprep.SETUP_STEP_HOOKS.append(probe)
         t0 = time.perf_counter()
         try:
-            ctx = run.build_field_context(cfg, survey, field)
+            ctx = fieldprep.build_field_context(cfg, survey, field)
             if opt.save:
                 probe.start()
-                ctx = run.save_field_context(ctx, tmp / "context")
+                ctx = save_field_context(ctx, tmp / "context")
                 probe("save_field_context")
         finally:
-            run.SETUP_STEP_HOOKS.remove(probe)
+            fieldprep.SETUP_STEP_HOOKS.remove(probe)
         total = time.perf_counter() - t0
         peak = max(r[3] for r in probe.rows)
         print(f"# field {field}: {ny} x {nx} px, {len(cfg.survey.bands)} bands, "

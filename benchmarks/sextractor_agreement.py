@@ -47,7 +47,8 @@ from glaciar.demo import build_demo_survey  # noqa: E402
 from glaciar.engine.measure import reference_extraction  # noqa: E402
 from glaciar.engine.sextractor_backend import find_sextractor  # noqa: E402
 from glaciar.engine.task import run_task  # noqa: E402
-from glaciar.run import build_field_context, plan_tasks  # noqa: E402
+from glaciar.fieldprep import build_field_context  # noqa: E402
+from glaciar.plan import plan_tasks
 from glaciar.survey import Survey  # noqa: E402
 
 

@@ -39,7 +39,8 @@ from glaciar.constants import STATUS_NOT_DETECTED
 from glaciar.demo import build_demo_survey
 from glaciar.engine.measure import measure_injected
 from glaciar.engine.windows import pack_windows
-from glaciar.run import build_field_context, plan_tasks
+from glaciar.fieldprep import build_field_context
+from glaciar.plan import plan_tasks
 from glaciar.survey import Survey
 
 GLACIAR_MS_PER_SOURCE = 18.0   # Carrasco et al. 2018 code on a BoRG field (issue 3)

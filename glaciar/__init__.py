@@ -93,7 +93,7 @@ def simulate(config, out, *, workers: int = 1, seed: int | None = None, progress
     dict
         Run statistics (tasks run, sources, wall and CPU seconds).
     """
-    from .run import simulate as _simulate
+    from .execute import simulate as _simulate
 
     return _simulate(_config(config), out, workers=workers, seed=seed, executor=executor,
                      progress=progress, mode=mode)

@@ -17,7 +17,7 @@ import time
 import warnings
 from pathlib import Path
 
-from . import __version__
+from .version import __version__
 from . import constants as C
 
 __all__ = ["main"]
@@ -53,7 +53,8 @@ def _check_out_dir(out: Path, option: str = "--out") -> Path:
 
 
 def _cmd_simulate(args) -> int:
-    from .run import default_workers, process_cpu_seconds, simulate
+    from .execute import simulate
+    from .workers import default_workers, process_cpu_seconds
 
     out = Path(args.out) if args.out else Path(args.config).resolve().parent / "glaciar-run"
     _check_out_dir(out)
@@ -86,7 +87,7 @@ def _cmd_simulate(args) -> int:
 
 def _print_noise(out: Path) -> None:
     """Each field's noise factors (map scale, r(N)) as the run's manifest records them."""
-    from .run import noise_summary
+    from .fieldprep import noise_summary
     from .store import read_manifest
 
     for line in noise_summary((read_manifest(out) or {}).get("noise")):
@@ -231,7 +232,8 @@ def _cmd_next(args) -> int:
 
 def _cmd_demo(args) -> int:
     from .demo import build_demo_survey
-    from .run import default_workers, process_cpu_seconds, simulate
+    from .execute import simulate
+    from .workers import default_workers, process_cpu_seconds
 
     out = _check_out_dir(Path(args.out))
     t0 = time.perf_counter()

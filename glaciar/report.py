@@ -795,7 +795,7 @@ _SECTIONS = (("summary", "Summary", _summary_section),
 
 def render_html(data: dict) -> str:
     """The page for :func:`load_report_data`'s output (a complete HTML document)."""
-    from . import __version__
+    from .version import __version__
 
     title = f"glaciar report — {Path(data['run_dir']).name}"
     nav = "".join(f'<a href="#{sid}">{esc(label)}</a>' for sid, label, _ in _SECTIONS)

@@ -115,7 +115,7 @@ def _native_float_dtype(dtype: np.dtype) -> np.dtype:
     return np.dtype(np.float64)
 
 
-def _read_array(path: Path) -> np.ndarray:
+def read_array(path: Path) -> np.ndarray:
     """The image of a FITS file, native-endian float (float32 for 32-bit or smaller data,
     float64 otherwise), read by blocks of rows into one new array (no other whole-image copy)."""
     arr = None
@@ -132,7 +132,7 @@ ROW_BLOCK_PIXELS = 1 << 22
 
 def _row_blocks(path: Path):
     """``(y0, y1, block)``: the image of a FITS file by blocks of rows, native-endian float
-    (the dtype of :func:`_read_array`).
+    (the dtype of :func:`read_array`).
 
     For whole-image quantities made pixel by pixel (validity maps, RMS from weights):
     only one block of the image is in memory at a time.  Read through astropy's
@@ -392,8 +392,8 @@ class Survey:
         self.shape(field)
         path = self.science_path(field, band)
         if not cache:
-            return _read_array(path)
-        return _cached(("science",) + _file_key(path), lambda: _read_array(path))
+            return read_array(path)
+        return _cached(("science",) + _file_key(path), lambda: read_array(path))
 
     def release_pixels(self, field: str, bands=None) -> None:
         """Drop this process's cached science and noise arrays of ``field`` (masks stay).
@@ -536,7 +536,7 @@ class Survey:
         def build():
             if path.suffix.lower() == ".reg":
                 return _region_mask(path, shape, self.header(field, self.detection_band))
-            arr = _read_array(path)
+            arr = read_array(path)
             if arr.shape != shape:
                 raise ValueError(f"{path}: mask is {arr.shape[0]}x{arr.shape[1]} but field "
                                  f"{field!r} images are {shape[0]}x{shape[1]} (survey.mask)")

@@ -123,7 +123,7 @@ def deep_corner_quadrant():
 
 def _simulated(config_path, run_dir):
     from glaciar.config import load_config
-    from glaciar.run import simulate
+    from glaciar.execute import simulate
 
     cfg = load_config(config_path)
     simulate(cfg, run_dir, workers=2, progress=False)
@@ -138,7 +138,7 @@ def small_run(small_survey, tmp_path_factory):
     (``shutil.copytree(run, dst, ignore=shutil.ignore_patterns(C.LOCK_NAME))``).
     """
     from glaciar.config import load_config
-    from glaciar.run import simulate
+    from glaciar.execute import simulate
 
     cfg = load_config(small_survey)
     out = tmp_path_factory.mktemp("small_run")

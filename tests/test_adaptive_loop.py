@@ -21,7 +21,7 @@ import yaml
 
 from glaciar import constants as C
 from glaciar.config import ConfigError, config_from_dict, config_to_dict, load_config
-from glaciar.run import plan_tasks, task_cells
+from glaciar.plan import plan_tasks, task_cells
 from glaciar.store import current_rows_mask
 
 ADAPTIVE_ARGS = ["--adaptive", "--budget", "192", "--round-size", "96", "--max-steps", "40",
@@ -62,7 +62,7 @@ def test_cells_unite_with_the_grid_by_the_largest_iteration_count(small_survey, 
 
 def test_cells_do_not_change_the_store_identity_and_round_trip(small_survey, tmp_path):
     from glaciar.config import store_hash
-    from glaciar.run import store_settings
+    from glaciar.manifest import store_settings
 
     plain = load_config(small_survey)
     with_cells = load_config(_config_with(small_survey, tmp_path,

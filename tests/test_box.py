@@ -16,7 +16,7 @@ import yaml
 
 from glaciar import constants as C
 from glaciar.config import ConfigError, config_from_dict, config_to_dict, load_config
-from glaciar.run import plan_tasks, task_cells
+from glaciar.plan import plan_tasks, task_cells
 
 BOX = {"z": [8.2, 10.1], "mag": [24.5, 27.0], "n_points": 3}
 
@@ -84,7 +84,7 @@ def test_points_depend_on_the_seed_and_a_larger_box_keeps_the_first_points():
 
 def test_box_cells_join_the_grid_and_do_not_change_the_store_identity(small_survey, tmp_path):
     from glaciar.config import store_hash
-    from glaciar.run import store_settings
+    from glaciar.manifest import store_settings
 
     plain = load_config(small_survey)
     cfg = load_config(_config_with(small_survey, tmp_path, box=dict(BOX, n_iterations=2)))
@@ -137,7 +137,7 @@ def _table(run_dir: Path) -> pd.DataFrame:
 def test_box_simulates_resumes_to_the_same_table_grows_by_a_prefix_and_fits(small_survey,
                                                                             tmp_path):
     from glaciar.pipeline.fit import run_fit
-    from glaciar.run import simulate
+    from glaciar.execute import simulate
     from glaciar.store import read_manifest
 
     # Written beside the survey: its paths are relative to the config.
@@ -290,7 +290,7 @@ def test_band_magnitudes_off_the_z_lattice_match_direct_integration_to_1e_3_mag(
 
 
 def test_a_seed_override_moves_the_box_points_and_the_stored_config_says_so(small_survey):
-    from glaciar.run import simulate
+    from glaciar.execute import simulate
     from glaciar.store import read_manifest
 
     here = small_survey.parent

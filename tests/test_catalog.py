@@ -17,7 +17,7 @@ from glaciar.engine.catalog import INJECTION_ONLY_COLUMNS, measure_catalog, segm
 @pytest.fixture(scope="module")
 def small_context(small_survey):
     from glaciar.config import load_config
-    from glaciar.run import build_field_context
+    from glaciar.fieldprep import build_field_context
     from glaciar.survey import Survey
 
     cfg = load_config(small_survey)
@@ -140,9 +140,9 @@ def test_white_noise_catalog_equals_plain_sep(small_survey, tmp_path):
     cfg = glaciar.load_config(path)
     cat = glaciar.catalog(cfg)
     det = cfg.survey.detection_band
-    from glaciar.run import _detection_params
+    from glaciar.fieldprep import detection_params
 
-    p = _detection_params(cfg)
+    p = detection_params(cfg)
     data = fits.getdata(tmp_path / "images" / f"wn_{det}_drz.fits").astype(np.float32)
     rms = (1.0 / np.sqrt(fits.getdata(tmp_path / "images" / f"wn_{det}_wht.fits"))).astype(np.float32)
     bkg = sep.Background(data, bw=cfg.detection.back_size, bh=cfg.detection.back_size,

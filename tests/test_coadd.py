@@ -73,7 +73,7 @@ def test_coadd_scene_windows_are_the_stack_of_the_injected_bands(method):
 def test_a_coadd_detects_what_one_band_misses(small_survey, tmp_path):
     """Flat-spectrum sources at z = 8 have flux in J and H: stacking them detects more."""
     from glaciar.engine.task import TaskSpec, run_task
-    from glaciar.run import build_field_context
+    from glaciar.fieldprep import build_field_context
     from glaciar.survey import Survey
 
     data = yaml.safe_load(small_survey.read_text())

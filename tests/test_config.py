@@ -601,7 +601,7 @@ def test_glaciar_errors(glaciar_dir, change, pattern):
 def test_sex_file_reader_and_detection_params(tmp_path):
     from glaciar.config import read_sex_file
     from glaciar.engine.detect import DetectionParams
-    from glaciar.run import _detection_params
+    from glaciar.fieldprep import detection_params
 
     (tmp_path / "my.conv").write_text("CONV NORM\n0 1 0\n1 4 1\n0 1 0\n")
     sex = tmp_path / "det.sex"
@@ -611,17 +611,17 @@ def test_sex_file_reader_and_detection_params(tmp_path):
     assert raw["DETECT_THRESH"] == "1.5" and raw["PHOT_APERTURES"] == ["2", "4", "6"]
     d = base()
     d["detection"] = {"sex_file": "det.sex", "DETECT_MINAREA": 12}
-    p = _detection_params(load(d, tmp_path))
+    p = detection_params(load(d, tmp_path))
     assert p.detect_thresh == 1.5 and p.detect_minarea == 12          # explicit key wins
     assert p.phot_apertures == (2.0, 4.0, 6.0) and p.clean is False
     np.testing.assert_array_equal(p.filter_kernel, [[0, 1, 0], [1, 4, 1], [0, 1, 0]])
     d["detection"] = {"FILTER": False}
-    q = _detection_params(load(d, tmp_path))
+    q = detection_params(load(d, tmp_path))
     assert q.filter_kernel is None and q.filter_halfwidth == 0
     d["detection"] = {"FILTER_NAME": "gauss_3.0_7x7"}
-    assert _detection_params(load(d, tmp_path)).filter_halfwidth == 3
+    assert detection_params(load(d, tmp_path)).filter_halfwidth == 3
     # The config's defaults are the engine's defaults (one place).
-    assert _detection_params(load(base(), tmp_path)) == DetectionParams()
+    assert detection_params(load(base(), tmp_path)) == DetectionParams()
 
 
 @pytest.mark.parametrize("key,value,expected", [

@@ -11,7 +11,7 @@ and ``glaciar simulate --scheduler ADDR`` on a real ``distributed.LocalCluster``
   MAX_MESSAGE_BYTES, which is under the size of one image of the field.
 * Workers read the images themselves, lazily, once per process: a worker's
   first task builds the field's context (reading each image file once), its
-  later tasks reuse it (``glaciar.run._context``'s per-process cache); a worker
+  later tasks reuse it (``glaciar.contexts.worker_context``'s per-process cache); a worker
   that gets no task reads nothing.
 
 The cluster and one survey (``small_survey``: 8 tasks, 4 chunks) are shared by
@@ -30,7 +30,8 @@ import pytest
 
 from glaciar import constants as C
 from glaciar.config import load_config
-from glaciar.run import plan_tasks, simulate
+from glaciar.execute import simulate
+from glaciar.plan import plan_tasks
 from glaciar.store import read_results
 
 distributed = pytest.importorskip("distributed")
@@ -52,13 +53,14 @@ def _sorted(df: pd.DataFrame) -> pd.DataFrame:
 # --------------------------------------------------------------------------
 def _install_probes(dask_worker):
     """Count, in this worker process, field-context builds, image reads and tasks run."""
-    import glaciar.run as run
+    import glaciar.contexts as contexts
+    import glaciar.execute as execute
     import glaciar.survey as survey
 
     counts = {"contexts": 0, "opened": 0, "reads": {}, "tasks": 0, "cached_before": len(survey._CACHE),
-              "contexts_before": len(run._CONTEXTS)}
-    build, read, task = run.build_field_context, survey._read_array, run.run_task
-    opener = run.open_field_context
+              "contexts_before": len(contexts._CONTEXTS)}
+    build, read, task = contexts.build_field_context, survey.read_array, execute.run_task
+    opener = contexts.open_field_context
 
     def counting_build(*args, **kwargs):
         counts["contexts"] += 1
@@ -68,7 +70,7 @@ def _install_probes(dask_worker):
         counts["opened"] += 1
         return opener(*args, **kwargs)
 
-    run.open_field_context = counting_open
+    contexts.open_field_context = counting_open
 
     def counting_read(path):
         counts["reads"][str(path)] = counts["reads"].get(str(path), 0) + 1
@@ -78,7 +80,7 @@ def _install_probes(dask_worker):
         counts["tasks"] += 1
         return task(*args, **kwargs)
 
-    run.build_field_context, survey._read_array, run.run_task = counting_build, counting_read, counting_task
+    contexts.build_field_context, survey.read_array, execute.run_task = counting_build, counting_read, counting_task
     dask_worker.glaciar_probe = counts
     return os.getpid()
 

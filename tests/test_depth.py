@@ -16,7 +16,9 @@ from scipy.integrate import quad
 from glaciar import constants as C
 from glaciar.config import load_config
 from glaciar.engine.depth import depth_area_histogram, depth_at, disk_pixel_weights, local_depth_map
-from glaciar.run import build_field_context, prepare_run_dir, simulate
+from glaciar.execute import simulate
+from glaciar.fieldprep import build_field_context
+from glaciar.manifest import prepare_run_dir
 from glaciar.store import read_manifest, read_results
 from glaciar.survey import Survey
 

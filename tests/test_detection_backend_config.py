@@ -8,7 +8,7 @@ import pytest
 
 from glaciar.config import ConfigError, config_from_dict, store_hash
 from glaciar.engine.detect import BACKENDS, CLEAN_STYLES, THRESHOLD_RMS, DetectionParams
-from glaciar.run import _detection_params
+from glaciar.fieldprep import detection_params
 
 MOFFAT = {"profile": "moffat", "fwhm_arcsec": 0.18}
 BASE = {"survey": {
@@ -28,7 +28,7 @@ def _cfg(tmp_path, detection=None):
 
 
 def test_defaults_are_the_engines(tmp_path):
-    p = _detection_params(_cfg(tmp_path))
+    p = detection_params(_cfg(tmp_path))
     assert (p.clean_style, p.threshold_rms, p.backend) == (CLEAN_STYLES[0], THRESHOLD_RMS[0], BACKENDS[0])
     assert p == DetectionParams()
 
@@ -40,7 +40,7 @@ def test_each_value_reaches_the_engine_and_the_store_identity(tmp_path, key, att
     hashes = set()
     for v in values:
         cfg = _cfg(tmp_path, {key: v.upper()})          # SExtractor-style upper case accepted
-        assert getattr(_detection_params(cfg), attr) == v
+        assert getattr(detection_params(cfg), attr) == v
         hashes.add(store_hash(cfg))
     assert len(hashes) == len(values)                  # another value: another store
 
@@ -65,5 +65,5 @@ def test_glaciar_keys_in_a_sex_file_are_refused_by_name(tmp_path, key):
 
 def test_sex_clean_keys_map_onto_clean_and_clean_param(tmp_path):
     (tmp_path / "det.sex").write_text("CLEAN N\nCLEAN_PARAM 2.5\n")
-    p = _detection_params(_cfg(tmp_path, {"sex_file": "det.sex", "CLEAN_STYLE": "sextractor"}))
+    p = detection_params(_cfg(tmp_path, {"sex_file": "det.sex", "CLEAN_STYLE": "sextractor"}))
     assert (p.clean, p.clean_param, p.clean_style) == (False, 2.5, "sextractor")

@@ -1,4 +1,4 @@
-"""Field contexts on disk (glaciar.engine.fieldcache, glaciar.run's field cache).
+"""Field contexts on disk (glaciar.engine.fieldcache, glaciar.contexts' field cache).
 
 * Round trip: every array, nested dataclass and scalar comes back equal; large
   arrays as read-only native-endian memory maps, small ones in memory; no pickle
@@ -17,12 +17,13 @@ import numpy as np
 import pytest
 
 import glaciar.constants as C
-import glaciar.run as run
-from glaciar.config import load_config
+from glaciar import contexts, fieldprep
+from glaciar.config import config_hash, load_config
 from glaciar.engine import fieldcache
 from glaciar.engine.measure import FieldReference
 from glaciar.engine.noise import CorrelatedNoise
 from glaciar.engine.windows import ObjectBoxes
+from glaciar.execute import simulate
 from glaciar.survey import Survey
 
 
@@ -138,7 +139,7 @@ def test_released_pages_leave_the_resident_set(tmp_path):
 
 
 # --------------------------------------------------------------------------
-# The context of a field, through glaciar.run
+# The context of a field, through glaciar.fieldprep and glaciar.contexts
 # --------------------------------------------------------------------------
 def test_opened_context_equals_the_built_one(small_survey, tmp_path, monkeypatch, assert_same_outputs):
     from glaciar.engine.task import TaskSpec, run_task
@@ -147,9 +148,9 @@ def test_opened_context_equals_the_built_one(small_survey, tmp_path, monkeypatch
     cfg = load_config(small_survey)
     survey = Survey.from_config(cfg)
     field = cfg.survey.fields[0]
-    built = run.build_field_context(cfg, survey, field)
-    mapped = run.save_field_context(built, tmp_path / "ctx")
-    opened = run.open_field_context(cfg, survey, field, tmp_path / "ctx")
+    built = fieldprep.build_field_context(cfg, survey, field)
+    mapped = contexts.save_field_context(built, tmp_path / "ctx")
+    opened = contexts.open_field_context(cfg, survey, field, tmp_path / "ctx")
     for ctx in (mapped, opened):
         assert isinstance(ctx.bases[cfg.survey.detection_band], np.memmap)
         assert ctx.footprint_count == int(built.footprint.sum())
@@ -172,8 +173,8 @@ def test_tiled_context_gives_the_same_rows(small_survey, tmp_path, monkeypatch, 
     cfg = load_config(small_survey)
     survey = Survey.from_config(cfg)
     field = cfg.survey.fields[0]
-    built = run.build_field_context(cfg, survey, field)
-    tiled = run.save_field_context(built, tmp_path / "ctx")
+    built = fieldprep.build_field_context(cfg, survey, field)
+    tiled = contexts.save_field_context(built, tmp_path / "ctx")
     det = cfg.survey.detection_band
     assert isinstance(tiled.bases[det], fieldcache.TiledArray)
     assert isinstance(tiled.reference.segmap, fieldcache.TiledArray)
@@ -292,12 +293,12 @@ def test_spilled_build_equals_the_in_memory_one(small_survey, tmp_path, monkeypa
 
     cfg = load_config(small_survey)
     field = cfg.survey.fields[0]
-    built = run.build_field_context(cfg, Survey.from_config(cfg), field)
+    built = fieldprep.build_field_context(cfg, Survey.from_config(cfg), field)
     scratch = tmp_path / "scratch"
     scratch.mkdir()
-    monkeypatch.setattr(run, "SPILL_MIN_BYTES", 0)
+    monkeypatch.setattr(fieldprep, "SPILL_MIN_BYTES", 0)
     monkeypatch.setattr(fieldcache, "SCRATCH_DIR", str(scratch))
-    spilled = run.build_field_context(cfg, Survey.from_config(cfg), field)
+    spilled = fieldprep.build_field_context(cfg, Survey.from_config(cfg), field)
     assert list(scratch.iterdir()) == []
     det = cfg.survey.detection_band
     assert isinstance(spilled.bases[det], np.memmap) and isinstance(spilled.depth, np.memmap)
@@ -310,20 +311,20 @@ def test_spilled_build_equals_the_in_memory_one(small_survey, tmp_path, monkeypa
 def test_run_keeps_its_cache_while_tasks_are_pending(small_survey, tmp_path):
     cfg = load_config(small_survey)
     out = tmp_path / "run"
-    run._CONTEXTS.clear()
-    stats = run.simulate(cfg, out, workers=1, progress=False, max_tasks=3)
+    contexts.clear_contexts()
+    stats = simulate(cfg, out, workers=1, progress=False, max_tasks=3)
     assert stats["n_run"] == 3
     entries = list((out / C.CONTEXT_DIRNAME).iterdir())
     assert len(entries) == 1 and fieldcache.exists(entries[0])
-    assert entries[0] == run._context_dir(out, run.config_hash(cfg), cfg.survey.fields[0])
+    assert entries[0] == contexts.context_dir(out, config_hash(cfg), cfg.survey.fields[0])
     # a changed configuration (more iterations: a resume may add them) gets a new cache;
     # the old one goes, and the finished run leaves none
     more = cfg.model_copy(update={"simulation": cfg.simulation.model_copy(
         update={"n_iterations": cfg.simulation.n_iterations + 1})})
-    run.simulate(more, out, workers=1, progress=False, max_tasks=1)
+    simulate(more, out, workers=1, progress=False, max_tasks=1)
     now = list((out / C.CONTEXT_DIRNAME).iterdir())
     assert len(now) == 1 and now != entries
-    stats = run.simulate(more, out, workers=1, progress=False)
+    stats = simulate(more, out, workers=1, progress=False)
     assert stats["n_done_before"] + stats["n_run"] == stats["n_tasks"]
     assert not (out / C.CONTEXT_DIRNAME).exists()
 
@@ -334,19 +335,19 @@ def test_resume_maps_the_cache_instead_of_measuring_the_field(small_survey, tmp_
     from glaciar.store import read_manifest, read_results
 
     cfg = load_config(small_survey)
-    run._CONTEXTS.clear()
+    contexts.clear_contexts()
     whole = tmp_path / "whole"
-    run.simulate(cfg, whole, workers=1, progress=False)
-    run._CONTEXTS.clear()
+    simulate(cfg, whole, workers=1, progress=False)
+    contexts.clear_contexts()
     out = tmp_path / "resumed"
-    run.simulate(cfg, out, workers=1, progress=False, max_tasks=3)
-    run._CONTEXTS.clear()                      # a new process: nothing kept in memory
+    simulate(cfg, out, workers=1, progress=False, max_tasks=3)
+    contexts.clear_contexts()                      # a new process: nothing kept in memory
 
     def refuse(*args, **kwargs):
         raise AssertionError("the field was measured again")
 
-    monkeypatch.setattr(run, "build_field_context", refuse)
-    stats = run.simulate(cfg, out, workers=1, progress=False)
+    monkeypatch.setattr(contexts, "build_field_context", refuse)
+    stats = simulate(cfg, out, workers=1, progress=False)
     assert stats["n_done_before"] == 3 and stats["n_done_before"] + stats["n_run"] == stats["n_tasks"]
     assert read_manifest(out) == read_manifest(whole)
     key = [C.COL_FIELD, C.COL_Z, C.COL_MAG, C.COL_ITERATION, C.COL_SOURCE]
@@ -408,7 +409,7 @@ def test_a_task_touches_only_pages_under_its_windows(tmp_path):
     cfg = load_config(build_demo_survey(tmp_path / "s", shape=(2000, 2000), seed=3, n_galaxies=5,
                                         n_iterations=1, z_values=(8.0,), mag_values=(26.0,)))
     field = cfg.survey.fields[0]
-    ctx = run.save_field_context(run.build_field_context(cfg, Survey.from_config(cfg), field),
+    ctx = contexts.save_field_context(fieldprep.build_field_context(cfg, Survey.from_config(cfg), field),
                                  tmp_path / "ctx")
     sizes = {p.name: p.stat().st_size / 1024 for p in (tmp_path / "ctx").glob("*.npy")}
     spec = TaskSpec(field=field, field_index=0, z_index=0, mag_index=0, iteration=0, z=8.0, mag=26.0)
@@ -426,11 +427,11 @@ def test_a_task_touches_only_pages_under_its_windows(tmp_path):
 
 def test_unwritable_cache_keeps_the_field_in_memory(small_survey, tmp_path):
     cfg = load_config(small_survey)
-    ctx = run.build_field_context(cfg, Survey.from_config(cfg), cfg.survey.fields[0])
+    ctx = fieldprep.build_field_context(cfg, Survey.from_config(cfg), cfg.survey.fields[0])
     blocker = tmp_path / "file"
     blocker.write_text("not a directory")
     with pytest.warns(UserWarning, match="field cache not written"):
-        same = run.save_field_context(ctx, blocker / "ctx")
+        same = contexts.save_field_context(ctx, blocker / "ctx")
     assert same is ctx and same._trimmer is None
 
 

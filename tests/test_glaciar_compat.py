@@ -80,7 +80,7 @@ def test_glaciar_gzipped_layout_with_headerless_psfs_runs(tmp_path, capsys):
     from astropy import units as u
     from astropy.cosmology import Planck18
 
-    from glaciar.run import R_EFF_LOG_STEP
+    from glaciar.engine.context import R_EFF_LOG_STEP
     from glaciar.store import read_results
 
     _write_glaciar_images(tmp_path, ".fits.gz")

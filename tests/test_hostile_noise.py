@@ -16,7 +16,7 @@ from astropy.io import fits
 
 from glaciar.cli import main
 from glaciar.config import load_config
-from glaciar.run import InputError, check_inputs
+from glaciar.inputs import InputError, check_inputs
 
 import test_noise_real as synthetic
 

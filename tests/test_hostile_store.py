@@ -24,7 +24,7 @@ import yaml
 from glaciar import constants as C
 from glaciar.cli import main
 from glaciar.config import load_config
-from glaciar.run import simulate
+from glaciar.execute import simulate
 from glaciar.store import read_results, task_filename, task_key, write_task_table
 
 #: Files a command may rewrite in place without changing what a run holds.
@@ -374,8 +374,8 @@ def test_truncated_field_cache_is_measured_again(run, two_task_run, capsys):
     npy = max(cache.glob("*.npy"), key=lambda p: p.stat().st_size)
     with open(npy, "r+b") as fh:
         fh.truncate(npy.stat().st_size // 2)
-    from glaciar import run as glaciar_run
-    glaciar_run._CONTEXTS.clear()             # as a new process: the cache is opened from disk
+    from glaciar.contexts import clear_contexts
+    clear_contexts()             # as a new process: the cache is opened from disk
     code, lines = _cli(capsys, "simulate", cfg_path, "--out", run, "--workers", 1, "--quiet")
     assert code == 0
     assert len(lines) == 1 and re.match(rf"warning: {re.escape(str(cache))}: unreadable field "

@@ -27,7 +27,6 @@ MAX_PARAMETERS = 12
 
 # Why an offender is still allowed: the issue-22 point (and branch) that removes it.
 ENGINE = "22.2, engine branch: one threshold path, context object, public helpers"
-RUN_SPLIT = "22.1, run.py split branch: the plan/cache/preparation modules, public names"
 REPORT = "22.6, report branch: figures.py and lf_figures.py"
 DEMO = "22.1: demo/'s shared constants and helpers get a public home (not assigned yet)"
 NOT_SPLIT = "22.1: one home per concept, this module not split yet (not assigned yet)"
@@ -52,8 +51,6 @@ ALLOWED_PRIVATE_IMPORTS = {
     "glaciar.demo.images: glaciar.demo.sky._relative_exposure": DEMO,
     "glaciar.demo.images: glaciar.demo.sky._sersic_stamp_fast": DEMO,
     "glaciar.demo.mock: glaciar.demo.survey._config_dumper": DEMO,
-    "glaciar.demo.mock: glaciar.run._band_psf": RUN_SPLIT,
-    "glaciar.demo.mock: glaciar.run._resolve_filter": RUN_SPLIT,
     "glaciar.demo.sky: glaciar.demo.bands._COLOUR_SCATTER_MAG": DEMO,
     "glaciar.demo.sky: glaciar.demo.bands._COUNT_BREAK_MAG": DEMO,
     "glaciar.demo.sky: glaciar.demo.bands._COUNT_SLOPE_BRIGHT": DEMO,
@@ -83,9 +80,6 @@ ALLOWED_PRIVATE_IMPORTS = {
     "glaciar.engine.segmentation: glaciar.engine.detect._sep_extract": ENGINE,
     "glaciar.engine.segmentation: glaciar.engine.measure._row_tiles": ENGINE,
     "glaciar.engine.windows: glaciar.engine.detect._sep_extract": ENGINE,
-    "glaciar.pipeline.catalog: glaciar.run._context_dir": RUN_SPLIT,
-    "glaciar.pipeline.catalog: glaciar.run._settings_hash": RUN_SPLIT,
-    "glaciar.run: glaciar.survey._read_array": RUN_SPLIT,
 }
 
 # Modules over MAX_MODULE_LINES lines.
@@ -94,7 +88,6 @@ ALLOWED_LONG_MODULES = {
     "glaciar.engine.clean": ENGINE,
     "glaciar.engine.windows": ENGINE,
     "glaciar.inference.selection_function": NOT_SPLIT,
-    "glaciar.run": RUN_SPLIT,
     "glaciar.store": NOT_SPLIT,
 }
 

@@ -395,7 +395,7 @@ def test_sample_block_reproduces_a_known_posterior():
 
 # -------------------------------------------------------- V_eff in the summary
 def test_run_fit_summary_effective_volume_from_run_manifest(fitted_run, tmp_path):
-    """glaciar.run's manifest (per-field areas): V_eff(m) in summary.json, pooled and per field."""
+    """glaciar.manifest's manifest (per-field areas): V_eff(m) in summary.json, pooled and per field."""
     import astropy.units as u
     from astropy.cosmology import FlatLambdaCDM
     from astropy.io import fits

@@ -25,7 +25,10 @@ from astropy.io import fits
 from glaciar import constants as C
 from glaciar.cli import main
 from glaciar.config import load_config
-from glaciar.run import InputError, plan_tasks, prepare_run_dir, simulate
+from glaciar.execute import simulate
+from glaciar.inputs import InputError
+from glaciar.manifest import prepare_run_dir
+from glaciar.plan import plan_tasks
 from glaciar.store import (RunLock, RunLockedError, StoreMismatchError, StoreWarning,
                            atomic_write_text, file_fingerprint, read_current_results,
                            read_manifest, read_results, task_filename)

@@ -20,7 +20,7 @@ from scipy import signal
 
 from glaciar.config import config_from_dict
 from glaciar.engine import noise as N
-from glaciar.run import field_noise_record
+from glaciar.fieldprep import field_noise_record
 from glaciar.survey import Survey, clear_cache
 
 _BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "hff_noise.py"

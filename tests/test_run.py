@@ -5,7 +5,8 @@ import pytest
 
 from glaciar import constants as C
 from glaciar.config import load_config
-from glaciar.run import plan_tasks, simulate
+from glaciar.execute import simulate
+from glaciar.plan import plan_tasks
 from glaciar.store import StoreMismatchError, read_results
 
 
@@ -125,7 +126,7 @@ def test_kill_loses_only_tasks_in_flight(serial_run, small_survey, tmp_path):
     import time
 
     cfg, _, rows = serial_run
-    code = ("from glaciar.config import load_config; from glaciar.run import simulate; "
+    code = ("from glaciar.config import load_config; from glaciar.execute import simulate; "
             f"simulate(load_config({str(small_survey)!r}), {str(tmp_path)!r}, workers=1, progress=False)")
     proc = subprocess.Popen([sys.executable, "-c", code])
     results = tmp_path / C.RESULTS_DIRNAME
@@ -191,7 +192,7 @@ def test_preflight_says_how_many_sources_fit(small_survey, tmp_path):
 
     import yaml
 
-    from glaciar.run import placement_preflight
+    from glaciar.plan import placement_preflight
     from glaciar.survey import Survey
 
     data = yaml.safe_load(small_survey.read_text())
@@ -217,7 +218,7 @@ def test_detection_band_flux_limit_and_edges(small_survey):
     """The z where F160W stops receiving flux: Lyman-alpha at the filter's red end."""
     from glaciar.galaxy.filters import get_filter
     from glaciar.pipeline.fit import _physical_edges
-    from glaciar.run import detection_z_limit
+    from glaciar.plan import detection_z_limit
 
     cfg = load_config(small_survey)
     z_lim = detection_z_limit(cfg)

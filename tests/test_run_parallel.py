@@ -1,11 +1,11 @@
-"""Parallel start and scheduling of :func:`glaciar.run.simulate` (issue 11, points 5 and 6).
+"""Parallel start and scheduling of :func:`glaciar.execute.simulate` (issue 11, points 5 and 6).
 
 * Guided chunks: every pending task once, in plan order, a chunk within one
   (field, z), chunk sizes shrinking to single tasks at the end of the run.
-* With >= 2 workers the input checks, the placement preflight and the z limit
-  run in a forked helper beside the field measurement: the manifest is the
-  serial run's, a bad input is refused with the same one-line error and nothing
-  written, the preflight's warnings reach the caller, no helper outlives the call.
+* A start with 2 workers is a start with 1 (the forked set-up helper of issue 11
+  is gone since issue 22): the same manifest, a bad input refused with the same
+  one-line error and nothing written, the preflight's warnings passed on, no
+  process left behind.
 * With an executor, the workers' CPU during their chunks is counted in
   ``process_cpu_seconds`` (``remote_cpu_seconds``).
 
@@ -23,7 +23,9 @@ import yaml
 from glaciar import constants as C
 from glaciar.config import load_config
 from glaciar.engine.task import TaskSpec
-from glaciar.run import InputError, _chunks, simulate
+from glaciar.execute import _chunks, simulate
+from glaciar.inputs import InputError
+from glaciar.plan import plan_tasks
 from glaciar.store import read_manifest
 
 fork_only = pytest.mark.skipif(multiprocessing.get_start_method(allow_none=True) not in (None, "fork")
@@ -82,20 +84,18 @@ def _with(config_path, tmp_path, **simulation):
     return load_config(p)
 
 
-@fork_only
 def test_parallel_start_writes_the_serial_manifest(survey_copy, tmp_path):
     cfg = load_config(survey_copy)
     simulate(cfg, tmp_path / "serial", workers=1, progress=False, max_tasks=0)
     stats = simulate(cfg, tmp_path / "two", workers=2, progress=False, max_tasks=0)
     assert read_manifest(tmp_path / "two") == read_manifest(tmp_path / "serial")
-    # The input check ran in the helper: its fingerprint cache came back and was stored.
+    # The same fingerprint cache and stored config, whatever the worker count.
     for name in (C.FINGERPRINT_CACHE_NAME, C.RUN_CONFIG_NAME):
         assert (tmp_path / "two" / name).read_bytes() == (tmp_path / "serial" / name).read_bytes()
     assert stats["n_run"] == 0 and stats["setup_seconds"] <= stats["wall_seconds"]
     assert multiprocessing.active_children() == []                # the helper was reaped
 
 
-@fork_only
 def test_parallel_start_refuses_a_bad_image_before_writing(survey_copy, tmp_path):
     cfg = load_config(survey_copy)
     image = survey_copy.parent / cfg.survey.image_dir / cfg.survey.science.format(
@@ -118,7 +118,6 @@ def test_parallel_start_refuses_a_bad_image_before_writing(survey_copy, tmp_path
     assert multiprocessing.active_children() == []
 
 
-@fork_only
 def test_parallel_start_passes_on_the_preflight_warning(survey_copy, tmp_path):
     cfg = _with(survey_copy, tmp_path, n_galaxies=5000)
     with warnings.catch_warnings(record=True) as caught:
@@ -151,19 +150,19 @@ def test_a_callers_fork_pool_still_inherits_the_field_context(survey_copy, tmp_p
     measured and build no context of their own."""
     import os
 
-    import glaciar.run as run
+    from glaciar import contexts
 
     cfg = load_config(survey_copy)
-    run._CONTEXTS.clear()
+    contexts.clear_contexts()
     log = tmp_path / "builds.txt"
-    real = run.build_field_context
+    real = contexts.build_field_context
 
     def counting(*args, **kwargs):
         with open(log, "a") as fh:
             fh.write(f"{os.getpid()}\n")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(run, "build_field_context", counting)
+    monkeypatch.setattr(contexts, "build_field_context", counting)
     with cf.ProcessPoolExecutor(max_workers=2) as ex:
         stats = simulate(cfg, tmp_path / "run", executor=ex, progress=False, max_tasks=2)
     assert stats["n_run"] == 2
@@ -171,13 +170,13 @@ def test_a_callers_fork_pool_still_inherits_the_field_context(survey_copy, tmp_p
 
 
 def test_prewarm_fills_the_colour_tables_a_task_reads(survey_copy):
-    """A spawned worker's warm-up job (glaciar.run._prewarm) computes the SED tables of every
+    """A spawned worker's warm-up job (glaciar.manifest._prewarm) computes the SED tables of every
     redshift of the plan: the tasks' own draws then add no table (no cache miss)."""
     import types
 
     import numpy as np
 
-    from glaciar import run
+    from glaciar import fieldprep, manifest
     from glaciar.config import config_to_dict
     from glaciar.engine.context import FieldContext
     from glaciar.engine.task import draw_task_sources
@@ -186,12 +185,12 @@ def test_prewarm_fills_the_colour_tables_a_task_reads(survey_copy):
 
     cfg = load_config(survey_copy)
     sed._band_table.cache_clear()
-    run._prewarm(config_to_dict(cfg), str(cfg.base_dir))
+    manifest._prewarm(config_to_dict(cfg), str(cfg.base_dir))
     warmed = sed._band_table.cache_info()
     assert warmed.currsize >= len(cfg.grid.z_values) * len(cfg.survey.bands)
-    settings, _ = run._field_settings(cfg, Survey.from_config(cfg), cfg.survey.fields[0])
+    settings, _ = fieldprep.field_settings(cfg, Survey.from_config(cfg), cfg.survey.fields[0])
     # the settings the draws read, no pixel
     ctx = types.SimpleNamespace(**settings, quantise_r_eff=FieldContext.quantise_r_eff)
-    for spec in run.plan_tasks(cfg):
+    for spec in plan_tasks(cfg):
         draw_task_sources(np.random.default_rng(0), 5, spec.z, spec.mag, ctx)
     assert sed._band_table.cache_info().misses == warmed.misses

@@ -18,15 +18,18 @@ import os
 import numpy as np
 import pytest
 
-import glaciar.run as run
 import glaciar.survey as survey_module
 from glaciar.config import load_config
+from glaciar import contexts, fieldprep
+from glaciar.contexts import clear_contexts
+from glaciar.execute import simulate
+from glaciar.fieldprep import build_field_context
 from glaciar.survey import Survey
 
 
-def _count(monkeypatch, name, log=None):
+def _count(monkeypatch, module, name, log=None):
     calls = []
-    real = getattr(run, name)
+    real = getattr(module, name)
 
     def counting(*args, **kwargs):
         calls.append(os.getpid())
@@ -35,17 +38,17 @@ def _count(monkeypatch, name, log=None):
                 fh.write(f"{os.getpid()}\n")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(run, name, counting)
+    monkeypatch.setattr(module, name, counting)
     return calls
 
 
 def test_serial_run_measures_the_field_once(small_survey, tmp_path, monkeypatch):
     cfg = load_config(small_survey)
-    run._CONTEXTS.clear()
-    builds = _count(monkeypatch, "build_field_context")
-    refs = _count(monkeypatch, "reference_extraction")
-    dists = _count(monkeypatch, "empty_sky")
-    stats = run.simulate(cfg, tmp_path / "run", workers=1, progress=False)
+    clear_contexts()
+    builds = _count(monkeypatch, contexts, "build_field_context")
+    refs = _count(monkeypatch, fieldprep, "reference_extraction")
+    dists = _count(monkeypatch, fieldprep, "empty_sky")
+    stats = simulate(cfg, tmp_path / "run", workers=1, progress=False)
     assert stats["n_run"] == 8
     assert len(builds) == 1 and len(refs) == 1
     # The demo's bands share one footprint, so one usable-sky mask and one transform.
@@ -56,10 +59,10 @@ def test_serial_run_measures_the_field_once(small_survey, tmp_path, monkeypatch)
                     reason="workers inherit the main process's context only when forked")
 def test_forked_workers_inherit_the_field_context(small_survey, tmp_path, monkeypatch):
     cfg = load_config(small_survey)
-    run._CONTEXTS.clear()
+    clear_contexts()
     log = tmp_path / "builds.txt"
-    _count(monkeypatch, "build_field_context", log)
-    stats = run.simulate(cfg, tmp_path / "run", workers=2, progress=False)
+    _count(monkeypatch, contexts, "build_field_context", log)
+    stats = simulate(cfg, tmp_path / "run", workers=2, progress=False)
     assert stats["n_run"] == 8
     assert log.read_text().split() == [str(os.getpid())]
 
@@ -71,7 +74,7 @@ def test_context_releases_the_survey_images(small_survey):
     survey_module.clear_cache()
     sv = Survey.from_config(cfg)
     field = cfg.survey.fields[0]
-    ctx = run.build_field_context(cfg, sv, field)
+    ctx = build_field_context(cfg, sv, field)
     kinds = [k[0] for k in survey_module._CACHE]
     assert "science" not in kinds and "rms" not in kinds
     assert "footprint" in kinds                       # masks stay: the context shares them

@@ -384,7 +384,7 @@ def test_band_pixels_is_the_elementwise_definition(tmp_path, weight_type, dtype)
 
     from glaciar.engine.detect import DetectionParams
     from glaciar.engine.noise import weight_rescale_factor
-    from glaciar.run import band_pixels
+    from glaciar.fieldprep import band_pixels
 
     rng = np.random.default_rng(7)
     yy, xx = np.mgrid[:130, :120]
@@ -424,29 +424,30 @@ def test_correlated_noise_by_tiles_is_the_whole_frame_measurement(monkeypatch, s
     """The field's empty-aperture models, with every tiled step in tiles of a few rows, against
     the whole-frame recipe: scipy's dilation of the segmentation, the uncapped whole-image
     distance transform and empty_aperture_scatter on that map."""
-    from glaciar import run
+    from glaciar import fieldprep
     from glaciar.config import load_config
     from glaciar.engine import noise as nz
     from glaciar.engine.noise import CorrelatedNoise
+    from glaciar.engine.measure import reference_extraction
     from glaciar.engine.task import field_key
     from glaciar.survey import Survey
 
     cfg = load_config(small_survey)
     survey = Survey.from_config(cfg)
     field = cfg.survey.fields[0]
-    params = run._detection_params(cfg)
+    params = fieldprep.detection_params(cfg)
     fp = survey.footprint(field)
-    pix = {b.name: run.band_pixels(survey, field, b.name, fp, params) for b in cfg.survey.bands}
+    pix = {b.name: fieldprep.band_pixels(survey, field, b.name, fp, params) for b in cfg.survey.bands}
     det = cfg.survey.detection_band
-    seg = run.reference_extraction(pix[det][0], pix[det][1], params, 25.0, mask=~fp).segmap
+    seg = reference_extraction(pix[det][0], pix[det][1], params, 25.0, mask=~fp).segmap
     radii = cfg.noise.empty_aperture_radii_pix
-    grown = ndimage.binary_dilation(seg > 0, iterations=run._EMPTY_SKY_MARGIN_PIX)
+    grown = ndimage.binary_dilation(seg > 0, iterations=fieldprep._EMPTY_SKY_MARGIN_PIX)
     nx = seg.shape[1]
     monkeypatch.setattr(nz, "DISTANCE_TILE_PIXELS", 5 * nx)
-    monkeypatch.setattr(run, "ROW_BLOCK_PIXELS", 3 * nx)
+    monkeypatch.setattr(fieldprep, "ROW_BLOCK_PIXELS", 3 * nx)
     sky, released = {}, []
     for b, (base, rms, _) in pix.items():
-        got = run.correlated_noise(cfg, field, b, base, rms, seg, sky, release=lambda: released.append(b))
+        got = fieldprep.correlated_noise(cfg, field, b, base, rms, seg, sky, release=lambda: released.append(b))
         usable = np.isfinite(rms) & ~grown
         seq = np.random.SeedSequence([field_key(field), field_key(b)])
         npix, ratio, n = empty_aperture_scatter(base, rms, usable, radii, cfg.noise.n_empty_apertures,
@@ -517,6 +518,6 @@ def test_gzipped_image_by_row_blocks_is_the_whole_image(monkeypatch, tmp_path):
     path = tmp_path / "img.fits.gz"
     fits.writeto(path, data)
     monkeypatch.setattr(sv, "ROW_BLOCK_PIXELS", 4 * 19)
-    got = sv._read_array(path)
+    got = sv.read_array(path)
     assert got.dtype == np.float32 and got.shape == (31, 19)
     assert np.array_equal(got, fits.getdata(path)[0].astype(np.float32))

@@ -21,7 +21,7 @@ from glaciar.engine.classify import ClassificationParams
 from glaciar.engine.detect import DetectionParams
 from glaciar.engine.measure import measure_injected, reference_extraction
 from glaciar.engine.scene import Scene
-from glaciar.run import _detection_params
+from glaciar.fieldprep import detection_params
 
 MOFFAT = {"profile": "moffat", "fwhm_arcsec": 0.18}
 BASE = {"survey": {
@@ -56,7 +56,7 @@ def test_defaults_and_sex_mapping(tmp_path):
     cfg = _cfg(tmp_path, sex)
     d = cfg.detection
     assert (d.backphoto_type, d.backphoto_thick, d.mask_type, d.satur_level) == ("local", 12, "blank", 3000.5)
-    p = _detection_params(cfg)
+    p = detection_params(cfg)
     assert (p.backphoto_type, p.backphoto_thick, p.mask_type, p.satur_level) == ("local", 12, "blank", 3000.5)
     # keys given in the YAML win over the .sex file
     d = _cfg(tmp_path, sex, MASK_TYPE="correct").detection
@@ -166,7 +166,7 @@ def _measure(params, background=None, det_background=None, mode="windowed"):
 def test_local_background_recovers_the_flux_global_misses(tmp_path, mask_type):
     """End to end: .sex keys -> config -> engine; LOCAL removes exactly the pedestal."""
     sex = "DETECT_THRESH 1.5\nPHOT_APERTURES 16\nBACKPHOTO_TYPE LOCAL\nBACKPHOTO_THICK 24\n"
-    p_local = _detection_params(_cfg(tmp_path, sex, MASK_TYPE=mask_type))
+    p_local = detection_params(_cfg(tmp_path, sex, MASK_TYPE=mask_type))
     assert p_local.backphoto_type == "local" and p_local.mask_type == mask_type
     p_global = dataclasses.replace(p_local, backphoto_type="global")
     loc, _, _ = _measure(p_local)

@@ -7,7 +7,7 @@ import yaml
 
 from glaciar import constants as C
 from glaciar.config import load_config
-from glaciar.run import simulate
+from glaciar.execute import simulate
 from glaciar.store import StoreMismatchError
 
 

@@ -17,7 +17,7 @@ from glaciar import constants as C
 from glaciar.config import load_config
 from glaciar.inference.fit import aggregate_cells
 from glaciar.pipeline.inputs import fit_inputs
-from glaciar.run import simulate
+from glaciar.execute import simulate
 from glaciar.store import (COMPACT_DIRNAME, task_key,
                            StoreWarning, compact, finished_task_names, read_current_counts,
                            read_current_results, read_results, task_filename,

@@ -6,7 +6,7 @@ import pytest
 from glaciar import constants as C
 from glaciar.config import load_config
 from glaciar.engine.task import TaskSpec, run_task, task_rng
-from glaciar.run import build_field_context
+from glaciar.fieldprep import build_field_context
 from glaciar.survey import Survey
 
 

@@ -148,10 +148,10 @@ def _inverse_cdf(rng, x, cum, n):
 
 def _band_setup(cfg):
     """(band names, resolved filters, zeropoints, gains, detection index)."""
-    from ..run import _resolve_filter
+    from ..fieldprep import resolve_filter
 
     bands = tuple(b.name for b in cfg.survey.bands)
-    filters = [_resolve_filter(b.filter, cfg.base_dir) for b in cfg.survey.bands]
+    filters = [resolve_filter(b.filter, cfg.base_dir) for b in cfg.survey.bands]
     zps = {b.name: float(b.zeropoint) for b in cfg.survey.bands}
     gains = {b.name: (None if b.gain is None else float(b.gain)) for b in cfg.survey.bands}
     return bands, filters, zps, gains, bands.index(cfg.survey.detection_band)
@@ -380,7 +380,7 @@ def render_mock_universe(cfg_path, truth: pd.DataFrame, seed: int, *,
     from ..galaxy import sed
     from ..galaxy.templates import TemplateCache
     from ..galaxy.population import SourceModel
-    from ..run import _band_psf
+    from ..fieldprep import band_psf
     from ..store import atomic_write_bytes
     from ..survey import Survey
 
@@ -412,7 +412,7 @@ def render_mock_universe(cfg_path, truth: pd.DataFrame, seed: int, *,
             truth.loc[truth.index[rows], "y"] = y
         if "r_eff_pix" not in truth.columns:
             raise ValueError("render_mock_universe: truth needs r_eff_pix (draw it with pixel_scale_arcsec)")
-        cache = TemplateCache({b.name: _band_psf(cfg, b, pixscale) for b in cfg.survey.bands},
+        cache = TemplateCache({b.name: band_psf(cfg, b, pixscale) for b in cfg.survey.bands},
                               enclosed_fraction=model.stamp_flux_fraction)
         sub = truth.iloc[rows]
         for k, b in enumerate(bands):

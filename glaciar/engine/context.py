@@ -1,7 +1,7 @@
 """The engine's input: everything a task needs about one field.
 
 A :class:`FieldContext` is built once per field by
-:func:`glaciar.run.build_field_context` (which reads the images); the engine
+:func:`glaciar.fieldprep.build_field_context` (which reads the images); the engine
 (:func:`glaciar.engine.task.run_task`) only reads it.  In a run, its measured
 arrays (:attr:`FieldContext.MEASURED`) are written once to the run's field cache
 and every process maps them read-only (:mod:`glaciar.engine.fieldcache`): the

@@ -19,7 +19,7 @@ accumulate over a long run until the whole files were resident;
 them, the next touch is a minor fault) once more than
 :data:`RESIDENT_BUDGET_BYTES` of file-backed pages have accumulated.
 
-On a field whose maps exceed that budget, glaciar.run stores the images the
+On a field whose maps exceed that budget, glaciar.contexts stores the images the
 engine reads by window (images, RMS maps, mask, reference segmentation) as
 square tiles (:class:`Tiled` on writing, :class:`TiledArray` on reading: a 4-d
 ``.npy`` ``[ty, tx, 64, 64]``), and workers read them with positional reads
@@ -84,7 +84,7 @@ MMAP_MIN_BYTES = 1 << 20
 #: while a 4000^2 4-band field (~0.9 GB of maps) is seldom trimmed (each trim costs refaults).
 RESIDENT_BUDGET_BYTES = 768 << 20
 #: Store the windowed images of a field larger than the resident budget as tiles
-#: (glaciar.run's field cache); False keeps every array row-major (for comparisons).
+#: (glaciar.contexts' field cache); False keeps every array row-major (for comparisons).
 TILED_CACHE = True
 #: Side [pixels] of the square tiles of a tiled 2-d array (:class:`TiledArray`): a window
 #: reads the rows it needs of the tiles under it (16 kB per float32 tile, 4 kB per bool one).
@@ -413,7 +413,7 @@ class UnreadableCache(ValueError):
     """A field cache that cannot be read (e.g. a truncated file): ``path`` and ``why``.
 
     The cache is a copy of measurements: removing it makes the field be measured again
-    (glaciar.run does so on its own when it opens a run's caches).
+    (glaciar.contexts does so on its own when it opens a run's caches).
     """
 
     def __init__(self, path, why: str):

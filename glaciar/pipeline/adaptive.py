@@ -118,7 +118,7 @@ def with_cells(cfg, cells: list[dict], source_name: str = "cells"):
 
 def design_sources(cfg) -> int:
     """Sources the configuration's design injects: its tasks (all fields) x ``n_galaxies``."""
-    from ..run import task_cells
+    from ..plan import task_cells
 
     return int(sum(task_cells(cfg).values())) * cfg.simulation.n_galaxies
 
@@ -164,7 +164,7 @@ def coarse_design(cfg, budget: int):
 
 
 def _simulated_values(cfg):
-    from ..run import task_cells
+    from ..plan import task_cells
 
     cells = task_cells(cfg)
     return (np.array(sorted({z for _, z, _ in cells})), np.array(sorted({m for _, _, m in cells})),
@@ -333,13 +333,13 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
         Results store; ``adaptive_rounds.json`` there is read and extended.
     settings : AdaptiveSettings
     workers, seed, executor, progress, mode
-        As :func:`glaciar.run.simulate`.
+        As :func:`glaciar.execute.simulate`.
     box : (z_lo, z_hi, m_lo, m_hi), optional
         Where the stopping statistic and proposals are evaluated.
     echo : callable
         Prints one line per round.
     """
-    from ..run import simulate
+    from ..execute import simulate
     from ..store import read_manifest
     from .fit import run_fit
 

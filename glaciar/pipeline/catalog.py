@@ -40,7 +40,7 @@ IDENTITY_KEYS = ("store_hash", "inputs_digest", "fields", "detection_band")
 
 def _inputs_digest(inputs: dict) -> str:
     """SHA-256 of the fingerprints (BLAKE2b) of every input file the measurement read (images,
-    noise maps, PSFs, filter curves, detection files; :func:`glaciar.run.input_files`)."""
+    noise maps, PSFs, filter curves, detection files; :func:`glaciar.inputs.input_files`)."""
     items = {k: v.get("blake2b") for k, v in sorted(inputs.items())}
     return hashlib.sha256(json.dumps(items, sort_keys=True).encode("utf-8")).hexdigest()
 
@@ -155,8 +155,10 @@ def run_catalog(source, out=None, *, regions: bool = False, progress: bool = Fal
     from ..config.io import config_hash
     from ..engine import fieldcache
     from ..engine.catalog import measure_catalog
-    from ..run import (_context_dir, _settings_hash, build_field_context, check_inputs,
-                       open_field_context, store_settings)
+    from ..contexts import context_dir, open_field_context
+    from ..fieldprep import build_field_context
+    from ..inputs import check_inputs
+    from ..manifest import store_hash, store_settings
     from ..survey import Survey
 
     cfg, run_dir, manifest = _resolve(source)
@@ -174,7 +176,7 @@ def run_catalog(source, out=None, *, regions: bool = False, progress: bool = Fal
             raise ValueError(f"{run_dir}: input file(s) changed since the run: {', '.join(changed)} "
                              f"({inputs[changed[0]]['path']}); its selection function describes "
                              "the old files")
-    settings_hash = _settings_hash(store_settings(cfg))
+    settings_hash = store_hash(store_settings(cfg))
     if manifest is not None:
         if manifest.get("store_hash") != settings_hash:
             raise ValueError(f"{run_dir}: its stored configuration's settings differ from the "
@@ -183,8 +185,8 @@ def run_catalog(source, out=None, *, regions: bool = False, progress: bool = Fal
     frames = []
     det = cfg.survey.detection_band
     for field in cfg.survey.fields:
-        cached = None if run_dir is None else _context_dir(run_dir, chash, field,
-                                                            manifest.get("inputs") or {})
+        cached = None if run_dir is None else context_dir(run_dir, chash, field,
+                                                           manifest.get("inputs") or {})
         if cached is not None and fieldcache.exists(cached):
             ctx = open_field_context(cfg, survey, field, cached)
             how = "run's field cache"

@@ -1,0 +1,247 @@
+"""Every input file a run reads, checked and fingerprinted before anything is written."""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .config import Config, check_files, config_to_dict
+from .engine.noise import map_type_problem
+from .fieldprep import band_psf, detection_params
+from .galaxy.filters import get_filter
+from .store import file_fingerprint
+from .survey import Survey, read_array, strided_sample
+
+
+class InputError(ValueError):
+    """An input file of the configuration is unusable; the message names its key and path."""
+
+
+@dataclass(frozen=True)
+class InputFile:
+    """One input file of a run, named by the configuration key it comes from."""
+
+    key: str                  #: e.g. ``survey.bands.f160w.psf`` or ``survey.science (field 'a', band 'b')``
+    path: Path
+    kind: str                 #: science, noise, psf, filter, sex_file or conv
+    field: str | None = None  #: the field whose tasks read it (None: every task)
+    band: str | None = None
+
+
+def file_or_none(value, base_dir: Path) -> Path | None:
+    """``value`` as an existing file (relative to ``base_dir``), or None (e.g. a built-in name)."""
+    if not isinstance(value, str) or not value:
+        return None
+    p = Path(value).expanduser()
+    if not p.is_absolute():
+        p = Path(base_dir) / p
+    return p.resolve() if p.is_file() else None
+
+
+def input_files(cfg: Config) -> list[InputFile]:
+    """Every input file of ``cfg``: images and noise maps, FITS PSFs, filter curves, .sex, .conv.
+
+    Built-in filters, analytic PSFs and built-in detection kernels are not files
+    (their definitions are in the configuration and the code).
+    """
+    s = cfg.survey
+    out = []
+    for f in s.fields:
+        for b in s.bands:
+            for kind, tmpl in (("science", s.science), ("noise", s.noise)):
+                if tmpl is not None:
+                    out.append(InputFile(f"survey.{kind} (field {f!r}, band {b.name!r})",
+                                         Path(s.image_dir) / tmpl.format(field=f, band=b.name),
+                                         kind, f, b.name))
+    for b in s.bands:
+        if isinstance(b.psf, str):
+            p = Path(b.psf) if Path(b.psf).is_absolute() else Path(cfg.base_dir) / b.psf
+            out.append(InputFile(f"survey.bands.{b.name}.psf", p, "psf", None, b.name))
+        fp = file_or_none(b.filter, cfg.base_dir)
+        if fp is not None:
+            out.append(InputFile(f"survey.bands.{b.name}.filter", fp, "filter", None, b.name))
+    det = config_to_dict(cfg).get("detection") or {}
+    for key, kind in (("sex_file", "sex_file"), ("FILTER_NAME", "conv")):
+        p = file_or_none(det.get(key), cfg.base_dir)
+        if p is not None:
+            out.append(InputFile(f"detection.{key}", p, kind))
+    return out
+
+
+def _reason(exc: BaseException, path: Path) -> str:
+    """An exception's message without a leading copy of the path."""
+    msg = str(exc).strip() or type(exc).__name__
+    for prefix in (f"{path}: ", f"{path}:", "PSF file not found: "):
+        if msg.startswith(prefix):
+            msg = msg[len(prefix):]
+    return msg.splitlines()[0]
+
+
+#: Longest part of a one-line error given to folded foreign-library warnings [characters].
+MAX_FOLDED_CHARS = 200
+
+
+def _folded(caught) -> str:
+    """Warnings recorded while a file was checked, as one parenthesised clause ("" if none).
+
+    A foreign library (astropy) warns several times, over several lines, before it
+    fails on a damaged file; the refusal stays one line and keeps what they said.
+    """
+    said = []
+    for w in caught:
+        text = " ".join(str(w.message).split())
+        if text and text not in said:
+            said.append(text)
+    if not said:
+        return ""
+    text = "; ".join(said)
+    if len(text) > MAX_FOLDED_CHARS:
+        text = text[:MAX_FOLDED_CHARS - 3] + "..."
+    return f" (warnings while reading it: {text})"
+
+
+def _check_image(item: InputFile) -> None:
+    """A science or noise image: a readable FITS file with a 2-D image holding finite pixels."""
+    with warnings.catch_warnings():
+        # astropy only warns about a file shorter than its header says; that is an error here.
+        warnings.filterwarnings("error", message=".*truncated.*")
+        arr = read_array(item.path)
+    if arr.ndim != 2 or arr.size == 0:
+        raise ValueError(f"expected a non-empty 2-D image, got shape {arr.shape}")
+    if not np.isfinite(arr).any():
+        raise ValueError("no finite pixel in the image")
+
+
+def _check_noise_maps(cfg: Config, items: list[InputFile], fingerprints: dict, cache: dict,
+                      fail, errors) -> None:
+    """Each noise map against its science image's pixel scatter
+    (:func:`~glaciar.engine.noise.map_type_problem`).
+
+    Not for a relative weight map (WEIGHT_TYPE MAP_WEIGHT: its scale is rescaled to the
+    image) nor an unused one (BACKGROUND). A strided sample of <= 2^20 pixels of each
+    image; checked once per (noise file version, noise_type, science file version):
+    ``cache`` remembers it.
+    """
+    if cfg.detection.weight_type in ("map_weight", "background"):
+        return
+    science = {(it.field, it.band): it for it in items if it.kind == "science"}
+    ntype = cfg.survey.noise_type
+    for item in items:
+        sci = science.get((item.field, item.band))
+        if item.kind != "noise" or sci is None:
+            continue
+        entry = cache.get(str(item.path.resolve()), {})
+        stamp = [ntype, fingerprints[sci.key].get("blake2b")]
+        if entry.get("map_type_checked") == stamp:
+            continue
+        try:
+            sci_pixels, map_pixels = strided_sample(sci.path), strided_sample(item.path)
+            # Shapes that differ are refused below, naming both (survey.shape).
+            problem = None if sci_pixels.shape != map_pixels.shape else \
+                map_type_problem(sci_pixels, map_pixels, ntype)
+        except errors as exc:
+            raise fail(item, exc) from None
+        if problem is not None:
+            raise InputError(f"{item.key}: {item.path}: {problem}")
+        entry["map_type_checked"] = stamp
+
+
+def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None = None) -> dict:
+    """Check every input file of ``cfg`` and return its fingerprint.
+
+    Science and noise images must be readable FITS files with a 2-D image that
+    has finite pixels (checked once per file version: ``cache`` remembers it by
+    path, size and mtime); a noise map must state a pixel sigma within a factor
+    :data:`~glaciar.engine.noise.MAP_TYPE_FACTOR` of its image's pixel scatter
+    (a weight map declared as RMS, or the reverse, is refused with the fix:
+    :func:`_check_noise_maps`); FITS PSFs must be finite with a positive sum and
+    a pixel scale (checked at every field's pixel scale); filter curves and
+    detection files must parse.  Nothing is written.
+
+    Parameters
+    ----------
+    cfg : Config
+    survey : Survey, optional
+    cache : dict, optional
+        ``{path: {"size", "mtime_ns", "blake2b", "checked"}}``, updated in place.
+
+    Returns
+    -------
+    dict
+        ``{key: {"path", "size", "blake2b"}}`` for every :func:`input_files` entry.
+
+    Raises
+    ------
+    FileNotFoundError
+        Missing files (all listed, by key).
+    InputError
+        The first unusable file: ``"<key>: <path>: <cause>"``.
+    """
+    check_files(cfg)
+    survey = survey or Survey.from_config(cfg)
+    cache = {} if cache is None else cache
+    items = input_files(cfg)
+    by_path: dict[str, list[InputFile]] = {}
+    for it in items:
+        by_path.setdefault(str(it.path.resolve()), []).append(it)
+
+    def fail(item, exc, caught=()):
+        return InputError(f"{item.key}: {item.path}: {_reason(exc, item.path)}{_folded(caught)}")
+
+    def reissue(key, path, caught):
+        # A check that passes keeps the library's warnings, each on one line naming the file.
+        for w in caught:
+            warnings.warn(f"{key}: {path}: {' '.join(str(w.message).split())}", stacklevel=3)
+
+    out = {}
+    errors = (OSError, ValueError, TypeError, KeyError, IndexError, EOFError, UnicodeDecodeError,
+              Warning)
+    for item in items:
+        try:
+            fp = file_fingerprint(item.path, cache)
+        except OSError as exc:
+            raise fail(item, exc) from None
+        entry = cache.get(str(item.path.resolve()), {})
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                if item.kind in ("science", "noise") and not entry.get("checked"):
+                    _check_image(item)
+                elif item.kind == "filter":
+                    get_filter(str(item.path))
+            except errors as exc:
+                raise fail(item, exc, caught) from None
+        reissue(item.key, item.path, caught)
+        if item.kind in ("science", "noise"):
+            entry["checked"] = True
+        out[item.key] = {"path": str(item.path), **fp}
+    _check_noise_maps(cfg, items, out, cache, fail, errors)
+    # Shapes agree within each field, pixel scales are known, PSFs resample at every scale.
+    scales = set()
+    for f in cfg.survey.fields:
+        survey.shape(f)
+        scales.add(survey.pixel_scale_arcsec(f))
+    for b in cfg.survey.bands:
+        key = f"survey.bands.{b.name}.psf"
+        where = Path(b.psf) if isinstance(b.psf, str) else None
+        if where is not None and not where.is_absolute():
+            where = Path(cfg.base_dir) / where
+        for scale in sorted(scales):
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                try:
+                    band_psf(cfg, b, scale)
+                except errors as exc:
+                    if where is None:
+                        raise InputError(f"{key}: {_reason(exc, Path('.'))}"
+                                         f"{_folded(caught)}") from None
+                    raise InputError(f"{key}: {where}: {_reason(exc, where)}"
+                                     f"{_folded(caught)}") from None
+            reissue(key, where if where is not None else "(analytic)", caught)
+    try:
+        detection_params(cfg)
+    except errors as exc:
+        raise InputError(f"detection: {str(exc).splitlines()[0]}") from None
+    return out

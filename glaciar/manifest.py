@@ -1,0 +1,419 @@
+"""A run's identity and start: the manifest, the store's settings, resume, the set-up steps.
+
+:func:`open_run` checks everything (inputs, store identity, lock) before it creates
+or modifies the run directory; with an executor, the detection z limit is
+computed on one of its workers meanwhile (:class:`_SetupJobs`).
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import hashlib
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .version import __version__
+from . import constants as C
+from .config import Config, config_from_dict, config_hash, config_to_dict
+from .config.models import SECTIONS
+from .contexts import context_dir, main_context
+from .fieldprep import field_depth_area, field_noise_record, field_settings
+from .galaxy import sed
+from .inputs import InputFile, check_inputs, file_or_none, input_files
+from .plan import detection_z_limit, manifest_cells, placement_preflight, plan_tasks
+from .store import (RunLock, StoreMismatchError, StoreWarning, atomic_write_text,
+                    field_file_prefix, finished_task_names, manifest_text,
+                    read_manifest, store_format, write_manifest)
+from .paths import check_run_tree, disk_full
+from .survey import Survey
+
+
+def _load_fingerprint_cache(run_dir: Path) -> dict:
+    p = run_dir / C.FINGERPRINT_CACHE_NAME
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+# --------------------------------------------------------------------------
+# Store identity: the settings that fix every task's rows (no paths, no task list)
+# --------------------------------------------------------------------------
+_FILE = "<file>"   #: stands for a path in the store settings (its content is fingerprinted)
+
+
+def store_settings(cfg: Config) -> dict:
+    """The configuration's settings that fix every task's rows, as plain data.
+
+    ``config_to_dict(cfg)`` without ``output``, the field list, the grid's z
+    and magnitude values, ``simulation.n_iterations`` and ``simulation.seed``
+    (the run's seed is compared on its own), and with every path replaced by
+    ``"<file>"``: files are identified by content (the manifest's ``inputs``),
+    so a run directory's own ``config.yaml`` (absolute paths) or a moved project
+    is the same store.
+    """
+    d = config_to_dict(cfg)
+    d.pop("output", None)
+    # Definitions that change rows without a config key: a store made under another
+    # definition is another store.
+    d["classification"]["flux_test"] = "auto_vs_template"
+    sv = d["survey"]
+    sv.pop("fields", None)
+    sv.pop("image_dir", None)
+    sv.pop("science", None)
+    sv["noise"] = _FILE if sv.get("noise") is not None else None
+    sv["band_order"] = list(sv["bands"])
+    for b in sv["bands"].values():
+        if isinstance(b.get("psf"), str):
+            b["psf"] = _FILE
+        if file_or_none(b.get("filter"), cfg.base_dir) is not None:
+            b["filter"] = _FILE
+    d["grid"].pop("z", None)
+    d["grid"].pop("mag", None)
+    d["grid"].pop("cells", None)
+    d["grid"].pop("box", None)       # box points are cells: they only add tasks
+    d["simulation"].pop("n_iterations", None)
+    d["simulation"].pop("seed", None)
+    det = d.get("detection") or {}
+    for key in ("sex_file", "FILTER_NAME"):
+        if file_or_none(det.get(key), cfg.base_dir) is not None:
+            det[key] = _FILE
+    return json.loads(json.dumps(d, sort_keys=True))
+
+
+def store_hash(settings: dict) -> str:
+    text = json.dumps(settings, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _flatten(d, prefix=""):
+    if isinstance(d, dict):
+        out = {}
+        for k, v in d.items():
+            out.update(_flatten(v, f"{prefix}{k}."))
+        return out or {prefix[:-1]: {}}
+    return {prefix[:-1]: d}
+
+
+def _flat_defaults() -> dict:
+    """Every default of the sections that have one for each key, flattened like the settings."""
+    out = {}
+    for name, field in SECTIONS.items():
+        try:
+            section = field.annotation()
+        except Exception:  # noqa: BLE001 - sections with required keys (survey) or no model
+            continue
+        out.update(_flatten(json.loads(json.dumps(section.model_dump(mode="json", by_alias=True))),
+                            f"{name}."))
+    return out
+
+
+def _settings_differences(old: dict, new: dict) -> list[str]:
+    """What differs between two stores' settings, one ``key: old -> new`` string each.
+
+    A key the older store does not record (added to glaciar since) counts as the
+    same when its value now is its default: a new key's default keeps the rows
+    glaciar made before the key existed, so the older store stays extendable.
+    """
+    a, b = _flatten(old), _flatten(new)
+    defaults = _flat_defaults()
+    diffs = []
+    for k in sorted(set(a) | set(b)):
+        if k not in a and k in defaults and b[k] == defaults[k]:
+            continue
+        if a.get(k, "<unset>") != b.get(k, "<unset>"):
+            diffs.append(f"{k}: {str(a.get(k, '<unset>'))[:40]} -> {str(b.get(k, '<unset>'))[:40]}")
+    return diffs
+
+
+def _summary(diffs: list[str], limit: int = 3) -> str:
+    more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
+    return "; ".join(diffs[:limit]) + more
+
+
+def _manifest(cfg: Config, survey: Survey, seed: int, z_limit=None, cached: dict | None = None) -> dict:
+    """The run's manifest.
+
+    ``z_limit``: a future of :func:`glaciar.plan.detection_z_limit` (None: computed here);
+    ``cached``: field -> its context's cache directory in the run
+    (:func:`glaciar.contexts.main_context`).
+    """
+    area = {}
+    pixscale = {}
+    settings = store_settings(cfg)
+    depth_area, noise = {}, {}
+    for f in cfg.survey.fields:
+        # The field's context is built here once, in this process (or mapped from an
+        # interrupted run's cache): the area, depth and noise records read it, a serial
+        # run's tasks use it (glaciar.contexts.worker_context), and forked pool workers inherit it
+        # instead of measuring the field again.
+        ctx = main_context(cfg, survey, f, (cached or {}).get(f))
+        ps = survey.pixel_scale_arcsec(f)
+        pixscale[f] = ps
+        area[f] = float(ctx.footprint_count) * ps ** 2 / 3600.0
+        depth_area[f] = field_depth_area(cfg, survey, f, ctx)
+        noise[f] = field_noise_record(cfg, survey, f, ctx)
+    return {
+        "store_format": C.STORE_FORMAT,
+        "glaciar_version": __version__,
+        "glaciar_versions": [__version__],
+        "config_hash": config_hash(cfg),
+        "store_hash": store_hash(settings),
+        "store_settings": settings,
+        "seed": int(seed),
+        "fields": list(cfg.survey.fields),
+        "bands": [b.name for b in cfg.survey.bands],
+        "detection_band": cfg.survey.detection_band,
+        "selection": list(cfg.selection),
+        "z_values": list(map(float, cfg.grid.z_values)),
+        "mag_values": list(map(float, cfg.grid.mag_values)),
+        "magnitude_type": cfg.grid.magnitude_type,
+        "n_galaxies": cfg.simulation.n_galaxies,
+        "n_iterations": cfg.simulation.n_iterations,
+        "cells": manifest_cells(cfg),
+        **({} if cfg.grid.box is None else
+           {"box": {"z": list(cfg.grid.box.z), "mag": list(cfg.grid.box.mag),
+                    "n_points": cfg.grid.box.n_points}}),
+        "pixel_scale_arcsec": pixscale,
+        "area_arcmin2": area,
+        "area_arcmin2_total": float(sum(area.values())),
+        "depth_area": depth_area,
+        "noise": noise,
+        "detection_z_limit": detection_z_limit(cfg) if z_limit is None else z_limit.result(),
+    }
+
+
+def _check_same_store(run_dir: Path, old: dict, manifest: dict, items: list[InputFile],
+                      finished: set[str]) -> None:
+    """Refuse to add tasks to a store whose finished tasks were made differently."""
+    what = []
+    if old.get("seed") != manifest["seed"]:
+        what.append(f"seed: {old.get('seed')} -> {manifest['seed']}")
+    if old.get("store_hash") != manifest["store_hash"]:
+        diffs = _settings_differences(old.get("store_settings") or {}, manifest["store_settings"])
+        if diffs:
+            what.append(_summary(diffs))
+    if what:
+        raise StoreMismatchError(
+            f"{run_dir}: results were made with a different configuration or seed "
+            f"({'; '.join(what)}); only fields, grid values and n_iterations may change between "
+            "runs into one directory; use another --out")
+    old_inputs = old.get("inputs") or {}
+    for item in items:
+        prev, now = old_inputs.get(item.key), manifest["inputs"][item.key]
+        if not isinstance(prev, dict) or (prev.get("size"), prev.get("blake2b")) == \
+                (now["size"], now["blake2b"]):
+            continue
+        if item.field is None:
+            used = bool(finished)
+        else:
+            prefix = field_file_prefix(item.field)
+            used = any(n.startswith(prefix) for n in finished)
+        if used:
+            raise StoreMismatchError(f"{item.key}: {item.path} changed since the run started "
+                                     "(content differs); use another --out")
+
+
+def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None = None,
+             warm: int = 1) -> tuple[dict, RunLock]:
+    """Validate everything, then create or update the run directory under its lock.
+
+    Every check (inputs, store identity, lock) runs before anything is
+    created or modified: a refused start leaves an existing run directory
+    byte-identical and creates no new one.  Returns the manifest and the held
+    lock (the caller releases it).
+
+    ``parallel``: None, or an executor (not a process pool: its workers would start
+    before the field's context exists) that computes the detection z limit while
+    this process checks the inputs and measures the field, and of which ``warm``
+    workers are asked to import glaciar and warm their caches meanwhile (:class:`_SetupJobs`).
+    """
+    run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise FileExistsError(f"{run_dir}: exists and is not a directory")
+    if run_dir.is_dir():
+        # A results/, .context/, summary/, ... that is a symbolic link would receive task
+        # files, caches and reports outside the run: refused before anything is written.
+        check_run_tree(run_dir)
+    lock = RunLock(run_dir)
+    lock.check_free()
+    old = read_manifest(run_dir) if run_dir.is_dir() else None
+    finished = finished_task_names(run_dir)
+    if finished and old is None:
+        raise StoreMismatchError(f"{run_dir / C.RESULTS_DIRNAME}: holds task files but "
+                                 f"{run_dir / C.MANIFEST_NAME} is missing; use another --out")
+    if finished and store_format(old) != C.STORE_FORMAT:
+        raise StoreMismatchError(
+            f"{run_dir}: made by glaciar {old.get('glaciar_version', '?')} (store format "
+            f"{store_format(old)}, whose task file names can collide); glaciar {__version__} "
+            f"(format {C.STORE_FORMAT}) does not add to it; use another --out "
+            "(fit and report still read it)")
+    cache = _load_fingerprint_cache(run_dir) if run_dir.is_dir() else {}
+    cache_before = json.dumps(cache, sort_keys=True)
+    survey = Survey.from_config(cfg)
+    # An interrupted run left its fields' contexts on disk: with the inputs checked first
+    # (the cache's key holds their fingerprints), the resume maps them, not measuring again.
+    resuming = old is not None and (run_dir / C.CONTEXT_DIRNAME).is_dir()
+    jobs = _SetupJobs(cfg, parallel, warm)
+    inputs = check_inputs(cfg, survey, cache)
+    _preflight(cfg, survey)        # before the field is measured: a field nothing fits fails fast
+    cached = None
+    if resuming:
+        recorded, chash = _recorded_inputs(old, finished, inputs), config_hash(cfg)
+        cached = {f: context_dir(run_dir, chash, f, recorded) for f in cfg.survey.fields}
+    # Each warning of measuring the fields is said once (not per field or band that repeats it).
+    with warnings.catch_warnings(record=True) as measured:
+        warnings.simplefilter("always")
+        manifest = _manifest(cfg, survey, seed, z_limit=jobs.z_limit, cached=cached)
+    for w in {(str(w.message), w.category): w for w in measured}.values():
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    items = input_files(cfg)
+    manifest["inputs"] = _recorded_inputs(old, finished, inputs)
+    if old is not None and finished:
+        _check_same_store(run_dir, old, manifest, items, finished)
+        versions = old.get("glaciar_versions") or [old.get("glaciar_version", "?")]
+        if __version__ not in versions:
+            warnings.warn(f"{run_dir}: started with glaciar {', '.join(map(str, versions))}; "
+                          f"glaciar {__version__} adds its tasks", StoreWarning)
+        manifest["glaciar_version"] = old.get("glaciar_version", __version__)
+        manifest["glaciar_versions"] = sorted(set(map(str, versions)) | {__version__})
+    elif old is not None:
+        manifest["glaciar_version"] = old.get("glaciar_version", __version__)
+    config_text = yaml.safe_dump(config_to_dict(cfg), sort_keys=False, allow_unicode=True)
+    # ---- everything is checked: from here on the directory is created or modified ----
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise (disk_full(run_dir, exc) or exc) from None
+    lock.acquire()
+    try:
+        if read_manifest(run_dir) != old or finished_task_names(run_dir) - finished:
+            raise StoreMismatchError(f"{run_dir}: changed while this run was starting (another "
+                                     "glaciar run?); run the command again")
+        mpath = run_dir / C.MANIFEST_NAME
+        if not mpath.exists() or mpath.read_text(encoding="utf-8") != manifest_text(manifest):
+            write_manifest(run_dir, manifest)
+        cpath = run_dir / C.RUN_CONFIG_NAME
+        if not cpath.exists() or cpath.read_text(encoding="utf-8") != config_text:
+            atomic_write_text(cpath, config_text)
+        if json.dumps(cache, sort_keys=True) != cache_before:
+            atomic_write_text(run_dir / C.FINGERPRINT_CACHE_NAME,
+                              json.dumps(cache, sort_keys=True, indent=1))
+        # Temporary files of tasks that were in flight when an earlier run was killed:
+        # removed only while holding the lock, so never those of a live run.
+        for stale in (run_dir / C.RESULTS_DIRNAME).glob(".task_*.tmp"):
+            stale.unlink(missing_ok=True)
+    except BaseException:
+        lock.release()
+        raise
+    return manifest, lock
+
+
+def _recorded_inputs(old: dict | None, finished, inputs: dict) -> dict:
+    """The manifest's input fingerprints: a store with finished tasks keeps the inputs of
+    fields no longer listed (they are checked if the field returns)."""
+    if old is not None and finished:
+        return {**(old.get("inputs") or {}), **inputs}
+    return inputs
+
+
+def _z_limit_job(cfg_dict: dict, base_dir: str) -> tuple[float | None, list]:
+    """:func:`glaciar.plan.detection_z_limit` on an executor's worker: ``(z limit, warnings)``,
+    the warnings as ``(message, category)`` pairs for the run's own process to raise."""
+    cfg = config_from_dict(cfg_dict, base_dir)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        z_limit = detection_z_limit(cfg)
+    return z_limit, [(str(w.message), w.category) for w in caught]
+
+
+class _Later:
+    """A future computed when its result is first asked for."""
+
+    def __init__(self, fn, *args):
+        self._call, self._done, self._value = (fn, args), False, None
+
+    def result(self):
+        if not self._done:
+            fn, args = self._call
+            self._value, self._done = fn(*args), True
+        return self._value
+
+
+def _prewarm(cfg_dict: dict, base_dir: str) -> None:
+    """In a spawned worker, during the run's set-up: what its first task would do before its
+    sources -- imports, the first field's settings (PSFs, filters, cosmology) and the SED
+    colour tables of the run's redshifts (each cached per process, ~0.7 s for the demo)."""
+    cfg = config_from_dict(cfg_dict, base_dir)
+    survey = Survey.from_config(cfg)
+    settings, _ = field_settings(cfg, survey, cfg.survey.fields[0])
+    igm = settings["source_model"].igm
+    for z in sorted({float(s.z) for s in plan_tasks(cfg)}):
+        if cfg.grid.magnitude_type == "absolute":
+            sed.band_magnitudes(z, np.zeros(1), settings["filters"], M_uv=np.full(1, -20.0),
+                                cosmology=settings["cosmology"], igm=igm)
+        else:
+            sed.band_magnitudes(z, np.zeros(1), settings["filters"], mag=np.full(1, 25.0),
+                                detection_index=settings["detection_index"], igm=igm)
+
+
+def _preflight(cfg: Config, survey: Survey) -> None:
+    """Raise :func:`glaciar.plan.placement_preflight`'s error (no source fits a field) or warn
+    its messages."""
+    for message in placement_preflight(cfg, survey):
+        if "no source fits" in message:
+            raise ValueError(message)
+        warnings.warn(message, UserWarning)
+
+
+class _SetupJobs:
+    """The jobs a run's executor does while this process checks the inputs and measures the field.
+
+    With an executor (e.g. Dask's): :func:`glaciar.plan.detection_z_limit` (a
+    bisection over the SED, a pure function of the configuration) on one of its
+    workers, which then also imports glaciar before its first task, and ``warm - 1``
+    jobs that set up what a first task needs (:func:`_prewarm`) for other workers.
+    Without one, the z limit is computed here when the manifest asks for it.  (The
+    input check and the preflight ran in a forked helper beside the field's
+    measurement until issue 22; ``benchmarks/setup_helper.py`` of commit faa86f5
+    measured no gain: 0.90x on the demo, 1 and 2 workers.)
+    """
+
+    def __init__(self, cfg: Config, where: cf.Executor | None, warm: int = 1):
+        self.z_limit = None
+        if where is None:
+            return
+        args = (config_to_dict(cfg), str(cfg.base_dir))
+        job = where.submit(_z_limit_job, *args)
+        # Spawned workers import glaciar and set up a field's settings and colour tables
+        # when their first task arrives (~2 s each): jobs that only do that let up to
+        # ``warm`` workers do it now, beside the set-up.
+        for _ in range(max(0, warm - 1)):
+            where.submit(_prewarm, *args)
+        self.z_limit = _Later(self._result, job)
+
+    @staticmethod
+    def _result(job):
+        z_limit, caught = job.result()
+        for message, category in caught:
+            warnings.warn(message, category)
+        return z_limit
+
+
+def prepare_run_dir(cfg: Config, run_dir: Path, seed: int) -> dict:
+    """Create or validate the run directory and return its manifest.
+
+    A store made with other science settings, another seed, changed input
+    files (by content) or an older store format is refused.  A config that
+    only adds (or drops) fields, grid values or iterations is accepted:
+    finished tasks keep their rows, and the manifest and the stored config are
+    updated to describe the run as now configured.  Nothing is created or
+    modified unless every check passes.
+    """
+    manifest, lock = open_run(cfg, Path(run_dir), seed)
+    lock.release()
+    return manifest
