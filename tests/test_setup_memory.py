@@ -80,12 +80,12 @@ def test_sep_extraction_with_a_small_first_pixel_stack_is_unchanged(monkeypatch)
     err = np.ones_like(img)
     nodata = np.zeros(img.shape, bool)
     params = DetectionParams()
-    want_cat, want_seg = detect._sep_extract(img, err, nodata, params, True)
+    want_cat, want_seg = detect.sep_extract(img, err, nodata, params, True)
     stacks = []
     real = sep.set_extract_pixstack
     monkeypatch.setattr(detect.sep, "set_extract_pixstack", lambda n: (stacks.append(n), real(n)))
     monkeypatch.setattr(detect, "PIXSTACK_START", 64)
-    cat, seg = detect._sep_extract(img, err, nodata, params, True)
+    cat, seg = detect.sep_extract(img, err, nodata, params, True)
     assert stacks == [64, img.size + 1024]           # overflowed, retried with the image area
     assert np.array_equal(seg, want_seg) and len(want_cat) >= 3
     for name in ("x", "y", "flux", "a", "b", "theta", "npix"):
@@ -130,7 +130,7 @@ def test_reference_boxes_by_row_tiles_equal_the_full_frame_definition(monkeypatc
     segmentation), taken here on the whole frame at once as the reference."""
     import dataclasses
 
-    from glaciar.engine import clean, measure
+    from glaciar.engine import blocks, clean
     from glaciar.engine.detect import DetectionParams, builtin_filter, detection_rms, sanitize
     from glaciar.engine.measure import reference_extraction
 
@@ -152,7 +152,7 @@ def test_reference_boxes_by_row_tiles_equal_the_full_frame_definition(monkeypatc
     n = int(ref.segmap.max())
     assert n >= 4
     for rows in (1, 2, 7):
-        monkeypatch.setattr(measure, "REFERENCE_TILE_PIXELS", rows * img.shape[1])
+        monkeypatch.setattr(blocks, "REFERENCE_TILE_PIXELS", rows * img.shape[1])
         tiled = reference_extraction(img, rms, params, 25.0)
         assert np.array_equal(tiled.segmap, ref.segmap)
         for i in range(1, n + 1):

@@ -24,7 +24,7 @@ import pandas as pd
 from .. import constants as C
 from .classify import passes_sn
 from .depth import depth_at
-from .detect import DetectionError, _sep_extract, detection_rms, sanitize
+from .detect import DetectionError, sep_extract, detection_rms, sanitize
 from .measure import measure_injected, output_columns
 from .scene import Scene
 
@@ -88,7 +88,7 @@ def _first_positions(ctx, scenes) -> tuple[np.ndarray, np.ndarray]:
     data, err, nodata = sanitize(scenes[ctx.detection_band].full(), ctx.rms[ctx.detection_band],
                                  ctx.mask)
     try:
-        cat, raw = _sep_extract(data, detection_rms(err, nodata, params), nodata, params, False)
+        cat, raw = sep_extract(data, detection_rms(err, nodata, params), nodata, params, False)
     except DetectionError:
         return x, y
     # Photometry is per position: a reference pixel inside a raw object (whose core is

@@ -129,8 +129,15 @@ def sep_filter(data, kernel) -> np.ndarray:
     return np.ascontiguousarray(out.reshape(H, Wp)[:, :W])
 
 
-def threshold_map(err, nodata, detect_thresh) -> np.ndarray:
-    """Per-pixel detection threshold as sep computes it (float32 ``thresh x sigma``).
+def threshold_map(err, nodata, params, y0=None) -> np.ndarray:
+    """Per-pixel detection threshold as sep applies it (float32 ``DETECT_THRESH x sigma``).
+
+    The one definition of the threshold: every path that decides "above threshold"
+    (:func:`detection_mask`, hence the windowed canvases, the reference's region
+    boxes and the task-wide CLEAN; the emulated full-frame CLEAN's ``filtered -
+    threshold`` in :mod:`glaciar.engine.segmentation`; the first-window guess of
+    :func:`glaciar.engine.windows.stamp_half_sizes`) takes it from here, so they
+    agree with sep, and each other, bit for bit.
 
     Parameters
     ----------
@@ -138,15 +145,28 @@ def threshold_map(err, nodata, detect_thresh) -> np.ndarray:
         Per-pixel RMS passed to sep [image units].
     nodata : ndarray of bool
         Pixels sep masks (their noise becomes 1e30, so they are never detected).
-    detect_thresh : float
-        DETECT_THRESH [units of the RMS].
+    params : DetectionParams
+        ``detect_thresh`` [units of the RMS] and ``filter_halfwidth`` [rows].
+    y0 : int, optional
+        Image row of the arrays' first row.  sep masks each row as it reads it
+        into its filter buffer, except the image's first ``filter_halfwidth``
+        rows, read before its loop: there no-data pixels keep the RMS passed
+        (checked against sep in ``tests/test_fullframe_clean.py``).  Given,
+        that quirk is applied; None (arrays that are not rows of the image sep
+        saw from its top, e.g. a canvas of windows) masks every no-data pixel.
 
     Returns
     -------
     ndarray of float32 [image units]
     """
-    e = np.where(nodata, SEP_BIG, np.asarray(err, dtype=np.float32)).astype(np.float32)
-    return (np.float32(detect_thresh) * e).astype(np.float32)
+    nd = np.asarray(nodata, dtype=bool)
+    if y0 is not None:
+        first = params.filter_halfwidth - int(y0)
+        if first > 0 and nd[:first].any():
+            nd = nd.copy()
+            nd[:first] = False
+    e = np.where(nd, SEP_BIG, np.asarray(err, dtype=np.float32)).astype(np.float32)
+    return (np.float32(params.detect_thresh) * e).astype(np.float32)
 
 
 def _matched_filter(data, err, kernel):
@@ -161,8 +181,10 @@ def _matched_filter(data, err, kernel):
         return (num / np.sqrt(den)).astype(np.float32)
 
 
-def detection_mask(data, err, nodata, params):
+def detection_mask(data, err, nodata, params, y0=None):
     """Pixels sep finds above threshold (every connected region, whatever its size).
+
+    The one decision "above threshold" (threshold from :func:`threshold_map`).
 
     Parameters
     ----------
@@ -170,6 +192,8 @@ def detection_mask(data, err, nodata, params):
         Image and RMS as passed to sep [image units] (no-data pixels: data 0).
     nodata : ndarray of bool
     params : DetectionParams
+    y0 : int, optional
+        Image row of the arrays' first row (:func:`threshold_map`).
 
     Returns
     -------
@@ -183,7 +207,7 @@ def detection_mask(data, err, nodata, params):
         The per-pixel threshold.
     """
     data = np.asarray(data, dtype=np.float32)
-    thr = threshold_map(err, nodata, params.detect_thresh)
+    thr = threshold_map(err, nodata, params, y0)
     filt = data if params.filter_kernel is None else sep_filter(data, params.filter_kernel)
     if params.filter_kernel is not None and params.filter_type == "matched":
         e = np.where(nodata, np.inf, np.asarray(err, dtype=np.float64))

@@ -4,7 +4,7 @@
 backend -- glaciar's exact windowed (or full-frame) sep segmentation
 (:mod:`glaciar.engine.windows`) or the SExtractor binary on the full frame
 (:mod:`glaciar.engine.sextractor_backend`) -- and runs classification and
-photometry on the product either returns (:class:`~glaciar.engine.windows.SegmentedBatch`),
+photometry on the product either returns (:class:`~glaciar.engine.segmentation.SegmentedBatch`),
 with the same code for every backend.  :func:`reference_extraction` segments
 and measures the original image once per field.
 
@@ -25,14 +25,14 @@ from scipy import ndimage
 
 from glaciar.constants import COL_FLAGS, FLAG_SATURATED, FLAG_SEP_ERROR, STATUS_NOT_DETECTED, band_column
 from glaciar.engine import clean as _clean
-from glaciar.engine.blocks import row_blocks
+from glaciar.engine.blocks import row_tiles
 from glaciar.engine import localclean as _lc
 from glaciar.engine import photometry as phot
 from glaciar.engine.classify import ClassificationParams, classify, footprint_overlap, select_detection
-from glaciar.engine.detect import DetectionError, DetectionParams, _sep_extract, detection_rms, sanitize
+from glaciar.engine.detect import DetectionError, DetectionParams, sep_extract, detection_rms, sanitize
 from glaciar.engine.scene import Scene
-from glaciar.engine.segmentation import sep_extract_clean, sep_segmentation
-from glaciar.engine.windows import (Canvas, MeasureContext, ObjectBoxes, SegmentedBatch, ellipse_boxes,
+from glaciar.engine.segmentation import SegmentedBatch, sep_extract_clean, sep_segmentation
+from glaciar.engine.windows import (Canvas, MeasureContext, ObjectBoxes, ellipse_boxes,
                                     ellipse_half_extent, safe_shape, segment_full, segment_windowed,
                                     window_groups)
 
@@ -127,7 +127,7 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         # result comes from sep without CLEAN plus glaciar's (sep_extract_clean).
         e = detection_rms(err, nodata, params)
         cat, seg = sep_extract_clean(data, e, nodata, params) if params.clean else \
-            _sep_extract(data, e, nodata, params, False)
+            sep_extract(data, e, nodata, params, False)
         del e
         geo = {f: np.asarray(cat[f], dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}
         return _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, photometry, cat, None)
@@ -158,16 +158,6 @@ def _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, 
     mag, _, _ = phot.magnitudes(flux, np.ones_like(flux), zeropoint)
     region_box, need_box = _reference_boxes(data_det, err_det, nodata_det, seg, geo, a, b, th, scale, params)
     return FieldReference(seg, flux, mag, cat, prod, ObjectBoxes.build(region_box, need_box, seg.shape))
-
-
-#: Pixels per row tile of the reference's full-frame mask work (:func:`_reference_boxes`).
-REFERENCE_TILE_PIXELS = 1 << 22
-
-
-def _row_tiles(shape, halo: int):
-    """(y0, y1, a, b): row tiles [y0, y1) of ``REFERENCE_TILE_PIXELS`` and their rows [a, b)
-    with ``halo`` more rows on each side inside the image."""
-    return row_blocks(shape, REFERENCE_TILE_PIXELS, halo)
 
 
 def _reference_boxes(data, err, nodata, seg, geo, a, b, th, scale, params):
@@ -201,7 +191,7 @@ def _region_boxes(data, err, nodata, seg, params, n):
     obj_label = np.zeros(n + 1, dtype=np.int64)
     join_a, join_b = [], []
     prev_last, offset = None, 0
-    for y0, y1, ya, yb in _row_tiles(seg.shape, params.filter_halfwidth):
+    for y0, y1, ya, yb in row_tiles(seg.shape, params.filter_halfwidth):
         d, e, nd = np.asarray(data[ya:yb], dtype=np.float32), err[ya:yb], nodata[ya:yb]
         m = _clean.detection_mask(d, detection_rms(e, nd, params), nd, params)[0][y0 - ya:y1 - ya]
         s = np.asarray(seg[y0:y1])

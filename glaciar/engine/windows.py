@@ -1,8 +1,8 @@
 """Exact local segmentation of injected sources: windows, growth, re-extraction.
 
 The product every sep mode and the SExtractor backend return
-(:class:`SegmentedBatch`: per source, its detection's label on a canvas, the
-canvas's segmentation, the detection's geometry and Kron scale) is made here;
+(:class:`~glaciar.engine.segmentation.SegmentedBatch`: per source, its detection's label
+on a canvas, the canvas's segmentation, the detection's geometry and Kron scale) is made here;
 classification and photometry on it are :mod:`glaciar.engine.measure`'s.
 
 Windowed detection
@@ -91,11 +91,11 @@ from glaciar.constants import COL_FLAGS, FLAG_SEP_ERROR, FLAG_WINDOW_AT_LIMIT
 from glaciar.engine import clean as _clean
 from glaciar.engine import photometry as phot
 from glaciar.engine.classify import ClassificationParams, input_pixel, select_detection
-from glaciar.engine.detect import DetectionError, DetectionParams, _sep_extract, detection_rms
+from glaciar.engine.detect import DetectionError, DetectionParams, sep_extract, detection_rms
 from glaciar.engine.scene import Scene
-from glaciar.engine.segmentation import isolate_region
+from glaciar.engine.segmentation import SegmentedBatch, isolate_region
 
-__all__ = ["MeasureContext", "SegmentedBatch", "Canvas", "segment_windowed", "segment_full", "pack_windows",
+__all__ = ["MeasureContext", "Canvas", "segment_windowed", "segment_full", "pack_windows",
            "safe_shape", "window_groups", "ellipse_half_extent", "initial_windows", "undetectable", "ObjectBoxes",
            "ellipse_boxes", "label_boxes", "stamp_half_sizes"]
 
@@ -187,69 +187,6 @@ class MeasureContext:
     tclean: object = None
     det_background: np.ndarray | None = None
     ref_objects: "ObjectBoxes | None" = None
-
-
-@dataclass(frozen=True, eq=False)
-class SegmentedBatch:
-    """The exact segmentation of a batch of sources on one canvas (what photometry needs).
-
-    Arrays of length B are per source of the batch (canvas coordinates).
-
-    Attributes
-    ----------
-    canvas : Canvas
-    seg : ndarray of int64
-        Canvas segmentation (canonically deblended, CLEAN applied).
-    seg32 : ndarray of int32
-        ``seg`` with pixels of objects CLEAN removed set to :data:`REMOVED`
-        (masked as neighbours for everyone).
-    label : ndarray of int (B,)
-        Label of each source's detection in ``seg`` (0: none, or not done).
-    x, y, a, b, theta : ndarray (B,)
-        The detection's centroid [canvas pixels] and shape.
-    kron_scale : ndarray (B,)
-        AUTO ellipse scale (Kron factor x radius, at least the minimum radius).
-    src : ndarray of int (B,)
-        Index of each source in the call.
-    src_win : ndarray of int (B,)
-        Its window on the canvas.
-    done : ndarray of bool (B,)
-        Exact: to be measured now (the others grow and are redone).
-    rect : ndarray (B, 4)
-        Its window (y0, y1, x0, x1) [image pixels].
-    wy0, wx0 : ndarray (B,)
-        The window's corner on the canvas.
-    edge : ndarray of bool (B,)
-        Apertures reach the window edge: measured on the window alone.
-    phot_box : ndarray (B, 4)
-        Canvas box photometry reads (AUTO ellipse, apertures).
-    bounds : ndarray (B, 4)
-        The window on the canvas (y0, y1, x0, x1).
-    pix, lab_pix : ndarray
-        ``np.flatnonzero(seg)`` and the labels there.
-    """
-
-    canvas: "Canvas"
-    seg: np.ndarray
-    seg32: np.ndarray
-    label: np.ndarray
-    x: np.ndarray
-    y: np.ndarray
-    a: np.ndarray
-    b: np.ndarray
-    theta: np.ndarray
-    kron_scale: np.ndarray
-    src: np.ndarray
-    src_win: np.ndarray
-    done: np.ndarray
-    rect: np.ndarray
-    wy0: np.ndarray
-    wx0: np.ndarray
-    edge: np.ndarray
-    phot_box: np.ndarray
-    bounds: np.ndarray
-    pix: np.ndarray
-    lab_pix: np.ndarray
 
 
 def segment_full(ctx: MeasureContext, finish: Callable[[MeasureContext, SegmentedBatch], None]):
@@ -432,14 +369,15 @@ def stamp_half_sizes(ctx: MeasureContext):
     ix, iy = input_pixel(ctx.x, ctx.y)
     iy, ix = np.clip(iy, 0, ny - 1), np.clip(ix, 0, nx - 1)
     rms = np.asarray(ctx.det_rms[iy, ix], dtype=np.float64)
-    thresh = float(ctx.params.detect_thresh)
     minarea = int(ctx.params.detect_minarea)
     use = [i for i, t in enumerate(ctx.templates) if t is not None and rms[i] > 0 and t[3] > 0]
     if not use:
         return half
     idx = np.array(use, dtype=np.int64)
-    # pixels above threshold in the unit template: data * flux > thresh * rms
-    tval = thresh * rms[idx] / np.array([ctx.templates[i][3] for i in use], dtype=np.float64)
+    # pixels above threshold in the unit template: data * flux > threshold at the source
+    # (the detection threshold's one definition, at the source's pixel)
+    thr = _clean.threshold_map(rms[idx], np.zeros(idx.size, dtype=bool), ctx.params).astype(np.float64)
+    tval = thr / np.array([ctx.templates[i][3] for i in use], dtype=np.float64)
     # All sources at once on central cut-outs of the templates (zero-padded); those with
     # above-threshold pixels on the cut-out's border are redone alone on larger ones.
     h = _STAMP_CROP
@@ -781,7 +719,7 @@ def _run_canvas(ctx, src, rects, src_win, full, all_rects, finish):
     """Extract one canvas; ``finish`` what is exact, return sources whose window must grow."""
     try:
         canvas = Canvas(ctx, rects, full=full)
-        cat, seg = _sep_extract(canvas.det32, canvas.derr, canvas.nodata, ctx.params, clean=False)
+        cat, seg = sep_extract(canvas.det32, canvas.derr, canvas.nodata, ctx.params, clean=False)
     except DetectionError:
         if len(rects) > 1:   # isolate the failing window(s)
             grow = [_run_canvas(ctx, src[i:i + 1], rects[src_win[i]][None], np.zeros(1, dtype=np.int64),
@@ -798,7 +736,7 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     """Exactness checks, canonical re-extraction and CLEAN on one extracted canvas.
 
     Returns the sources whose window must grow and the batch of the others
-    (:class:`SegmentedBatch`)."""
+    (:class:`~glaciar.engine.segmentation.SegmentedBatch`)."""
     params, cls = ctx.params, ctx.cls
     m = ctx.margin
     ny, nx = ctx.shape
