@@ -26,6 +26,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import inspect
 import tempfile
 import time
@@ -50,7 +51,11 @@ def _bind(args, kwargs):
     sig = inspect.signature(measure_injected)
     b = sig.bind(*args, **kwargs)
     b.apply_defaults()
-    return b.arguments
+    got = dict(b.arguments)
+    setup = got.pop("setup", None)         # the field-constant inputs (MeasureSetup), flattened
+    if setup is not None:
+        got.update({f.name: getattr(setup, f.name) for f in dataclasses.fields(setup)})
+    return got
 
 
 def _sep_detect(data, err, mask, params):

@@ -34,7 +34,7 @@ import sep
 
 from glaciar.engine.classify import ClassificationParams
 from glaciar.engine.detect import DetectionParams, builtin_filter
-from glaciar.engine.measure import measure_injected, reference_extraction
+from glaciar.engine.measure import MeasureSetup, measure_injected, reference_extraction
 from glaciar.engine.scene import Scene
 
 from toy_images import exponential_galaxy
@@ -166,8 +166,10 @@ def _compare(field, params, seed):
     injected = scene.full()
     ref = reference_extraction(img, rms, params, 25.0)
     cls = ClassificationParams(min_sn=MIN_SN)
-    out = measure_injected(scene, rms, {"h": scene}, {"h": rms}, x, y, flux, 25 - 2.5 * np.log10(flux), ref,
-                           params, cls, {"h": 25.0}, {"h": None}, "h", mode="windowed")
+    setup = MeasureSetup(band_rms={"h": rms}, reference=ref, params=params, classification=cls,
+                         zeropoints={"h": 25.0}, gains={"h": None}, detection_band="h")
+    out = measure_injected(setup, scene, rms, {"h": scene}, x, y, flux, 25 - 2.5 * np.log10(flux),
+                           mode="windowed")
     st_g = np.where(out["status"] >= -1, 0, out["status"])
     cat, seg = _plain_sep(injected, rms, params, params.clean)
     st_s, f_s, _ = _reference_status(injected, rms, seg, x, y)
@@ -303,8 +305,10 @@ def test_region_clean_never_acts_across_regions(field, minarea):
     # the reference is plain sep with CLEAN as configured, label for label
     _, seg_ref = _plain_sep(img, rms, params, True)
     assert np.array_equal(ref.segmap, seg_ref)
-    out = measure_injected(scene, rms, {"h": scene}, {"h": rms}, x, y, flux, 25 - 2.5 * np.log10(flux), ref,
-                           params, ClassificationParams(min_sn=MIN_SN), {"h": 25.0}, {"h": None}, "h")
+    setup = MeasureSetup(band_rms={"h": rms}, reference=ref, params=params,
+                         classification=ClassificationParams(min_sn=MIN_SN), zeropoints={"h": 25.0},
+                         gains={"h": None}, detection_band="h")
+    out = measure_injected(setup, scene, rms, {"h": scene}, x, y, flux, 25 - 2.5 * np.log10(flux))
     st_g = np.where(out["status"] >= -1, 0, out["status"])
     _, seg_off = _plain_sep(injected, rms, params, False)
     st_s, f_s, _ = _reference_status(injected, rms, seg_off, x, y)

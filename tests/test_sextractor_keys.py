@@ -19,7 +19,7 @@ from glaciar.constants import FLAG_NO_DATA, FLAG_SATURATED, FLAG_SEP_ERROR, FLAG
 from glaciar.engine import photometry as phot
 from glaciar.engine.classify import ClassificationParams
 from glaciar.engine.detect import DetectionParams
-from glaciar.engine.measure import measure_injected, reference_extraction
+from glaciar.engine.measure import MeasureSetup, measure_injected, reference_extraction
 from glaciar.engine.scene import Scene
 from glaciar.run import _detection_params
 
@@ -155,10 +155,11 @@ def _measure(params, background=None, det_background=None, mode="windowed"):
         assert ref.segmap.max() == 0                  # the pedestal alone is not detected
     y0, x0, stamp = _gauss()
     scene = Scene(base, [(y0, x0, stamp)])
-    out = measure_injected(scene, rms, {"h": scene}, {"h": rms}, np.array([float(C)]), np.array([float(C)]),
-                           np.array([F]), np.array([25.0 - 2.5 * np.log10(F)]), ref, params,
-                           ClassificationParams(), {"h": 25.0}, {"h": None}, "h", mode=mode,
-                           det_background=det_background)
+    setup = MeasureSetup(band_rms={"h": rms}, reference=ref, params=params,
+                         classification=ClassificationParams(), zeropoints={"h": 25.0}, gains={"h": None},
+                         detection_band="h", det_background=det_background)
+    out = measure_injected(setup, scene, rms, {"h": scene}, np.array([float(C)]), np.array([float(C)]),
+                           np.array([F]), np.array([25.0 - 2.5 * np.log10(F)]), mode=mode)
     return out, base, stamp
 
 
@@ -377,12 +378,13 @@ def test_windowed_equals_full_frame_with_the_keys(keys):
     xs, ys, flux, st = _stamps(np.random.default_rng(8))
     det = Scene(sub, st)
     bands = {"h": det, "j": Scene(0.7 * sub, [(a, b, 0.5 * d) for a, b, d in st])}
-    kw = dict(det_rms=rms, band_scenes=bands, band_rms={"h": rms, "j": 1.3 * rms}, x=xs, y=ys,
-              input_flux_det=flux, input_mag_det=25.0 - 2.5 * np.log10(flux), reference=ref, params=params,
-              classification=ClassificationParams(), zeropoints={"h": 25.0, "j": 26.0},
-              gains={"h": None, "j": 2.0}, detection_band="h", det_background=back)
-    w = measure_injected(det, mode="windowed", **kw)
-    f = measure_injected(det, mode="full", **kw)
+    setup = MeasureSetup(band_rms={"h": rms, "j": 1.3 * rms}, reference=ref, params=params,
+                         classification=ClassificationParams(), zeropoints={"h": 25.0, "j": 26.0},
+                         gains={"h": None, "j": 2.0}, detection_band="h", det_background=back)
+    kw = dict(det_rms=rms, band_scenes=bands, x=xs, y=ys, input_flux_det=flux,
+              input_mag_det=25.0 - 2.5 * np.log10(flux))
+    w = measure_injected(setup, det, mode="windowed", **kw)
+    f = measure_injected(setup, det, mode="full", **kw)
     assert (w["detection_id"] > 0).sum() > 50
     for c in w:
         if c == "detection_id":

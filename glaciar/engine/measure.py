@@ -36,8 +36,8 @@ from glaciar.engine.windows import (Canvas, MeasureContext, ObjectBoxes, ellipse
                                     ellipse_half_extent, safe_shape, segment_full, segment_windowed,
                                     window_groups)
 
-__all__ = ["FieldReference", "reference_extraction", "measure_injected", "output_columns",
-           "total_magnitudes"]
+__all__ = ["FieldReference", "MeasureSetup", "reference_extraction", "measure_injected",
+           "output_columns", "total_magnitudes"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -245,40 +245,80 @@ def output_columns(bands, n_apertures: int) -> list[str]:
     return cols
 
 
-def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping[str, Scene],
-                     band_rms: Mapping[str, np.ndarray], x: np.ndarray, y: np.ndarray,
-                     input_flux_det: np.ndarray, input_mag_det: np.ndarray,
-                     reference: FieldReference, params: DetectionParams,
-                     classification: ClassificationParams, zeropoints: Mapping[str, float],
-                     gains: Mapping[str, float | None], detection_band: str,
-                     mask: np.ndarray | None = None, mode: str = "windowed",
-                     diagnostics: dict | None = None, input_templates=None,
-                     noise_models: Mapping | None = None,
-                     det_background: np.ndarray | None = None,
+@dataclass(frozen=True, eq=False)
+class MeasureSetup:
+    """What every :func:`measure_injected` call on one field shares (read only).
+
+    Attributes
+    ----------
+    band_rms : mapping band -> ndarray
+        RMS map of every measured band, the detection band included [image units].
+    reference : FieldReference
+        Original-image extraction of this field.
+    params : DetectionParams
+    classification : ClassificationParams
+    zeropoints : mapping band -> float
+        AB zeropoints [mag].
+    gains : mapping band -> float or None
+        Gains [e-/image unit] (None: no Poisson term).
+    detection_band : str
+    mask : ndarray of bool, optional
+        True where there are no data (all bands).
+    noise_models : mapping band -> glaciar.engine.noise.CorrelatedNoise, optional
+        Correlated-noise models: the background variance of every ISO,
+        aperture and AUTO error in that band is scaled by ``r(N)^2``.
+    det_background : ndarray, optional
+        Background map of the detection band [image units] (what was
+        subtracted from its image): a detection is flagged
+        ``FLAG_SATURATED`` when its peak plus the background at its centre
+        reaches ``params.satur_level`` (SExtractor's rule); None = 0.
+    """
+
+    band_rms: Mapping[str, np.ndarray]
+    reference: FieldReference
+    params: DetectionParams
+    classification: ClassificationParams
+    zeropoints: Mapping[str, float]
+    gains: Mapping[str, float | None]
+    detection_band: str
+    mask: np.ndarray | None = None
+    noise_models: Mapping | None = None
+    det_background: np.ndarray | None = None
+
+    @classmethod
+    def of_field(cls, ctx) -> "MeasureSetup":
+        """The setup of a :class:`~glaciar.engine.context.FieldContext` (tasks and the
+        catalogue measure with the same one)."""
+        return cls(band_rms=ctx.rms, reference=ctx.reference, params=ctx.detection_params,
+                   classification=ctx.classification_params, zeropoints=ctx.zeropoints,
+                   gains=ctx.gains, detection_band=ctx.detection_band, mask=ctx.mask,
+                   noise_models=getattr(ctx, "noise_models", None),
+                   det_background=getattr(ctx, "detection_background", None))
+
+
+def measure_injected(setup: MeasureSetup, det_scene: Scene, det_rms: np.ndarray,
+                     band_scenes: Mapping[str, Scene], x: np.ndarray, y: np.ndarray,
+                     input_flux_det: np.ndarray, input_mag_det: np.ndarray, *,
+                     mode: str = "windowed", diagnostics: dict | None = None, input_templates=None,
                      early_exit: bool = True) -> dict[str, np.ndarray]:
     """Detect, classify and measure N injected sources.
 
     Parameters
     ----------
+    setup : MeasureSetup
+        The field's RMS maps, reference extraction, settings, zeropoints, gains,
+        mask, noise models and detection background.
     det_scene : Scene
         Background-subtracted original detection image + injected stamps.
     det_rms : ndarray
         RMS of the original detection image [image units] (detection threshold
         and ISO errors).
-    band_scenes, band_rms : mapping band -> Scene / ndarray
+    band_scenes : mapping band -> Scene
         Every measured band, the detection band included.
     x, y : array of float, shape (N,)
         Input positions, 0-based pixels (x along numpy axis 1).
     input_flux_det, input_mag_det : array, shape (N,)
         Total input flux [image units] and AB magnitude in the detection band.
-    reference : FieldReference
-        Original-image extraction of this field.
-    params : DetectionParams
-    classification : ClassificationParams
-    zeropoints, gains : mapping band -> float / float or None
-    detection_band : str
-    mask : ndarray of bool, optional
-        True where there are no data (all bands).
     mode : {"windowed", "full", "source-extractor"}
         ``full`` extracts the whole injected image once (validation);
         ``source-extractor`` (or ``params.backend="source-extractor"``, which
@@ -298,14 +338,6 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         compares the detection's AUTO flux with this template's flux through
         the same Kron ellipse and masks (column ``flux_auto_template``; see
         :mod:`glaciar.engine.classify`).
-    noise_models : mapping band -> glaciar.engine.noise.CorrelatedNoise, optional
-        Correlated-noise models: the background variance of every ISO,
-        aperture and AUTO error in that band is scaled by ``r(N)^2``.
-    det_background : ndarray, optional
-        Background map of the detection band [image units] (what was
-        subtracted from its image): a detection is flagged
-        ``FLAG_SATURATED`` when its peak plus the background at its centre
-        reaches ``params.satur_level`` (SExtractor's rule); None = 0.
     early_exit : bool
         Windowed mode: sources with no above-threshold pixel in their search
         box are reported as not detected without an extraction
@@ -319,6 +351,10 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         undetected sources; ``detection_id`` is the label of the detection in
         this call's extraction (0 = none; not comparable between modes).
     """
+    band_rms, reference, params = setup.band_rms, setup.reference, setup.params
+    classification, zeropoints, gains = setup.classification, setup.zeropoints, setup.gains
+    detection_band, mask = setup.detection_band, setup.mask
+    noise_models, det_background = setup.noise_models, setup.det_background
     if mode not in ("windowed", "full", "source-extractor"):
         raise ValueError(f"mode must be 'windowed', 'full' or 'source-extractor', got {mode!r}")
     bands = list(band_scenes)
