@@ -219,7 +219,7 @@ def test_sep_photometry_of_float32_images_is_that_of_their_float64_copies(gain):
         want = sep.kron_radius(i64, x, y, a, b, th, 6.0, mask=nodata, segmap=seg, seg_id=ids)[0]
         assert np.array_equal(kr, want, equal_nan=True)
         scale = phot.auto_scale(kr, (2.5, 3.5))
-        f, fe = phot.auto_photometry(data, rms, x, y, a, b, th, scale, gain=gain, segmap=seg,
+        f, fe = phot.auto_photometry(data, rms, phot.Ellipses(x, y, a, b, th, scale), gain=gain, segmap=seg,
                                      seg_id=ids, mask=nodata)
         wf, wfe, _ = sep.sum_ellipse(i64, x, y, a, b, th, scale, err=r64, mask=nodata, gain=gain,
                                      subpix=0, segmap=seg, seg_id=ids)

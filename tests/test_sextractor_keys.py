@@ -210,8 +210,9 @@ def _neighbour_scene():
 
 
 def _aper(img, seg, nodata, mask_type, r=10.0):
-    fa, fea, _, _ = phot.sextractor_photometry(img, np.ones_like(img), seg, [1], nodata, [30.0], [30.0],
-                                               [1.0], [1.0], [0.0], [3.5], [2 * r], mask_type)
+    fa, fea, _, _ = phot.sextractor_photometry(img, np.ones_like(img), seg, [1], nodata,
+                                               phot.Ellipses([30.0], [30.0], [1.0], [1.0], [0.0], [3.5]),
+                                               [2 * r], mask_type)
     return fa[0, 0], fea[0, 0]
 
 
@@ -342,8 +343,8 @@ def test_against_sextractor(tmp_path):
     for m in ("NONE", "BLANK", "CORRECT"):
         cat, _ = _run_sextractor(tmp_path, img, BACKPHOTO_TYPE="GLOBAL", MASK_TYPE=m)
         fa, _, _, _ = phot.sextractor_photometry(img, np.full(img.shape, 0.05), seg, cat[:, 0].astype(int), None,
-                                                 cat[:, 1] - 1, cat[:, 2] - 1, 1.0, 1.0, 0.0, 3.5, [16.0],
-                                                 m.lower())
+                                                 phot.Ellipses(cat[:, 1] - 1, cat[:, 2] - 1, 1.0, 1.0, 0.0, 3.5),
+                                                 [16.0], m.lower())
         assert fa[0, iso] == pytest.approx(cat[iso, 8], rel=1e-3), m
         assert np.allclose(fa[0], cat[:, 8], rtol=1.5e-2), (m, fa[0], cat[:, 8])
     # SATUR_LEVEL: FLAGS bit 4 exactly where the peak reaches the level

@@ -153,7 +153,7 @@ def _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, 
     data_det, err_det, nodata_det = data, err, nodata
     if photometry is not None:
         data, err, nodata = sanitize(photometry[0], photometry[1], mask)
-    flux, _ = phot.auto_photometry(data, err, geo["x"], geo["y"], a, b, th, scale,
+    flux, _ = phot.auto_photometry(data, err, phot.Ellipses(geo["x"], geo["y"], a, b, th, scale),
                                    segmap=seg, seg_id=ids, mask=nodata)
     mag, _, _ = phot.magnitudes(flux, np.ones_like(flux), zeropoint)
     region_box, need_box = _reference_boxes(data_det, err_det, nodata_det, seg, geo, a, b, th, scale, params)
@@ -577,7 +577,7 @@ def _finish(ctx: MeasureContext, batch: SegmentedBatch):
         if params.mask_type is not None and jd.size:
             r = pos[jd]
             fa[:, r], fea[:, r], fau[r], feau[r] = phot.sextractor_photometry(
-                data, rms, pseg32, lab[r], bad, xs[jd], ys[jd], a[jd], b[jd], th[jd], scale[jd],
+                data, rms, pseg32, lab[r], bad, phot.Ellipses(xs[jd], ys[jd], a[jd], b[jd], th[jd], scale[jd]),
                 params.phot_apertures, params.mask_type, gain=gain, dbkg=dbkg, bounds=bounds[jd],
                 noise=noise)
         else:
@@ -587,8 +587,8 @@ def _finish(ctx: MeasureContext, batch: SegmentedBatch):
                 fa[:, r], fea[:, r] = phot.aperture_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy,
                                                                params.phot_apertures, gain=gain, mask=bad[sl],
                                                                noise=noise)
-                fau[r], feau[r] = phot.auto_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy, a[j], b[j],
-                                                       th[j], scale[j], gain=gain, segmap=pseg32[sl],
+                ell = phot.Ellipses(xs[j] - ox, ys[j] - oy, a[j], b[j], th[j], scale[j])
+                fau[r], feau[r] = phot.auto_photometry(data[sl], rms[sl], ell, gain=gain, segmap=pseg32[sl],
                                                        seg_id=lab[r], mask=bad[sl], noise=noise)
             if dbkg is not None:
                 # sep's sums stand for the whole aperture inside the image (masked pixels are
@@ -627,8 +627,7 @@ def _finish(ctx: MeasureContext, batch: SegmentedBatch):
                                 ys[jd] - wy0[jd] + rect[jd, 0])
             # The status-2 flux test: AUTO flux vs the injected template through the same ellipse.
             auto_det = fau
-            tpl_det = _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scale,
-                                          rect, wy0, wx0, edge, src_win, rms, bad)
+            tpl_det = _template_auto_flux(ctx, batch, lab, idx, di, s, rms, bad)
     with np.errstate(divide="ignore", invalid="ignore"):
         sn_det = flux_sn / err_sn
     bmag = np.full(lab.size, np.nan)
@@ -678,8 +677,7 @@ def _input_templates(det_scene, templates, n):
     return templates
 
 
-def _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scale, rect, wy0, wx0, edge,
-                        src_win, rms, bad):
+def _template_auto_flux(ctx, batch: SegmentedBatch, lab, idx, di, s, rms, bad):
     """AUTO flux of each finished source's own noiseless template (NaN if undetected).
 
     Each template is pasted alone into a zero canvas (clipped to its window,
@@ -687,7 +685,14 @@ def _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scal
     neighbour segments and no-data mask, exactly as its data were: so a
     windowed and a full-frame extraction give the same value, and other
     injected sources never enter it.
+
+    ``lab``, ``idx``, ``di``, ``s``: as in :func:`_finish` (labels, canvas source indices,
+    detected rows and call source indices of the finished sources); ``rms``, ``bad``: the
+    detection band's RMS and no-data mask on the canvas.
     """
+    cv, pseg32, xs, ys = batch.canvas, batch.seg32, batch.x, batch.y
+    a, b, th, scale = batch.a, batch.b, batch.theta, batch.kron_scale
+    rect, wy0, wx0, edge, src_win = batch.rect, batch.wy0, batch.wx0, batch.edge, batch.src_win
     out = np.full(lab.size, np.nan)
     tcv = np.zeros(cv.shape)
     pos = np.full(src_win.size, -1, dtype=np.int64)      # canvas source index -> row of lab
@@ -701,9 +706,9 @@ def _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scal
         # mix them: one source at a time then.
         jl = jj.tolist()
         batches = [jl] if np.unique(src_win[jj]).size == jj.size else [[j] for j in jl]
-        for batch in batches:
+        for group in batches:
             pasted, boxes = [], []
-            for j in batch:
+            for j in group:
                 r = pos[j]
                 t = ctx.templates[s[r]]
                 if t is None:
@@ -728,12 +733,13 @@ def _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scal
             if params.mask_type is not None:
                 bnd = np.stack([wy0[j], wy0[j] + rect[j, 1] - rect[j, 0], wx0[j], wx0[j] + rect[j, 3] - rect[j, 2]],
                                axis=1)
-                out[r] = phot.sextractor_photometry(tcv, rms, pseg32, lab[r], bad, xs[j], ys[j], a[j], b[j], th[j],
-                                                    scale[j], params.phot_apertures, params.mask_type,
-                                                    bounds=bnd)[2]
+                ell = phot.Ellipses(xs[j], ys[j], a[j], b[j], th[j], scale[j])
+                out[r] = phot.sextractor_photometry(tcv, rms, pseg32, lab[r], bad, ell, params.phot_apertures,
+                                                    params.mask_type, bounds=bnd)[2]
             else:
-                out[r], _ = phot.auto_photometry(tcv[sl], rms[sl], xs[j] - ox, ys[j] - oy, a[j], b[j], th[j],
-                                                 scale[j], segmap=pseg32[sl], seg_id=lab[r], mask=bad[sl])
+                ell = phot.Ellipses(xs[j] - ox, ys[j] - oy, a[j], b[j], th[j], scale[j])
+                out[r], _ = phot.auto_photometry(tcv[sl], rms[sl], ell, segmap=pseg32[sl], seg_id=lab[r],
+                                                 mask=bad[sl])
             for box in boxes:
                 tcv[box] = 0.0
     return out

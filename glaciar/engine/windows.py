@@ -82,7 +82,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Mapping
+from typing import Callable, Mapping, NamedTuple
 
 import numpy as np
 from scipy import ndimage
@@ -871,9 +871,9 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     # ---- CLEAN: glaciar's (sep's test and order, exact in any window; see localclean)
     if ctx.tclean is not None:
         zone = np.stack([lo_y, hi_y, lo_x, hi_x], axis=1)
-        pseg, next_label = _clean_stage(ctx, cv, comp, cb, seg2comp, segs_per_comp, cat, pseg, tab, next_label,
-                                        src, rect, wy0, wx0, bounds, zone, icx, icy, grow, sep_failed, fail,
-                                        need_l)
+        pseg, next_label = _clean_stage(ctx, cv, _CanvasRegions(comp, cb, seg2comp, segs_per_comp, cat, tab),
+                                        _SourceWindows(rect, wy0, wx0, bounds, zone, icx, icy), pseg,
+                                        next_label, grow, sep_failed, fail, need_l)
     tab.pop("iso")
     tab = {f: np.concatenate(v) for f, v in tab.items()}
 
@@ -974,8 +974,31 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     return np.array(regrow, dtype=np.int64), batch
 
 
-def _clean_stage(ctx, cv, comp, cb, seg2comp, segs_per_comp, cat, pseg, tab, next_label, src, rect, wy0, wx0,
-                 bounds, zone, icx, icy, grow, sep_failed, fail, need_l):
+class _CanvasRegions(NamedTuple):
+    """An extracted canvas's regions and segments, as :func:`_analyse` builds them."""
+
+    comp: np.ndarray            #: region label of every canvas pixel (8-connected, every region)
+    boxes: np.ndarray           #: (ncomp + 1, 4) box of each region (row 0: background)
+    seg2comp: np.ndarray        #: region of each sep segment (index = segment label)
+    segs_per_comp: np.ndarray   #: number of sep segments in each region
+    cat: np.ndarray             #: sep's catalogue of the canvas
+    tab: dict                   #: segment table (:func:`_segment_table`), grown by :func:`_isolate`
+
+
+class _SourceWindows(NamedTuple):
+    """Per source of a canvas (arrays of length B), its window (see :func:`_analyse`)."""
+
+    rect: np.ndarray            #: (B, 4) window y0, y1, x0, x1 [image pixels]
+    wy0: np.ndarray             #: window corner on the canvas [canvas pixels]
+    wx0: np.ndarray
+    bounds: np.ndarray          #: (B, 4) the window on the canvas
+    zone: np.ndarray            #: (B, 4) its exact zone on the canvas (lo_y, hi_y, lo_x, hi_x)
+    icx: np.ndarray             #: input pixel on the canvas [canvas pixels]
+    icy: np.ndarray
+
+
+def _clean_stage(ctx, cv, regions: _CanvasRegions, wins: _SourceWindows, pseg, next_label, grow, sep_failed,
+                 fail, need_l):
     """Relabel what each source's search box shows as the full frame's CLEAN leaves it.
 
     Every object with a pixel in a source's search box takes the label of the
@@ -988,6 +1011,8 @@ def _clean_stage(ctx, cv, comp, cb, seg2comp, segs_per_comp, cat, pseg, tab, nex
 
     Returns the relabelled ``pseg`` and the next free label.
     """
+    comp, cb, seg2comp, segs_per_comp, cat, tab = regions
+    rect, wy0, wx0, bounds, zone, icx, icy = wins
     tc = ctx.tclean
     ny, nx = ctx.shape
     ncomp = cb.shape[0] - 1
