@@ -51,7 +51,7 @@ from scipy import ndimage
 
 __all__ = ["sep_kernel", "sep_filter", "threshold_map", "detection_mask", "lutz_regions", "lutz_one",
            "heap_mthresh", "child_pixel_orders", "CleanObjects", "clean_objects", "eats",
-           "sep_clean", "sep_clean_bounded", "sextractor_clean", "zone_pairs", "in_zone", "light_objects", "profile_value", "final_owner", "CLEAN_ZONE"]
+           "abcor", "sep_clean", "sep_clean_bounded", "sextractor_clean", "zone_pairs", "in_zone", "light_objects", "profile_value", "final_owner", "CLEAN_ZONE"]
 
 #: sep's CLEAN_ZONE: pairs further apart than CLEAN_ZONE (a1 + a2) are not compared
 CLEAN_ZONE = 10.0
@@ -712,7 +712,7 @@ def clean_objects(cat, orders, data_flat, filt_flat, thr_flat, minarea: int) -> 
     tpix = (np.asarray(filt_flat, dtype=np.float32)[allpix] - thr_all).astype(np.float32)
     bounds = np.r_[0, np.cumsum(lens)]
     mth = np.array([heap_mthresh(tpix[bounds[i]:bounds[i + 1]], minarea) for i in range(n)], dtype=np.float32)
-    ab = _abcor(th, thresh2, area2, cat["tnpix"], a, b)
+    ab = abcor(th, thresh2, area2, cat["tnpix"], a, b)
     return CleanObjects(x=np.asarray(cat["x"], dtype=np.float64), y=np.asarray(cat["y"], dtype=np.float64),
                         a=a, b=b, cxx=np.asarray(cat["cxx"], dtype=np.float32),
                         cyy=np.asarray(cat["cyy"], dtype=np.float32), cxy=np.asarray(cat["cxy"], dtype=np.float32),
@@ -720,7 +720,7 @@ def clean_objects(cat, orders, data_flat, filt_flat, thr_flat, minarea: int) -> 
                         npix=np.asarray(cat["npix"], dtype=np.int64), abcor=ab, mthresh=mth, tmin=tmin)
 
 
-def _abcor(th, thresh2, area2, tnpix, a, b) -> np.ndarray:
+def abcor(th, thresh2, area2, tnpix, a, b) -> np.ndarray:
     """sep's/SExtractor's CLEAN profile correction ``abcor`` (float32), from the area
     above half-way between threshold and peak: the one copy both input builders use."""
     darea = area2 - np.asarray(tnpix, dtype=np.float64)
@@ -773,7 +773,7 @@ def light_objects(cat, lseg, data, filt, thr):
     thresh2 = (th.astype(np.float64) + peak.astype(np.float64)) / 2.0
     val = np.asarray(data, dtype=np.float32).ravel()[pix].astype(np.float64)
     area2 = np.bincount(li, weights=(val > thresh2[li]).astype(np.float64), minlength=n)
-    ab = _abcor(th, thresh2, area2, cat["tnpix"], a, b)
+    ab = abcor(th, thresh2, area2, cat["tnpix"], a, b)
     objs = CleanObjects(x=np.asarray(cat["x"], dtype=np.float64), y=np.asarray(cat["y"], dtype=np.float64),
                         a=a, b=b, cxx=np.asarray(cat["cxx"], dtype=np.float32),
                         cyy=np.asarray(cat["cyy"], dtype=np.float32), cxy=np.asarray(cat["cxy"], dtype=np.float32),

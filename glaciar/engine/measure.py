@@ -667,9 +667,7 @@ def _flag_saturated(ctx, data, pix, lab_all, lab, di, s, x_img, y_img):
 def _input_templates(det_scene, templates, n):
     """Per-source (y0, x0, data, flux) of the injected detection-band stamps (see measure_injected)."""
     if templates is None:
-        # A Scene keeps each stamp's flux factor (None: pre-multiplied); one stamp per source.
-        templates = [(y0, x0, d, 1.0 if f is None else f)
-                     for (y0, x0, d), f in zip(det_scene.stamps, det_scene._flux)]
+        templates = det_scene.templates()          # one stamp per source
     templates = list(templates)
     if len(templates) != n:
         raise ValueError(f"input_templates (default: the detection scene's stamps) has "

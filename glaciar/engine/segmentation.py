@@ -554,7 +554,7 @@ def _tiled_light_objects(data, err, nodata, seg, cat, params: DetectionParams):
     hi[small] = 0.0
     a = np.asarray(cat["a"], dtype=np.float32)
     b = np.asarray(cat["b"], dtype=np.float32)
-    ab = cl._abcor(th, thresh2, area2, cat["tnpix"], a, b)
+    ab = cl.abcor(th, thresh2, area2, cat["tnpix"], a, b)
     objs = cl.CleanObjects(x=np.asarray(cat["x"], dtype=np.float64), y=np.asarray(cat["y"], dtype=np.float64),
                            a=a, b=b, cxx=np.asarray(cat["cxx"], dtype=np.float32),
                            cyy=np.asarray(cat["cyy"], dtype=np.float32),
