@@ -39,7 +39,7 @@ from glaciar.config import load_config
 from glaciar.constants import STATUS_NOT_DETECTED
 from glaciar.demo import build_demo_survey
 from glaciar.engine.measure import measure_injected
-from glaciar.engine.windows import pack_windows
+from glaciar.engine.canvas import pack_windows
 from glaciar.run import build_field_context, plan_tasks
 from glaciar.survey import Survey
 

@@ -181,7 +181,8 @@ def test_early_exit_is_exact_and_only_skips_sources_without_above_threshold_pixe
 
 
 def test_initial_windows_hold_the_neighbours_a_source_may_touch():
-    from glaciar.engine.windows import _OWN_HALF, ObjectBoxes, initial_windows
+    from glaciar.engine.canvas import ObjectBoxes
+    from glaciar.engine.windows import _OWN_HALF, initial_windows
 
     params = DetectionParams()
     margin = params.filter_halfwidth + 1
@@ -214,7 +215,7 @@ def test_initial_windows_hold_the_neighbours_a_source_may_touch():
 
 def test_object_boxes_candidates_hold_every_meeting_box():
     """The grid index returns every object whose box meets a query box (brute force)."""
-    from glaciar.engine.windows import ObjectBoxes
+    from glaciar.engine.canvas import ObjectBoxes
 
     rng = np.random.default_rng(5)
     shape = (700, 900)

@@ -31,7 +31,7 @@ import numpy as np
 
 from glaciar.engine import clean as cl
 from glaciar.engine.detect import DetectionParams, sep_extract, detection_rms, sanitize
-from glaciar.engine.windows import label_boxes, pack_windows
+from glaciar.engine.canvas import label_boxes, pack_windows
 
 __all__ = ["TaskClean", "task_clean", "influence_boxes", "stamp_boxes"]
 
@@ -326,7 +326,7 @@ def task_clean(det_scene, det_rms, params: DetectionParams, ref=None, mask=None,
         True where there are no data.
     isolated : dict, optional
         Cache of isolated extractions keyed by (image box of the cut-out,
-        region pixels), shared with :func:`glaciar.engine.windows._isolate`.
+        region pixels), shared with the windows' canonical re-extraction (:mod:`glaciar.engine.windows`).
 
     Returns
     -------

@@ -26,15 +26,15 @@ from scipy import ndimage
 from glaciar.constants import COL_FLAGS, FLAG_SATURATED, FLAG_SEP_ERROR, STATUS_NOT_DETECTED, band_column
 from glaciar.engine import clean as _clean
 from glaciar.engine.blocks import row_tiles
+from glaciar.engine.canvas import (Canvas, MeasureContext, ObjectBoxes, ellipse_boxes, ellipse_half_extent,
+                                   safe_shape, window_groups)
 from glaciar.engine import localclean as _lc
 from glaciar.engine import photometry as phot
 from glaciar.engine.classify import ClassificationParams, classify, footprint_overlap, select_detection
 from glaciar.engine.detect import DetectionError, DetectionParams, sep_extract, detection_rms, sanitize
 from glaciar.engine.scene import Scene
 from glaciar.engine.segmentation import SegmentedBatch, sep_extract_clean, sep_segmentation
-from glaciar.engine.windows import (Canvas, MeasureContext, ObjectBoxes, ellipse_boxes,
-                                    ellipse_half_extent, safe_shape, segment_full, segment_windowed,
-                                    window_groups)
+from glaciar.engine.windows import segment_full, segment_windowed
 
 __all__ = ["FieldReference", "MeasureSetup", "reference_extraction", "measure_injected",
            "output_columns", "total_magnitudes"]

@@ -134,7 +134,7 @@ class SegmentedBatch:
 
     Attributes
     ----------
-    canvas : glaciar.engine.windows.Canvas
+    canvas : glaciar.engine.canvas.Canvas
     seg : ndarray of int64
         Canvas segmentation (canonically deblended, CLEAN applied).
     seg32 : ndarray of int32
