@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from glaciar.engine import clean as cl
+from glaciar.engine import sepscan
 from glaciar.engine import segmentation as sg
 from glaciar.engine.detect import SEP_OBJ_MERGED, DetectionParams, sep_extract, detection_rms, sanitize
 from glaciar.engine.measure import reference_extraction
@@ -223,18 +224,18 @@ def test_exact_mthresh_paths_equal_full_frame_scan(field):
     params = DetectionParams(detect_thresh=0.5, detect_minarea=5, deblend_mincont=0.005, clean=True)
     data, err, nodata = _inputs(field, params)
     cat0, seg0 = sep_extract(data, err, nodata, params, False)
-    mask, filt, thr = cl.detection_mask(data, err, nodata, params)
+    mask, filt, thr = sepscan.detection_mask(data, err, nodata, params)
     sf = seg0.ravel()
     tp = (filt - thr).astype(np.float32).ravel()
     full = {}
-    for pix, _, _ in cl.lutz_regions(mask, params.detect_minarea):
+    for pix, _, _ in sepscan.lutz_regions(mask, params.detect_minarea):
         labs = np.unique(sf[pix][sf[pix] > 0])
         if labs.size == 1:
-            full[int(labs[0]) - 1] = cl.heap_mthresh(tp[pix], params.detect_minarea)
+            full[int(labs[0]) - 1] = sepscan.heap_mthresh(tp[pix], params.detect_minarea)
         elif labs.size > 1:
-            for lab, o in cl.child_pixel_orders(pix, data.shape[1], sf, filt.ravel(), labs.tolist(),
+            for lab, o in sepscan.child_pixel_orders(pix, data.shape[1], sf, filt.ravel(), labs.tolist(),
                                                 cat0["thresh"][labs[0] - 1], params.deblend_nthresh).items():
-                full[lab - 1] = cl.heap_mthresh(tp[o], params.detect_minarea)
+                full[lab - 1] = sepscan.heap_mthresh(tp[o], params.detect_minarea)
     merged = (cat0["flag"] & SEP_OBJ_MERGED) != 0
     single = np.flatnonzero(~merged)
     asked = single[::3]                                   # a subset: nothing else may be returned
@@ -251,7 +252,7 @@ def test_exact_mthresh_paths_equal_full_frame_scan(field):
 @pytest.mark.parametrize("kernel", ["gauss_2.0_3x3", "gauss_2.0_5x5", "gauss_3.0_7x7"])
 def test_sep_leaves_first_rows_unmasked(kernel):
     """sep's detections on a noisy image with a fifth of the pixels masked are exactly the
-    pixels clean.detection_mask finds above threshold given the image row y0: masked pixels never detected, except in
+    pixels sepscan.detection_mask finds above threshold given the image row y0: masked pixels never detected, except in
     the first filter_halfwidth rows, where those above the RMS passed are (the case exists here)."""
     from glaciar.engine.detect import builtin_filter
 
@@ -264,10 +265,10 @@ def test_sep_leaves_first_rows_unmasked(kernel):
     d[nodata] = 0.0
     err = np.ones_like(d)
     _, seg = sep_extract(d, err, nodata, p, False)
-    above = cl.detection_mask(d, err, nodata, p, y0=0)[0]   # the one "above threshold"
+    above = sepscan.detection_mask(d, err, nodata, p, y0=0)[0]   # the one "above threshold"
     assert np.array_equal(seg > 0, above)
     hw = p.filter_halfwidth
     assert (above & nodata)[:hw].any() and not (above & nodata)[hw:].any()
     # the same rows of a tile starting lower down are masked
-    assert np.array_equal(cl.threshold_map(err[5:], nodata[5:], p, y0=5),
-                          cl.threshold_map(err[5:], nodata[5:], p))
+    assert np.array_equal(sepscan.threshold_map(err[5:], nodata[5:], p, y0=5),
+                          sepscan.threshold_map(err[5:], nodata[5:], p))

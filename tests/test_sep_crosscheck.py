@@ -232,6 +232,7 @@ def test_clean_emulation_survivors_are_seps(field, deblend_mincont, beta):
     with CLEAN on keeps: detection mask, scan order, pixel-list order (mthresh with its heap
     quirks), the absorption test and sep's sequential loop, bit for bit."""
     from glaciar.engine import clean as cl
+    from glaciar.engine import sepscan
 
     img, rms, _ = field
     p = DetectionParams(detect_thresh=0.5, detect_minarea=5, deblend_mincont=deblend_mincont, clean=True,
@@ -240,10 +241,10 @@ def test_clean_emulation_survivors_are_seps(field, deblend_mincont, beta):
     cat0, seg0 = _plain_sep(data, rms, p, False)
     cat1, _ = _plain_sep(data, rms, p, True)
     nodata = np.zeros(data.shape, dtype=bool)
-    mask, filt, thr = cl.detection_mask(data, rms, nodata, p)
+    mask, filt, thr = sepscan.detection_mask(data, rms, nodata, p)
     assert np.array_equal(mask, _plain_sep(data, rms, DetectionParams(
         detect_thresh=0.5, detect_minarea=1, deblend_mincont=1.0), False)[1] > 0)
-    regions = cl.lutz_regions(mask, p.detect_minarea)
+    regions = sepscan.lutz_regions(mask, p.detect_minarea)
     sf = seg0.ravel()
     orders = [None] * len(cat0)
     done = []
@@ -253,7 +254,7 @@ def test_clean_emulation_survivors_are_seps(field, deblend_mincont, beta):
         if labs.size == 1:
             orders[labs[0] - 1] = pix
         else:
-            for lab, o in cl.child_pixel_orders(pix, data.shape[1], sf, filt.ravel(), labs.tolist(),
+            for lab, o in sepscan.child_pixel_orders(pix, data.shape[1], sf, filt.ravel(), labs.tolist(),
                                                 cat0["thresh"][labs[0] - 1], p.deblend_nthresh).items():
                 orders[lab - 1] = o
     assert done == list(range(1, len(cat0) + 1))
@@ -269,7 +270,7 @@ def test_fast_pixel_order_is_the_scans():
     the test above checks against sep."""
     from scipy import ndimage
 
-    from glaciar.engine import clean as cl
+    from glaciar.engine import sepscan
 
     rng = np.random.default_rng(4)
     for _ in range(500):
@@ -278,8 +279,8 @@ def test_fast_pixel_order_is_the_scans():
         if k == 0:
             continue
         one = lab == 1
-        pix, yd, xd = cl.lutz_regions(one, 1)[0]
-        fast = cl.lutz_one(one)
+        pix, yd, xd = sepscan.lutz_regions(one, 1)[0]
+        fast = sepscan.lutz_one(one)
         assert np.array_equal(pix, fast[0]) and (yd, xd) == fast[1:]
 
 

@@ -130,7 +130,7 @@ def test_reference_boxes_by_row_tiles_equal_the_full_frame_definition(monkeypatc
     segmentation), taken here on the whole frame at once as the reference."""
     import dataclasses
 
-    from glaciar.engine import blocks, clean
+    from glaciar.engine import blocks, sepscan
     from glaciar.engine.detect import DetectionParams, builtin_filter, detection_rms, sanitize
     from glaciar.engine.measure import reference_extraction
 
@@ -145,7 +145,7 @@ def test_reference_boxes_by_row_tiles_equal_the_full_frame_definition(monkeypatc
                                  filter_type=filter_type, threshold_rms=threshold_rms)
     ref = reference_extraction(img, rms, params, 25.0)
     data, err, nodata = sanitize(img, rms, None)
-    dmask = clean.detection_mask(data, detection_rms(err, nodata, params), nodata, params)[0] \
+    dmask = sepscan.detection_mask(data, detection_rms(err, nodata, params), nodata, params)[0] \
         | (ref.segmap > 0)
     comp, _ = ndimage.label(dmask, structure=np.ones((3, 3), bool))
     boxes = ndimage.find_objects(comp)

@@ -85,7 +85,7 @@ def _filter_loop(data, k):
 
 
 def test_sep_filter_equals_the_pixel_loop_bit_for_bit():
-    from glaciar.engine.clean import sep_filter, sep_kernel
+    from glaciar.engine.sepscan import sep_filter, sep_kernel
 
     rng = np.random.default_rng(4)
     for shape, kshape in (((13, 17), (5, 5)), ((6, 4), (3, 3)), ((9, 11), (4, 3)), ((2, 7), (5, 5))):

@@ -21,7 +21,7 @@ from typing import Mapping
 
 import numpy as np
 
-from glaciar.engine import clean as _clean
+from glaciar.engine import sepscan
 from glaciar.engine.classify import ClassificationParams
 from glaciar.engine.detect import DetectionParams, detection_rms
 from glaciar.engine.scene import Scene
@@ -261,11 +261,11 @@ class Canvas:
         """sep's above-threshold mask of the canvas, its filtered image and threshold (cached).
 
         Every connected region of the mask, whatever its size, is a region
-        sep sees (:func:`glaciar.engine.clean.detection_mask`); the exactness
+        sep sees (:func:`glaciar.engine.sepscan.detection_mask`); the exactness
         checks use these, not the segmentation, so a region a window cuts
         below DETECT_MINAREA is not missed."""
         if getattr(self, "_detection", None) is None:
-            self._detection = _clean.detection_mask(self.det32, self.derr, self.nodata, self.ctx.params)
+            self._detection = sepscan.detection_mask(self.det32, self.derr, self.nodata, self.ctx.params)
         return self._detection
 
     def slice(self, k):

@@ -481,7 +481,7 @@ def detection_rms(err, nodata, params: DetectionParams, outside=None):
     """
     if params.threshold_rms == "pixel" or params.filter_kernel is None:
         return err
-    from glaciar.engine.clean import sep_filter
+    from glaciar.engine.sepscan import sep_filter
 
     var = np.square(np.asarray(err, dtype=np.float32)).astype(np.float32)
     var[np.asarray(nodata, dtype=bool)] = np.float32(1e30)

@@ -30,6 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from glaciar.engine import clean as cl
+from glaciar.engine import sepscan
 from glaciar.engine.detect import DetectionParams, sep_extract, detection_rms, sanitize
 from glaciar.engine.canvas import label_boxes, pack_windows
 
@@ -369,7 +370,7 @@ def task_clean(det_scene, det_rms, params: DetectionParams, ref=None, mask=None,
     data, err, nod = sanitize(det, err, nod)
     err = detection_rms(err, nod & ~gap, params, outside=gap)
     cat, seg = sep_extract(data, err, nod, params, False)
-    dmask, filt, thr = cl.detection_mask(data, err, nod, params)
+    dmask, filt, thr = sepscan.detection_mask(data, err, nod, params)
     dmask |= seg > 0
     comp, ncomp = ndimage.label(dmask, structure=np.ones((3, 3), dtype=bool))
     H, W = cshape

@@ -24,7 +24,7 @@ import numpy as np
 from scipy import ndimage
 
 from glaciar.constants import COL_FLAGS, FLAG_SATURATED, FLAG_SEP_ERROR, STATUS_NOT_DETECTED, band_column
-from glaciar.engine import clean as _clean
+from glaciar.engine import sepscan
 from glaciar.engine.blocks import row_tiles
 from glaciar.engine.canvas import (Canvas, MeasureContext, ObjectBoxes, ellipse_boxes, ellipse_half_extent,
                                    safe_shape, window_groups)
@@ -193,7 +193,7 @@ def _region_boxes(data, err, nodata, seg, params, n):
     prev_last, offset = None, 0
     for y0, y1, ya, yb in row_tiles(seg.shape, params.filter_halfwidth):
         d, e, nd = np.asarray(data[ya:yb], dtype=np.float32), err[ya:yb], nodata[ya:yb]
-        m = _clean.detection_mask(d, detection_rms(e, nd, params), nd, params)[0][y0 - ya:y1 - ya]
+        m = sepscan.detection_mask(d, detection_rms(e, nd, params), nd, params)[0][y0 - ya:y1 - ya]
         s = np.asarray(seg[y0:y1])
         m |= s > 0
         lab, k = ndimage.label(m, structure=eight)

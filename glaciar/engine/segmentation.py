@@ -41,6 +41,7 @@ import numpy as np
 from scipy import ndimage
 
 from glaciar.engine import clean as cl
+from glaciar.engine import sepscan
 from glaciar.engine.blocks import row_tiles
 from glaciar.engine.detect import SEP_OBJ_MERGED, DetectionParams, sep_extract, detection_rms, sanitize
 
@@ -239,7 +240,7 @@ def region_objects(inside, cat, seg, data32, filt, thr, params: DetectionParams,
         Cut-out image, filtered image and threshold [image units].
     params : DetectionParams
     lutz : (pixels, row, column), optional
-        The region's :func:`~glaciar.engine.clean.lutz_regions` entry in the
+        The region's :func:`~glaciar.engine.sepscan.lutz_regions` entry in the
         cut-out's flat indices, if already known.
 
     Returns
@@ -251,14 +252,14 @@ def region_objects(inside, cat, seg, data32, filt, thr, params: DetectionParams,
     """
     h, w = inside.shape
     if lutz is None:
-        lutz = cl.lutz_one(inside)
+        lutz = sepscan.lutz_one(inside)
     pix, yd, xd = lutz
     n = len(cat)
     sf = np.asarray(seg).ravel()
     if n == 1:
         orders = [pix]
     else:
-        oo = cl.child_pixel_orders(pix, w, sf, filt.ravel(), list(range(1, n + 1)),
+        oo = sepscan.child_pixel_orders(pix, w, sf, filt.ravel(), list(range(1, n + 1)),
                                    np.float32(cat["thresh"][0]), params.deblend_nthresh)
         orders = [oo[k] for k in range(1, n + 1)]
     objs = cl.clean_objects(cat, orders, data32.ravel(), filt.ravel(), thr.ravel(), params.detect_minarea)
@@ -324,8 +325,8 @@ def sep_segmentation(image_sub, err, params: DetectionParams, mask=None) -> Segm
     e = detection_rms(e, nodata, params)
     H, W = data.shape
     cat0, seg0 = sep_extract(data, e, nodata, params, False)
-    dmask, filt, thr = cl.detection_mask(data, e, nodata, params)
-    comps = cl.lutz_regions(dmask, 1)
+    dmask, filt, thr = sepscan.detection_mask(data, e, nodata, params)
+    comps = sepscan.lutz_regions(dmask, 1)
     sf = seg0.ravel()
     pad = params.filter_halfwidth + 1
     cats, pre_seg = [], np.zeros((H, W), dtype=np.int32)
@@ -463,7 +464,7 @@ def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=No
     ``min <= mthresh <= max`` of ``filtered - threshold`` over the object's
     pixels (:func:`glaciar.engine.clean.sep_clean_bounded`), region by region.
     sep's quirks are kept: no-data pixels of the first ``filter_halfwidth``
-    rows are not masked (:func:`~glaciar.engine.clean.threshold_map`).  The matched filter's
+    rows are not masked (:func:`~glaciar.engine.sepscan.threshold_map`).  The matched filter's
     detection mask is reproduced only up to rounding, so with
     ``filter_type="matched"`` sep's own CLEAN is always used.  Images too
     small to hold ``min_objects`` objects at ``_MIN_PIXELS_PER_OBJECT`` go
@@ -510,8 +511,8 @@ def _tile_as_sep(data, err, nodata, ya, yb, params: DetectionParams):
     (rows within the filter's half-height of ``ya`` or ``yb`` are right only if those are
     the image's edges: the caller reads a halo)."""
     d = np.asarray(data[ya:yb], dtype=np.float32)
-    filt = d if params.filter_kernel is None else cl.sep_filter(d, params.filter_kernel)
-    return d, filt, cl.threshold_map(err[ya:yb], nodata[ya:yb], params, y0=ya)
+    filt = d if params.filter_kernel is None else sepscan.sep_filter(d, params.filter_kernel)
+    return d, filt, sepscan.threshold_map(err[ya:yb], nodata[ya:yb], params, y0=ya)
 
 
 def _tiled_light_objects(data, err, nodata, seg, cat, params: DetectionParams):
@@ -572,8 +573,8 @@ def _region_mthresh(k, data, err, nodata, seg, cat, params: DetectionParams, wan
     split region to one child), so the region is the 8-connected component of
     labelled pixels holding ``k``'s pixels: found in a cut-out grown until it
     holds the component with a blank border, then put in sep's order
-    (:func:`~glaciar.engine.clean.lutz_one`,
-    :func:`~glaciar.engine.clean.child_pixel_orders`).
+    (:func:`~glaciar.engine.sepscan.lutz_one`,
+    :func:`~glaciar.engine.sepscan.child_pixel_orders`).
 
     ``wanted`` (bool per object, optional) limits the work to the children it
     marks (and ``k``): a child's order does not depend on its siblings'.
@@ -601,28 +602,28 @@ def _region_mthresh(k, data, err, nodata, seg, cat, params: DetectionParams, wan
         y0, y1, x0, x1 = min(y0, by0), max(y1, by1), min(x0, bx0), max(x1, bx1)
     fy0, fy1, fx0, fx1 = max(cy0 - h, 0), min(cy1 + h, H), max(cx0 - h, 0), min(cx1 + h, W)
     d = np.asarray(data[fy0:fy1, fx0:fx1], dtype=np.float32)
-    filt = d if params.filter_kernel is None else cl.sep_filter(d, params.filter_kernel)
+    filt = d if params.filter_kernel is None else sepscan.sep_filter(d, params.filter_kernel)
     c = (slice(cy0 - fy0, cy1 - fy0), slice(cx0 - fx0, cx1 - fx0))
     filt = np.ascontiguousarray(filt[c])
-    thr = cl.threshold_map(err[cy0:cy1, cx0:cx1], nodata[cy0:cy1, cx0:cx1], params, y0=cy0)
-    pix = cl.lutz_one(inside)[0]
+    thr = sepscan.threshold_map(err[cy0:cy1, cx0:cx1], nodata[cy0:cy1, cx0:cx1], params, y0=cy0)
+    pix = sepscan.lutz_one(inside)[0]
     labs = sib + 1
     if labs.size == 1:
         orders = {int(labs[0]): pix}
     else:
         todo = labs if wanted is None else labs[wanted[sib] | (sib == k)]
-        orders = cl.child_pixel_orders(pix, inside.shape[1], lab.ravel(), filt.ravel(), todo.tolist(),
+        orders = sepscan.child_pixel_orders(pix, inside.shape[1], lab.ravel(), filt.ravel(), todo.tolist(),
                                        np.float32(cat["thresh"][labs[0] - 1]), params.deblend_nthresh)
     tp = (filt - thr).astype(np.float32).ravel()
-    return {lab_ - 1: cl.heap_mthresh(tp[o], params.detect_minarea) for lab_, o in orders.items()}
+    return {lab_ - 1: sepscan.heap_mthresh(tp[o], params.detect_minarea) for lab_, o in orders.items()}
 
 
 def _object_mthresh(idx, n_objects, data, err, nodata, seg, params: DetectionParams):
     """Exact ``mthresh`` of objects that are a whole region each (not deblended).
 
     Their pixels are gathered by row tiles (raster order), put in sep's order
-    by :func:`~glaciar.engine.clean.lutz_one` on each object's own mask, and
-    run through :func:`~glaciar.engine.clean.heap_mthresh`.
+    by :func:`~glaciar.engine.sepscan.lutz_one` on each object's own mask, and
+    run through :func:`~glaciar.engine.sepscan.heap_mthresh`.
 
     Returns
     -------
@@ -659,6 +660,6 @@ def _object_mthresh(idx, n_objects, data, err, nodata, seg, params: DetectionPar
         mask = np.zeros((int(ys.max()) - y0 + 2, w), dtype=bool)
         local = (ys - y0) * w + (xs - x0)               # increasing: raster order
         mask.ravel()[local] = True
-        pix = cl.lutz_one(mask)[0]
-        out[int(lab[s0]) - 1] = cl.heap_mthresh(tp[s0:s1][np.searchsorted(local, pix)], m)
+        pix = sepscan.lutz_one(mask)[0]
+        out[int(lab[s0]) - 1] = sepscan.heap_mthresh(tp[s0:s1][np.searchsorted(local, pix)], m)
     return out

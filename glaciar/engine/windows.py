@@ -24,7 +24,7 @@ the image edge excepted, where the full frame has the same edge):
   box (below).
 
 "Regions" are the 8-connected components of sep's above-threshold mask,
-recomputed exactly (:func:`glaciar.engine.clean.detection_mask`), *all* of
+recomputed exactly (:func:`glaciar.engine.sepscan.detection_mask`), *all* of
 them: a region that the window cuts below DETECT_MINAREA has no segment in the
 window, yet the full frame detects it, so checking only the segmentation
 would miss it (the "minarea gap").  Every pixel of a region inside its
@@ -87,7 +87,7 @@ import numpy as np
 from scipy import ndimage
 
 from glaciar.constants import COL_FLAGS, FLAG_SEP_ERROR, FLAG_WINDOW_AT_LIMIT
-from glaciar.engine import clean as _clean
+from glaciar.engine import sepscan
 from glaciar.engine import photometry as phot
 from glaciar.engine.canvas import (Canvas, MeasureContext, ObjectBoxes, ellipse_boxes, ellipse_half_extent,
                                    label_boxes, safe_shape, window_groups)
@@ -230,7 +230,7 @@ def stamp_half_sizes(ctx: MeasureContext):
     idx = np.array(use, dtype=np.int64)
     # pixels above threshold in the unit template: data * flux > threshold at the source
     # (the detection threshold's one definition, at the source's pixel)
-    thr = _clean.threshold_map(rms[idx], np.zeros(idx.size, dtype=bool), ctx.params).astype(np.float64)
+    thr = sepscan.threshold_map(rms[idx], np.zeros(idx.size, dtype=bool), ctx.params).astype(np.float64)
     tval = thr / np.array([ctx.templates[i][3] for i in use], dtype=np.float64)
     # All sources at once on central cut-outs of the templates (zero-padded); those with
     # above-threshold pixels on the cut-out's border are redone alone on larger ones.
