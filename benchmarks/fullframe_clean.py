@@ -106,7 +106,7 @@ def _write_inputs(config: str, sides: list[int], out: Path) -> None:
 def _child(opt) -> dict:
     """One side, one method (``--method``), in a fresh process: time and peak RSS increase."""
     from glaciar.config import load_config
-    from glaciar.engine.detect import _sep_extract
+    from glaciar.engine.detect import sep_extract
     from glaciar.engine.segmentation import sep_extract_clean
     from glaciar.fieldprep import detection_params
 
@@ -118,7 +118,7 @@ def _child(opt) -> dict:
         if opt.method == "emulation":
             cat, seg = sep_extract_clean(data, err, nodata, params, min_objects=0)
         else:
-            cat, seg = _sep_extract(data, err, nodata, params, opt.method == "sep")
+            cat, seg = sep_extract(data, err, nodata, params, opt.method == "sep")
         dt = time.perf_counter() - t0
     out = {f"{opt.method}_s": dt, f"{opt.method}_rss_mb": m.increase / MB,
            f"{opt.method}_process_peak_mb": m.peak / MB}

@@ -26,6 +26,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import inspect
 import tempfile
 import time
@@ -38,7 +39,7 @@ from glaciar.config import load_config
 from glaciar.constants import STATUS_NOT_DETECTED
 from glaciar.demo import build_demo_survey
 from glaciar.engine.measure import measure_injected
-from glaciar.engine.windows import pack_windows
+from glaciar.engine.canvas import pack_windows
 from glaciar.fieldprep import build_field_context
 from glaciar.plan import plan_tasks
 from glaciar.survey import Survey
@@ -51,7 +52,11 @@ def _bind(args, kwargs):
     sig = inspect.signature(measure_injected)
     b = sig.bind(*args, **kwargs)
     b.apply_defaults()
-    return b.arguments
+    got = dict(b.arguments)
+    setup = got.pop("setup", None)         # the field-constant inputs (MeasureSetup), flattened
+    if setup is not None:
+        got.update({f.name: getattr(setup, f.name) for f in dataclasses.fields(setup)})
+    return got
 
 
 def _sep_detect(data, err, mask, params):

@@ -44,8 +44,8 @@ def test_hand_injected_source_gets_its_engine_row(small_context, monkeypatch, ma
     seen = {}
     real = task_module.measure_injected
 
-    def spy(det_scene, det_rms, band_scenes, *args, **kwargs):
-        out = real(det_scene, det_rms, band_scenes, *args, **kwargs)
+    def spy(setup, det_scene, det_rms, band_scenes, *args, **kwargs):
+        out = real(setup, det_scene, det_rms, band_scenes, *args, **kwargs)
         seen.update(scenes=band_scenes, out=out)
         return out
 

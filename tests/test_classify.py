@@ -10,7 +10,7 @@ from glaciar.constants import (STATUS_BLENDED_FAILED, STATUS_BLENDED_FAINTER, ST
 from glaciar.engine.classify import (ClassificationParams, classify, flux_test, footprint_overlap,
                                      select_detection)
 from glaciar.engine.detect import DetectionParams
-from glaciar.engine.measure import FieldReference, measure_injected
+from glaciar.engine.measure import FieldReference, MeasureSetup, measure_injected
 from glaciar.engine.scene import Scene
 
 P = ClassificationParams()
@@ -165,10 +165,11 @@ def _measure(k_neighbour, sn_definition, mode="windowed", seed=3):
     reference = FieldReference(ref_seg, np.array([1e4]), np.array([15.0]))
     scene = Scene(base, [(y0, x0, stamp, FLUX)])
     cls = ClassificationParams(sn_definition=sn_definition)
-    return measure_injected(scene, rms, {"h": scene}, {"h": rms}, np.array([CENTRE[1]]),
+    setup = MeasureSetup(band_rms={"h": rms}, reference=reference, params=DetectionParams(),
+                         classification=cls, zeropoints={"h": 25.0}, gains={"h": None}, detection_band="h")
+    return measure_injected(setup, scene, rms, {"h": scene}, np.array([CENTRE[1]]),
                             np.array([CENTRE[0]]), np.array([FLUX]),
-                            np.array([25.0 - 2.5 * math.log10(FLUX)]), reference, DetectionParams(),
-                            cls, {"h": 25.0}, {"h": None}, "h", mode=mode)
+                            np.array([25.0 - 2.5 * math.log10(FLUX)]), mode=mode)
 
 
 @pytest.mark.parametrize("sn_definition", ["iso", "aper", "auto"])

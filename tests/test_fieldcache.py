@@ -22,7 +22,7 @@ from glaciar.config import config_hash, load_config
 from glaciar.engine import fieldcache
 from glaciar.engine.measure import FieldReference
 from glaciar.engine.noise import CorrelatedNoise
-from glaciar.engine.windows import ObjectBoxes
+from glaciar.engine.canvas import ObjectBoxes
 from glaciar.execute import simulate
 from glaciar.survey import Survey
 

@@ -1,7 +1,7 @@
 """Full-frame sep CLEAN in linear time (``segmentation.sep_extract_clean``) against sep's own.
 
 The reference is ``sep.extract(..., clean=True)`` itself (through glaciar's thin
-wrapper ``_sep_extract``, which only sets sep's buffer sizes): the emulation
+wrapper ``sep_extract``, which only sets sep's buffer sizes): the emulation
 must return the same catalogue rows (every field) and the same segmentation map,
 on fields where CLEAN removes many objects across and inside deblended regions,
 with masked pixels.  The linear CLEAN_ZONE pair search is checked against a
@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from glaciar.engine import clean as cl
+from glaciar.engine import sepscan
 from glaciar.engine import segmentation as sg
-from glaciar.engine.detect import SEP_OBJ_MERGED, DetectionParams, _sep_extract, detection_rms, sanitize
+from glaciar.engine.detect import SEP_OBJ_MERGED, DetectionParams, sep_extract, detection_rms, sanitize
 from glaciar.engine.measure import reference_extraction
 
 from toy_images import exponential_galaxy
@@ -80,8 +81,8 @@ def test_emulated_clean_is_seps(field, monkeypatch, seed, mincont, beta, minarea
     params = DetectionParams(detect_thresh=thresh, detect_minarea=minarea, deblend_mincont=mincont,
                              clean=True, clean_param=beta, threshold_rms=threshold_rms)
     data, err, nodata = _inputs(field, params)
-    cat0, _ = _sep_extract(data, err, nodata, params, False)
-    cat_s, seg_s = _sep_extract(data, err, nodata, params, True)
+    cat0, _ = sep_extract(data, err, nodata, params, False)
+    cat_s, seg_s = sep_extract(data, err, nodata, params, True)
     calls = {"object": 0, "region": 0}
     obj_fn, reg_fn = sg._object_mthresh, sg._region_mthresh
 
@@ -109,7 +110,7 @@ def test_below_crossover_is_seps_own_call(field):
     """Below the crossover sep's own CLEAN runs: same answer (and no emulation)."""
     params = DetectionParams(detect_thresh=0.6, detect_minarea=5, clean=True)
     data, err, nodata = _inputs(field, params)
-    cat_s, seg_s = _sep_extract(data, err, nodata, params, True)
+    cat_s, seg_s = sep_extract(data, err, nodata, params, True)
     cat_e, seg_e = sg.sep_extract_clean(data, err, nodata, params, min_objects=10 ** 9)
     assert np.array_equal(cat_e, cat_s) and np.array_equal(seg_e, seg_s)
 
@@ -222,19 +223,19 @@ def test_exact_mthresh_paths_equal_full_frame_scan(field):
     objects asked."""
     params = DetectionParams(detect_thresh=0.5, detect_minarea=5, deblend_mincont=0.005, clean=True)
     data, err, nodata = _inputs(field, params)
-    cat0, seg0 = _sep_extract(data, err, nodata, params, False)
-    mask, filt, thr = cl.detection_mask(data, err, nodata, params)
+    cat0, seg0 = sep_extract(data, err, nodata, params, False)
+    mask, filt, thr = sepscan.detection_mask(data, err, nodata, params)
     sf = seg0.ravel()
     tp = (filt - thr).astype(np.float32).ravel()
     full = {}
-    for pix, _, _ in cl.lutz_regions(mask, params.detect_minarea):
+    for pix, _, _ in sepscan.lutz_regions(mask, params.detect_minarea):
         labs = np.unique(sf[pix][sf[pix] > 0])
         if labs.size == 1:
-            full[int(labs[0]) - 1] = cl.heap_mthresh(tp[pix], params.detect_minarea)
+            full[int(labs[0]) - 1] = sepscan.heap_mthresh(tp[pix], params.detect_minarea)
         elif labs.size > 1:
-            for lab, o in cl.child_pixel_orders(pix, data.shape[1], sf, filt.ravel(), labs.tolist(),
+            for lab, o in sepscan.child_pixel_orders(pix, data.shape[1], sf, filt.ravel(), labs.tolist(),
                                                 cat0["thresh"][labs[0] - 1], params.deblend_nthresh).items():
-                full[lab - 1] = cl.heap_mthresh(tp[o], params.detect_minarea)
+                full[lab - 1] = sepscan.heap_mthresh(tp[o], params.detect_minarea)
     merged = (cat0["flag"] & SEP_OBJ_MERGED) != 0
     single = np.flatnonzero(~merged)
     asked = single[::3]                                   # a subset: nothing else may be returned
@@ -251,7 +252,7 @@ def test_exact_mthresh_paths_equal_full_frame_scan(field):
 @pytest.mark.parametrize("kernel", ["gauss_2.0_3x3", "gauss_2.0_5x5", "gauss_3.0_7x7"])
 def test_sep_leaves_first_rows_unmasked(kernel):
     """sep's detections on a noisy image with a fifth of the pixels masked are exactly the
-    pixels above the threshold _sep_threshold gives: masked pixels never detected, except in
+    pixels sepscan.detection_mask finds above threshold given the image row y0: masked pixels never detected, except in
     the first filter_halfwidth rows, where those above the RMS passed are (the case exists here)."""
     from glaciar.engine.detect import builtin_filter
 
@@ -263,12 +264,11 @@ def test_sep_leaves_first_rows_unmasked(kernel):
     nodata = rng.random(d.shape) < 0.2
     d[nodata] = 0.0
     err = np.ones_like(d)
-    _, seg = _sep_extract(d, err, nodata, p, False)
-    filt = cl.sep_filter(d, p.filter_kernel)
-    above = filt > sg._sep_threshold(err, nodata, 0, p)
+    _, seg = sep_extract(d, err, nodata, p, False)
+    above = sepscan.detection_mask(d, err, nodata, p, y0=0)[0]   # the one "above threshold"
     assert np.array_equal(seg > 0, above)
     hw = p.filter_halfwidth
     assert (above & nodata)[:hw].any() and not (above & nodata)[hw:].any()
     # the same rows of a tile starting lower down are masked
-    assert np.array_equal(sg._sep_threshold(err[5:], nodata[5:], 5, p),
-                          cl.threshold_map(err[5:], nodata[5:], p.detect_thresh))
+    assert np.array_equal(sepscan.threshold_map(err[5:], nodata[5:], p, y0=5),
+                          sepscan.threshold_map(err[5:], nodata[5:], p))

@@ -39,7 +39,7 @@ def test_auto_on_constant_image_is_ellipse_area_and_masks_neighbours():
     a, b, th = 3.0, 1.5, 0.4
     scale = phot.auto_scale(np.array([2.0]), (2.5, 3.5))
     assert scale[0] == 5.0
-    f, _ = phot.auto_photometry(img, rms, [40.0], [40.0], [a], [b], [th], scale)
+    f, _ = phot.auto_photometry(img, rms, phot.Ellipses([40.0], [40.0], [a], [b], [th], scale))
     np.testing.assert_allclose(f, np.pi * a * b * 25.0, rtol=1e-6)
     # R_min applies when k * kron is smaller
     assert phot.auto_scale(np.array([1.0, np.nan]), (2.5, 3.5)).tolist() == [3.5, 3.5]
@@ -69,16 +69,15 @@ def test_auto_excludes_neighbour_segments():
     seg[38:43, 38:43] = 1
     img[40:44, 46:50] = 100.0          # a bright neighbour inside the aperture
     seg[40:44, 46:50] = 2
-    f, _ = phot.auto_photometry(img, np.ones_like(img), [40.0], [40.0], [3.0], [3.0], [0.0],
-                                np.array([4.0]), segmap=seg, seg_id=np.array([1]))
+    ell = phot.Ellipses([40.0], [40.0], [3.0], [3.0], [0.0], np.array([4.0]))
+    f, _ = phot.auto_photometry(img, np.ones_like(img), ell, segmap=seg, seg_id=np.array([1]))
     # the 16 neighbour pixels (all inside the r = 12 ellipse) are excluded, not replaced
     np.testing.assert_allclose(f, np.pi * 12.0 ** 2 - 16.0, rtol=1e-9)
     # no-data pixels (mask) are excluded and compensated by the area ratio, as in sep
     m = seg == 2
-    h, _ = phot.auto_photometry(np.ones_like(img), np.ones_like(img), [40.0], [40.0], [3.0], [3.0], [0.0],
-                                np.array([4.0]), mask=m)
+    h, _ = phot.auto_photometry(np.ones_like(img), np.ones_like(img), ell, mask=m)
     np.testing.assert_allclose(h, np.pi * 12.0 ** 2, rtol=1e-9)
-    g, _ = phot.auto_photometry(img, np.ones_like(img), [40.0], [40.0], [3.0], [3.0], [0.0], np.array([4.0]))
+    g, _ = phot.auto_photometry(img, np.ones_like(img), ell)
     assert g[0] > f[0] + 1000
 
 

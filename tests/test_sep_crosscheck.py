@@ -34,7 +34,7 @@ import sep
 
 from glaciar.engine.classify import ClassificationParams
 from glaciar.engine.detect import DetectionParams, builtin_filter
-from glaciar.engine.measure import measure_injected, reference_extraction
+from glaciar.engine.measure import MeasureSetup, measure_injected, reference_extraction
 from glaciar.engine.scene import Scene
 
 from toy_images import exponential_galaxy
@@ -166,8 +166,10 @@ def _compare(field, params, seed):
     injected = scene.full()
     ref = reference_extraction(img, rms, params, 25.0)
     cls = ClassificationParams(min_sn=MIN_SN)
-    out = measure_injected(scene, rms, {"h": scene}, {"h": rms}, x, y, flux, 25 - 2.5 * np.log10(flux), ref,
-                           params, cls, {"h": 25.0}, {"h": None}, "h", mode="windowed")
+    setup = MeasureSetup(band_rms={"h": rms}, reference=ref, params=params, classification=cls,
+                         zeropoints={"h": 25.0}, gains={"h": None}, detection_band="h")
+    out = measure_injected(setup, scene, rms, {"h": scene}, x, y, flux, 25 - 2.5 * np.log10(flux),
+                           mode="windowed")
     st_g = np.where(out["status"] >= -1, 0, out["status"])
     cat, seg = _plain_sep(injected, rms, params, params.clean)
     st_s, f_s, _ = _reference_status(injected, rms, seg, x, y)
@@ -230,6 +232,7 @@ def test_clean_emulation_survivors_are_seps(field, deblend_mincont, beta):
     with CLEAN on keeps: detection mask, scan order, pixel-list order (mthresh with its heap
     quirks), the absorption test and sep's sequential loop, bit for bit."""
     from glaciar.engine import clean as cl
+    from glaciar.engine import sepscan
 
     img, rms, _ = field
     p = DetectionParams(detect_thresh=0.5, detect_minarea=5, deblend_mincont=deblend_mincont, clean=True,
@@ -238,10 +241,10 @@ def test_clean_emulation_survivors_are_seps(field, deblend_mincont, beta):
     cat0, seg0 = _plain_sep(data, rms, p, False)
     cat1, _ = _plain_sep(data, rms, p, True)
     nodata = np.zeros(data.shape, dtype=bool)
-    mask, filt, thr = cl.detection_mask(data, rms, nodata, p)
+    mask, filt, thr = sepscan.detection_mask(data, rms, nodata, p)
     assert np.array_equal(mask, _plain_sep(data, rms, DetectionParams(
         detect_thresh=0.5, detect_minarea=1, deblend_mincont=1.0), False)[1] > 0)
-    regions = cl.lutz_regions(mask, p.detect_minarea)
+    regions = sepscan.lutz_regions(mask, p.detect_minarea)
     sf = seg0.ravel()
     orders = [None] * len(cat0)
     done = []
@@ -251,7 +254,7 @@ def test_clean_emulation_survivors_are_seps(field, deblend_mincont, beta):
         if labs.size == 1:
             orders[labs[0] - 1] = pix
         else:
-            for lab, o in cl.child_pixel_orders(pix, data.shape[1], sf, filt.ravel(), labs.tolist(),
+            for lab, o in sepscan.child_pixel_orders(pix, data.shape[1], sf, filt.ravel(), labs.tolist(),
                                                 cat0["thresh"][labs[0] - 1], p.deblend_nthresh).items():
                 orders[lab - 1] = o
     assert done == list(range(1, len(cat0) + 1))
@@ -267,7 +270,7 @@ def test_fast_pixel_order_is_the_scans():
     the test above checks against sep."""
     from scipy import ndimage
 
-    from glaciar.engine import clean as cl
+    from glaciar.engine import sepscan
 
     rng = np.random.default_rng(4)
     for _ in range(500):
@@ -276,8 +279,8 @@ def test_fast_pixel_order_is_the_scans():
         if k == 0:
             continue
         one = lab == 1
-        pix, yd, xd = cl.lutz_regions(one, 1)[0]
-        fast = cl.lutz_one(one)
+        pix, yd, xd = sepscan.lutz_regions(one, 1)[0]
+        fast = sepscan.lutz_one(one)
         assert np.array_equal(pix, fast[0]) and (yd, xd) == fast[1:]
 
 
@@ -303,8 +306,10 @@ def test_region_clean_never_acts_across_regions(field, minarea):
     # the reference is plain sep with CLEAN as configured, label for label
     _, seg_ref = _plain_sep(img, rms, params, True)
     assert np.array_equal(ref.segmap, seg_ref)
-    out = measure_injected(scene, rms, {"h": scene}, {"h": rms}, x, y, flux, 25 - 2.5 * np.log10(flux), ref,
-                           params, ClassificationParams(min_sn=MIN_SN), {"h": 25.0}, {"h": None}, "h")
+    setup = MeasureSetup(band_rms={"h": rms}, reference=ref, params=params,
+                         classification=ClassificationParams(min_sn=MIN_SN), zeropoints={"h": 25.0},
+                         gains={"h": None}, detection_band="h")
+    out = measure_injected(setup, scene, rms, {"h": scene}, x, y, flux, 25 - 2.5 * np.log10(flux))
     st_g = np.where(out["status"] >= -1, 0, out["status"])
     _, seg_off = _plain_sep(injected, rms, params, False)
     st_s, f_s, _ = _reference_status(injected, rms, seg_off, x, y)

@@ -80,12 +80,12 @@ def test_sep_extraction_with_a_small_first_pixel_stack_is_unchanged(monkeypatch)
     err = np.ones_like(img)
     nodata = np.zeros(img.shape, bool)
     params = DetectionParams()
-    want_cat, want_seg = detect._sep_extract(img, err, nodata, params, True)
+    want_cat, want_seg = detect.sep_extract(img, err, nodata, params, True)
     stacks = []
     real = sep.set_extract_pixstack
     monkeypatch.setattr(detect.sep, "set_extract_pixstack", lambda n: (stacks.append(n), real(n)))
     monkeypatch.setattr(detect, "PIXSTACK_START", 64)
-    cat, seg = detect._sep_extract(img, err, nodata, params, True)
+    cat, seg = detect.sep_extract(img, err, nodata, params, True)
     assert stacks == [64, img.size + 1024]           # overflowed, retried with the image area
     assert np.array_equal(seg, want_seg) and len(want_cat) >= 3
     for name in ("x", "y", "flux", "a", "b", "theta", "npix"):
@@ -130,7 +130,7 @@ def test_reference_boxes_by_row_tiles_equal_the_full_frame_definition(monkeypatc
     segmentation), taken here on the whole frame at once as the reference."""
     import dataclasses
 
-    from glaciar.engine import clean, measure
+    from glaciar.engine import blocks, sepscan
     from glaciar.engine.detect import DetectionParams, builtin_filter, detection_rms, sanitize
     from glaciar.engine.measure import reference_extraction
 
@@ -145,14 +145,14 @@ def test_reference_boxes_by_row_tiles_equal_the_full_frame_definition(monkeypatc
                                  filter_type=filter_type, threshold_rms=threshold_rms)
     ref = reference_extraction(img, rms, params, 25.0)
     data, err, nodata = sanitize(img, rms, None)
-    dmask = clean.detection_mask(data, detection_rms(err, nodata, params), nodata, params)[0] \
+    dmask = sepscan.detection_mask(data, detection_rms(err, nodata, params), nodata, params)[0] \
         | (ref.segmap > 0)
     comp, _ = ndimage.label(dmask, structure=np.ones((3, 3), bool))
     boxes = ndimage.find_objects(comp)
     n = int(ref.segmap.max())
     assert n >= 4
     for rows in (1, 2, 7):
-        monkeypatch.setattr(measure, "REFERENCE_TILE_PIXELS", rows * img.shape[1])
+        monkeypatch.setattr(blocks, "REFERENCE_TILE_PIXELS", rows * img.shape[1])
         tiled = reference_extraction(img, rms, params, 25.0)
         assert np.array_equal(tiled.segmap, ref.segmap)
         for i in range(1, n + 1):
@@ -219,7 +219,7 @@ def test_sep_photometry_of_float32_images_is_that_of_their_float64_copies(gain):
         want = sep.kron_radius(i64, x, y, a, b, th, 6.0, mask=nodata, segmap=seg, seg_id=ids)[0]
         assert np.array_equal(kr, want, equal_nan=True)
         scale = phot.auto_scale(kr, (2.5, 3.5))
-        f, fe = phot.auto_photometry(data, rms, x, y, a, b, th, scale, gain=gain, segmap=seg,
+        f, fe = phot.auto_photometry(data, rms, phot.Ellipses(x, y, a, b, th, scale), gain=gain, segmap=seg,
                                      seg_id=ids, mask=nodata)
         wf, wfe, _ = sep.sum_ellipse(i64, x, y, a, b, th, scale, err=r64, mask=nodata, gain=gain,
                                      subpix=0, segmap=seg, seg_id=ids)

@@ -29,7 +29,7 @@ import pytest
 
 from glaciar.engine.classify import ClassificationParams
 from glaciar.engine.detect import DetectionParams
-from glaciar.engine.measure import measure_injected, reference_extraction
+from glaciar.engine.measure import MeasureSetup, measure_injected, reference_extraction
 from glaciar.engine.scene import Scene
 from glaciar.engine.segmentation import sep_segmentation
 from glaciar.engine.sextractor_backend import SExtractorError, find_sextractor, run_sextractor, \
@@ -182,14 +182,13 @@ def test_source_extractor_mode_agrees_with_windowed_sep(clean):
     img, rms = _field(seed=8)
     p = _params(clean=clean)
     xs, ys, flux, scene = _inject(img.astype(np.float64), np.random.default_rng(3))
-    kw = dict(band_scenes={"h": scene}, band_rms={"h": rms}, x=xs, y=ys, input_flux_det=flux,
-              input_mag_det=25 - 2.5 * np.log10(flux), params=p,
-              classification=ClassificationParams(min_sn=8.0), zeropoints={"h": 25.0},
-              gains={"h": None}, detection_band="h")
+    kw = dict(band_scenes={"h": scene}, x=xs, y=ys, input_flux_det=flux, input_mag_det=25 - 2.5 * np.log10(flux))
+    setup = dict(band_rms={"h": rms}, params=p, classification=ClassificationParams(min_sn=8.0),
+                 zeropoints={"h": 25.0}, gains={"h": None}, detection_band="h")
     ref_se = reference_extraction(img, rms, p, 25.0, backend="source-extractor")
     ref_sep = reference_extraction(img, rms, p, 25.0)
-    se = measure_injected(scene, rms, reference=ref_se, mode="source-extractor", **kw)
-    win = measure_injected(scene, rms, reference=ref_sep, mode="windowed", **kw)
+    se = measure_injected(MeasureSetup(reference=ref_se, **setup), scene, rms, mode="source-extractor", **kw)
+    win = measure_injected(MeasureSetup(reference=ref_sep, **setup), scene, rms, mode="windowed", **kw)
     rec_se = se["status"] >= 0
     rec_w = win["status"] >= 0
     assert 10 <= rec_se.sum() <= len(xs) - 10

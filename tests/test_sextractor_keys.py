@@ -19,7 +19,7 @@ from glaciar.constants import FLAG_NO_DATA, FLAG_SATURATED, FLAG_SEP_ERROR, FLAG
 from glaciar.engine import photometry as phot
 from glaciar.engine.classify import ClassificationParams
 from glaciar.engine.detect import DetectionParams
-from glaciar.engine.measure import measure_injected, reference_extraction
+from glaciar.engine.measure import MeasureSetup, measure_injected, reference_extraction
 from glaciar.engine.scene import Scene
 from glaciar.fieldprep import detection_params
 
@@ -155,10 +155,11 @@ def _measure(params, background=None, det_background=None, mode="windowed"):
         assert ref.segmap.max() == 0                  # the pedestal alone is not detected
     y0, x0, stamp = _gauss()
     scene = Scene(base, [(y0, x0, stamp)])
-    out = measure_injected(scene, rms, {"h": scene}, {"h": rms}, np.array([float(C)]), np.array([float(C)]),
-                           np.array([F]), np.array([25.0 - 2.5 * np.log10(F)]), ref, params,
-                           ClassificationParams(), {"h": 25.0}, {"h": None}, "h", mode=mode,
-                           det_background=det_background)
+    setup = MeasureSetup(band_rms={"h": rms}, reference=ref, params=params,
+                         classification=ClassificationParams(), zeropoints={"h": 25.0}, gains={"h": None},
+                         detection_band="h", det_background=det_background)
+    out = measure_injected(setup, scene, rms, {"h": scene}, np.array([float(C)]), np.array([float(C)]),
+                           np.array([F]), np.array([25.0 - 2.5 * np.log10(F)]), mode=mode)
     return out, base, stamp
 
 
@@ -209,8 +210,9 @@ def _neighbour_scene():
 
 
 def _aper(img, seg, nodata, mask_type, r=10.0):
-    fa, fea, _, _ = phot.sextractor_photometry(img, np.ones_like(img), seg, [1], nodata, [30.0], [30.0],
-                                               [1.0], [1.0], [0.0], [3.5], [2 * r], mask_type)
+    fa, fea, _, _ = phot.sextractor_photometry(img, np.ones_like(img), seg, [1], nodata,
+                                               phot.Ellipses([30.0], [30.0], [1.0], [1.0], [0.0], [3.5]),
+                                               [2 * r], mask_type)
     return fa[0, 0], fea[0, 0]
 
 
@@ -341,8 +343,8 @@ def test_against_sextractor(tmp_path):
     for m in ("NONE", "BLANK", "CORRECT"):
         cat, _ = _run_sextractor(tmp_path, img, BACKPHOTO_TYPE="GLOBAL", MASK_TYPE=m)
         fa, _, _, _ = phot.sextractor_photometry(img, np.full(img.shape, 0.05), seg, cat[:, 0].astype(int), None,
-                                                 cat[:, 1] - 1, cat[:, 2] - 1, 1.0, 1.0, 0.0, 3.5, [16.0],
-                                                 m.lower())
+                                                 phot.Ellipses(cat[:, 1] - 1, cat[:, 2] - 1, 1.0, 1.0, 0.0, 3.5),
+                                                 [16.0], m.lower())
         assert fa[0, iso] == pytest.approx(cat[iso, 8], rel=1e-3), m
         assert np.allclose(fa[0], cat[:, 8], rtol=1.5e-2), (m, fa[0], cat[:, 8])
     # SATUR_LEVEL: FLAGS bit 4 exactly where the peak reaches the level
@@ -377,12 +379,13 @@ def test_windowed_equals_full_frame_with_the_keys(keys):
     xs, ys, flux, st = _stamps(np.random.default_rng(8))
     det = Scene(sub, st)
     bands = {"h": det, "j": Scene(0.7 * sub, [(a, b, 0.5 * d) for a, b, d in st])}
-    kw = dict(det_rms=rms, band_scenes=bands, band_rms={"h": rms, "j": 1.3 * rms}, x=xs, y=ys,
-              input_flux_det=flux, input_mag_det=25.0 - 2.5 * np.log10(flux), reference=ref, params=params,
-              classification=ClassificationParams(), zeropoints={"h": 25.0, "j": 26.0},
-              gains={"h": None, "j": 2.0}, detection_band="h", det_background=back)
-    w = measure_injected(det, mode="windowed", **kw)
-    f = measure_injected(det, mode="full", **kw)
+    setup = MeasureSetup(band_rms={"h": rms, "j": 1.3 * rms}, reference=ref, params=params,
+                         classification=ClassificationParams(), zeropoints={"h": 25.0, "j": 26.0},
+                         gains={"h": None, "j": 2.0}, detection_band="h", det_background=back)
+    kw = dict(det_rms=rms, band_scenes=bands, x=xs, y=ys, input_flux_det=flux,
+              input_mag_det=25.0 - 2.5 * np.log10(flux))
+    w = measure_injected(setup, det, mode="windowed", **kw)
+    f = measure_injected(setup, det, mode="full", **kw)
     assert (w["detection_id"] > 0).sum() > 50
     for c in w:
         if c == "detection_id":

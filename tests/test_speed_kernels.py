@@ -6,7 +6,7 @@ the straightforward computation it replaced (scipy, or a loop written out).
 import numpy as np
 from scipy import ndimage
 
-from glaciar.engine.windows import label_boxes
+from glaciar.engine.canvas import label_boxes
 
 
 def test_label_boxes_equal_find_objects():
@@ -85,7 +85,7 @@ def _filter_loop(data, k):
 
 
 def test_sep_filter_equals_the_pixel_loop_bit_for_bit():
-    from glaciar.engine.clean import sep_filter, sep_kernel
+    from glaciar.engine.sepscan import sep_filter, sep_kernel
 
     rng = np.random.default_rng(4)
     for shape, kshape in (((13, 17), (5, 5)), ((6, 4), (3, 3)), ((9, 11), (4, 3)), ((2, 7), (5, 5))):
@@ -97,7 +97,7 @@ def test_sep_filter_equals_the_pixel_loop_bit_for_bit():
 
 
 def test_pack_windows_places_disjoint_rectangles_with_gaps():
-    from glaciar.engine.windows import pack_windows
+    from glaciar.engine.canvas import pack_windows
 
     rng = np.random.default_rng(7)
     for k, gap in ((1, 3), (7, 2), (100, 3), (60, 4)):

@@ -71,9 +71,9 @@ def test_injected_pixels_carry_the_in_stamp_flux(ctx):
     captured = {}
     real = task_mod.measure_injected
 
-    def spy(det_scene, *args, **kw):
+    def spy(setup, det_scene, *args, **kw):
         captured["scene"] = det_scene
-        return real(det_scene, *args, **kw)
+        return real(setup, det_scene, *args, **kw)
 
     task_mod.measure_injected = spy
     try:

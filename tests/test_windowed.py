@@ -11,7 +11,7 @@ import pytest
 from glaciar.constants import STATUS_CODES
 from glaciar.engine.classify import ClassificationParams
 from glaciar.engine.detect import DetectionParams, measure_background
-from glaciar.engine.measure import measure_injected, output_columns, reference_extraction
+from glaciar.engine.measure import MeasureSetup, measure_injected, output_columns, reference_extraction
 from glaciar.engine.scene import Scene
 
 N = 600
@@ -73,12 +73,13 @@ def test_windowed_equals_full_frame(field, assert_same_outputs):
         xs, ys, flux, st = _stamps(rng)
         det = Scene(sub, st)
         bands = {"h": det, "j": Scene(0.7 * sub, [(a, b, 0.5 * d) for a, b, d in st])}
-        kw = dict(det_rms=rms, band_scenes=bands, band_rms={"h": rms, "j": 1.3 * rms}, x=xs, y=ys,
-                  input_flux_det=flux, input_mag_det=25.0 - 2.5 * np.log10(flux), reference=ref,
-                  params=params, classification=cls, zeropoints={"h": 25.0, "j": 26.0},
-                  gains={"h": None, "j": 2.0}, detection_band="h")
-        w = measure_injected(det, mode="windowed", **kw)
-        f = measure_injected(det, mode="full", **kw)
+        setup = MeasureSetup(band_rms={"h": rms, "j": 1.3 * rms}, reference=ref, params=params,
+                             classification=cls, zeropoints={"h": 25.0, "j": 26.0},
+                             gains={"h": None, "j": 2.0}, detection_band="h")
+        kw = dict(det_rms=rms, band_scenes=bands, x=xs, y=ys, input_flux_det=flux,
+                  input_mag_det=25.0 - 2.5 * np.log10(flux))
+        w = measure_injected(setup, det, mode="windowed", **kw)
+        f = measure_injected(setup, det, mode="full", **kw)
         assert set(w) == set(output_columns(["h", "j"], 2))
         assert_same_outputs(w, f, it)
         statuses.append(w["status"])
@@ -112,8 +113,9 @@ def test_sep_errors_are_flagged_not_raised(field):
     bad = DetectionParams(sub_object_limit=1, deblend_mincont=0.0)
     xs, ys, flux, st = _stamps(np.random.default_rng(1), nsrc=20)
     det = Scene(sub, st)
-    out = measure_injected(det, rms, {"h": det}, {"h": rms}, xs, ys, flux, 25 - 2.5 * np.log10(flux), ref,
-                           bad, ClassificationParams(), {"h": 25.0}, {"h": None}, "h")
+    setup = MeasureSetup(band_rms={"h": rms}, reference=ref, params=bad, classification=ClassificationParams(),
+                         zeropoints={"h": 25.0}, gains={"h": None}, detection_band="h")
+    out = measure_injected(setup, det, rms, {"h": det}, xs, ys, flux, 25 - 2.5 * np.log10(flux))
     err = (out[COL_FLAGS] & FLAG_SEP_ERROR) > 0
     assert err.any()
     assert np.all(out["status"][err] == STATUS_NOT_DETECTED) and np.all(np.isnan(out["flux_iso_h"][err]))

@@ -16,7 +16,7 @@ import pytest
 from glaciar.constants import STATUS_NOT_DETECTED
 from glaciar.engine.classify import ClassificationParams
 from glaciar.engine.detect import DetectionParams, measure_background
-from glaciar.engine.measure import measure_injected, reference_extraction
+from glaciar.engine.measure import MeasureSetup, measure_injected, reference_extraction
 from glaciar.engine.scene import Scene
 
 
@@ -107,16 +107,17 @@ def test_results_do_not_depend_on_first_window_size(small_field, assert_same_out
     sub, rms, params, ref, xs, ys, flux, stamps = small_field
     det = Scene(sub, stamps)
     bands = {"h": det, "j": Scene(0.6 * sub, [(a, b, t, 0.4 * f) for a, b, t, f in stamps])}
-    kw = dict(det_rms=rms, band_scenes=bands, band_rms={"h": rms, "j": 1.2 * rms}, x=xs, y=ys,
-              input_flux_det=flux, input_mag_det=25.0 - 2.5 * np.log10(flux), reference=ref,
-              classification=ClassificationParams(), zeropoints={"h": 25.0, "j": 26.0},
-              gains={"h": None, "j": 3.0}, detection_band="h")
-    full = measure_injected(det, params=params, mode="full", **kw)
+    setup = MeasureSetup(band_rms={"h": rms, "j": 1.2 * rms}, reference=ref, params=params,
+                         classification=ClassificationParams(), zeropoints={"h": 25.0, "j": 26.0},
+                         gains={"h": None, "j": 3.0}, detection_band="h")
+    kw = dict(det_rms=rms, band_scenes=bands, x=xs, y=ys, input_flux_det=flux,
+              input_mag_det=25.0 - 2.5 * np.log10(flux))
+    full = measure_injected(setup, det, mode="full", **kw)
     seen_rounds = set()
     for first in (9, 33, 65):
         diag = {}
         p = dataclasses.replace(params, initial_window=first)
-        w = measure_injected(det, params=p, diagnostics=diag, **kw)
+        w = measure_injected(dataclasses.replace(setup, params=p), det, diagnostics=diag, **kw)
         assert_same_outputs(w, full, first)
         win = diag["window"]
         ix, iy = np.floor(xs + 0.5), np.floor(ys + 0.5)
@@ -148,13 +149,14 @@ def test_early_exit_is_exact_and_only_skips_sources_without_above_threshold_pixe
     # faint sources (many are below threshold everywhere) beside the fixture's
     faint = [(y0, x0, t, 0.02 * f) for y0, x0, t, f in stamps]
     det = Scene(sub, faint)
-    kw = dict(det_rms=rms, band_scenes={"h": det}, band_rms={"h": rms}, x=xs, y=ys,
-              input_flux_det=0.02 * flux, input_mag_det=25.0 - 2.5 * np.log10(0.02 * flux), reference=ref,
-              params=params, classification=ClassificationParams(), zeropoints={"h": 25.0},
-              gains={"h": None}, detection_band="h")
+    setup = MeasureSetup(band_rms={"h": rms}, reference=ref, params=params,
+                         classification=ClassificationParams(), zeropoints={"h": 25.0}, gains={"h": None},
+                         detection_band="h")
+    kw = dict(det_rms=rms, band_scenes={"h": det}, x=xs, y=ys, input_flux_det=0.02 * flux,
+              input_mag_det=25.0 - 2.5 * np.log10(0.02 * flux))
     d_on, d_off = {}, {}
-    on = measure_injected(det, early_exit=True, diagnostics=d_on, **kw)
-    off = measure_injected(det, early_exit=False, diagnostics=d_off, **kw)
+    on = measure_injected(setup, det, early_exit=True, diagnostics=d_on, **kw)
+    off = measure_injected(setup, det, early_exit=False, diagnostics=d_off, **kw)
     assert_same_outputs(on, off, "early exit")
     side = d_on["window"][:, 1] - d_on["window"][:, 0]
     skipped = side == ClassificationParams().search_box + 2 * (params.filter_halfwidth + 1)
@@ -179,7 +181,8 @@ def test_early_exit_is_exact_and_only_skips_sources_without_above_threshold_pixe
 
 
 def test_initial_windows_hold_the_neighbours_a_source_may_touch():
-    from glaciar.engine.windows import _OWN_HALF, ObjectBoxes, initial_windows
+    from glaciar.engine.canvas import ObjectBoxes
+    from glaciar.engine.windows import _OWN_HALF, initial_windows
 
     params = DetectionParams()
     margin = params.filter_halfwidth + 1
@@ -212,7 +215,7 @@ def test_initial_windows_hold_the_neighbours_a_source_may_touch():
 
 def test_object_boxes_candidates_hold_every_meeting_box():
     """The grid index returns every object whose box meets a query box (brute force)."""
-    from glaciar.engine.windows import ObjectBoxes
+    from glaciar.engine.canvas import ObjectBoxes
 
     rng = np.random.default_rng(5)
     shape = (700, 900)

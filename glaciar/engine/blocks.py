@@ -10,7 +10,12 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["row_blocks"]
+__all__ = ["row_blocks", "row_tiles", "REFERENCE_TILE_PIXELS"]
+
+#: Pixels per row tile of the full-frame mask work on a field's detection image (the
+#: reference's region boxes, :mod:`glaciar.engine.measure`; the emulated CLEAN's
+#: thresholds, :mod:`glaciar.engine.segmentation`): ~16 MB of float32 per tile.
+REFERENCE_TILE_PIXELS = 1 << 22
 
 
 def row_blocks(shape, pixels: int, halo: int = 0, rows: int | None = None):
@@ -45,3 +50,18 @@ def row_blocks(shape, pixels: int, halo: int = 0, rows: int | None = None):
     for y0 in range(0, ny, step):
         y1 = min(y0 + step, ny)
         yield y0, y1, max(y0 - halo, 0), min(y1 + halo, ny)
+
+
+def row_tiles(shape, halo: int = 0):
+    """Row tiles of :data:`REFERENCE_TILE_PIXELS` pixels with ``halo`` rows around each.
+
+    The one tiling the detection image's full-frame mask work shares (a leaf, so that
+    both :mod:`~glaciar.engine.measure` and :mod:`~glaciar.engine.segmentation` use it
+    without importing each other).  The tile size is read at each call (tests shrink it).
+
+    Yields
+    ------
+    y0, y1, a, b : int
+        As :func:`row_blocks`.
+    """
+    return row_blocks(shape, REFERENCE_TILE_PIXELS, halo)

@@ -24,8 +24,8 @@ import pandas as pd
 from .. import constants as C
 from .classify import passes_sn
 from .depth import depth_at
-from .detect import DetectionError, _sep_extract, detection_rms, sanitize
-from .measure import measure_injected, output_columns
+from .detect import DetectionError, sep_extract, detection_rms, sanitize
+from .measure import MeasureSetup, measure_injected, output_columns
 from .scene import Scene
 
 __all__ = ["measure_catalog", "segment_pixels", "CATALOG_ID", "CATALOG_IN_FOOTPRINT",
@@ -88,7 +88,7 @@ def _first_positions(ctx, scenes) -> tuple[np.ndarray, np.ndarray]:
     data, err, nodata = sanitize(scenes[ctx.detection_band].full(), ctx.rms[ctx.detection_band],
                                  ctx.mask)
     try:
-        cat, raw = _sep_extract(data, detection_rms(err, nodata, params), nodata, params, False)
+        cat, raw = sep_extract(data, detection_rms(err, nodata, params), nodata, params, False)
     except DetectionError:
         return x, y
     # Photometry is per position: a reference pixel inside a raw object (whose core is
@@ -100,16 +100,11 @@ def _first_positions(ctx, scenes) -> tuple[np.ndarray, np.ndarray]:
 
 def _measure(ctx, scenes: Mapping[str, Scene], x, y, diagnostics: dict | None,
              mode: str = "full"):
-    det = ctx.detection_band
     det_scene, det_rms = ctx.detection_scene(scenes)
     n = x.size
     nan = np.full(n, np.nan)
-    return measure_injected(det_scene, det_rms, scenes, ctx.rms, x, y, nan, nan, ctx.reference,
-                            ctx.detection_params, ctx.classification_params, ctx.zeropoints,
-                            ctx.gains, det, mask=ctx.mask, mode=mode, diagnostics=diagnostics,
-                            input_templates=[None] * n,
-                            noise_models=getattr(ctx, "noise_models", None),
-                            det_background=getattr(ctx, "detection_background", None))
+    return measure_injected(MeasureSetup.of_field(ctx), det_scene, det_rms, scenes, x, y, nan, nan,
+                            mode=mode, diagnostics=diagnostics, input_templates=[None] * n)
 
 
 def _measure_missing(ctx, scenes, seg, missing, x, y) -> dict | None:

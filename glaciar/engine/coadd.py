@@ -133,7 +133,11 @@ class CoaddScene:
         self.method = method
         self.shape = self.scenes[0].shape
         # No stamps of its own: windows combine the band scenes' stamps.
-        self.stamps, self._flux = [], []
+        self.stamps = []
+
+    def templates(self) -> list:
+        """No templates of its own (as :meth:`glaciar.engine.scene.Scene.templates`)."""
+        return []
 
     def window(self, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
         """The stack of the injected band windows (clipped to the image)."""

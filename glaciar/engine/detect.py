@@ -29,7 +29,8 @@ from glaciar.engine.blocks import row_blocks
 
 __all__ = [
     "DetectionError", "DetectionParams", "builtin_filter", "builtin_filter_names",
-    "read_conv_file", "measure_background", "background_model", "extract", "sanitize", "detection_rms",
+    "read_conv_file", "measure_background", "background_model", "extract", "sep_extract", "sanitize",
+    "detection_rms",
     "CLEAN_STYLES", "THRESHOLD_RMS", "BACKENDS",
 ]
 
@@ -480,7 +481,7 @@ def detection_rms(err, nodata, params: DetectionParams, outside=None):
     """
     if params.threshold_rms == "pixel" or params.filter_kernel is None:
         return err
-    from glaciar.engine.clean import sep_filter
+    from glaciar.engine.sepscan import sep_filter
 
     var = np.square(np.asarray(err, dtype=np.float32)).astype(np.float32)
     var[np.asarray(nodata, dtype=bool)] = np.float32(1e30)
@@ -541,13 +542,40 @@ def background_model(data, nodata, params: DetectionParams):
         raise DetectionError(f"sep background estimation failed: {exc}") from exc
 
 
-#: First size of sep's pixel stack [pixels] (see :func:`_sep_extract`): images up to
+#: First size of sep's pixel stack [pixels] (see :func:`sep_extract`): images up to
 #: ~2000^2 get their whole area at once, as before; larger ones a stack this big first.
 PIXSTACK_START = 1 << 22
 
 
-def _sep_extract(data, err, nodata, params: DetectionParams, clean: bool):
-    """sep.extract on sanitized float32 arrays, with limits raised and errors wrapped."""
+def sep_extract(data, err, nodata, params: DetectionParams, clean: bool):
+    """sep.extract on sanitized float32 arrays, with limits raised and errors wrapped.
+
+    The one place the engine calls ``sep.extract`` (every backend path, full frame or
+    windowed, goes through it so that sep's buffer limits are set the same way).
+
+    Parameters
+    ----------
+    data : ndarray of float32
+        Sanitized image (:func:`sanitize`; no-data pixels 0) [image units].
+    err : ndarray of float32
+        RMS the threshold scales (:func:`detection_rms`) [image units].
+    nodata : ndarray of bool
+        Pixels sep masks.
+    params : DetectionParams
+    clean : bool
+        Run sep's CLEAN (``params.clean`` is not read here: callers emulate it).
+
+    Returns
+    -------
+    catalog : structured ndarray
+        sep's objects; row i has segment id i + 1.
+    segmap : ndarray of int32
+
+    Raises
+    ------
+    DetectionError
+        When sep fails (after one retry with the whole image as pixel stack).
+    """
     # The pixel stack must hold every pixel of the open objects; it cannot exceed
     # the image area.  sep initialises the whole stack on every call, so a stack
     # much larger than the image costs time, and on a large mosaic memory (~26 bytes
@@ -600,4 +628,4 @@ def extract(image_sub, err, params: DetectionParams, mask=None):
         When sep fails (e.g. deblending overflow).
     """
     data, e, nodata = sanitize(image_sub, err, mask)
-    return _sep_extract(data, detection_rms(e, nodata, params), nodata, params, params.clean)
+    return sep_extract(data, detection_rms(e, nodata, params), nodata, params, params.clean)

@@ -75,8 +75,9 @@ __all__ = ["save", "load", "exists", "UnreadableCache", "release", "Trimmer", "t
 
 #: Version of the on-disk layout and of what it holds (part of a cache's key: a new layout
 #: never reads an old one). 2: r(N) measured about local backgrounds where the mesh leaves
-#: residuals (issue 21), so a cache holding the mesh-only r(N) is not reused.
-FORMAT = 2
+#: residuals (issue 21), so a cache holding the mesh-only r(N) is not reused.  3: the
+#: reference's ObjectBoxes live in glaciar.engine.canvas (issue 22), the name a cache stores.
+FORMAT = 3
 #: Arrays at least this large [bytes] are memory-mapped; smaller ones (catalogues) are read.
 MMAP_MIN_BYTES = 1 << 20
 #: File-backed resident pages [bytes] a worker lets accumulate before they are dropped: with
@@ -111,7 +112,7 @@ _CLASSES = frozenset({
     "glaciar.engine.measure:FieldReference",
     "glaciar.engine.segmentation:Segmentation",
     "glaciar.engine.clean:CleanObjects",
-    "glaciar.engine.windows:ObjectBoxes",
+    "glaciar.engine.canvas:ObjectBoxes",
     "glaciar.engine.noise:CorrelatedNoise",
 })
 

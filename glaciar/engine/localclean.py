@@ -30,8 +30,9 @@ from __future__ import annotations
 import numpy as np
 
 from glaciar.engine import clean as cl
-from glaciar.engine.detect import DetectionParams, _sep_extract, detection_rms, sanitize
-from glaciar.engine.windows import label_boxes, pack_windows
+from glaciar.engine import sepscan
+from glaciar.engine.detect import DetectionParams, sep_extract, detection_rms, sanitize
+from glaciar.engine.canvas import label_boxes, pack_windows
 
 __all__ = ["TaskClean", "task_clean", "influence_boxes", "stamp_boxes"]
 
@@ -326,7 +327,7 @@ def task_clean(det_scene, det_rms, params: DetectionParams, ref=None, mask=None,
         True where there are no data.
     isolated : dict, optional
         Cache of isolated extractions keyed by (image box of the cut-out,
-        region pixels), shared with :func:`glaciar.engine.windows._isolate`.
+        region pixels), shared with the windows' canonical re-extraction (:mod:`glaciar.engine.windows`).
 
     Returns
     -------
@@ -368,8 +369,8 @@ def task_clean(det_scene, det_rms, params: DetectionParams, ref=None, mask=None,
         gap[sl] = False
     data, err, nod = sanitize(det, err, nod)
     err = detection_rms(err, nod & ~gap, params, outside=gap)
-    cat, seg = _sep_extract(data, err, nod, params, False)
-    dmask, filt, thr = cl.detection_mask(data, err, nod, params)
+    cat, seg = sep_extract(data, err, nod, params, False)
+    dmask, filt, thr = sepscan.detection_mask(data, err, nod, params)
     dmask |= seg > 0
     comp, ncomp = ndimage.label(dmask, structure=np.ones((3, 3), dtype=bool))
     H, W = cshape

@@ -4,7 +4,7 @@
 backend -- glaciar's exact windowed (or full-frame) sep segmentation
 (:mod:`glaciar.engine.windows`) or the SExtractor binary on the full frame
 (:mod:`glaciar.engine.sextractor_backend`) -- and runs classification and
-photometry on the product either returns (:class:`~glaciar.engine.windows.SegmentedBatch`),
+photometry on the product either returns (:class:`~glaciar.engine.segmentation.SegmentedBatch`),
 with the same code for every backend.  :func:`reference_extraction` segments
 and measures the original image once per field.
 
@@ -24,20 +24,20 @@ import numpy as np
 from scipy import ndimage
 
 from glaciar.constants import COL_FLAGS, FLAG_SATURATED, FLAG_SEP_ERROR, STATUS_NOT_DETECTED, band_column
-from glaciar.engine import clean as _clean
-from glaciar.engine.blocks import row_blocks
+from glaciar.engine import sepscan
+from glaciar.engine.blocks import row_tiles
+from glaciar.engine.canvas import (Canvas, MeasureContext, ObjectBoxes, ellipse_boxes, ellipse_half_extent,
+                                   safe_shape, window_groups)
 from glaciar.engine import localclean as _lc
 from glaciar.engine import photometry as phot
 from glaciar.engine.classify import ClassificationParams, classify, footprint_overlap, select_detection
-from glaciar.engine.detect import DetectionError, DetectionParams, _sep_extract, detection_rms, sanitize
+from glaciar.engine.detect import DetectionError, DetectionParams, sep_extract, detection_rms, sanitize
 from glaciar.engine.scene import Scene
-from glaciar.engine.segmentation import sep_extract_clean, sep_segmentation
-from glaciar.engine.windows import (Canvas, MeasureContext, ObjectBoxes, SegmentedBatch, ellipse_boxes,
-                                    ellipse_half_extent, safe_shape, segment_full, segment_windowed,
-                                    window_groups)
+from glaciar.engine.segmentation import SegmentedBatch, sep_extract_clean, sep_segmentation
+from glaciar.engine.windows import segment_full, segment_windowed
 
-__all__ = ["FieldReference", "reference_extraction", "measure_injected", "output_columns",
-           "total_magnitudes"]
+__all__ = ["FieldReference", "MeasureSetup", "reference_extraction", "measure_injected",
+           "output_columns", "total_magnitudes"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,7 +127,7 @@ def reference_extraction(det_image_sub, det_rms, params: DetectionParams, zeropo
         # result comes from sep without CLEAN plus glaciar's (sep_extract_clean).
         e = detection_rms(err, nodata, params)
         cat, seg = sep_extract_clean(data, e, nodata, params) if params.clean else \
-            _sep_extract(data, e, nodata, params, False)
+            sep_extract(data, e, nodata, params, False)
         del e
         geo = {f: np.asarray(cat[f], dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}
         return _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, photometry, cat, None)
@@ -153,21 +153,11 @@ def _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, 
     data_det, err_det, nodata_det = data, err, nodata
     if photometry is not None:
         data, err, nodata = sanitize(photometry[0], photometry[1], mask)
-    flux, _ = phot.auto_photometry(data, err, geo["x"], geo["y"], a, b, th, scale,
+    flux, _ = phot.auto_photometry(data, err, phot.Ellipses(geo["x"], geo["y"], a, b, th, scale),
                                    segmap=seg, seg_id=ids, mask=nodata)
     mag, _, _ = phot.magnitudes(flux, np.ones_like(flux), zeropoint)
     region_box, need_box = _reference_boxes(data_det, err_det, nodata_det, seg, geo, a, b, th, scale, params)
     return FieldReference(seg, flux, mag, cat, prod, ObjectBoxes.build(region_box, need_box, seg.shape))
-
-
-#: Pixels per row tile of the reference's full-frame mask work (:func:`_reference_boxes`).
-REFERENCE_TILE_PIXELS = 1 << 22
-
-
-def _row_tiles(shape, halo: int):
-    """(y0, y1, a, b): row tiles [y0, y1) of ``REFERENCE_TILE_PIXELS`` and their rows [a, b)
-    with ``halo`` more rows on each side inside the image."""
-    return row_blocks(shape, REFERENCE_TILE_PIXELS, halo)
 
 
 def _reference_boxes(data, err, nodata, seg, geo, a, b, th, scale, params):
@@ -201,9 +191,9 @@ def _region_boxes(data, err, nodata, seg, params, n):
     obj_label = np.zeros(n + 1, dtype=np.int64)
     join_a, join_b = [], []
     prev_last, offset = None, 0
-    for y0, y1, ya, yb in _row_tiles(seg.shape, params.filter_halfwidth):
+    for y0, y1, ya, yb in row_tiles(seg.shape, params.filter_halfwidth):
         d, e, nd = np.asarray(data[ya:yb], dtype=np.float32), err[ya:yb], nodata[ya:yb]
-        m = _clean.detection_mask(d, detection_rms(e, nd, params), nd, params)[0][y0 - ya:y1 - ya]
+        m = sepscan.detection_mask(d, detection_rms(e, nd, params), nd, params)[0][y0 - ya:y1 - ya]
         s = np.asarray(seg[y0:y1])
         m |= s > 0
         lab, k = ndimage.label(m, structure=eight)
@@ -255,40 +245,80 @@ def output_columns(bands, n_apertures: int) -> list[str]:
     return cols
 
 
-def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping[str, Scene],
-                     band_rms: Mapping[str, np.ndarray], x: np.ndarray, y: np.ndarray,
-                     input_flux_det: np.ndarray, input_mag_det: np.ndarray,
-                     reference: FieldReference, params: DetectionParams,
-                     classification: ClassificationParams, zeropoints: Mapping[str, float],
-                     gains: Mapping[str, float | None], detection_band: str,
-                     mask: np.ndarray | None = None, mode: str = "windowed",
-                     diagnostics: dict | None = None, input_templates=None,
-                     noise_models: Mapping | None = None,
-                     det_background: np.ndarray | None = None,
+@dataclass(frozen=True, eq=False)
+class MeasureSetup:
+    """What every :func:`measure_injected` call on one field shares (read only).
+
+    Attributes
+    ----------
+    band_rms : mapping band -> ndarray
+        RMS map of every measured band, the detection band included [image units].
+    reference : FieldReference
+        Original-image extraction of this field.
+    params : DetectionParams
+    classification : ClassificationParams
+    zeropoints : mapping band -> float
+        AB zeropoints [mag].
+    gains : mapping band -> float or None
+        Gains [e-/image unit] (None: no Poisson term).
+    detection_band : str
+    mask : ndarray of bool, optional
+        True where there are no data (all bands).
+    noise_models : mapping band -> glaciar.engine.noise.CorrelatedNoise, optional
+        Correlated-noise models: the background variance of every ISO,
+        aperture and AUTO error in that band is scaled by ``r(N)^2``.
+    det_background : ndarray, optional
+        Background map of the detection band [image units] (what was
+        subtracted from its image): a detection is flagged
+        ``FLAG_SATURATED`` when its peak plus the background at its centre
+        reaches ``params.satur_level`` (SExtractor's rule); None = 0.
+    """
+
+    band_rms: Mapping[str, np.ndarray]
+    reference: FieldReference
+    params: DetectionParams
+    classification: ClassificationParams
+    zeropoints: Mapping[str, float]
+    gains: Mapping[str, float | None]
+    detection_band: str
+    mask: np.ndarray | None = None
+    noise_models: Mapping | None = None
+    det_background: np.ndarray | None = None
+
+    @classmethod
+    def of_field(cls, ctx) -> "MeasureSetup":
+        """The setup of a :class:`~glaciar.engine.context.FieldContext` (tasks and the
+        catalogue measure with the same one)."""
+        return cls(band_rms=ctx.rms, reference=ctx.reference, params=ctx.detection_params,
+                   classification=ctx.classification_params, zeropoints=ctx.zeropoints,
+                   gains=ctx.gains, detection_band=ctx.detection_band, mask=ctx.mask,
+                   noise_models=getattr(ctx, "noise_models", None),
+                   det_background=getattr(ctx, "detection_background", None))
+
+
+def measure_injected(setup: MeasureSetup, det_scene: Scene, det_rms: np.ndarray,
+                     band_scenes: Mapping[str, Scene], x: np.ndarray, y: np.ndarray,
+                     input_flux_det: np.ndarray, input_mag_det: np.ndarray, *,
+                     mode: str = "windowed", diagnostics: dict | None = None, input_templates=None,
                      early_exit: bool = True) -> dict[str, np.ndarray]:
     """Detect, classify and measure N injected sources.
 
     Parameters
     ----------
+    setup : MeasureSetup
+        The field's RMS maps, reference extraction, settings, zeropoints, gains,
+        mask, noise models and detection background.
     det_scene : Scene
         Background-subtracted original detection image + injected stamps.
     det_rms : ndarray
         RMS of the original detection image [image units] (detection threshold
         and ISO errors).
-    band_scenes, band_rms : mapping band -> Scene / ndarray
+    band_scenes : mapping band -> Scene
         Every measured band, the detection band included.
     x, y : array of float, shape (N,)
         Input positions, 0-based pixels (x along numpy axis 1).
     input_flux_det, input_mag_det : array, shape (N,)
         Total input flux [image units] and AB magnitude in the detection band.
-    reference : FieldReference
-        Original-image extraction of this field.
-    params : DetectionParams
-    classification : ClassificationParams
-    zeropoints, gains : mapping band -> float / float or None
-    detection_band : str
-    mask : ndarray of bool, optional
-        True where there are no data (all bands).
     mode : {"windowed", "full", "source-extractor"}
         ``full`` extracts the whole injected image once (validation);
         ``source-extractor`` (or ``params.backend="source-extractor"``, which
@@ -308,14 +338,6 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         compares the detection's AUTO flux with this template's flux through
         the same Kron ellipse and masks (column ``flux_auto_template``; see
         :mod:`glaciar.engine.classify`).
-    noise_models : mapping band -> glaciar.engine.noise.CorrelatedNoise, optional
-        Correlated-noise models: the background variance of every ISO,
-        aperture and AUTO error in that band is scaled by ``r(N)^2``.
-    det_background : ndarray, optional
-        Background map of the detection band [image units] (what was
-        subtracted from its image): a detection is flagged
-        ``FLAG_SATURATED`` when its peak plus the background at its centre
-        reaches ``params.satur_level`` (SExtractor's rule); None = 0.
     early_exit : bool
         Windowed mode: sources with no above-threshold pixel in their search
         box are reported as not detected without an extraction
@@ -329,6 +351,10 @@ def measure_injected(det_scene: Scene, det_rms: np.ndarray, band_scenes: Mapping
         undetected sources; ``detection_id`` is the label of the detection in
         this call's extraction (0 = none; not comparable between modes).
     """
+    band_rms, reference, params = setup.band_rms, setup.reference, setup.params
+    classification, zeropoints, gains = setup.classification, setup.zeropoints, setup.gains
+    detection_band, mask = setup.detection_band, setup.mask
+    noise_models, det_background = setup.noise_models, setup.det_background
     if mode not in ("windowed", "full", "source-extractor"):
         raise ValueError(f"mode must be 'windowed', 'full' or 'source-extractor', got {mode!r}")
     bands = list(band_scenes)
@@ -551,7 +577,7 @@ def _finish(ctx: MeasureContext, batch: SegmentedBatch):
         if params.mask_type is not None and jd.size:
             r = pos[jd]
             fa[:, r], fea[:, r], fau[r], feau[r] = phot.sextractor_photometry(
-                data, rms, pseg32, lab[r], bad, xs[jd], ys[jd], a[jd], b[jd], th[jd], scale[jd],
+                data, rms, pseg32, lab[r], bad, phot.Ellipses(xs[jd], ys[jd], a[jd], b[jd], th[jd], scale[jd]),
                 params.phot_apertures, params.mask_type, gain=gain, dbkg=dbkg, bounds=bounds[jd],
                 noise=noise)
         else:
@@ -561,8 +587,8 @@ def _finish(ctx: MeasureContext, batch: SegmentedBatch):
                 fa[:, r], fea[:, r] = phot.aperture_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy,
                                                                params.phot_apertures, gain=gain, mask=bad[sl],
                                                                noise=noise)
-                fau[r], feau[r] = phot.auto_photometry(data[sl], rms[sl], xs[j] - ox, ys[j] - oy, a[j], b[j],
-                                                       th[j], scale[j], gain=gain, segmap=pseg32[sl],
+                ell = phot.Ellipses(xs[j] - ox, ys[j] - oy, a[j], b[j], th[j], scale[j])
+                fau[r], feau[r] = phot.auto_photometry(data[sl], rms[sl], ell, gain=gain, segmap=pseg32[sl],
                                                        seg_id=lab[r], mask=bad[sl], noise=noise)
             if dbkg is not None:
                 # sep's sums stand for the whole aperture inside the image (masked pixels are
@@ -601,8 +627,7 @@ def _finish(ctx: MeasureContext, batch: SegmentedBatch):
                                 ys[jd] - wy0[jd] + rect[jd, 0])
             # The status-2 flux test: AUTO flux vs the injected template through the same ellipse.
             auto_det = fau
-            tpl_det = _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scale,
-                                          rect, wy0, wx0, edge, src_win, rms, bad)
+            tpl_det = _template_auto_flux(ctx, batch, lab, idx, di, s, rms, bad)
     with np.errstate(divide="ignore", invalid="ignore"):
         sn_det = flux_sn / err_sn
     bmag = np.full(lab.size, np.nan)
@@ -642,9 +667,7 @@ def _flag_saturated(ctx, data, pix, lab_all, lab, di, s, x_img, y_img):
 def _input_templates(det_scene, templates, n):
     """Per-source (y0, x0, data, flux) of the injected detection-band stamps (see measure_injected)."""
     if templates is None:
-        # A Scene keeps each stamp's flux factor (None: pre-multiplied); one stamp per source.
-        templates = [(y0, x0, d, 1.0 if f is None else f)
-                     for (y0, x0, d), f in zip(det_scene.stamps, det_scene._flux)]
+        templates = det_scene.templates()          # one stamp per source
     templates = list(templates)
     if len(templates) != n:
         raise ValueError(f"input_templates (default: the detection scene's stamps) has "
@@ -652,8 +675,7 @@ def _input_templates(det_scene, templates, n):
     return templates
 
 
-def _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scale, rect, wy0, wx0, edge,
-                        src_win, rms, bad):
+def _template_auto_flux(ctx, batch: SegmentedBatch, lab, idx, di, s, rms, bad):
     """AUTO flux of each finished source's own noiseless template (NaN if undetected).
 
     Each template is pasted alone into a zero canvas (clipped to its window,
@@ -661,7 +683,14 @@ def _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scal
     neighbour segments and no-data mask, exactly as its data were: so a
     windowed and a full-frame extraction give the same value, and other
     injected sources never enter it.
+
+    ``lab``, ``idx``, ``di``, ``s``: as in :func:`_finish` (labels, canvas source indices,
+    detected rows and call source indices of the finished sources); ``rms``, ``bad``: the
+    detection band's RMS and no-data mask on the canvas.
     """
+    cv, pseg32, xs, ys = batch.canvas, batch.seg32, batch.x, batch.y
+    a, b, th, scale = batch.a, batch.b, batch.theta, batch.kron_scale
+    rect, wy0, wx0, edge, src_win = batch.rect, batch.wy0, batch.wx0, batch.edge, batch.src_win
     out = np.full(lab.size, np.nan)
     tcv = np.zeros(cv.shape)
     pos = np.full(src_win.size, -1, dtype=np.int64)      # canvas source index -> row of lab
@@ -675,9 +704,9 @@ def _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scal
         # mix them: one source at a time then.
         jl = jj.tolist()
         batches = [jl] if np.unique(src_win[jj]).size == jj.size else [[j] for j in jl]
-        for batch in batches:
+        for group in batches:
             pasted, boxes = [], []
-            for j in batch:
+            for j in group:
                 r = pos[j]
                 t = ctx.templates[s[r]]
                 if t is None:
@@ -702,12 +731,13 @@ def _template_auto_flux(ctx, cv, pseg32, lab, idx, di, s, xs, ys, a, b, th, scal
             if params.mask_type is not None:
                 bnd = np.stack([wy0[j], wy0[j] + rect[j, 1] - rect[j, 0], wx0[j], wx0[j] + rect[j, 3] - rect[j, 2]],
                                axis=1)
-                out[r] = phot.sextractor_photometry(tcv, rms, pseg32, lab[r], bad, xs[j], ys[j], a[j], b[j], th[j],
-                                                    scale[j], params.phot_apertures, params.mask_type,
-                                                    bounds=bnd)[2]
+                ell = phot.Ellipses(xs[j], ys[j], a[j], b[j], th[j], scale[j])
+                out[r] = phot.sextractor_photometry(tcv, rms, pseg32, lab[r], bad, ell, params.phot_apertures,
+                                                    params.mask_type, bounds=bnd)[2]
             else:
-                out[r], _ = phot.auto_photometry(tcv[sl], rms[sl], xs[j] - ox, ys[j] - oy, a[j], b[j], th[j],
-                                                 scale[j], segmap=pseg32[sl], seg_id=lab[r], mask=bad[sl])
+                ell = phot.Ellipses(xs[j] - ox, ys[j] - oy, a[j], b[j], th[j], scale[j])
+                out[r], _ = phot.auto_photometry(tcv[sl], rms[sl], ell, segmap=pseg32[sl], seg_id=lab[r],
+                                                 mask=bad[sl])
             for box in boxes:
                 tcv[box] = 0.0
     return out

@@ -8,11 +8,27 @@ magnitude (NaN), never a 99: non-detections stay fluxes.
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import sep
 
-__all__ = ["iso_photometry", "aperture_photometry", "kron_radius", "auto_photometry",
+__all__ = ["Ellipses", "iso_photometry", "aperture_photometry", "kron_radius", "auto_photometry",
            "magnitudes", "limiting_magnitude"]
+
+
+class Ellipses(NamedTuple):
+    """AUTO (Kron) ellipses of K sources, each field an array of shape (K,) (or a scalar).
+
+    The aperture has semi-axes ``scale * a`` and ``scale * b`` about (x, y).
+    """
+
+    x: np.ndarray          #: centre, 0-based column [pixels]
+    y: np.ndarray          #: centre, 0-based row [pixels]
+    a: np.ndarray          #: isophotal semi-major axis [pixels]
+    b: np.ndarray          #: isophotal semi-minor axis [pixels]
+    theta: np.ndarray      #: position angle [radians, counter-clockwise from +x]
+    scale: np.ndarray      #: Kron factor x radius (:func:`auto_scale`) [units of a, b]
 
 #: ln(10)/2.5, so magerr = 2.5/ln(10) * err/flux = err/(flux * _K)
 _K = np.log(10.0) / 2.5
@@ -176,9 +192,9 @@ def auto_scale(kron, autoparams):
     return np.where(np.isfinite(s) & (s > rmin), s, rmin)
 
 
-def auto_photometry(image, rms, x, y, a, b, theta, scale, gain=None,
-                    segmap=None, seg_id=None, mask=None, noise=None):
-    """Flux in the AUTO (Kron) ellipse of semi-axes ``scale*a``, ``scale*b``.
+def auto_photometry(image, rms, ellipses: Ellipses, *, gain=None, segmap=None, seg_id=None, mask=None,
+                    noise=None):
+    """Flux in the AUTO (Kron) ellipse of semi-axes ``scale*a``, ``scale*b`` (``ellipses``).
 
     Pixels of other segments (``segmap``, ``seg_id``) are excluded; pixels
     flagged in ``mask`` (no data) are excluded and, as sep does, compensated
@@ -191,6 +207,7 @@ def auto_photometry(image, rms, x, y, a, b, theta, scale, gain=None,
     -------
     flux, fluxerr : ndarray
     """
+    x, y, a, b, theta, scale = ellipses
     x = np.asarray(x, dtype=np.float64)
     if x.size == 0:
         return np.zeros(0), np.zeros(0)
@@ -489,8 +506,8 @@ def masked_cutout(image, rms, segmap, seg_id, nodata, x, y, box, mask_type, boun
     return data, err, (y0, x0)
 
 
-def sextractor_photometry(image, rms, segmap, labels, nodata, x, y, a, b, theta, scale,
-                          diameters, mask_type, gain=None, dbkg=None, bounds=None, noise=None):
+def sextractor_photometry(image, rms, segmap, labels, nodata, ellipses: Ellipses, diameters, mask_type, *,
+                          gain=None, dbkg=None, bounds=None, noise=None):
     """Aperture and AUTO fluxes with neighbours treated by SExtractor's MASK_TYPE.
 
     Each object is measured on its own cut-out from :func:`masked_cutout`
@@ -508,9 +525,8 @@ def sextractor_photometry(image, rms, segmap, labels, nodata, x, y, a, b, theta,
     labels : array of int, shape (K,)
         Each object's label in ``segmap``.
     nodata : ndarray of bool or None
-    x, y, a, b, theta, scale : array, shape (K,)
-        Centres [pixels], isophotal shape and AUTO scale (see
-        :func:`auto_photometry`).
+    ellipses : Ellipses
+        Centres [pixels], isophotal shape and AUTO scale of the K objects.
     diameters : sequence of float
         PHOT_APERTURES [pixels].
     mask_type : {"none", "blank", "correct"}
@@ -526,6 +542,7 @@ def sextractor_photometry(image, rms, segmap, labels, nodata, x, y, a, b, theta,
     flux_aper, fluxerr_aper : ndarray, shape (len(diameters), K)
     flux_auto, fluxerr_auto : ndarray, shape (K,)
     """
+    x, y, a, b, theta, scale = ellipses
     x = np.atleast_1d(np.asarray(x, dtype=np.float64))
     y = np.atleast_1d(np.asarray(y, dtype=np.float64))
     k = x.size

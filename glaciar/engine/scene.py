@@ -64,6 +64,11 @@ class Scene:
         self._y1 = self._y0 + np.array([s[2].shape[0] for s in stamp_list], dtype=np.int64).reshape(n)
         self._x1 = self._x0 + np.array([s[2].shape[1] for s in stamp_list], dtype=np.int64).reshape(n)
 
+    def templates(self) -> list:
+        """Each stamp as ``(y0, x0, data, flux)``, in order (flux 1.0 for a stamp given
+        pre-multiplied): what was injected, for the status-2 template flux test."""
+        return [(y0, x0, d, 1.0 if f is None else f) for (y0, x0, d), f in zip(self.stamps, self._flux)]
+
     def clipped(self) -> np.ndarray:
         """Boolean array: True for stamps that are partly or wholly outside the image."""
         ny, nx = self.shape

@@ -41,9 +41,11 @@ import numpy as np
 from scipy import ndimage
 
 from glaciar.engine import clean as cl
-from glaciar.engine.detect import SEP_OBJ_MERGED, DetectionParams, _sep_extract, detection_rms, sanitize
+from glaciar.engine import sepscan
+from glaciar.engine.blocks import row_tiles
+from glaciar.engine.detect import SEP_OBJ_MERGED, DetectionParams, sep_extract, detection_rms, sanitize
 
-__all__ = ["Segmentation", "sep_segmentation", "isolate_region", "region_objects", "apply_clean",
+__all__ = ["Segmentation", "SegmentedBatch", "sep_segmentation", "isolate_region", "region_objects", "apply_clean",
            "sep_extract_clean", "EMULATED_CLEAN_MIN_OBJECTS"]
 
 _BIG_RMS = np.float32(1e30)
@@ -125,6 +127,69 @@ class Segmentation:
         return self._tree
 
 
+@dataclass(frozen=True, eq=False)
+class SegmentedBatch:
+    """The exact segmentation of a batch of sources on one canvas (what photometry needs).
+
+    Arrays of length B are per source of the batch (canvas coordinates).
+
+    Attributes
+    ----------
+    canvas : glaciar.engine.canvas.Canvas
+    seg : ndarray of int64
+        Canvas segmentation (canonically deblended, CLEAN applied).
+    seg32 : ndarray of int32
+        ``seg`` with pixels of objects CLEAN removed set to :data:`glaciar.engine.windows.REMOVED`
+        (masked as neighbours for everyone).
+    label : ndarray of int (B,)
+        Label of each source's detection in ``seg`` (0: none, or not done).
+    x, y, a, b, theta : ndarray (B,)
+        The detection's centroid [canvas pixels] and shape.
+    kron_scale : ndarray (B,)
+        AUTO ellipse scale (Kron factor x radius, at least the minimum radius).
+    src : ndarray of int (B,)
+        Index of each source in the call.
+    src_win : ndarray of int (B,)
+        Its window on the canvas.
+    done : ndarray of bool (B,)
+        Exact: to be measured now (the others grow and are redone).
+    rect : ndarray (B, 4)
+        Its window (y0, y1, x0, x1) [image pixels].
+    wy0, wx0 : ndarray (B,)
+        The window's corner on the canvas.
+    edge : ndarray of bool (B,)
+        Apertures reach the window edge: measured on the window alone.
+    phot_box : ndarray (B, 4)
+        Canvas box photometry reads (AUTO ellipse, apertures).
+    bounds : ndarray (B, 4)
+        The window on the canvas (y0, y1, x0, x1).
+    pix, lab_pix : ndarray
+        ``np.flatnonzero(seg)`` and the labels there.
+    """
+
+    canvas: "Canvas"
+    seg: np.ndarray
+    seg32: np.ndarray
+    label: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    theta: np.ndarray
+    kron_scale: np.ndarray
+    src: np.ndarray
+    src_win: np.ndarray
+    done: np.ndarray
+    rect: np.ndarray
+    wy0: np.ndarray
+    wx0: np.ndarray
+    edge: np.ndarray
+    phot_box: np.ndarray
+    bounds: np.ndarray
+    pix: np.ndarray
+    lab_pix: np.ndarray
+
+
 # --------------------------------------------------------------------------
 # One region
 # --------------------------------------------------------------------------
@@ -155,7 +220,7 @@ def isolate_region(data32, err32, nodata, inside, params: DetectionParams, clean
     """
     err = np.array(err32, dtype=np.float32, order="C")
     err[~inside] = _BIG_RMS
-    return _sep_extract(np.ascontiguousarray(data32, dtype=np.float32), err,
+    return sep_extract(np.ascontiguousarray(data32, dtype=np.float32), err,
                         np.ascontiguousarray(nodata), params, bool(clean))
 
 
@@ -175,7 +240,7 @@ def region_objects(inside, cat, seg, data32, filt, thr, params: DetectionParams,
         Cut-out image, filtered image and threshold [image units].
     params : DetectionParams
     lutz : (pixels, row, column), optional
-        The region's :func:`~glaciar.engine.clean.lutz_regions` entry in the
+        The region's :func:`~glaciar.engine.sepscan.lutz_regions` entry in the
         cut-out's flat indices, if already known.
 
     Returns
@@ -187,14 +252,14 @@ def region_objects(inside, cat, seg, data32, filt, thr, params: DetectionParams,
     """
     h, w = inside.shape
     if lutz is None:
-        lutz = cl.lutz_one(inside)
+        lutz = sepscan.lutz_one(inside)
     pix, yd, xd = lutz
     n = len(cat)
     sf = np.asarray(seg).ravel()
     if n == 1:
         orders = [pix]
     else:
-        oo = cl.child_pixel_orders(pix, w, sf, filt.ravel(), list(range(1, n + 1)),
+        oo = sepscan.child_pixel_orders(pix, w, sf, filt.ravel(), list(range(1, n + 1)),
                                    np.float32(cat["thresh"][0]), params.deblend_nthresh)
         orders = [oo[k] for k in range(1, n + 1)]
     objs = cl.clean_objects(cat, orders, data32.ravel(), filt.ravel(), thr.ravel(), params.detect_minarea)
@@ -259,9 +324,9 @@ def sep_segmentation(image_sub, err, params: DetectionParams, mask=None) -> Segm
     data, e, nodata = sanitize(image_sub, err, mask)
     e = detection_rms(e, nodata, params)
     H, W = data.shape
-    cat0, seg0 = _sep_extract(data, e, nodata, params, False)
-    dmask, filt, thr = cl.detection_mask(data, e, nodata, params)
-    comps = cl.lutz_regions(dmask, 1)
+    cat0, seg0 = sep_extract(data, e, nodata, params, False)
+    dmask, filt, thr = sepscan.detection_mask(data, e, nodata, params)
+    comps = sepscan.lutz_regions(dmask, 1)
     sf = seg0.ravel()
     pad = params.filter_halfwidth + 1
     cats, pre_seg = [], np.zeros((H, W), dtype=np.int32)
@@ -369,7 +434,7 @@ def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=No
     Parameters
     ----------
     data, err, nodata : ndarray
-        As passed to sep (:func:`glaciar.engine.detect._sep_extract`): sanitized
+        As passed to sep (:func:`glaciar.engine.detect.sep_extract`): sanitized
         float32 image and the detection RMS [image units], no-data mask.
     params : DetectionParams
         Detection settings; CLEAN_PARAM from ``params.clean_param`` (CLEAN is
@@ -399,7 +464,7 @@ def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=No
     ``min <= mthresh <= max`` of ``filtered - threshold`` over the object's
     pixels (:func:`glaciar.engine.clean.sep_clean_bounded`), region by region.
     sep's quirks are kept: no-data pixels of the first ``filter_halfwidth``
-    rows are not masked (:func:`_sep_threshold`).  The matched filter's
+    rows are not masked (:func:`~glaciar.engine.sepscan.threshold_map`).  The matched filter's
     detection mask is reproduced only up to rounding, so with
     ``filter_type="matched"`` sep's own CLEAN is always used.  Images too
     small to hold ``min_objects`` objects at ``_MIN_PIXELS_PER_OBJECT`` go
@@ -409,12 +474,12 @@ def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=No
     min_objects = EMULATED_CLEAN_MIN_OBJECTS if min_objects is None else int(min_objects)
     if (params.filter_kernel is not None and params.filter_type == "matched") or \
             np.size(data) < min_objects * _MIN_PIXELS_PER_OBJECT:
-        return _sep_extract(data, err, nodata, params, True)
-    cat, seg = _sep_extract(data, err, nodata, params, False)
+        return sep_extract(data, err, nodata, params, True)
+    cat, seg = sep_extract(data, err, nodata, params, False)
     n = len(cat)
     if n < min_objects:
         del seg
-        return _sep_extract(data, err, nodata, params, True)
+        return sep_extract(data, err, nodata, params, True)
     if n < 2:
         return cat, seg
     objs, lo, hi = _tiled_light_objects(data, err, nodata, seg, cat, params)
@@ -436,30 +501,9 @@ def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=No
     keep = np.flatnonzero(surv)
     lut = np.zeros(n + 1, dtype=np.int32)
     lut[keep + 1] = np.arange(1, keep.size + 1, dtype=np.int32)
-    for y0, y1, _, _ in _row_tiles(seg.shape, 0):
+    for y0, y1, _, _ in row_tiles(seg.shape, 0):
         seg[y0:y1] = lut[seg[y0:y1]]
     return cat[keep], seg
-
-
-def _row_tiles(shape, halo):
-    from glaciar.engine.measure import _row_tiles as tiles   # the reference's tiling (imports this module)
-    return tiles(shape, halo)
-
-
-def _sep_threshold(err, nodata, y0, params: DetectionParams):
-    """Per-pixel threshold of rows ``y0``... of the image, as sep applies it.
-
-    sep masks each row as it reads it into its filter buffer, except the first
-    ``filter_halfwidth`` rows, read before its loop: there no-data pixels keep
-    the RMS passed (and are detected where the filtered image exceeds it:
-    checked against sep 1.4 in ``tests/test_fullframe_clean.py``).
-    """
-    nd = np.asarray(nodata, dtype=bool)
-    first = params.filter_halfwidth - int(y0)
-    if first > 0 and nd[:first].any():
-        nd = nd.copy()
-        nd[:first] = False
-    return cl.threshold_map(err, nd, params.detect_thresh)
 
 
 def _tile_as_sep(data, err, nodata, ya, yb, params: DetectionParams):
@@ -467,8 +511,8 @@ def _tile_as_sep(data, err, nodata, ya, yb, params: DetectionParams):
     (rows within the filter's half-height of ``ya`` or ``yb`` are right only if those are
     the image's edges: the caller reads a halo)."""
     d = np.asarray(data[ya:yb], dtype=np.float32)
-    filt = d if params.filter_kernel is None else cl.sep_filter(d, params.filter_kernel)
-    return d, filt, _sep_threshold(err[ya:yb], nodata[ya:yb], ya, params)
+    filt = d if params.filter_kernel is None else sepscan.sep_filter(d, params.filter_kernel)
+    return d, filt, sepscan.threshold_map(err[ya:yb], nodata[ya:yb], params, y0=ya)
 
 
 def _tiled_light_objects(data, err, nodata, seg, cat, params: DetectionParams):
@@ -491,7 +535,7 @@ def _tiled_light_objects(data, err, nodata, seg, cat, params: DetectionParams):
     area2 = np.zeros(n, dtype=np.float64)
     th = np.asarray(cat["thresh"], dtype=np.float32)
     thresh2 = (th.astype(np.float64) + np.asarray(cat["peak"], dtype=np.float32).astype(np.float64)) / 2.0
-    for y0, y1, ya, yb in _row_tiles(seg.shape, params.filter_halfwidth):
+    for y0, y1, ya, yb in row_tiles(seg.shape, params.filter_halfwidth):
         lab = seg[y0:y1]
         on = lab > 0
         if not on.any():
@@ -511,7 +555,7 @@ def _tiled_light_objects(data, err, nodata, seg, cat, params: DetectionParams):
     hi[small] = 0.0
     a = np.asarray(cat["a"], dtype=np.float32)
     b = np.asarray(cat["b"], dtype=np.float32)
-    ab = cl._abcor(th, thresh2, area2, cat["tnpix"], a, b)
+    ab = cl.abcor(th, thresh2, area2, cat["tnpix"], a, b)
     objs = cl.CleanObjects(x=np.asarray(cat["x"], dtype=np.float64), y=np.asarray(cat["y"], dtype=np.float64),
                            a=a, b=b, cxx=np.asarray(cat["cxx"], dtype=np.float32),
                            cyy=np.asarray(cat["cyy"], dtype=np.float32),
@@ -529,8 +573,8 @@ def _region_mthresh(k, data, err, nodata, seg, cat, params: DetectionParams, wan
     split region to one child), so the region is the 8-connected component of
     labelled pixels holding ``k``'s pixels: found in a cut-out grown until it
     holds the component with a blank border, then put in sep's order
-    (:func:`~glaciar.engine.clean.lutz_one`,
-    :func:`~glaciar.engine.clean.child_pixel_orders`).
+    (:func:`~glaciar.engine.sepscan.lutz_one`,
+    :func:`~glaciar.engine.sepscan.child_pixel_orders`).
 
     ``wanted`` (bool per object, optional) limits the work to the children it
     marks (and ``k``): a child's order does not depend on its siblings'.
@@ -558,28 +602,28 @@ def _region_mthresh(k, data, err, nodata, seg, cat, params: DetectionParams, wan
         y0, y1, x0, x1 = min(y0, by0), max(y1, by1), min(x0, bx0), max(x1, bx1)
     fy0, fy1, fx0, fx1 = max(cy0 - h, 0), min(cy1 + h, H), max(cx0 - h, 0), min(cx1 + h, W)
     d = np.asarray(data[fy0:fy1, fx0:fx1], dtype=np.float32)
-    filt = d if params.filter_kernel is None else cl.sep_filter(d, params.filter_kernel)
+    filt = d if params.filter_kernel is None else sepscan.sep_filter(d, params.filter_kernel)
     c = (slice(cy0 - fy0, cy1 - fy0), slice(cx0 - fx0, cx1 - fx0))
     filt = np.ascontiguousarray(filt[c])
-    thr = _sep_threshold(err[cy0:cy1, cx0:cx1], nodata[cy0:cy1, cx0:cx1], cy0, params)
-    pix = cl.lutz_one(inside)[0]
+    thr = sepscan.threshold_map(err[cy0:cy1, cx0:cx1], nodata[cy0:cy1, cx0:cx1], params, y0=cy0)
+    pix = sepscan.lutz_one(inside)[0]
     labs = sib + 1
     if labs.size == 1:
         orders = {int(labs[0]): pix}
     else:
         todo = labs if wanted is None else labs[wanted[sib] | (sib == k)]
-        orders = cl.child_pixel_orders(pix, inside.shape[1], lab.ravel(), filt.ravel(), todo.tolist(),
+        orders = sepscan.child_pixel_orders(pix, inside.shape[1], lab.ravel(), filt.ravel(), todo.tolist(),
                                        np.float32(cat["thresh"][labs[0] - 1]), params.deblend_nthresh)
     tp = (filt - thr).astype(np.float32).ravel()
-    return {lab_ - 1: cl.heap_mthresh(tp[o], params.detect_minarea) for lab_, o in orders.items()}
+    return {lab_ - 1: sepscan.heap_mthresh(tp[o], params.detect_minarea) for lab_, o in orders.items()}
 
 
 def _object_mthresh(idx, n_objects, data, err, nodata, seg, params: DetectionParams):
     """Exact ``mthresh`` of objects that are a whole region each (not deblended).
 
     Their pixels are gathered by row tiles (raster order), put in sep's order
-    by :func:`~glaciar.engine.clean.lutz_one` on each object's own mask, and
-    run through :func:`~glaciar.engine.clean.heap_mthresh`.
+    by :func:`~glaciar.engine.sepscan.lutz_one` on each object's own mask, and
+    run through :func:`~glaciar.engine.sepscan.heap_mthresh`.
 
     Returns
     -------
@@ -592,7 +636,7 @@ def _object_mthresh(idx, n_objects, data, err, nodata, seg, params: DetectionPar
     need = np.zeros(int(n_objects) + 1, dtype=bool)
     need[idx + 1] = True
     flats, labs, tps = [], [], []
-    for y0, y1, ya, yb in _row_tiles(seg.shape, params.filter_halfwidth):
+    for y0, y1, ya, yb in row_tiles(seg.shape, params.filter_halfwidth):
         lab = seg[y0:y1].ravel()
         sel = np.flatnonzero(need[lab])
         if sel.size == 0:
@@ -616,6 +660,6 @@ def _object_mthresh(idx, n_objects, data, err, nodata, seg, params: DetectionPar
         mask = np.zeros((int(ys.max()) - y0 + 2, w), dtype=bool)
         local = (ys - y0) * w + (xs - x0)               # increasing: raster order
         mask.ravel()[local] = True
-        pix = cl.lutz_one(mask)[0]
-        out[int(lab[s0]) - 1] = cl.heap_mthresh(tp[s0:s1][np.searchsorted(local, pix)], m)
+        pix = sepscan.lutz_one(mask)[0]
+        out[int(lab[s0]) - 1] = sepscan.heap_mthresh(tp[s0:s1][np.searchsorted(local, pix)], m)
     return out

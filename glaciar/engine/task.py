@@ -19,7 +19,7 @@ import pandas as pd
 from .. import constants as C
 from ..galaxy import population, sed
 from .depth import depth_at
-from .measure import measure_injected
+from .measure import MeasureSetup, measure_injected
 from .positions import draw_positions
 from .scene import Scene
 
@@ -175,15 +175,10 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
         mag_stamp[:, j] = sed.flux_to_mag(flux_in[:, j] * frac, ctx.zeropoints[band])
 
     scenes = {b: Scene(ctx.bases[b], stamps[b]) for b in bands}
-    det = ctx.detection_band
     jd = ctx.detection_index
     det_scene, det_rms = ctx.detection_scene(scenes)
-    meas = measure_injected(det_scene, det_rms, scenes, ctx.rms, x, y,
-                            flux_in[:, jd], src.mag_in[:, jd], ctx.reference, ctx.detection_params,
-                            ctx.classification_params, ctx.zeropoints, ctx.gains, det,
-                            mask=ctx.mask, mode=mode, input_templates=templates,
-                            noise_models=getattr(ctx, "noise_models", None),
-                            det_background=getattr(ctx, "detection_background", None))
+    meas = measure_injected(MeasureSetup.of_field(ctx), det_scene, det_rms, scenes, x, y,
+                            flux_in[:, jd], src.mag_in[:, jd], mode=mode, input_templates=templates)
 
     cols: dict[str, np.ndarray] = {
         C.COL_FIELD: np.full(m, spec.field, dtype=object),

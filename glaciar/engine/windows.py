@@ -1,8 +1,8 @@
 """Exact local segmentation of injected sources: windows, growth, re-extraction.
 
 The product every sep mode and the SExtractor backend return
-(:class:`SegmentedBatch`: per source, its detection's label on a canvas, the
-canvas's segmentation, the detection's geometry and Kron scale) is made here;
+(:class:`~glaciar.engine.segmentation.SegmentedBatch`: per source, its detection's label
+on a canvas, the canvas's segmentation, the detection's geometry and Kron scale) is made here;
 classification and photometry on it are :mod:`glaciar.engine.measure`'s.
 
 Windowed detection
@@ -24,7 +24,7 @@ the image edge excepted, where the full frame has the same edge):
   box (below).
 
 "Regions" are the 8-connected components of sep's above-threshold mask,
-recomputed exactly (:func:`glaciar.engine.clean.detection_mask`), *all* of
+recomputed exactly (:func:`glaciar.engine.sepscan.detection_mask`), *all* of
 them: a region that the window cuts below DETECT_MINAREA has no segment in the
 window, yet the full frame detects it, so checking only the segmentation
 would miss it (the "minarea gap").  Every pixel of a region inside its
@@ -81,23 +81,21 @@ Each shortcut below only decides *how much* is computed, never a result
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Callable, Mapping
+from typing import Callable, NamedTuple
 
 import numpy as np
 from scipy import ndimage
 
 from glaciar.constants import COL_FLAGS, FLAG_SEP_ERROR, FLAG_WINDOW_AT_LIMIT
-from glaciar.engine import clean as _clean
+from glaciar.engine import sepscan
 from glaciar.engine import photometry as phot
-from glaciar.engine.classify import ClassificationParams, input_pixel, select_detection
-from glaciar.engine.detect import DetectionError, DetectionParams, _sep_extract, detection_rms
-from glaciar.engine.scene import Scene
-from glaciar.engine.segmentation import isolate_region
+from glaciar.engine.canvas import (Canvas, MeasureContext, ObjectBoxes, ellipse_boxes, ellipse_half_extent,
+                                   label_boxes, safe_shape, window_groups)
+from glaciar.engine.classify import input_pixel, select_detection
+from glaciar.engine.detect import DetectionError, DetectionParams, sep_extract
+from glaciar.engine.segmentation import SegmentedBatch, isolate_region
 
-__all__ = ["MeasureContext", "SegmentedBatch", "Canvas", "segment_windowed", "segment_full", "pack_windows",
-           "safe_shape", "window_groups", "ellipse_half_extent", "initial_windows", "undetectable", "ObjectBoxes",
-           "ellipse_boxes", "label_boxes", "stamp_half_sizes"]
+__all__ = ["segment_windowed", "segment_full", "initial_windows", "undetectable", "stamp_half_sizes"]
 
 _EIGHT = np.ones((3, 3), dtype=bool)   # sep/SExtractor regions are 8-connected
 _MAX_CANVAS_PIXELS = 600_000           # keep one sep call's buffers small
@@ -112,144 +110,6 @@ _OWN_HALF = 10
 # m = 24-26.  8-14 gave the same CPU within the noise; without it, m = 24 took ~1.2x longer.
 _STAMP_SLACK = 11.0
 _STAMP_CROP = 16          # half-size of the template cut-outs stamp_half_sizes reads first
-
-
-@dataclass(frozen=True, eq=False)
-class MeasureContext:
-    """Everything one :func:`~glaciar.engine.measure.measure_injected` call works with.
-
-    Images and settings (read only)
-    ---------------------------------
-    det_scene, det_rms : Scene, ndarray
-        Injected detection image and its RMS [image units].
-    band_scenes, band_rms : mapping band -> Scene / ndarray
-    mask : ndarray of bool or None
-        True where there are no data.
-    ref_segmap, ref_mag : ndarray
-        Original image's segmentation and AUTO magnitude per original id.
-    params, cls : DetectionParams, ClassificationParams
-    zeropoints, gains : mapping band -> float / float or None
-    det_band : str
-    bands : list of str
-    noise_models : dict band -> CorrelatedNoise
-    shape : (int, int)
-    margin, gap : int
-        Exact-zone margin (filter half-width + 1) and blank gap between windows [pixels].
-
-    Sources
-    -------
-    x, y, input_flux, input_mag : ndarray, shape (N,)
-    templates : list
-        Per source its detection-band stamp (y0, x0, data, flux) or None.
-
-    Per-call state (the containers are filled, never replaced)
-    -----------------------------------------------------------
-    out : dict of column -> ndarray (N,)
-    at_max : ndarray of bool (N,)
-        Window at ``max_window``: done once more unchecked, flagged.
-    isolated : dict
-        Cache of isolated region extractions (image box, pixels) -> result.
-    tclean : TaskClean or None
-        Task-wide CLEAN outcome (:mod:`glaciar.engine.localclean`), None for
-        ``clean_style="region"`` or CLEAN off.
-    det_background : ndarray or None
-        Background map subtracted from the detection band [image units]
-        (SATUR_LEVEL flag: pixel + background); None = 0.
-    ref_objects : ObjectBoxes or None
-        Original objects' boxes that size first windows (:func:`initial_windows`).
-    """
-
-    det_scene: Scene
-    det_rms: np.ndarray
-    band_scenes: Mapping[str, Scene]
-    band_rms: Mapping[str, np.ndarray]
-    mask: np.ndarray | None
-    ref_segmap: np.ndarray
-    ref_mag: np.ndarray
-    params: DetectionParams
-    cls: ClassificationParams
-    zeropoints: Mapping[str, float]
-    gains: Mapping[str, float | None]
-    det_band: str
-    bands: list
-    noise_models: dict
-    shape: tuple
-    margin: int
-    gap: int
-    x: np.ndarray
-    y: np.ndarray
-    input_flux: np.ndarray
-    input_mag: np.ndarray
-    templates: list
-    out: dict
-    at_max: np.ndarray
-    isolated: dict
-    tclean: object = None
-    det_background: np.ndarray | None = None
-    ref_objects: "ObjectBoxes | None" = None
-
-
-@dataclass(frozen=True, eq=False)
-class SegmentedBatch:
-    """The exact segmentation of a batch of sources on one canvas (what photometry needs).
-
-    Arrays of length B are per source of the batch (canvas coordinates).
-
-    Attributes
-    ----------
-    canvas : Canvas
-    seg : ndarray of int64
-        Canvas segmentation (canonically deblended, CLEAN applied).
-    seg32 : ndarray of int32
-        ``seg`` with pixels of objects CLEAN removed set to :data:`REMOVED`
-        (masked as neighbours for everyone).
-    label : ndarray of int (B,)
-        Label of each source's detection in ``seg`` (0: none, or not done).
-    x, y, a, b, theta : ndarray (B,)
-        The detection's centroid [canvas pixels] and shape.
-    kron_scale : ndarray (B,)
-        AUTO ellipse scale (Kron factor x radius, at least the minimum radius).
-    src : ndarray of int (B,)
-        Index of each source in the call.
-    src_win : ndarray of int (B,)
-        Its window on the canvas.
-    done : ndarray of bool (B,)
-        Exact: to be measured now (the others grow and are redone).
-    rect : ndarray (B, 4)
-        Its window (y0, y1, x0, x1) [image pixels].
-    wy0, wx0 : ndarray (B,)
-        The window's corner on the canvas.
-    edge : ndarray of bool (B,)
-        Apertures reach the window edge: measured on the window alone.
-    phot_box : ndarray (B, 4)
-        Canvas box photometry reads (AUTO ellipse, apertures).
-    bounds : ndarray (B, 4)
-        The window on the canvas (y0, y1, x0, x1).
-    pix, lab_pix : ndarray
-        ``np.flatnonzero(seg)`` and the labels there.
-    """
-
-    canvas: "Canvas"
-    seg: np.ndarray
-    seg32: np.ndarray
-    label: np.ndarray
-    x: np.ndarray
-    y: np.ndarray
-    a: np.ndarray
-    b: np.ndarray
-    theta: np.ndarray
-    kron_scale: np.ndarray
-    src: np.ndarray
-    src_win: np.ndarray
-    done: np.ndarray
-    rect: np.ndarray
-    wy0: np.ndarray
-    wx0: np.ndarray
-    edge: np.ndarray
-    phot_box: np.ndarray
-    bounds: np.ndarray
-    pix: np.ndarray
-    lab_pix: np.ndarray
 
 
 def segment_full(ctx: MeasureContext, finish: Callable[[MeasureContext, SegmentedBatch], None]):
@@ -291,75 +151,6 @@ def segment_windowed(ctx: MeasureContext, finish: Callable[[MeasureContext, Segm
             grow_all.append(_run_canvas(ctx, chunk, rects[chunk], np.arange(chunk.size), False, rects, finish))
         pending = np.concatenate(grow_all) if grow_all else np.zeros(0, dtype=np.int64)
     return rects, rounds
-
-
-@dataclass(frozen=True, eq=False)
-class ObjectBoxes:
-    """Boxes of an image's objects, indexed on a grid of square cells for box queries.
-
-    Attributes
-    ----------
-    region, need : ndarray of int64, shape (M, 4)
-        Per object, image boxes (y0, y1, x0, x1): its above-threshold region,
-        and that region widened by its Kron and AUTO ellipses.
-    cell : int
-        Cell side [pixels].
-    ncx : int
-        Cells per image row.
-    start, ids : ndarray of int64
-        Objects whose region box meets cell ``k``: ``ids[start[k]:start[k + 1]]``.
-    """
-
-    region: np.ndarray
-    need: np.ndarray
-    cell: int
-    ncx: int
-    start: np.ndarray
-    ids: np.ndarray
-
-    @classmethod
-    def build(cls, region, need, shape, cell: int = 64) -> "ObjectBoxes":
-        region = np.asarray(region, dtype=np.int64).reshape(-1, 4)
-        need = np.asarray(need, dtype=np.int64).reshape(-1, 4)
-        ny, nx = shape
-        ncy, ncx = -(-ny // cell), -(-nx // cell)
-        cy0 = np.clip(region[:, 0] // cell, 0, ncy - 1)
-        cy1 = np.clip((region[:, 1] - 1) // cell, 0, ncy - 1)
-        cx0 = np.clip(region[:, 2] // cell, 0, ncx - 1)
-        cx1 = np.clip((region[:, 3] - 1) // cell, 0, ncx - 1)
-        ob, cells = _expand_cells(cy0, cy1, cx0, cx1, ncx)
-        order = np.argsort(cells, kind="stable")
-        start = np.searchsorted(cells[order], np.arange(ncy * ncx + 1))
-        return cls(region, need, int(cell), int(ncx), start.astype(np.int64), ob[order])
-
-    def __len__(self):
-        return len(self.region)
-
-    def candidates(self, boxes):
-        """(box index, object index) pairs of every object sharing a cell with each box.
-
-        A superset of the objects whose region box meets the box; pairs may repeat."""
-        boxes = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
-        ncy = (len(self.start) - 1) // self.ncx
-        c = self.cell
-        cy0 = np.clip(boxes[:, 0] // c, 0, ncy - 1)
-        cy1 = np.clip((boxes[:, 1] - 1) // c, 0, ncy - 1)
-        cx0 = np.clip(boxes[:, 2] // c, 0, self.ncx - 1)
-        cx1 = np.clip((boxes[:, 3] - 1) // c, 0, self.ncx - 1)
-        bi, cells = _expand_cells(cy0, cy1, cx0, cx1, self.ncx)
-        n = self.start[cells + 1] - self.start[cells]
-        pair_box = np.repeat(bi, n)
-        first = np.repeat(self.start[cells] - np.cumsum(n) + n, n)
-        return pair_box, self.ids[first + np.arange(pair_box.size)]
-
-
-def _expand_cells(cy0, cy1, cx0, cx1, ncx):
-    """(item index, cell index) for every grid cell of each item's inclusive cell range."""
-    hy, hx = cy1 - cy0 + 1, cx1 - cx0 + 1
-    n = hy * hx
-    item = np.repeat(np.arange(n.size), n)
-    k = np.arange(item.size) - np.repeat(np.cumsum(n) - n, n)
-    return item, (cy0[item] + k // hx[item]) * ncx + cx0[item] + k % hx[item]
 
 
 def undetectable(ctx: MeasureContext):
@@ -432,14 +223,15 @@ def stamp_half_sizes(ctx: MeasureContext):
     ix, iy = input_pixel(ctx.x, ctx.y)
     iy, ix = np.clip(iy, 0, ny - 1), np.clip(ix, 0, nx - 1)
     rms = np.asarray(ctx.det_rms[iy, ix], dtype=np.float64)
-    thresh = float(ctx.params.detect_thresh)
     minarea = int(ctx.params.detect_minarea)
     use = [i for i, t in enumerate(ctx.templates) if t is not None and rms[i] > 0 and t[3] > 0]
     if not use:
         return half
     idx = np.array(use, dtype=np.int64)
-    # pixels above threshold in the unit template: data * flux > thresh * rms
-    tval = thresh * rms[idx] / np.array([ctx.templates[i][3] for i in use], dtype=np.float64)
+    # pixels above threshold in the unit template: data * flux > threshold at the source
+    # (the detection threshold's one definition, at the source's pixel)
+    thr = sepscan.threshold_map(rms[idx], np.zeros(idx.size, dtype=bool), ctx.params).astype(np.float64)
+    tval = thr / np.array([ctx.templates[i][3] for i in use], dtype=np.float64)
     # All sources at once on central cut-outs of the templates (zero-padded); those with
     # above-threshold pixels on the cut-out's border are redone alone on larger ones.
     h = _STAMP_CROP
@@ -583,205 +375,11 @@ def initial_windows(x, y, shape, params: DetectionParams, search_box: int, margi
     return rects
 
 
-def pack_windows(heights, widths, gap):
-    """Shelf-pack rectangles; returns (y offsets, x offsets, canvas shape).
-
-    Rectangles go, tallest first, left to right on shelves of a given width,
-    each with ``gap`` blank pixels around it.  A few shelf widths about the
-    square root of the total area are tried and the smallest canvas kept
-    (its width trimmed to the rectangles it holds): every whole-canvas pass
-    (sep, the filter, labelling, band canvases) costs in proportion to the
-    canvas area, and one fixed width left ~20 % of it blank.
-    """
-    h = np.asarray(heights, dtype=np.int64).ravel()
-    w = np.asarray(widths, dtype=np.int64).ravel()
-    k = h.size
-    order = np.argsort(-h, kind="stable")
-    area = float(np.sum((h + gap) * (w + gap)))
-    wmin = int(np.max(w)) + 2 * gap if k else 2 * gap
-    hl, wl = h[order].tolist(), w[order].tolist()
-    best = None
-    for f in (0.85, 0.95, 1.0, 1.05, 1.1, 1.2, 1.35):
-        width = int(max(wmin, np.sqrt(area) * f))
-        oy, ox = [0] * k, [0] * k
-        y = x = gap
-        shelf = used = 0
-        for j in range(k):
-            hj, wj = hl[j], wl[j]
-            if x + wj + gap > width and x > gap:
-                y += shelf + gap
-                x = gap
-                shelf = 0
-            oy[j], ox[j] = y, x
-            x += wj + gap
-            used = max(used, x)
-            shelf = max(shelf, hj)
-        shape = (int(y + shelf + gap), int(max(used, 2 * gap)))
-        if best is None or shape[0] * shape[1] < best[2][0] * best[2][1]:
-            best = (oy, ox, shape)
-    oy = np.zeros(k, dtype=np.int64)
-    ox = np.zeros(k, dtype=np.int64)
-    if k:
-        oy[order], ox[order] = best[0], best[1]
-        return oy, ox, best[2]
-    return oy, ox, (int(2 * gap), int(2 * gap))
-
-
-class Canvas:
-    """Windows of the detection image (and later the bands) tiled into one array."""
-
-    def __init__(self, ctx, rects, full=False):
-        self.ctx = ctx
-        self.rects = rects                      # (K, 4) y0, y1, x0, x1 image coords
-        hh = rects[:, 1] - rects[:, 0]
-        ww = rects[:, 3] - rects[:, 2]
-        if full:
-            self.oy = np.zeros(1, dtype=np.int64)
-            self.ox = np.zeros(1, dtype=np.int64)
-            self.shape = ctx.shape
-        else:
-            self.oy, self.ox, self.shape = pack_windows(hh, ww, ctx.gap)
-        self.full = full
-        det = np.zeros(self.shape)
-        err = np.ones(self.shape, dtype=np.float32)
-        nodata = np.ones(self.shape, dtype=bool)
-        gap = np.ones(self.shape, dtype=bool)
-        ref = np.zeros(self.shape, dtype=np.int32)
-        ctx.det_scene.paste_windows(det, rects, self.oy, self.ox)
-        for k, (y0, y1, x0, x1) in enumerate(rects.tolist()):
-            sl = self.slice(k)
-            err[sl] = ctx.det_rms[y0:y1, x0:x1]
-            nodata[sl] = False if ctx.mask is None else ctx.mask[y0:y1, x0:x1]
-            gap[sl] = False
-            ref[sl] = ctx.ref_segmap[y0:y1, x0:x1]
-        with np.errstate(invalid="ignore"):
-            nodata |= ~np.isfinite(det) | ~(np.isfinite(err) & (err > 0))
-        det[nodata] = 0.0
-        err[nodata] = 1.0
-        self.det = det
-        self.det32 = det.astype(np.float32)
-        self.err = err
-        self.nodata = nodata
-        # the RMS the threshold multiplies; gaps between windows count as outside the image
-        self.derr = detection_rms(err, nodata & ~gap, ctx.params, outside=gap)
-        self.ref = ref
-
-    def detection(self):
-        """sep's above-threshold mask of the canvas, its filtered image and threshold (cached).
-
-        Every connected region of the mask, whatever its size, is a region
-        sep sees (:func:`glaciar.engine.clean.detection_mask`); the exactness
-        checks use these, not the segmentation, so a region a window cuts
-        below DETECT_MINAREA is not missed."""
-        if getattr(self, "_detection", None) is None:
-            self._detection = _clean.detection_mask(self.det32, self.derr, self.nodata, self.ctx.params)
-        return self._detection
-
-    def slice(self, k):
-        y0, y1, x0, x1 = self.rects[k]
-        return (slice(self.oy[k], self.oy[k] + y1 - y0), slice(self.ox[k], self.ox[k] + x1 - x0))
-
-    def band(self, name, windows, boxes=None):
-        """Band data, RMS and no-data mask on the canvas.
-
-        Only the listed windows are filled, or with ``boxes`` ((K, 4) canvas
-        y0, y1, x0, x1 inside those windows) only those parts.  Pixels not
-        filled are flagged as no data; no aperture of the sources measured
-        reaches them (see ``room`` in :func:`_analyse` and :func:`_band_boxes`).
-        """
-        ctx = self.ctx
-        scene, brms = ctx.band_scenes[name], ctx.band_rms[name]
-        if scene is ctx.det_scene and brms is ctx.det_rms and ctx.det_rms.dtype == np.float32:
-            # The detection band read through the detection canvas: same pixels, same
-            # no-data definition (its RMS is float32, so err's cast changed nothing).
-            rms = self.err.astype(np.float64)
-            rms[self.nodata] = 0.0
-            return self.det, rms, self.nodata
-        windows = np.asarray(windows, dtype=np.int64)
-        if boxes is None:
-            cy, cx = self.oy[windows], self.ox[windows]
-            img = self.rects[windows]
-        else:
-            boxes = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
-            keep = (boxes[:, 1] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 2])
-            boxes, windows = boxes[keep], windows[keep]
-            cy, cx = boxes[:, 0], boxes[:, 2]
-            dy = self.rects[windows, 0] - self.oy[windows]      # canvas -> image
-            dx = self.rects[windows, 2] - self.ox[windows]
-            img = np.stack([boxes[:, 0] + dy, boxes[:, 1] + dy, boxes[:, 2] + dx, boxes[:, 3] + dx], axis=1)
-        data = np.zeros(self.shape)
-        rms = np.zeros(self.shape)
-        scene.paste_windows(data, img, cy, cx)
-        for (y0, y1, x0, x1), py, px in zip(img.tolist(), cy.tolist(), cx.tolist()):
-            rms[py:py + y1 - y0, px:px + x1 - x0] = brms[y0:y1, x0:x1]
-        with np.errstate(invalid="ignore"):
-            bad = self.nodata | ~np.isfinite(data) | ~(np.isfinite(rms) & (rms > 0))
-        data[bad] = 0.0
-        rms[bad] = 0.0
-        return data, rms, bad
-
-
-def label_boxes(labels, n):
-    """Bounding boxes of the labels 1..n of a label image, shape (n + 1, 4).
-
-    Row ``c`` is (y0, y1, x0, x1) of label ``c`` (exclusive upper bounds, as
-    ``scipy.ndimage.find_objects`` gives them); row 0 and labels without a
-    pixel are zeros.  Same boxes as ``find_objects``, but ~5-15x faster on
-    canvases holding ~1000 small noise regions (its per-label cost dominated
-    the exactness checks), and no Python loop over the labels.
-    """
-    lab2 = np.asarray(labels)
-    flat = lab2.ravel()
-    pix = np.flatnonzero(flat)
-    cb = np.zeros((int(n) + 1, 4), dtype=np.int64)
-    if pix.size == 0:
-        return cb
-    lab = flat[pix]
-    rows, cols = np.divmod(pix, lab2.shape[1])
-    big = np.int64(2 ** 40)
-    cb[:, 0::2], cb[:, 1::2] = big, -big
-    np.minimum.at(cb[:, 0], lab, rows)
-    np.maximum.at(cb[:, 1], lab, rows + 1)
-    np.minimum.at(cb[:, 2], lab, cols)
-    np.maximum.at(cb[:, 3], lab, cols + 1)
-    cb[cb[:, 1] < 0] = 0
-    return cb
-
-
-def ellipse_boxes(x, y, dy, dx, grow=0):
-    """Integer boxes (y0, y1, x0, x1) [pixels], shape (N, 4), holding every pixel an ellipse
-    of half extents (dy, dx) about (x, y) can touch, ``grow`` pixels more on each side.
-
-    The margin the exactness checks of :func:`_analyse` use: one pixel below
-    the floor, and an exclusive upper bound two pixels above the ceiling."""
-    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
-    return np.stack([np.floor(y - dy).astype(np.int64) - 1 - grow, np.ceil(y + dy).astype(np.int64) + 2 + grow,
-                     np.floor(x - dx).astype(np.int64) - 1 - grow, np.ceil(x + dx).astype(np.int64) + 2 + grow],
-                    axis=1).reshape(-1, 4)
-
-
-def ellipse_half_extent(a, b, theta, r):
-    """Half extents (dy, dx) [pixels] of the ellipse of semi-axes r a, r b at angle theta."""
-    c, s = np.cos(theta), np.sin(theta)
-    dx = r * np.sqrt((a * c) ** 2 + (b * s) ** 2)
-    dy = r * np.sqrt((a * s) ** 2 + (b * c) ** 2)
-    return dy, dx
-
-
-def safe_shape(a, b, theta):
-    """Ellipse shape sep accepts (a >= b > 0, |theta| <= pi/2)."""
-    # sep requires a >= b >= 0 and |theta| <= pi/2; guard degenerate 1-pixel-wide objects
-    a = np.maximum(np.asarray(a, dtype=np.float64), 1e-3)
-    b = np.clip(np.asarray(b, dtype=np.float64), 1e-3, a)
-    th = np.clip(np.asarray(theta, dtype=np.float64), -np.pi / 2, np.pi / 2)
-    return a, b, th
-
-
 def _run_canvas(ctx, src, rects, src_win, full, all_rects, finish):
     """Extract one canvas; ``finish`` what is exact, return sources whose window must grow."""
     try:
         canvas = Canvas(ctx, rects, full=full)
-        cat, seg = _sep_extract(canvas.det32, canvas.derr, canvas.nodata, ctx.params, clean=False)
+        cat, seg = sep_extract(canvas.det32, canvas.derr, canvas.nodata, ctx.params, clean=False)
     except DetectionError:
         if len(rects) > 1:   # isolate the failing window(s)
             grow = [_run_canvas(ctx, src[i:i + 1], rects[src_win[i]][None], np.zeros(1, dtype=np.int64),
@@ -798,7 +396,7 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     """Exactness checks, canonical re-extraction and CLEAN on one extracted canvas.
 
     Returns the sources whose window must grow and the batch of the others
-    (:class:`SegmentedBatch`)."""
+    (:class:`~glaciar.engine.segmentation.SegmentedBatch`)."""
     params, cls = ctx.params, ctx.cls
     m = ctx.margin
     ny, nx = ctx.shape
@@ -933,9 +531,9 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     # ---- CLEAN: glaciar's (sep's test and order, exact in any window; see localclean)
     if ctx.tclean is not None:
         zone = np.stack([lo_y, hi_y, lo_x, hi_x], axis=1)
-        pseg, next_label = _clean_stage(ctx, cv, comp, cb, seg2comp, segs_per_comp, cat, pseg, tab, next_label,
-                                        src, rect, wy0, wx0, bounds, zone, icx, icy, grow, sep_failed, fail,
-                                        need_l)
+        pseg, next_label = _clean_stage(ctx, cv, _CanvasRegions(comp, cb, seg2comp, segs_per_comp, cat, tab),
+                                        _SourceWindows(rect, wy0, wx0, bounds, zone, icx, icy), pseg,
+                                        next_label, grow, sep_failed, fail, need_l)
     tab.pop("iso")
     tab = {f: np.concatenate(v) for f, v in tab.items()}
 
@@ -1036,8 +634,31 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     return np.array(regrow, dtype=np.int64), batch
 
 
-def _clean_stage(ctx, cv, comp, cb, seg2comp, segs_per_comp, cat, pseg, tab, next_label, src, rect, wy0, wx0,
-                 bounds, zone, icx, icy, grow, sep_failed, fail, need_l):
+class _CanvasRegions(NamedTuple):
+    """An extracted canvas's regions and segments, as :func:`_analyse` builds them."""
+
+    comp: np.ndarray            #: region label of every canvas pixel (8-connected, every region)
+    boxes: np.ndarray           #: (ncomp + 1, 4) box of each region (row 0: background)
+    seg2comp: np.ndarray        #: region of each sep segment (index = segment label)
+    segs_per_comp: np.ndarray   #: number of sep segments in each region
+    cat: np.ndarray             #: sep's catalogue of the canvas
+    tab: dict                   #: segment table (:func:`_segment_table`), grown by :func:`_isolate`
+
+
+class _SourceWindows(NamedTuple):
+    """Per source of a canvas (arrays of length B), its window (see :func:`_analyse`)."""
+
+    rect: np.ndarray            #: (B, 4) window y0, y1, x0, x1 [image pixels]
+    wy0: np.ndarray             #: window corner on the canvas [canvas pixels]
+    wx0: np.ndarray
+    bounds: np.ndarray          #: (B, 4) the window on the canvas
+    zone: np.ndarray            #: (B, 4) its exact zone on the canvas (lo_y, hi_y, lo_x, hi_x)
+    icx: np.ndarray             #: input pixel on the canvas [canvas pixels]
+    icy: np.ndarray
+
+
+def _clean_stage(ctx, cv, regions: _CanvasRegions, wins: _SourceWindows, pseg, next_label, grow, sep_failed,
+                 fail, need_l):
     """Relabel what each source's search box shows as the full frame's CLEAN leaves it.
 
     Every object with a pixel in a source's search box takes the label of the
@@ -1050,6 +671,8 @@ def _clean_stage(ctx, cv, comp, cb, seg2comp, segs_per_comp, cat, pseg, tab, nex
 
     Returns the relabelled ``pseg`` and the next free label.
     """
+    comp, cb, seg2comp, segs_per_comp, cat, tab = regions
+    rect, wy0, wx0, bounds, zone, icx, icy = wins
     tc = ctx.tclean
     ny, nx = ctx.shape
     ncomp = cb.shape[0] - 1
@@ -1180,13 +803,3 @@ def _isolate(cv, comp, c, box, win, pseg, tab, next_label, ctx, offset):
     return next_label + k
 
 
-def window_groups(cv, ii, edge, src_win):
-    """Yield (source indices, canvas slice): all non-edge sources on the whole canvas,
-    then each edge source on its own window (see ``room`` in :func:`_analyse`)."""
-    ii = np.asarray(ii, dtype=np.int64)
-    whole = (slice(0, cv.shape[0]), slice(0, cv.shape[1]))
-    inner = ii[~edge[ii]]
-    if inner.size:
-        yield inner, whole
-    for i in ii[edge[ii]]:
-        yield np.array([i]), cv.slice(src_win[i])
