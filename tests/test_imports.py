@@ -26,18 +26,12 @@ MAX_MODULE_LINES = 900
 MAX_PARAMETERS = 12
 
 # Why an offender is still allowed: the issue-22 point (and branch) that removes it.
-ENGINE = "22.2, engine branch: one threshold path, context object, public helpers"
-REPORT = "22.6, report branch: figures.py and lf_figures.py"
 DEMO = "22.1: demo/'s shared constants and helpers get a public home (not assigned yet)"
 NOT_SPLIT = "22.1: one home per concept, this module not split yet (not assigned yet)"
 KEYWORD_OPTIONS = "22.3: keyword-only options / an options object (not assigned yet)"
 
 # Import edges ("importer -> imported") that close today's cycles; every other cycle fails.
-ALLOWED_CYCLE_EDGES = {
-    # closes engine/measure -> windows -> segmentation -> measure (segmentation reads
-    # measure._row_tiles)
-    "glaciar.engine.segmentation -> glaciar.engine.measure": ENGINE,
-}
+ALLOWED_CYCLE_EDGES: dict = {}
 
 # "module: imported_module._name" -- private names read across modules.
 ALLOWED_PRIVATE_IMPORTS = {
@@ -73,31 +67,17 @@ ALLOWED_PRIVATE_IMPORTS = {
     "glaciar.demo.strips: glaciar.demo.sky._sersic_stamp_fast": DEMO,
     "glaciar.demo.survey: glaciar.demo.bands._CRVAL_DEG": DEMO,
     "glaciar.demo: glaciar.demo.noise._drizzle_kernel_1d": DEMO,
-    "glaciar.engine.catalog: glaciar.engine.detect._sep_extract": ENGINE,
-    "glaciar.engine.localclean: glaciar.engine.detect._sep_extract": ENGINE,
-    "glaciar.engine.measure: glaciar.engine.detect._sep_extract": ENGINE,
-    "glaciar.engine.segmentation: glaciar.engine.clean._abcor": ENGINE,
-    "glaciar.engine.segmentation: glaciar.engine.detect._sep_extract": ENGINE,
-    "glaciar.engine.segmentation: glaciar.engine.measure._row_tiles": ENGINE,
-    "glaciar.engine.windows: glaciar.engine.detect._sep_extract": ENGINE,
 }
 
 # Modules over MAX_MODULE_LINES lines.
 ALLOWED_LONG_MODULES = {
     "glaciar.config.models": NOT_SPLIT,
-    "glaciar.engine.clean": ENGINE,
-    "glaciar.engine.windows": ENGINE,
     "glaciar.inference.selection_function": NOT_SPLIT,
     "glaciar.store": NOT_SPLIT,
 }
 
 # "module.qualified_function" with more than MAX_PARAMETERS parameters.
 ALLOWED_LONG_SIGNATURES = {
-    "glaciar.engine.measure._template_auto_flux": ENGINE,
-    "glaciar.engine.measure.measure_injected": ENGINE,
-    "glaciar.engine.photometry.auto_photometry": ENGINE,
-    "glaciar.engine.photometry.sextractor_photometry": ENGINE,
-    "glaciar.engine.windows._clean_stage": ENGINE,
     "glaciar.inference.adaptive.plan_round": KEYWORD_OPTIONS,
     "glaciar.inference.counts.count_kernel": KEYWORD_OPTIONS,
     "glaciar.inference.counts.expected_counts": KEYWORD_OPTIONS,
