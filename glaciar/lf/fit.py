@@ -13,7 +13,7 @@ likelihood evaluation is one matrix product, whatever the number of candidates.
 Likelihood: Poisson in every bin, ln L_d = Σ_k [n_k ln lambda_dk - lambda_dk] (ln n_k!
 dropped).
 
-**Selection-function uncertainty** (``marginalise``), over D posterior draws of the
+**Selection-function uncertainty** (:class:`Marginalisation`), over D posterior draws of the
 selection function (``max_sf_draws``, evenly spaced; draw i paired with transfer draw
 i mod n_t):
 
@@ -52,11 +52,12 @@ the mixture by construction, often ~1 for "likelihood" with many candidates.
 Priors: uniform (:mod:`glaciar.lf.models`).  Sampling: MAP (L-BFGS-B), its Laplace
 covariance, then (importance sampling per draw, above, or) emcee with the independence,
 differential-evolution and stretch moves of :func:`glaciar.inference.sampling.sample_block`,
-until 50 autocorrelation times or ``n_steps`` (per chain); burn-in 2 tau, thinning tau / 2.
+until 50 autocorrelation times or ``sampler.max_steps`` (per chain); burn-in 2 tau,
+thinning tau / 2.
 
 phi is 0 outside ``muv_range`` (sources outside it are assumed absent: choose it to
 cover every M_UV that contributes to the measured-magnitude window; the default does),
-and constant in z over ``z_range``.
+and constant in z over the redshift range (``volume``).
 
 Arrays in, results out; no file I/O (``glaciar lf``, :func:`glaciar.pipeline.lf.run_lf`,
 reads and writes the files).
@@ -615,7 +616,8 @@ def _sample(post: LFPosterior, x_map, bounds, n_walkers, n_steps, seed, marginal
         warnings.warn(f"fit_lf ({name}): {len(conv_ok) - sum(conv_ok)} of {len(conv_ok)} emcee "
                       f"chain(s) of up to {max(steps)} steps are shorter than 50 autocorrelation "
                       f"times (tau up to {np.max(np.concatenate(taus)):.0f} steps) or tau is "
-                      "still changing; raise n_steps", ConvergenceWarning, stacklevel=3)
+                      "still changing; raise SamplerSettings.max_steps", ConvergenceWarning,
+                      stacklevel=3)
     if marginalise == "mixture":
         # Every draw weighs the same: as many samples from each.
         n_per = min(len(f) for f in flats)
