@@ -153,7 +153,7 @@ def make_propose(box=BOX, min_per_cell: int = 10, outcomes: str = "selected",
         g = sf.grid_draws(zc, mc)
         # The batch rule's objective: the variance of C*S on a fixed grid over the box.
         p_eval = sf.grid_draws(VR_Z, VR_M)["P"] if criterion == "variance" else None
-        return plan_round(g["C"], g["S"], zc, mc, k, criterion=criterion, outcomes=outcomes,
+        return plan_round(g["C"], g["S"], (zc, mc), k, criterion=criterion, outcomes=outcomes,
                           min_per_cell=min_per_cell, p_eval=p_eval)
     return propose
 

@@ -48,11 +48,13 @@ def _config(base_cfg, n_iterations, seed):
 
 
 def _fit(run_dir):
+    from glaciar.inference.sampling import SamplerSettings
     from glaciar.pipeline import run_fit
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        run_fit(run_dir, model="logistic", seed=0, resume=False, plots=False)
+        run_fit(run_dir, model="logistic", sampler=SamplerSettings(seed=0), resume=False,
+                plots=False)
 
 
 def _n_sources(run_dir):

@@ -144,10 +144,11 @@ def api_fit(run_dir, seed):
     f = _api("fit")
     if f is not None and callable(f):
         return f(run_dir, seed=seed, plots=False)
+    from glaciar.inference.sampling import SamplerSettings
     from glaciar.inference.selection_function import SelectionFunction
     from glaciar.pipeline import run_fit
 
-    path = run_fit(run_dir, seed=seed, plots=False)
+    path = run_fit(run_dir, sampler=SamplerSettings(seed=seed), plots=False)
     return SelectionFunction.read(path)
 
 
@@ -431,6 +432,8 @@ def selected_truth(sf, truth):
 # One realisation, end to end
 # --------------------------------------------------------------------------------------
 def realisation(args, seed: int, work: Path) -> dict:
+    from glaciar.inference.counts import SurveyVolume
+    from glaciar.inference.sampling import SamplerSettings
     from glaciar.lf import fit_lf
 
     timer = Timer()
@@ -461,8 +464,9 @@ def realisation(args, seed: int, work: Path) -> dict:
             params, _ = api_lf(run_dir, cat_path, fix=fix, seed=seed)
         res["fits"][f"transfer/{vname}"] = params
         with timer(f"lf input-only ({vname} M*)"):
-            r = fit_lf(sf, m_obs, model="schechter", fix=fix, muv_range=M_RANGE, z_range=Z_RANGE,
-                       transfer=False, seed=seed)
+            r = fit_lf(sf, m_obs, model="schechter", fix=fix, muv_range=M_RANGE,
+                       volume=SurveyVolume(z_min=Z_RANGE[0], z_max=Z_RANGE[1]),
+                       transfer=False, sampler=SamplerSettings(seed=seed))
         res["fits"][f"input_only/{vname}"] = r.parameters
         with timer(f"1/V_eff fit ({vname} M*)"):
             res["fits"][f"veff/{vname}"] = _binned_fit(vb["edges"], vb["n"], vb["veff"], vb["dM"],

@@ -295,6 +295,7 @@ def main(argv=None):
         out["groups"] = len(c)
     """)
     fit = _measure(f"""
+        from glaciar.inference.sampling import SamplerSettings
         from glaciar.pipeline.fit import run_fit
         from glaciar.pipeline.inputs import fit_inputs
         import glaciar.pipeline.fit as sfm   # the add_lf_products run_fit calls
@@ -315,7 +316,8 @@ def main(argv=None):
         out["read_s"] = time.perf_counter() - t
         out["cells"] = len(cells)
         t = time.perf_counter()
-        run_fit({str(big)!r}, model="logistic", plots=False, seed=0{steps})
+        run_fit({str(big)!r}, model="logistic", plots=False,
+                sampler=SamplerSettings(seed=0{steps}))
         out["run_fit_s"] = time.perf_counter() - t
         s = json.load(open({str(big / 'fit' / 'summary.json')!r}))["fits"]["all"]
         out["sampler_s"] = s["wall_time_s"]

@@ -119,23 +119,26 @@ def catalog(source, out=None, *, regions: bool = False, progress: bool = False):
     return run_catalog(source, out, regions=regions, progress=progress)
 
 
-def fit(run_dir, **kwargs):
+def fit(run_dir, *, seed=0, n_walkers=None, max_steps=None, progress=False, **kwargs):
     """Fit C(m, z) and S(z, m) of a run; write ``RUN/selection_function.fits`` and return it.
 
-    Keyword arguments are those of :func:`glaciar.pipeline.run_fit` (``model``,
-    ``per_field``, ``seed``, ``cosmology``, ``area_arcmin2``, ``max_steps``, ``depth``,
-    ``progress``).
+    ``seed``, ``n_walkers``, ``max_steps`` and ``progress`` are the sampler's settings
+    (:class:`glaciar.inference.sampling.SamplerSettings`); the other keyword arguments
+    are those of :func:`glaciar.pipeline.run_fit` (``model``, ``per_field``,
+    ``cosmology``, ``area_arcmin2``, ``max_draws``, ``plots``, ``depth``).
 
     Returns
     -------
     SelectionFunction
         The survey's (pooled) fit as written to the file.
     """
+    from .inference.sampling import SamplerSettings
     from .inference.selection_function import SelectionFunction
     from .pipeline import run_fit
 
-    kwargs.setdefault("progress", False)
-    path = run_fit(run_dir, **kwargs)
+    sampler = SamplerSettings(n_walkers=n_walkers, max_steps=max_steps, seed=seed,
+                              progress=progress)
+    path = run_fit(run_dir, sampler=sampler, **kwargs)
     return SelectionFunction.read(path) if not kwargs.get("per_field") else \
         SelectionFunction.read_all(path)
 

@@ -185,9 +185,11 @@ def _cmd_fit(args) -> int:
     if args.cosmology:
         from .galaxy.population import get_cosmology
         cosmology = get_cosmology(args.cosmology)
-    path = _fit(args.run_dir, model=args.model, per_field=args.per_field, seed=args.seed,
-                progress=not args.quiet, cosmology=cosmology, area_arcmin2=args.area_arcmin2,
-                max_steps=args.max_steps, depth=args.depth)
+    from .inference.sampling import SamplerSettings
+
+    sampler = SamplerSettings(max_steps=args.max_steps, seed=args.seed, progress=not args.quiet)
+    path = _fit(args.run_dir, model=args.model, per_field=args.per_field, sampler=sampler,
+                cosmology=cosmology, area_arcmin2=args.area_arcmin2, depth=args.depth)
     print(f"wrote {path}")
     return 0
 
@@ -247,7 +249,9 @@ def _cmd_demo(args) -> int:
     for p in _report(run_dir, regions=False):
         print(p)
     if not args.no_fit:
-        path = _fit(run_dir, progress=not args.quiet)
+        from .inference.sampling import SamplerSettings
+
+        path = _fit(run_dir, sampler=SamplerSettings(progress=not args.quiet))
         print(f"selection function: {path}")
     print(f"demo finished in {time.perf_counter() - t0:.1f} s; results in {run_dir}")
     return 0

@@ -195,13 +195,13 @@ def test_plan_round_requests_the_best_cells():
     zc, mc = np.array([8.0, 9.0]), np.array([26.0, 27.0, 28.0])
     p = np.full((2, 2, 3), 0.5)
     p[:, 1, 2] = [0.1, 0.9]                              # the only uncertain cell
-    req = plan_round(p, None, zc, mc, 25)
+    req = plan_round(p, None, (zc, mc), 25)
     assert req.dtype == np.dtype(REQUEST_DTYPE)
     assert req.tolist() == [(9.0, 28.0, 25)]
     # The sd criterion on C and S draws: P = C S is uncertain only at (8, 26).
     c, s = np.full((2, 2, 3), 0.8), np.full((2, 2, 3), 0.5)
     s[:, 0, 0] = [0.2, 0.7]
-    assert plan_round(c, s, zc, mc, 7, criterion="sd").tolist() == [(8.0, 26.0, 7)]
+    assert plan_round(c, s, (zc, mc), 7, criterion="sd").tolist() == [(8.0, 26.0, 7)]
 
 
 def _toy_loop(seed, budget=130, target_sd=None):

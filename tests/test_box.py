@@ -136,6 +136,7 @@ def _table(run_dir: Path) -> pd.DataFrame:
 @pytest.mark.filterwarnings("ignore:fit 'all'")
 def test_box_simulates_resumes_to_the_same_table_grows_by_a_prefix_and_fits(small_survey,
                                                                             tmp_path):
+    from glaciar.inference.sampling import SamplerSettings
     from glaciar.pipeline.fit import run_fit
     from glaciar.execute import simulate
     from glaciar.store import read_manifest
@@ -168,7 +169,7 @@ def test_box_simulates_resumes_to_the_same_table_grows_by_a_prefix_and_fits(smal
     fi = fit_inputs(a, C.COL_MAG_INPUT, COUNTS_MAG_RESOLUTION)
     assert sorted(np.unique(fi.z)) == sorted({8.0, *ez, *_expected_points(
         BOX["z"], BOX["mag"], 5, cfg.simulation.seed)[0]})
-    run_fit(a, model="logistic", progress=False, plots=False, max_steps=300)
+    run_fit(a, model="logistic", plots=False, sampler=SamplerSettings(max_steps=300))
     from glaciar.inference import SelectionFunction
 
     sf = SelectionFunction.read(a / C.SELECTION_FUNCTION_NAME)

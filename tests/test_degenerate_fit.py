@@ -15,7 +15,7 @@ import pytest
 
 from glaciar import constants as C
 from glaciar.inference import SelectionFunction, SurfaceModel
-from glaciar.inference.sampling import ConvergenceWarning
+from glaciar.inference.sampling import ConvergenceWarning, SamplerSettings
 from glaciar.pipeline import run_fit
 from glaciar.store import write_task_table
 
@@ -54,7 +54,7 @@ def make_run(run_dir, *, n_per_cell=12, selection=(), fields=("f1", "f2"), seed=
     return df
 
 
-FAST = dict(model="logistic", max_steps=150, seed=1)
+FAST = dict(model="logistic", sampler=SamplerSettings(max_steps=150, seed=1))
 
 
 @pytest.fixture(scope="module")
@@ -223,7 +223,8 @@ def test_killed_fit_leaves_previous_result_and_its_leftovers_go(detection_only_f
     monkeypatch.setattr(SelectionFunction, "to_bytes", staticmethod(die))
     with pytest.raises(RuntimeError, match="killed"), warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        run_fit(run, model="logistic", max_steps=100, seed=7, plots=False)   # other chains
+        run_fit(run, model="logistic", sampler=SamplerSettings(max_steps=100, seed=7),
+                plots=False)   # other chains
     assert _snapshot(run) == before
     assert not any(p.exists() for p in junk)
     assert sorted(p.name for p in run.iterdir() if p.name.startswith(".fit")) == []

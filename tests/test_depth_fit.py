@@ -20,6 +20,7 @@ from scipy import stats
 
 from glaciar import constants as C
 from glaciar.inference import SelectionFunction
+from glaciar.inference.sampling import SamplerSettings
 from glaciar.pipeline import run_fit
 from glaciar.store import read_manifest, read_results
 
@@ -114,7 +115,7 @@ def test_deep_corner_adequate_and_per_depth_completeness(deep_corner_run):
     cfg, run = deep_corner_run
     # Two redshifts leave S's high-z edge to its prior: its chain mixes slowly (tau ~ 500
     # steps for logit_s_max), and 50 tau need more than the default 20 000 steps.
-    sf, dst = _fit(run, "fit_corner", depth="auto", max_steps=60000)
+    sf, dst = _fit(run, "fit_corner", depth="auto", sampler=SamplerSettings(max_steps=60000))
     summ = json.loads((dst / "fit" / "summary.json").read_text())["fits"]["all"]
     ppc = summ["ppc"]
     print(f"deep corner: {ppc['n_extreme']} of {ppc['n_cells']} PPC cells extreme "
@@ -153,7 +154,7 @@ def test_deep_corner_documented_reader_averages_depth_bins(deep_corner_run):
     import pathlib
     import re
     cfg, run = deep_corner_run
-    sf, dst = _fit(run, "fit_corner", depth="auto", max_steps=60000)
+    sf, dst = _fit(run, "fit_corner", depth="auto", sampler=SamplerSettings(max_steps=60000))
     doc = pathlib.Path(__file__).parents[1] / "docs" / "selection-function-file.md"
     code = re.findall(r"```python\n(.*?)```", doc.read_text(), re.S)[1]
     ns = {}

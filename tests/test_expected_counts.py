@@ -10,6 +10,7 @@ from scipy.stats import norm
 
 from glaciar.galaxy.filters import get_filter
 from glaciar.inference import SelectionFunction, SurfaceModel
+from glaciar.inference.counts import Quadrature, SurveyVolume, expected_counts
 from glaciar.inference.products import InjectionSED
 from glaciar.tables import TransferMatrix, slice_edges
 
@@ -72,6 +73,22 @@ def test_step_selection_without_transfer_counts_the_comoving_volume():
     assert np.all(ec.median[EDGES[:-1] >= M_LIM + 0.01] < 1e-6 * volume())
     assert ec.draws.shape == (2, len(EDGES) - 1) and not ec.transfer
     np.testing.assert_array_equal(ec.extrapolated_fraction, 0.0)
+
+
+def test_volume_and_quadrature_options_reach_the_counts():
+    """The grouped options (issue 22): a SurveyVolume of z 6.5-7.5 over twice the fit's area
+    counts that volume, and the method's z_min/z_max/area keywords are the same volume."""
+    vol = SurveyVolume(z_min=6.5, z_max=7.5, area=2 * AREA)
+    quad_grid = Quadrature(n_z=31, n_beta=3, dM=0.1)
+    ec = expected_counts(step_sf(), one, EDGES, volume=vol, quadrature=quad_grid,
+                         transfer=False)
+    full = EDGES[1:] <= M_LIM
+    np.testing.assert_allclose(ec.median[full], 0.2 * 2 * volume(6.5, 7.5), rtol=1e-4)
+    by_keywords = step_sf().expected_counts(one, EDGES, z_min=6.5, z_max=7.5, area=2 * AREA,
+                                            quadrature=quad_grid, transfer=False)
+    np.testing.assert_array_equal(by_keywords.median, ec.median)
+    with pytest.raises(TypeError):          # options are keyword-only
+        expected_counts(step_sf(), one, EDGES, vol)
 
 
 def test_gaussian_transfer_gives_the_analytic_convolution():

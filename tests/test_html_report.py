@@ -108,6 +108,7 @@ def reported(deep_corner_run, tmp_path_factory):
     The fit is capped at 400 steps per chain (~9 s CPU instead of ~26 s): the page shows
     what the files hold, converged or not.
     """
+    from glaciar.inference.sampling import SamplerSettings
     from glaciar.pipeline import run_fit
 
     _, src = deep_corner_run
@@ -118,7 +119,7 @@ def reported(deep_corner_run, tmp_path_factory):
     before = (run / REPORT_NAME).read_text(encoding="utf-8")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        run_fit(run, model="logistic", max_draws=400, max_steps=400)
+        run_fit(run, model="logistic", max_draws=400, sampler=SamplerSettings(max_steps=400))
     assert main(["report", str(run), "--html"]) == 0
     return run, before, (run / REPORT_NAME).read_text(encoding="utf-8")
 

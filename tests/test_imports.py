@@ -78,13 +78,7 @@ ALLOWED_LONG_MODULES = {
 
 # "module.qualified_function" with more than MAX_PARAMETERS parameters.
 ALLOWED_LONG_SIGNATURES = {
-    "glaciar.inference.adaptive.plan_round": KEYWORD_OPTIONS,
-    "glaciar.inference.counts.count_kernel": KEYWORD_OPTIONS,
-    "glaciar.inference.counts.expected_counts": KEYWORD_OPTIONS,
     "glaciar.inference.selection_function.SelectionFunction.__init__": KEYWORD_OPTIONS,
-    "glaciar.lf.fit.fit_lf": KEYWORD_OPTIONS,
-    "glaciar.pipeline.fit._run_fit_locked": KEYWORD_OPTIONS,
-    "glaciar.pipeline.fit.run_fit": KEYWORD_OPTIONS,
 }
 
 

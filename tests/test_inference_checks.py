@@ -10,7 +10,7 @@ from scipy import special, stats
 
 from glaciar.inference import SelectionFunction, SurfaceModel, aggregate_cells
 from glaciar.inference.diagnostics import compare_models, edge_report, psis_loo
-from glaciar.inference.sampling import split_rhat
+from glaciar.inference.sampling import SamplerSettings, split_rhat
 from glaciar.pipeline import run_fit
 from glaciar.store import write_task_table
 
@@ -224,7 +224,8 @@ def test_single_redshift_run_has_no_zero_volume_or_zero_step(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         # one z leaves the selection's z edges to their prior: cap the chains (test speed)
-        path = run_fit(run, model="logistic", plots=False, max_draws=200, max_steps=1500)
+        path = run_fit(run, model="logistic", plots=False, max_draws=200,
+                           sampler=SamplerSettings(max_steps=1500))
     with fits.open(path) as h:
         assert h["C_GRID", 1].header["CDELT2"] != 0 and h["C_GRID", 1].header["CDELT1"] != 0
         assert h["C_GRID", 1].data.shape[1] == 1

@@ -10,6 +10,7 @@ from scipy import integrate, special, stats
 from glaciar.inference import (Cells, SelectionFunction, SurfaceModel, aggregate_cells,
                                find_map, fit_surfaces, propose_cells)
 from glaciar.inference.fit import ConvergenceWarning
+from glaciar.inference.sampling import SamplerSettings
 from glaciar.pipeline import run_fit
 from glaciar.store import write_task_table
 
@@ -144,7 +145,7 @@ def fitted_run(tmp_path_factory):
                                                    "bands": ["f125w", "f160w"], "config_hash": "abc"}))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")      # no local depths in this hand-made run
-        path = run_fit(run, seed=3, model="logistic")
+        path = run_fit(run, sampler=SamplerSettings(seed=3), model="logistic")
     return run, path, df, mdl, th
 
 
@@ -279,7 +280,8 @@ def test_per_field_fits_and_sample(fitted_run, tmp_path):
     write_task_table(r2, "task_x_z000_m000_i0000.parquet", sub)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
-        p = run_fit(r2, per_field=True, model="erf", max_steps=300, plots=False)
+        p = run_fit(r2, per_field=True, model="erf", sampler=SamplerSettings(max_steps=300),
+                    plots=False)
     fits_ = SelectionFunction.read_all(p)
     assert sorted(fits_) == ["f1", "f2"] and fits_["f1"].model.shape == "erf"
     with pytest.raises(ValueError, match="pass field="):

@@ -7,8 +7,10 @@ from scipy.stats import poisson
 from glaciar.galaxy.filters import get_filter
 from glaciar.inference import SelectionFunction, SurfaceModel
 from glaciar.inference.products import InjectionSED
+from glaciar.inference.sampling import SamplerSettings
 from glaciar.lf import (LFPosterior, default_window, double_power_law, fit_lf, get_model,
                         parse_fix, schechter, stepwise)
+from glaciar.lf.fit import Marginalisation
 from test_expected_counts import gauss_matrix
 
 TRUE = {"log_phi_star": -3.3, "M_star": -20.9, "alpha": -2.0}
@@ -108,7 +110,7 @@ def test_schechter_recovered_from_the_forward_model():
     sf = lf_sf()
     m = mock_candidates(sf, lambda M: schechter(M, **TRUE), WINDOW, seed=11)
     assert 2000 < len(m) < 5000
-    res = fit_lf(sf, m, m_obs_edges=WINDOW, seed=3, n_steps=3000)
+    res = fit_lf(sf, m, m_obs_edges=WINDOW, sampler=SamplerSettings(seed=3, max_steps=3000))
     assert res.convergence["converged"] and res.n_candidates == len(m)
     # The mixture: every draw's posterior sampled on its own and weighed 1/D.
     assert res.convergence["sf_draw_ess"] == pytest.approx(sf.n_draws)
@@ -130,8 +132,8 @@ def test_schechter_recovered_from_the_forward_model():
     assert np.all(np.abs(b["phi"][good] - truth) < 4 * sig + 0.05 * truth)
     # A fixed parameter stays fixed; the others follow (here with one emcee chain on the
     # likelihood averaged over the draws).
-    fx = fit_lf(sf, m, m_obs_edges=WINDOW, seed=4, n_steps=2000, fix={"alpha": -2.0},
-                marginalise="likelihood")
+    fx = fit_lf(sf, m, m_obs_edges=WINDOW, sampler=SamplerSettings(seed=4, max_steps=2000),
+                fix={"alpha": -2.0}, marginalisation=Marginalisation("likelihood"))
     assert fx.convergence["converged"] and fx.convergence["n_chains"] == 1
     assert fx.fixed == {"alpha": -2.0} and fx.parameters["alpha"]["lo68"] == -2.0
     assert fx.chain.shape[-1] == 2 and fx.samples.shape[-1] == 3
@@ -144,7 +146,8 @@ def test_stepwise_recovers_a_stepwise_truth():
     bins = [-22.5, -21.5, -20.5, -19.5, -18.5]
     truth = np.array([-5.0, -3.9, -3.2, -2.6])
     m = mock_candidates(sf, lambda M: stepwise(M, truth, bins), WINDOW, seed=12)
-    res = fit_lf(sf, m, model="stepwise", m_obs_edges=WINDOW, seed=5, n_steps=3000, bins=bins)
+    res = fit_lf(sf, m, model="stepwise", m_obs_edges=WINDOW,
+                 sampler=SamplerSettings(seed=5, max_steps=3000), bins=bins)
     assert res.param_names == ("log_phi_0", "log_phi_1", "log_phi_2", "log_phi_3")
     assert res.muv_range == (-22.5, -18.5)
     for k, t in enumerate(truth):

@@ -695,7 +695,7 @@ def merge_cells(a: Cells | None, b: Cells) -> Cells:
 CRITERIA = ("information", "sd", "variance")
 
 
-def plan_round(c_draws, s_draws, z_cand, m_cand, k: int, *, criterion: str = "information",
+def plan_round(c_draws, s_draws, candidates, k: int, *, criterion: str = "information",
                outcomes: str = "selected", misfit=None, weight=None, misfit_weight: float = 1.0,
                n_cells: int | None = None, min_per_cell: int = 1, p_eval=None) -> np.ndarray:
     """One round's request: where the next ``k`` sources go, and how many in each cell.
@@ -705,8 +705,9 @@ def plan_round(c_draws, s_draws, z_cand, m_cand, k: int, *, criterion: str = "in
     c_draws, s_draws : array_like, shape (D, len(z_cand), len(m_cand))
         Posterior draws of C and S on the candidate grid (``s_draws=None``:
         ``c_draws`` are draws of P).
-    z_cand, m_cand : array_like
-        Candidate grid (:func:`candidate_grid`).
+    candidates : (z_cand, m_cand) of array_like
+        Candidate redshifts and magnitudes [mag], the cells their outer product
+        (what :func:`candidate_grid` returns).
     k : int
         Sources in the round.
     criterion : {"information", "sd", "variance"}
@@ -733,6 +734,7 @@ def plan_round(c_draws, s_draws, z_cand, m_cand, k: int, *, criterion: str = "in
     """
     if criterion not in CRITERIA:
         raise ValueError(f"plan_round: criterion must be one of {CRITERIA}, not {criterion!r}")
+    z_cand, m_cand = candidates
     zc = np.asarray(z_cand, float).ravel()
     mc = np.asarray(m_cand, float).ravel()
     c = np.asarray(c_draws, float)

@@ -52,7 +52,8 @@ import numpy as np
 from .products import beta_nodes, kcorrection
 from .transfer import transfer_function
 
-__all__ = ["CountKernel", "ExpectedCounts", "count_kernel", "expected_counts",
+__all__ = ["CountKernel", "ExpectedCounts", "Quadrature", "SurveyVolume", "count_kernel",
+           "expected_counts",
            "COUNTS_EXTRAPOLATION_TOLERANCE", "TRANSFER_MARGIN", "M_STEP", "M_TABLE_STEP"]
 
 #: Warn when more than this fraction of a bin's expected counts comes from magnitudes
@@ -70,6 +71,48 @@ M_TABLE_STEP = 0.01
 N_Z = 61
 #: Posterior draws evaluated together (memory: ~ draws x n_z x table size floats).
 _CHUNK = 16
+
+
+@dataclass(frozen=True)
+class SurveyVolume:
+    """The comoving volume the counts are taken over: redshift range, sky area, cosmology.
+
+    Every field None means the selection function's own (its simulated z range, its
+    fit's area, the injections' cosmology).
+
+    Attributes
+    ----------
+    z_min, z_max : float, optional
+        Redshift range; default (and at most) the simulated one.
+    area : float or Quantity, optional
+        As :meth:`SelectionFunction.effective_volume` (float: arcmin^2).
+    cosmology : astropy Cosmology or str, optional
+        Default the injections' (``sed.cosmology``).
+    """
+
+    z_min: float | None = None
+    z_max: float | None = None
+    area: object = None
+    cosmology: object = None
+
+
+@dataclass(frozen=True)
+class Quadrature:
+    """The integration grid of the counts over z, the UV slope beta and M_UV.
+
+    Attributes
+    ----------
+    n_z : int
+        Simpson nodes in z (made odd).
+    n_beta : int
+        Gauss-Hermite nodes of the beta average.
+    dM : float
+        M_UV cell width of the default ``M_edges`` [mag].
+    """
+
+    n_z: int = N_Z
+    n_beta: int = 7
+    dM: float = M_STEP
 
 
 @dataclass(frozen=True)
@@ -196,10 +239,9 @@ def _overlap(m, half, E):
     return (hi - lo) / (2 * half)
 
 
-def count_kernel(sf, m_obs_edges, M_edges=None, *, z_min=None, z_max=None, area=None,
-                 cosmology=None, sed=None, transfer: bool = True, draws=True,
-                 transfer_draws: int | None = None, field: str | None = None,
-                 n_z: int = N_Z, n_beta: int = 7, dM: float = M_STEP, phi_z=None,
+def count_kernel(sf, m_obs_edges, M_edges=None, *, volume: SurveyVolume = SurveyVolume(),
+                 sed=None, transfer: bool = True, draws=True, transfer_draws: int | None = None,
+                 field: str | None = None, quadrature: Quadrature = Quadrature(), phi_z=None,
                  who: str = "count_kernel") -> CountKernel:
     """The linear map from phi(M_UV) to the expected counts per measured-magnitude bin, per draw.
 
@@ -212,15 +254,11 @@ def count_kernel(sf, m_obs_edges, M_edges=None, *, z_min=None, z_max=None, area=
         Measured detection-band magnitude bins [AB mag]; the first may be -inf and the
         last +inf.
     M_edges : array_like (n_M + 1,), optional
-        Cells of M_UV [AB mag], equally wide.  Default: cells of ``dM`` covering every
+        Cells of M_UV [AB mag], equally wide.  Default: cells of ``quadrature.dM`` covering every
         M_UV whose image (at any z, beta) lies within ``TRANSFER_MARGIN`` of the asked-for
         m_obs range (open ends: the simulated magnitude range).
-    z_min, z_max : float, optional
-        Redshift range; default (and at most) the simulated one.
-    area : float or Quantity, optional
-        As :meth:`SelectionFunction.effective_volume` (float: arcmin^2).
-    cosmology : astropy Cosmology or str, optional
-        Default the injections' (``sed.cosmology``).
+    volume : SurveyVolume
+        Redshift range, area and cosmology (default the selection function's own).
     sed : InjectionSED, optional
         Default ``sf.sed``.
     transfer : bool
@@ -234,13 +272,9 @@ def count_kernel(sf, m_obs_edges, M_edges=None, *, z_min=None, z_max=None, area=
         selection-function draw used is paired with transfer draw k mod that number.
     field : str, optional
         One field's area and depths.
-    n_z : int
-        Simpson nodes in z (made odd).
-    n_beta : int
-        Gauss-Hermite nodes of the beta average.
-    dM : float
-        M_UV cell width of the default ``M_edges`` [mag].
-    phi_z : ndarray (n_z, n_M), optional
+    quadrature : Quadrature
+        Nodes in z and beta, default M_UV cell width.
+    phi_z : ndarray (quadrature.n_z, n_M), optional
         phi(M, z) [Mpc^-3 mag^-1] at the z nodes and cell centres, folded into the kernel
         (then ``values.sum(axis=1)`` are the counts; used by :func:`expected_counts`
         for a phi that evolves with z).
@@ -259,6 +293,8 @@ def count_kernel(sf, m_obs_edges, M_edges=None, *, z_min=None, z_max=None, area=
 
     from ..galaxy.population import get_cosmology
 
+    z_min, z_max, area, cosmology = volume.z_min, volume.z_max, volume.area, volume.cosmology
+    n_z, n_beta, dM = quadrature.n_z, quadrature.n_beta, quadrature.dM
     E = _check_edges(m_obs_edges, who)
     sed = sf.sed if sed is None else sed
     if sed is None:
@@ -449,11 +485,10 @@ def _selection_table(sf, idx, zz, m, nodes, node_sr):
     return out
 
 
-def expected_counts(sf, phi, m_obs_edges, *, z_min=None, z_max=None, M_uv_range=None,
-                    area=None, cosmology=None, sed=None, draws=True, transfer: bool = True,
-                    field: str | None = None, n_z: int = N_Z, n_beta: int = 7,
-                    dM: float = M_STEP, interval: float = 0.68,
-                    warn: bool = True) -> ExpectedCounts:
+def expected_counts(sf, phi, m_obs_edges, *, volume: SurveyVolume = SurveyVolume(),
+                    M_uv_range=None, sed=None, draws=True, transfer: bool = True,
+                    field: str | None = None, quadrature: Quadrature = Quadrature(),
+                    interval: float = 0.68, warn: bool = True) -> ExpectedCounts:
     """Expected numbers of selected sources per measured-magnitude bin for a luminosity function.
 
     N_k of the module docstring, per posterior draw (selection-function draw i with
@@ -466,14 +501,15 @@ def expected_counts(sf, phi, m_obs_edges, *, z_min=None, z_max=None, M_uv_range=
         ``phi(M, z)`` [Mpc^-3 mag^-1] on broadcastable arrays of M_UV [AB mag] and z.
     m_obs_edges : array_like (n_k + 1,)
         Measured detection-band magnitude bins [AB mag] (first may be -inf, last +inf).
-    z_min, z_max : float, optional
-        Redshift range; default (and at most) the simulated one.  Sources outside it
-        are not counted: where P is not ~0 at the simulated range's ends, the counts
-        miss them (:meth:`SelectionFunction.effective_volume` warns about that).
+    volume : SurveyVolume
+        Redshift range (default and at most the simulated one), area and cosmology, as
+        :func:`count_kernel`.  Sources outside the redshift range are not counted:
+        where P is not ~0 at the simulated range's ends, the counts miss them
+        (:meth:`SelectionFunction.effective_volume` warns about that).
     M_uv_range : (float, float), optional
         M_UV range integrated over (phi = 0 outside it); default that of
         :func:`count_kernel`.
-    area, cosmology, sed, field, n_z, n_beta, dM
+    sed, field, quadrature
         As :func:`count_kernel`.
     draws : bool or int
         As :func:`count_kernel`.
@@ -491,6 +527,8 @@ def expected_counts(sf, phi, m_obs_edges, *, z_min=None, z_max=None, M_uv_range=
     ExpectedCounts
     """
     who = "expected_counts"
+    z_min, z_max, cosmology = volume.z_min, volume.z_max, volume.cosmology
+    n_z, n_beta, dM = quadrature.n_z, quadrature.n_beta, quadrature.dM
     E = _check_edges(m_obs_edges, who)
     M_edges = None
     if M_uv_range is not None:
@@ -508,9 +546,8 @@ def expected_counts(sf, phi, m_obs_edges, *, z_min=None, z_max=None, M_uv_range=
     if not np.all(np.isfinite(phi_zm)):
         raise ValueError(f"{who}: phi(M, z) is not finite everywhere on M_UV "
                          f"{Me[0]:g}-{Me[-1]:g}, z {zr[0]:g}-{zr[1]:g}")
-    ker = count_kernel(sf, E, Me, z_min=z_min, z_max=z_max, area=area, cosmology=cosmology,
-                       sed=sed, transfer=transfer, draws=draws, field=field, n_z=n_z,
-                       n_beta=n_beta, dM=dM, phi_z=phi_zm, who=who)
+    ker = count_kernel(sf, E, Me, volume=volume, sed=sed, transfer=transfer, draws=draws,
+                       field=field, quadrature=quadrature, phi_z=phi_zm, who=who)
     ones = np.ones(len(Mc))
     per = ker.counts(ones)                                                  # (n_d, n_k)
     frac = ker.extrapolated_fraction(ones)

@@ -70,6 +70,31 @@ PILOT_STAGES = (50, 150, 400, 1000, 2500)
 DEFAULT_MAX_STEPS = 20000
 
 
+@dataclass(frozen=True)
+class SamplerSettings:
+    """How long and how wide the emcee chains run, and from which seed (fit and LF fit).
+
+    Attributes
+    ----------
+    n_walkers : int, optional
+        Walkers per parameter block; default the caller's (``glaciar fit``: its
+        per-block rule; :func:`glaciar.lf.fit_lf`: max(32, 2 n_free + 2)).
+    max_steps : int, optional
+        Cap on each chain's steps in this call [steps] (it stops earlier once
+        converged); default the caller's (``glaciar fit``: :data:`DEFAULT_MAX_STEPS`;
+        :func:`glaciar.lf.fit_lf`: :data:`glaciar.lf.fit.LF_MAX_STEPS`).
+    seed : int
+        Sampler seed; the same seed and data give identical chains.
+    progress : bool
+        Show a progress bar of the sampling.
+    """
+
+    n_walkers: int | None = None
+    max_steps: int | None = None
+    seed: int = 0
+    progress: bool = False
+
+
 class ConvergenceWarning(UserWarning):
     """The chain stopped at ``max_steps`` before reaching 50 autocorrelation times."""
 

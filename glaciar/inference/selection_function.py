@@ -33,7 +33,7 @@ import numpy as np
 
 from ..store import atomic_write_bytes
 from . import selection_format
-from .counts import count_kernel, expected_counts
+from .counts import SurveyVolume, count_kernel, expected_counts
 from .models import SurfaceModel
 from .products import (GRID_QUANTILES, EffectiveVolume, MagnitudeAt, TransferSlice, band_colour,
                        beta_nodes, kcorrection)
@@ -781,8 +781,8 @@ class SelectionFunction:
         outside the simulated range use the surface's extrapolation and the nearest
         transfer row; the share of each bin's counts that comes from them is returned and
         warned about where it matters.  Method, accuracy and the remaining keywords
-        (``sed``, ``field``, ``n_z``, ``n_beta``, ``dM``, ``interval``, ``warn``,
-        ``transfer_draws``): :func:`glaciar.inference.counts.expected_counts`.
+        (``sed``, ``field``, ``quadrature``, ``interval``, ``warn``):
+        :func:`glaciar.inference.counts.expected_counts`.
 
         Parameters
         ----------
@@ -808,8 +808,8 @@ class SelectionFunction:
         -------
         glaciar.inference.counts.ExpectedCounts
         """
-        return expected_counts(self, phi, m_obs_edges, z_min=z_min, z_max=z_max,
-                               M_uv_range=M_uv_range, area=area, cosmology=cosmology,
+        volume = SurveyVolume(z_min=z_min, z_max=z_max, area=area, cosmology=cosmology)
+        return expected_counts(self, phi, m_obs_edges, volume=volume, M_uv_range=M_uv_range,
                                draws=draws, transfer=transfer, **kw)
 
     def _z_range(self):

@@ -13,7 +13,7 @@ likelihood evaluation is one matrix product, whatever the number of candidates.
 Likelihood: Poisson in every bin, ln L_d = Σ_k [n_k ln lambda_dk - lambda_dk] (ln n_k!
 dropped).
 
-**Selection-function uncertainty** (``marginalise``), over D posterior draws of the
+**Selection-function uncertainty** (:class:`Marginalisation`), over D posterior draws of the
 selection function (``max_sf_draws``, evenly spaced; draw i paired with transfer draw
 i mod n_t):
 
@@ -52,11 +52,12 @@ the mixture by construction, often ~1 for "likelihood" with many candidates.
 Priors: uniform (:mod:`glaciar.lf.models`).  Sampling: MAP (L-BFGS-B), its Laplace
 covariance, then (importance sampling per draw, above, or) emcee with the independence,
 differential-evolution and stretch moves of :func:`glaciar.inference.sampling.sample_block`,
-until 50 autocorrelation times or ``n_steps`` (per chain); burn-in 2 tau, thinning tau / 2.
+until 50 autocorrelation times or ``sampler.max_steps`` (per chain); burn-in 2 tau,
+thinning tau / 2.
 
 phi is 0 outside ``muv_range`` (sources outside it are assumed absent: choose it to
 cover every M_UV that contributes to the measured-magnitude window; the default does),
-and constant in z over ``z_range``.
+and constant in z over the redshift range (``volume``).
 
 Arrays in, results out; no file I/O (``glaciar lf``, :func:`glaciar.pipeline.lf.run_lf`,
 reads and writes the files).
@@ -68,20 +69,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..inference.counts import (COUNTS_EXTRAPOLATION_TOLERANCE, M_STEP, count_kernel,
+from ..inference.counts import (COUNTS_EXTRAPOLATION_TOLERANCE, M_STEP, SurveyVolume, count_kernel,
                                 default_M_edges)
+from ..inference.sampling import SamplerSettings
 from .models import LFModel, get_model
 
 __all__ = ["LFResult", "LFPosterior", "fit_lf", "expected_counts", "default_window", "step_width",
            "gehrels_limits",
            "STEP_WIDTH", "WINDOW_BRIGHT_MARGIN", "MAX_SF_DRAWS", "MAX_TRANSFER_DRAWS",
-           "STEP_MIN_SENSITIVITY"]
+           "STEP_MIN_SENSITIVITY", "LF_MAX_STEPS", "Marginalisation"]
 
 #: Default width of the stepwise bins and of the binned-phi table [mag].
 STEP_WIDTH = 0.5
 #: The default measured-magnitude window starts this far inside the simulated range's bright
 #: end [mag], so that sources brighter than the simulations scatter into it negligibly.
 WINDOW_BRIGHT_MARGIN = 0.4
+#: Default cap on the emcee steps of the LF fit (it stops earlier at 50 autocorrelation times).
+LF_MAX_STEPS = 5000
 #: Selection-function draws the likelihood is averaged over (evenly spaced), at most.
 MAX_SF_DRAWS = 100
 #: Transfer-matrix draws used by default: its rows hold hundreds to thousands of sources
@@ -101,6 +105,19 @@ T_DOF = 5.0
 IS_SCALE = 1.2
 #: Posterior samples used for the predictive counts and the binned phi.
 _N_PRED = 200
+
+
+@dataclass(frozen=True)
+class Marginalisation:
+    """How the selection function's uncertainty enters the LF fit (module docstring)."""
+
+    #: "mixture": the average of the posteriors given each draw; "likelihood": the
+    #: likelihood averaged over the draws.
+    method: str = "mixture"
+    #: Selection-function draws marginalised over (evenly spaced), at most.
+    max_sf_draws: int = MAX_SF_DRAWS
+    #: Transfer-matrix draws used (selection-function draw i with transfer draw i mod this).
+    max_transfer_draws: int = MAX_TRANSFER_DRAWS
 
 
 @dataclass(frozen=True)
@@ -599,7 +616,8 @@ def _sample(post: LFPosterior, x_map, bounds, n_walkers, n_steps, seed, marginal
         warnings.warn(f"fit_lf ({name}): {len(conv_ok) - sum(conv_ok)} of {len(conv_ok)} emcee "
                       f"chain(s) of up to {max(steps)} steps are shorter than 50 autocorrelation "
                       f"times (tau up to {np.max(np.concatenate(taus)):.0f} steps) or tau is "
-                      "still changing; raise n_steps", ConvergenceWarning, stacklevel=3)
+                      "still changing; raise SamplerSettings.max_steps", ConvergenceWarning,
+                      stacklevel=3)
     if marginalise == "mixture":
         # Every draw weighs the same: as many samples from each.
         n_per = min(len(f) for f in flats)
@@ -617,11 +635,10 @@ def _sample(post: LFPosterior, x_map, bounds, n_walkers, n_steps, seed, marginal
     return flat, draw_of, info
 
 
-def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None, z_range=None,
-           m_obs_edges=None, transfer: bool = True, bins=None, n_walkers: int | None = None,
-           n_steps: int = 5000, seed=0, progress: bool = False, max_sf_draws: int = MAX_SF_DRAWS,
-           max_transfer_draws: int = MAX_TRANSFER_DRAWS, marginalise: str = "mixture",
-           area=None, cosmology=None) -> LFResult:
+def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None,
+           volume: SurveyVolume = SurveyVolume(), m_obs_edges=None, transfer: bool = True,
+           bins=None, sampler: SamplerSettings = SamplerSettings(),
+           marginalisation: Marginalisation = Marginalisation()) -> LFResult:
     """Fit a luminosity function phi(M_UV) to the measured magnitudes of observed candidates.
 
     Method, likelihood, priors and sampling: module docstring.
@@ -641,32 +658,21 @@ def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None, z_r
         M_UV range of phi [AB mag]; default every M_UV whose image can land in the window
         (stepwise: where the counts per unit phi reach ``STEP_MIN_SENSITIVITY`` of their
         maximum).
-    z_range : (float, float), optional
-        Redshift range; default (and at most) the simulated one.
+    volume : SurveyVolume
+        Redshift range (default and at most the simulated one), area and cosmology of
+        the counts, as :meth:`SelectionFunction.expected_counts`.
     m_obs_edges : array_like, optional
         Measured-magnitude bins [AB mag]; default :func:`default_window`.
     transfer : bool
         Use the transfer function (else measured magnitude := input magnitude).
     bins : array_like, optional
         Stepwise bin edges [AB mag]; default bins of :func:`step_width` over ``muv_range``.
-    n_walkers : int, optional
-        Default max(32, 2 n_free + 2).
-    n_steps : int
-        Cap on the emcee steps (it stops earlier at 50 autocorrelation times).
-    seed : int
-    progress : bool
-        Show a progress bar of the sampling.
-    max_sf_draws : int
-        Selection-function draws marginalised over (evenly spaced).
-    max_transfer_draws : int
-        Transfer-matrix draws used (selection-function draw i with transfer draw i mod
-        this number).
-    marginalise : {"mixture", "likelihood"}
-        How the selection function's uncertainty enters (module docstring): the average
-        of the posteriors given each draw (default), or the likelihood averaged over the
-        draws.
-    area, cosmology
-        As :meth:`SelectionFunction.expected_counts`.
+    sampler : SamplerSettings
+        Walkers (default max(32, 2 n_free + 2)), cap on the emcee steps (default
+        :data:`LF_MAX_STEPS`; it stops earlier at 50 autocorrelation times), seed and
+        progress bar.
+    marginalisation : Marginalisation
+        How the selection function's draws enter, and how many are used.
 
     Returns
     -------
@@ -681,6 +687,12 @@ def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None, z_r
     from ..inference.products import beta_nodes, kcorrection
 
     sfs = _as_list(sf)
+    marginalise = marginalisation.method
+    max_sf_draws, max_transfer_draws = (marginalisation.max_sf_draws,
+                                        marginalisation.max_transfer_draws)
+    n_walkers, seed, progress = sampler.n_walkers, sampler.seed, sampler.progress
+    n_steps = LF_MAX_STEPS if sampler.max_steps is None else sampler.max_steps
+    area, cosmology = volume.area, volume.cosmology
     if marginalise not in ("mixture", "likelihood"):
         raise ValueError(f"fit_lf: marginalise must be 'mixture' or 'likelihood', not {marginalise!r}")
     # Arguments first: a bad model or --fix fails before anything is computed.
@@ -701,7 +713,7 @@ def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None, z_r
     if n_cand == 0:
         raise ValueError(f"fit_lf: no candidate with m_obs in the window {E[0]:g}-{E[-1]:g} "
                          f"({m.size} with a finite m_obs)")
-    z_min, z_max = (None, None) if z_range is None else map(float, z_range)
+    z_min, z_max = (None if z is None else float(z) for z in (volume.z_min, volume.z_max))
     s0 = sfs[0]
     zr = s0._z_limits(z_min, z_max, "fit_lf")
     sed = s0.sed
@@ -727,9 +739,9 @@ def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None, z_r
         vals = 0.0
         ext = 0.0
         for s in sfs:
-            k = count_kernel(s, E, Me, z_min=z_min, z_max=z_max, transfer=transfer,
-                             draws=draws, transfer_draws=max_transfer_draws, area=area,
-                             cosmology=cosmology, who="fit_lf")
+            vol = SurveyVolume(z_min=z_min, z_max=z_max, area=area, cosmology=cosmology)
+            k = count_kernel(s, E, Me, volume=vol, transfer=transfer, draws=draws,
+                             transfer_draws=max_transfer_draws, who="fit_lf")
             vals = vals + k.values
             ext = ext + k.extrapolated
         return Me, vals, ext

@@ -291,7 +291,7 @@ def round_cells(sf, cfg, n_units: int, *, z_limit=None, box=None,
 
     zc, mc, simulated = _candidates(cfg, box, z_limit, design)
     g, misfit = _scored(sf, zc, mc)
-    request = plan_round(g["C"], g["S"], zc, mc, int(n_units), criterion="information",
+    request = plan_round(g["C"], g["S"], (zc, mc), int(n_units), criterion="information",
                          misfit=misfit)
     cells = _with_totals([(r["z"], r["mag"], int(r["n"])) for r in request], cfg, simulated)
     return cells, _stopping(g["P"], zc, mc)
@@ -340,6 +340,7 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
         Prints one line per round.
     """
     from ..execute import simulate
+    from ..inference.sampling import SamplerSettings
     from ..store import read_manifest
     from .fit import run_fit
 
@@ -359,13 +360,14 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
             _write_rounds(run_dir, rounds)
         t0 = time.process_time()
         n_sources = _sources_in_store(run_dir)
-        fit_kwargs = {"max_steps": settings.max_steps} if settings.max_steps else {}
+        # The rounds' sampler: seed 0, the default step cap unless the settings give one.
+        sampler = SamplerSettings(max_steps=settings.max_steps or None, seed=0, progress=False)
         # Rounds fit in memory (no file, no summaries); the round that stops the loop is
         # fitted again with the same seed (the same draws) and written in full.
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            sf = run_fit(run_dir, model=ROUND_MODEL, seed=0, progress=False, resume=False,
-                         plots=False, write=False, **fit_kwargs)[0]
+            sf = run_fit(run_dir, model=ROUND_MODEL, sampler=sampler, resume=False,
+                         plots=False, write=False)[0]
         manifest = read_manifest(run_dir) or {}
         remaining = settings.budget - n_sources
         per_task = cfg.simulation.n_galaxies * len(cfg.survey.fields)
@@ -394,7 +396,6 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
             # Each round's fit warns about the same things: only the final fit's
             # warnings are shown (they describe the selection function the run ends with).
             # (No PNG plots: `glaciar fit RUN` draws them, and `glaciar report` reads the file.)
-            run_fit(run_dir, model=ROUND_MODEL, seed=0, progress=False, resume=False,
-                    plots=False, **fit_kwargs)
+            run_fit(run_dir, model=ROUND_MODEL, sampler=sampler, resume=False, plots=False)
             return rounds
         cfg = with_cells(cfg, cells)

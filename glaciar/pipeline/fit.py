@@ -23,6 +23,7 @@ the run or a field) are refused before anything is sampled
 """
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import math
@@ -37,7 +38,8 @@ from .. import constants as C
 from ..inference.diagnostics import edge_report, ppc_cells, ppc_verdict
 from ..inference.fit import DEFAULT_MAG_RESOLUTION, fit_and_choose, fit_surfaces
 from ..inference.models import COMPLETENESS_SHAPES
-from ..inference.sampling import DEFAULT_MAX_STEPS
+from ..inference.counts import SurveyVolume
+from ..inference.sampling import DEFAULT_MAX_STEPS, SamplerSettings
 from ..inference.selection_function import SelectionFunction
 from .chains import chains_key, file_tag, load_chains, save_chains
 from .fitdir import FitStage, hold_run
@@ -140,9 +142,9 @@ def _warn_checks(name, chosen, verdict, edges):
                       f"the volume {side} it; {how}", FitWarning)
 
 
-def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
-            n_walkers: int | None = None, max_steps: int = DEFAULT_MAX_STEPS,
-            progress: bool = False, cosmology=None, area_arcmin2: float | None = None,
+def run_fit(run_dir, *, model: str = "auto", per_field: bool = False,
+            sampler: SamplerSettings = SamplerSettings(), cosmology=None,
+            area_arcmin2: float | None = None,
             mag_resolution: float | None = DEFAULT_MAG_RESOLUTION, resume: bool = True,
             max_draws: int = 1000, plots: bool = True, depth: str = "auto",
             write: bool = True):
@@ -157,15 +159,12 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         one whose PSIS-LOO elpd is within 2 s.e. of the best.
     per_field : bool
         Fit every field separately (one fit per field in the file) instead of pooled.
-    seed : int
-        Sampler seed; the same seed and data give identical files.
-    n_walkers : int, optional
-        emcee walkers per parameter block.
-    max_steps : int
-        Cap on the steps each chain runs in this call; a re-run extends
-        unconverged saved chains by up to this many steps.
-    progress : bool
-        Show one progress bar (sampler steps of every model and field).
+    sampler : SamplerSettings
+        emcee walkers per parameter block (default the fit's own rule); cap on the
+        steps each chain runs in this call (default :data:`DEFAULT_MAX_STEPS`; a
+        re-run extends unconverged saved chains by up to this many steps); the seed
+        (the same seed and data give identical files); one progress bar (sampler
+        steps of every model and field).
     cosmology : astropy Cosmology, optional
         Cosmology of the V_eff entries (default Planck18).
     area_arcmin2 : float, optional
@@ -218,14 +217,14 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
     if depth not in ("auto", "on", "off"):
         raise ValueError(f"depth must be 'auto', 'on' or 'off', not {depth!r}")
     area_arcmin2 = _check_positive("--area-arcmin2", area_arcmin2)
-    max_steps = DEFAULT_MAX_STEPS if max_steps is None else max_steps
+    max_steps = DEFAULT_MAX_STEPS if sampler.max_steps is None else sampler.max_steps
     if int(max_steps) < 1 or int(max_draws) < 1:
         raise ValueError(f"--max-steps ({max_steps}) and max_draws ({max_draws}) must be >= 1")
     run_dir = Path(run_dir)
     with hold_run(run_dir, "fit"):
-        return _run_fit_locked(run_dir, t_start, model=model, per_field=per_field, seed=seed,
-                               n_walkers=n_walkers, max_steps=max_steps, progress=progress,
-                               cosmology=cosmology, area_arcmin2=area_arcmin2,
+        return _run_fit_locked(run_dir, t_start, model=model, per_field=per_field,
+                               sampler=dataclasses.replace(sampler, max_steps=max_steps),
+                               volume=SurveyVolume(area=area_arcmin2, cosmology=cosmology),
                                mag_resolution=mag_resolution, resume=resume,
                                max_draws=max_draws, plots=plots, depth=depth, write=write)
 
@@ -280,10 +279,14 @@ def kept_reason(chosen: str, comparison: list, requested: str) -> str:
             f"({best})")
 
 
-def _run_fit_locked(run_dir, t_start, *, model, per_field, seed, n_walkers, max_steps, progress,
-                    cosmology, area_arcmin2, mag_resolution, resume, max_draws, plots, depth,
-                    write):
-    """:func:`run_fit` once the arguments are checked and the run's lock is held."""
+def _run_fit_locked(run_dir, t_start, *, model, per_field, sampler, volume, mag_resolution,
+                    resume, max_draws, plots, depth, write):
+    """:func:`run_fit` once the arguments are checked and the run's lock is held
+    (``sampler.max_steps`` resolved; ``volume``: the survey area [arcmin^2] and the
+    cosmology of the V_eff entries, no redshift range)."""
+    seed, n_walkers, max_steps = sampler.seed, sampler.n_walkers, sampler.max_steps
+    progress = sampler.progress
+    area_arcmin2, cosmology = volume.area, volume.cosmology
     from ..store import atomic_write_bytes, atomic_write_text, read_manifest
 
     manifest = read_manifest(run_dir) or {}

@@ -28,6 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import constants as C
+from ..inference.counts import SurveyVolume
+from ..inference.sampling import SamplerSettings
 from ..lf.fit import fit_lf
 from ..lf.models import get_model, parse_fix
 
@@ -265,8 +267,10 @@ def run_lf(run_dir, catalog=None, *, model: str = "schechter", fix: dict | None 
     if not m_obs.size:
         raise ValueError(f"{catalog}: no selected candidate with a finite {info['column']} "
                          f"({info['n_rows']} rows, {info['n_selected']} selected)")
+    z_min, z_max = (None, None) if z_range is None else z_range
     res = fit_lf(sfs if len(sfs) > 1 else sfs[0], m_obs, model=model, fix=fix,
-                 muv_range=muv_range, z_range=z_range, seed=seed, progress=progress)
+                 muv_range=muv_range, volume=SurveyVolume(z_min=z_min, z_max=z_max),
+                 sampler=SamplerSettings(seed=seed, progress=progress))
 
     # Everything fitted: now write.
     from ..paths import run_subdir
