@@ -47,7 +47,8 @@ from scipy import optimize, signal
 
 from glaciar import constants as C
 from glaciar.config import load_config
-from glaciar.demo import DEMO_BANDS_SPEC, DEMO_FIELD, _drizzle_kernel_1d, build_demo_survey
+from glaciar.demo import DEMO_BANDS_SPEC, DEMO_FIELD, build_demo_survey
+from glaciar.demo.noise import drizzle_kernel_1d
 from glaciar.run import simulate
 from glaciar.store import read_results
 
@@ -108,7 +109,7 @@ def exact_aperture_error(rows, cfg_path: Path, band: str = DETECTION_BAND) -> np
     cfg = load_config(cfg_path)
     spec = DEMO_BANDS_SPEC[band]
     pixscale = 0.08
-    k1 = _drizzle_kernel_1d(spec.native_pixel_arcsec, spec.pixfrac, pixscale)
+    k1 = drizzle_kernel_1d(spec.native_pixel_arcsec, spec.pixfrac, pixscale)
     kernel = np.outer(k1, k1)                      # sum(kernel^2) = 1: unit pixel variance
     radius = 0.5 * cfg.detection.phot_apertures[0]
     half = int(math.ceil(radius)) + 1

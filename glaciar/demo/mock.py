@@ -503,7 +503,7 @@ def build_mock_survey(out_dir, *, n_fields: int = 4, shape=(1000, 1000), seed: i
     import yaml
 
     from ..store import atomic_write_text
-    from .survey import _config_dumper, build_demo_survey
+    from .survey import config_dumper, build_demo_survey
 
     out_dir = Path(out_dir)
     if int(n_fields) < 1:
@@ -525,7 +525,7 @@ def build_mock_survey(out_dir, *, n_fields: int = 4, shape=(1000, 1000), seed: i
     head = (f"# glaciar mock universe survey: {len(fields)} demo fields ({', '.join(fields)}), "
             f"{shape[1]} x {shape[0]} px, image seeds {seed}..{int(seed) + len(fields) - 1}.\n"
             "# Written by glaciar.demo.mock.build_mock_survey; paths relative to this file.\n")
-    atomic_write_text(path, head + yaml.dump(cfg, Dumper=_config_dumper(), sort_keys=False,
+    atomic_write_text(path, head + yaml.dump(cfg, Dumper=config_dumper(), sort_keys=False,
                                              default_flow_style=False, width=100))
     try:
         Path(last).unlink()            # demo.yaml describes only the last field
