@@ -45,10 +45,10 @@ from .galaxy import population
 from .galaxy.filters import get_filter
 from .galaxy.psf import measure_fwhm, prepare_psf
 from .galaxy.templates import TemplateCache
-from .store import (RunLock, StoreMismatchError, StoreWarning, atomic_write_text,
-                    COMPACT_EVERY, compact, field_file_prefix, file_fingerprint, finished_task_names, manifest_text,
-                    read_manifest, store_format, task_filename, task_key, verified_task_names,
-                    write_manifest, write_task_table)
+from .store import (StoreWarning, COMPACT_EVERY, compact, field_file_prefix, finished_task_names,
+                    task_filename, task_key, verified_task_names, write_task_table)
+from .rundir import (RunLock, StoreMismatchError, atomic_write_text, file_fingerprint,
+                     manifest_text, read_manifest, store_format, write_manifest)
 from .paths import check_run_tree, disk_full, run_subdir
 from .survey import Survey, clear_cache as clear_survey_cache
 
@@ -1712,7 +1712,7 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
         Bad arguments or input files (:class:`InputError`), checked before anything is written.
     StoreMismatchError
         The run directory holds tasks made differently.
-    glaciar.store.RunLockedError
+    glaciar.rundir.RunLockedError
         Another run is writing into ``run_dir``.
     """
     from tqdm.auto import tqdm

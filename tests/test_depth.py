@@ -17,7 +17,8 @@ from glaciar import constants as C
 from glaciar.config import load_config
 from glaciar.engine.depth import depth_area_histogram, depth_at, disk_pixel_weights, local_depth_map
 from glaciar.run import build_field_context, prepare_run_dir, simulate
-from glaciar.store import read_manifest, read_results
+from glaciar.store import read_results
+from glaciar.rundir import read_manifest
 from glaciar.survey import Survey
 
 ZP = 25.946

@@ -21,7 +21,8 @@ from scipy import stats
 from glaciar import constants as C
 from glaciar.inference import SelectionFunction
 from glaciar.pipeline import run_fit
-from glaciar.store import read_manifest, read_results
+from glaciar.store import read_results
+from glaciar.rundir import read_manifest
 
 
 def _fit(run_dir, out_name, **kw):

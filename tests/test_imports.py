@@ -62,7 +62,6 @@ ALLOWED_LONG_MODULES = {
     "glaciar.engine.windows": ENGINE,
     "glaciar.inference.selection_function": NOT_SPLIT,
     "glaciar.run": RUN_SPLIT,
-    "glaciar.store": NOT_SPLIT,
 }
 
 # "module.qualified_function" with more than MAX_PARAMETERS parameters.

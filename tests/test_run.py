@@ -6,7 +6,8 @@ import pytest
 from glaciar import constants as C
 from glaciar.config import load_config
 from glaciar.run import plan_tasks, simulate
-from glaciar.store import StoreMismatchError, read_results
+from glaciar.store import read_results
+from glaciar.rundir import StoreMismatchError
 
 
 def _sorted(df):

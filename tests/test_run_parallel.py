@@ -24,7 +24,7 @@ from glaciar import constants as C
 from glaciar.config import load_config
 from glaciar.engine.task import TaskSpec
 from glaciar.run import InputError, _chunks, simulate
-from glaciar.store import read_manifest
+from glaciar.rundir import read_manifest
 
 fork_only = pytest.mark.skipif(multiprocessing.get_start_method(allow_none=True) not in (None, "fork")
                                or multiprocessing.get_all_start_methods()[0] != "fork",

@@ -381,7 +381,7 @@ def render_mock_universe(cfg_path, truth: pd.DataFrame, seed: int, *,
     from ..galaxy.templates import TemplateCache
     from ..galaxy.population import SourceModel
     from ..run import _band_psf
-    from ..store import atomic_write_bytes
+    from ..rundir import atomic_write_bytes
     from ..survey import Survey
 
     cfg_path = Path(cfg_path)
@@ -457,7 +457,7 @@ def _write_table(df: pd.DataFrame, path: Path, meta: dict) -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from ..store import atomic_write_bytes
+    from ..rundir import atomic_write_bytes
 
     df = df.copy()
     df.attrs = {}
@@ -502,7 +502,7 @@ def build_mock_survey(out_dir, *, n_fields: int = 4, shape=(1000, 1000), seed: i
     """
     import yaml
 
-    from ..store import atomic_write_text
+    from ..rundir import atomic_write_text
     from .survey import config_dumper, build_demo_survey
 
     out_dir = Path(out_dir)

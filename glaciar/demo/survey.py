@@ -89,7 +89,7 @@ class _FitsRowWriter:
     def __init__(self, path: Path, shape: tuple[int, int], header):
         from astropy.io import fits
 
-        from ..store import process_umask
+        from ..rundir import process_umask
 
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -214,7 +214,7 @@ def build_demo_survey(out_dir, *, shape: tuple[int, int] = (1000, 1000), seed: i
     import yaml
     from astropy.io import fits
 
-    from ..store import atomic_write_bytes, atomic_write_text
+    from ..rundir import atomic_write_bytes, atomic_write_text
 
     if int(n_galaxies) < 1 or int(n_iterations) < 1:
         raise ValueError(f"n_galaxies and n_iterations must be >= 1, got {n_galaxies}, {n_iterations}")

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..store import atomic_write_bytes
+from ..rundir import atomic_write_bytes
 from . import selection_format
 from .counts import count_kernel, expected_counts
 from .models import SurfaceModel

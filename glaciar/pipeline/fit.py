@@ -201,7 +201,7 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False, seed=0,
         Bad arguments (checked before anything is read or sampled), a bad
         per-source table or manifest, or a degenerate run (:func:`check_not_degenerate`:
         nothing recovered, or nothing selected, in the run or in a field).
-    glaciar.store.RunLockedError
+    glaciar.rundir.RunLockedError
         ``glaciar simulate`` (or another fit) is writing the run.
 
     Notes
@@ -284,7 +284,7 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, seed, n_walkers, max_
                     cosmology, area_arcmin2, mag_resolution, resume, max_draws, plots, depth,
                     write):
     """:func:`run_fit` once the arguments are checked and the run's lock is held."""
-    from ..store import atomic_write_bytes, atomic_write_text, read_manifest
+    from ..rundir import atomic_write_bytes, atomic_write_text, read_manifest
 
     manifest = read_manifest(run_dir) or {}
     magnitude_type = str(manifest.get("magnitude_type", "apparent"))
