@@ -57,7 +57,6 @@ ALLOWED_PRIVATE_IMPORTS = {
 
 # Modules over MAX_MODULE_LINES lines.
 ALLOWED_LONG_MODULES = {
-    "glaciar.config.models": NOT_SPLIT,
     "glaciar.engine.clean": ENGINE,
     "glaciar.engine.windows": ENGINE,
     "glaciar.inference.selection_function": NOT_SPLIT,
