@@ -29,7 +29,6 @@ MAX_PARAMETERS = 12
 ENGINE = "22.2, engine branch: one threshold path, context object, public helpers"
 RUN_SPLIT = "22.1, run.py split branch: the plan/cache/preparation modules, public names"
 REPORT = "22.6, report branch: figures.py and lf_figures.py"
-NOT_SPLIT = "22.1: one home per concept, this module not split yet (not assigned yet)"
 KEYWORD_OPTIONS = "22.3: keyword-only options / an options object (not assigned yet)"
 
 # Import edges ("importer -> imported") that close today's cycles; every other cycle fails.
@@ -59,7 +58,6 @@ ALLOWED_PRIVATE_IMPORTS = {
 ALLOWED_LONG_MODULES = {
     "glaciar.engine.clean": ENGINE,
     "glaciar.engine.windows": ENGINE,
-    "glaciar.inference.selection_function": NOT_SPLIT,
     "glaciar.run": RUN_SPLIT,
 }
 
