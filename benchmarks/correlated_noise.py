@@ -108,7 +108,7 @@ def exact_aperture_error(rows, cfg_path: Path, band: str = DETECTION_BAND) -> np
     cfg = load_config(cfg_path)
     spec = DEMO_BANDS_SPEC[band]
     pixscale = 0.08
-    k1 = _drizzle_kernel_1d(spec.native_pixel_arcsec, spec.pixfrac, pixscale)
+    k1 = drizzle_kernel_1d(spec.native_pixel_arcsec, spec.pixfrac, pixscale)
     kernel = np.outer(k1, k1)                      # sum(kernel^2) = 1: unit pixel variance
     radius = 0.5 * cfg.detection.phot_apertures[0]
     half = int(math.ceil(radius)) + 1

@@ -14,8 +14,8 @@ is left alone) and asks
   ("harmless": the garbage hit bytes nothing decodes, e.g. statistics in a page header),
   or return other values ("silent": wrong numbers);
 * the resume check: does ``glaciar simulate`` count the task as done -- before, the
-  footer-level check (:func:`glaciar.store._task_file_problem`, magic bytes and task key);
-  after, :func:`glaciar.store.unit_problem` (every page read with its checksum).
+  footer-level check (:func:`glaciar.taskfile.task_file_problem`, magic bytes and task key);
+  after, :func:`glaciar.taskfile.unit_problem` (every page read with its checksum).
 
 Usage::
 
@@ -113,7 +113,7 @@ def _trial_files(path: Path, trials: int, seed: int):
 
 def measure(path: Path, key: str | None, after: bool, trials: int, seed: int, scratch: Path) -> dict:
     """Counts of detected / harmless / silent corruptions and resume misses for one file."""
-    from glaciar import store
+    from glaciar import store, taskfile
 
     ref = pd.read_parquet(path)
     counts = {"detected": 0, "harmless": 0, "silent": 0, "resume_misses": 0}
@@ -129,11 +129,11 @@ def measure(path: Path, key: str | None, after: bool, trials: int, seed: int, sc
         else:
             counts["harmless" if _same(got, ref) else "silent"] += 1
         if after:
-            missed = store.unit_problem(f) is None
+            missed = taskfile.unit_problem(f) is None
         elif key is not None:
-            missed = store._task_file_problem(f, key) is None
+            missed = taskfile.task_file_problem(f, key) is None
         else:                                          # a part: its footer parses
-            missed = store._footer(f)[0] is not None
+            missed = taskfile.footer_metadata(f)[0] is not None
         counts["resume_misses"] += bool(missed)
     return counts
 

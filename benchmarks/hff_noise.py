@@ -154,7 +154,8 @@ def run(data: Path = DATA, back_sizes=(64, 32), n_galaxies: int = 10, n_iteratio
     """Simulate each BACK_SIZE; one row per BACK_SIZE (r(N), applied, m50, depth, wall, warnings)."""
     from glaciar.config import config_from_dict
     from glaciar.execute import simulate
-    from glaciar.store import read_manifest, read_results
+    from glaciar.store import read_results
+    from glaciar.rundir import read_manifest
 
     tmp = None
     if root is None:

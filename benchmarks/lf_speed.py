@@ -128,7 +128,7 @@ def write_candidates(run: Path, sf, n: int, path: Path, seed: int, size: int = 4
     from glaciar import constants as C
     from glaciar.lf import default_window, schechter
     from glaciar.pipeline.catalog import catalog_identity, write_catalog
-    from glaciar.store import read_manifest
+    from glaciar.rundir import read_manifest
 
     manifest = read_manifest(run)
     det = manifest["detection_band"]

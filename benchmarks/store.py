@@ -53,6 +53,7 @@ import pandas as pd
 
 from glaciar import constants as C
 from glaciar import counting as K
+from glaciar import rundir
 from glaciar import store as S
 from glaciar.counting import STATUS_COLUMNS
 
@@ -158,7 +159,7 @@ def write_counts_store(run_dir: Path, n_fields: int, n_iter: int, seed: int = 1)
             S.write_part(run_dir, f, float(z), empty, tasks, counts, C.COL_MAG_INPUT,
                          hist=hist, obs_column=OBS_COLUMN)
             n_tasks += len(tasks)
-    S.write_manifest(run_dir, _manifest(fields, n_iter))
+    rundir.write_manifest(run_dir, _manifest(fields, n_iter))
     return n_tasks
 
 
@@ -194,7 +195,7 @@ def write_rows_store(run_dir: Path, n_tasks: int, with_counts: bool, seed: int =
                                    key=S.task_key("borg_000", z, m, it),
                                    mag_column=C.COL_MAG_INPUT if with_counts else None)
                 done += 1
-    S.write_manifest(run_dir, {"fields": ["borg_000"], "z_values": zs.tolist(),
+    rundir.write_manifest(run_dir, {"fields": ["borg_000"], "z_values": zs.tolist(),
                                "mag_values": ms.tolist(), "n_iterations": it_n,
                                "magnitude_type": "apparent"})
 

@@ -25,7 +25,7 @@ __all__ = ["main"]
 
 def _cmd_init(args) -> int:
     from .config import template_yaml
-    from .store import atomic_write_text
+    from .rundir import atomic_write_text
 
     path = Path(args.path)
     if path.exists() and not args.force:
@@ -88,7 +88,7 @@ def _cmd_simulate(args) -> int:
 def _print_noise(out: Path) -> None:
     """Each field's noise factors (map scale, r(N)) as the run's manifest records them."""
     from .fieldprep import noise_summary
-    from .store import read_manifest
+    from .rundir import read_manifest
 
     for line in noise_summary((read_manifest(out) or {}).get("noise")):
         print(line)
@@ -199,7 +199,7 @@ def _cmd_next(args) -> int:
     from .inference import SelectionFunction
     from .pipeline.adaptive import cells_yaml, proposal_cells
     from .pipeline.fitdir import hold_run
-    from .store import atomic_write_text, read_manifest
+    from .rundir import atomic_write_text, read_manifest
 
     run_dir = Path(args.run_dir)
     if args.write is not None and (Path(args.write).is_dir()

@@ -25,7 +25,8 @@ from .engine import fieldcache
 from .engine.context import FieldContext
 from .fieldprep import build_field_context, field_settings
 from .paths import run_subdir
-from .store import StoreWarning, read_manifest
+from .store import StoreWarning
+from .rundir import read_manifest
 from .survey import Survey, clear_cache as clear_survey_cache
 
 

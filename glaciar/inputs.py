@@ -11,7 +11,7 @@ from .config import Config, check_files, config_to_dict
 from .engine.noise import map_type_problem
 from .fieldprep import band_psf, detection_params
 from .galaxy.filters import get_filter
-from .store import file_fingerprint
+from .rundir import file_fingerprint
 from .survey import Survey, read_array, strided_sample
 
 

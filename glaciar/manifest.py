@@ -24,9 +24,9 @@ from .fieldprep import field_depth_area, field_noise_record, field_settings
 from .galaxy import sed
 from .inputs import InputFile, check_inputs, file_or_none, input_files
 from .plan import detection_z_limit, manifest_cells, placement_preflight, plan_tasks
-from .store import (RunLock, StoreMismatchError, StoreWarning, atomic_write_text,
-                    field_file_prefix, finished_task_names, manifest_text,
-                    read_manifest, store_format, write_manifest)
+from .store import StoreWarning, field_file_prefix, finished_task_names
+from .rundir import (RunLock, StoreMismatchError, atomic_write_text, manifest_text, read_manifest,
+                     store_format, write_manifest)
 from .paths import check_run_tree, disk_full
 from .survey import Survey
 

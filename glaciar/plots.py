@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .store import atomic_write_bytes
+from .rundir import atomic_write_bytes
 
 __all__ = ["plot_summary_maps", "summary_grid", "save_png"]
 

@@ -138,7 +138,7 @@ def load_report_data(run_dir) -> dict:
         No manifest, or no summary tables (run ``glaciar report RUN`` first, which
         ``glaciar report RUN --html`` does).
     """
-    from .store import read_manifest
+    from .rundir import read_manifest
     from .tables import summary_stem
 
     run_dir = Path(run_dir)
@@ -811,7 +811,7 @@ def render_html(data: dict) -> str:
 
 def write_html_report(run_dir, path=None) -> Path:
     """Write the run's HTML report (default ``RUN/report.html``, atomically); return its path."""
-    from .store import atomic_write_text
+    from .rundir import atomic_write_text
 
     from .pipeline.fitdir import hold_run
 
@@ -831,7 +831,7 @@ def write_summary_files(run_dir, *, regions: bool = False) -> list[Path]:
 
     Raises
     ------
-    glaciar.store.RunLockedError
+    glaciar.rundir.RunLockedError
         ``glaciar simulate`` (or a fit) is writing the run.
     """
     from .pipeline.fitdir import hold_run
@@ -846,8 +846,8 @@ def _write_summary_files(run_dir: Path, regions: bool) -> list[Path]:
     import warnings
 
     from .plots import plot_summary_maps
-    from .store import (StoreWarning, read_current_counts, read_current_results, read_manifest,
-                        store_columns)
+    from .store import StoreWarning, read_current_counts, read_current_results, store_columns
+    from .rundir import read_manifest
     from .tables import summary_table, write_regions, write_summaries
 
     # What fit uses too: the tasks the run's configuration lists now; their stored counts

@@ -16,7 +16,8 @@ Layout of a run directory::
     RUN_DIR/.input_fingerprints.json   cache of input-file hashes by (path, size, mtime)
 
 Every file is written to a temporary name in the same directory and then
-renamed, so an interrupted run never leaves a half-written file behind; a
+renamed (:func:`glaciar.rundir.atomic_write_bytes`), so an interrupted run never leaves a
+half-written file behind; a
 resumed run skips the tasks whose file exists and is an intact Parquet file
 of the right task (:func:`verified_task_names`).  Task files and parts are
 written with Parquet page checksums and footer digests of their pages, columns
@@ -27,56 +28,35 @@ Task files are named by :func:`task_filename`: a readable part plus a hash of
 the exact task key (field name, z and magnitude as ``repr(float)``,
 iteration), so two different tasks never share a file.  Which rows count is
 decided in one place, :func:`read_current_results`: the rows of the fields,
-grid values and iterations that the run's manifest lists now.
+grid values and iterations that the run's manifest lists now.  The manifest, the
+lock, input fingerprints and atomic writes are :mod:`glaciar.rundir`'s.
 """
 from __future__ import annotations
 
-import errno
 import hashlib
 import json
 import os
-import tempfile
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from .constants import COL_FIELD, COL_ITERATION, COL_MAG, COL_Z, LOCK_NAME, MANIFEST_NAME, RESULTS_DIRNAME
+from .constants import COL_FIELD, COL_ITERATION, COL_MAG, COL_Z, RESULTS_DIRNAME
 from .counting import (COUNT_DEPTH_KEY, COUNT_K_REC, COUNT_K_SEL, COUNT_MAG_KEY, COUNT_N, HIST_MIN_KEY,
                        HIST_MOBS_BIN, group_sums, has_hist_columns, task_counts, task_histogram)
-from .paths import UnsafePathError, allocate, disk_full, readable, run_subdir
+from .paths import readable, run_subdir
+from .rundir import atomic_write_bytes, read_manifest
+from .taskfile import (DIGEST_SUFFIX, META_COUNTS, META_COUNTS_MAG, META_HIST, META_HIST_OBS,
+                       META_PART_TASKS, META_ROWS, META_SCHEMA, META_TASK, blake2b_digest,
+                       footer_metadata, ipc_bytes, ipc_table, parquet_bytes, schema_digest,
+                       task_file_problem, unit_problem)
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "task_key", "task_filename",
-           "field_file_prefix", "write_task_table", "finished_task_names", "verified_task_names",
-           "read_results", "read_current_results", "read_manifest", "write_manifest",
-           "file_fingerprint", "RunLock", "StoreMismatchError", "RunLockedError", "StoreWarning",
-           "read_current_counts", "store_columns", "write_part", "compact", "COMPACT_EVERY",
-           "read_current_histograms", "unit_problem", "set_aside",
-           "CORRUPT_DIRNAME", "process_umask"]
+__all__ = ["task_key", "task_filename", "field_file_prefix", "write_task_table",
+           "finished_task_names", "verified_task_names", "read_results", "read_current_results",
+           "StoreWarning", "read_current_counts", "store_columns", "write_part", "compact",
+           "COMPACT_EVERY", "read_current_histograms", "set_aside", "CORRUPT_DIRNAME"]
 
-#: Key-value metadata of every task file: the exact task key and the number of rows.
-_META_TASK = b"glaciar.task"
-_META_ROWS = b"glaciar.n_rows"
-#: Footer metadata of the counts: an Arrow IPC stream, and the magnitude covariate they key on.
-_META_COUNTS = b"glaciar.counts"
-_META_COUNTS_MAG = b"glaciar.counts_mag_column"
-#: Footer metadata of the histograms of the measured magnitude (:func:`glaciar.counting.task_histogram`): an
-#: Arrow IPC stream, and the measured-magnitude column they bin.
-_META_HIST = b"glaciar.mobs_hist"
-_META_HIST_OBS = b"glaciar.mobs_hist_column"
-#: Suffix of the key of a footer table's BLAKE2b digest (checked on resume, :func:`_task_file_problem`).
-_DIGEST_SUFFIX = b".blake2b"
-#: Footer metadata: BLAKE2b of the rows' column names, types and row count
-#: (:func:`_schema_digest`).  Parquet checksums its data pages (written with
-#: ``write_page_checksum``) but not its footer: a garbled footer that still parses
-#: (a renamed column, another row count) is caught by this digest.
-_META_SCHEMA = b"glaciar.schema.blake2b"
-#: Footer metadata: BLAKE2b of every byte before the footer (pages and page headers,
-#: :func:`_parquet_bytes`).
-_META_PAGES = b"glaciar.pages.blake2b"
-#: Footer metadata of a compacted part: JSON list of [task file name, task key, n_rows].
-_META_PART_TASKS = b"glaciar.part_tasks"
 #: Characters of the field name kept in the readable part of a task file name.
 _READABLE_FIELD_CHARS = 40
 #: Sub-directory of results/ holding the compacted parts.
@@ -85,71 +65,8 @@ COMPACT_DIRNAME = "compact"
 COMPACT_EVERY = 1024
 
 
-class StoreMismatchError(RuntimeError):
-    """The run directory was made with a different configuration, inputs or format."""
-
-
-class RunLockedError(RuntimeError):
-    """Another process holds the run directory's lock."""
-
-
 class StoreWarning(UserWarning):
     """Something in a run directory is ignored or redone (stale rows, a corrupt task file)."""
-
-
-# --------------------------------------------------------------------------
-# Atomic writes
-# --------------------------------------------------------------------------
-def process_umask() -> int:
-    """The process umask, read without changing it where the OS allows."""
-    try:
-        with open("/proc/self/status", encoding="ascii") as fh:
-            for line in fh:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError):
-        pass
-    old = os.umask(0o022)          # pragma: no cover - non-Linux
-    os.umask(old)
-    return old
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and an atomic rename.
-
-    The file gets the permissions of a plain ``open(path, "w")``: 0666 minus
-    the umask (``mkstemp`` alone would leave it 0600).  A full disk (or quota)
-    raises :class:`glaciar.paths.DiskFullError` naming ``path`` (the temporary
-    file removed, ``path`` unchanged).
-    """
-    path = Path(path)
-    tmp = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        with os.fdopen(fd, "wb") as fh:
-            # Blocks reserved first: a full disk fails here, before any byte is written.
-            allocate(fh.fileno(), len(data), path)
-            fh.write(data)
-            fh.flush()
-            os.fchmod(fh.fileno(), 0o666 & ~process_umask())
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException as exc:
-        if tmp is not None:
-            try:
-                os.unlink(tmp)
-            except FileNotFoundError:
-                pass
-        full = disk_full(path, exc)
-        if full is not None:
-            raise full from None
-        raise
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> None:
-    """Text version of :func:`atomic_write_bytes` (UTF-8)."""
-    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 # --------------------------------------------------------------------------
@@ -212,72 +129,22 @@ def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
     path = Path(run_dir) / RESULTS_DIRNAME / name
     t = pa.Table.from_pandas(table, preserve_index=False)
     meta = dict(t.schema.metadata or {})
-    meta[_META_ROWS] = str(len(table)).encode()
+    meta[META_ROWS] = str(len(table)).encode()
     if key is not None:
-        meta[_META_TASK] = key.encode("utf-8")
+        meta[META_TASK] = key.encode("utf-8")
     if mag_column is not None:
-        meta[_META_COUNTS] = _ipc_bytes(task_counts(table, mag_column))
-        meta[_META_COUNTS_MAG] = mag_column.encode("utf-8")
+        meta[META_COUNTS] = ipc_bytes(task_counts(table, mag_column))
+        meta[META_COUNTS_MAG] = mag_column.encode("utf-8")
     if obs_column is not None and has_hist_columns(table.columns, obs_column):
-        meta[_META_HIST] = _ipc_bytes(task_histogram(table, obs_column))
-        meta[_META_HIST_OBS] = obs_column.encode("utf-8")
-    for k in (_META_COUNTS, _META_HIST):
+        meta[META_HIST] = ipc_bytes(task_histogram(table, obs_column))
+        meta[META_HIST_OBS] = obs_column.encode("utf-8")
+    for k in (META_COUNTS, META_HIST):
         if k in meta:
-            meta[k + _DIGEST_SUFFIX] = _digest(meta[k])
-    meta[_META_SCHEMA] = _schema_digest(t.schema, t.num_rows)
-    data = _parquet_bytes(t.replace_schema_metadata(meta))
+            meta[k + DIGEST_SUFFIX] = blake2b_digest(meta[k])
+    meta[META_SCHEMA] = schema_digest(t.schema, t.num_rows)
+    data = parquet_bytes(t.replace_schema_metadata(meta))
     atomic_write_bytes(run_subdir(run_dir, RESULTS_DIRNAME) / name, data)
     return path
-
-
-def _parquet_bytes(table) -> bytes:
-    """``table`` as Parquet bytes with page checksums and, in its footer, a digest of its pages.
-
-    Parquet's page checksums cover a page's data, not its header; a digest of every
-    byte before the footer (:data:`_META_PAGES`) covers both, and checking it costs one
-    hash of the file (:func:`unit_problem`).  The key-value metadata lives only in the
-    footer, so the file is written once to learn the bytes of its pages and once more
-    with their digest added: the pages come out the same (checked; if they ever did not,
-    the file keeps its page checksums only).
-    """
-    import io
-
-    import pyarrow.parquet as pq
-
-    def write(t) -> bytes:
-        buf = io.BytesIO()
-        pq.write_table(t, buf, write_page_checksum=True)
-        return buf.getvalue()
-
-    first = write(table)
-    pages = first[:_pages_end(first)]
-    meta = dict(table.schema.metadata or {})
-    meta[_META_PAGES] = _digest(pages)
-    second = write(table.replace_schema_metadata(meta))
-    return second if second[:len(pages)] == pages else first
-
-
-def _pages_end(data: bytes) -> int:
-    """Offset of the footer of complete Parquet bytes (the pages end there)."""
-    return len(data) - 8 - int.from_bytes(data[-8:-4], "little")
-
-
-def _ipc_bytes(df: pd.DataFrame) -> bytes:
-    import pyarrow as pa
-
-    t = pa.Table.from_pandas(df, preserve_index=False).replace_schema_metadata(None)
-    sink = pa.BufferOutputStream()
-    # zstd: counts repeat their keys and are mostly small integers (~10x smaller footers).
-    opts = pa.ipc.IpcWriteOptions(compression="zstd")
-    with pa.ipc.new_stream(sink, t.schema, options=opts) as w:
-        w.write_table(t)
-    return sink.getvalue().to_pybytes()
-
-
-def _ipc_table(data: bytes):
-    import pyarrow as pa
-
-    return pa.ipc.open_stream(pa.py_buffer(data)).read_all()
 
 
 # --------------------------------------------------------------------------
@@ -293,27 +160,16 @@ def _part_files(run_dir) -> list[Path]:
     return sorted(d.glob("field=*/z=*/part-*.parquet")) if d.is_dir() else []
 
 
-def _footer(path: Path):
-    """(key-value metadata dict, None) of a Parquet file, or (None, why not)."""
-    import pyarrow.parquet as pq
-
-    try:
-        meta = pq.read_metadata(path).metadata or {}
-    except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad files
-        return None, f"not a complete Parquet file ({type(exc).__name__}: {exc})"
-    return meta, None
-
-
 def _part_tasks(path: Path, meta: dict | None = None):
     """([(name, key, n_rows)], footer) of a compacted part, or (None, why not)."""
     if meta is None:
-        meta, problem = _footer(path)
+        meta, problem = footer_metadata(path)
         if meta is None:
             return None, problem
-    if _META_PART_TASKS not in meta:
+    if META_PART_TASKS not in meta:
         return None, "not a glaciar part (no task list in its metadata)"
     try:
-        tasks = [(str(n), str(k), int(r)) for n, k, r in json.loads(meta[_META_PART_TASKS])]
+        tasks = [(str(n), str(k), int(r)) for n, k, r in json.loads(meta[META_PART_TASKS])]
     except (ValueError, TypeError) as exc:
         return None, f"unreadable task list ({exc})"
     return tasks, meta
@@ -327,8 +183,8 @@ def _valid_parts(run_dir, warn: bool, names: bool):
     a :class:`StoreWarning` naming it (``warn``).
     """
     for p in _part_files(run_dir):
-        meta, problem = _footer(p)
-        if meta is not None and _META_PART_TASKS not in meta:
+        meta, problem = footer_metadata(p)
+        if meta is not None and META_PART_TASKS not in meta:
             meta, problem = None, "not a glaciar part (no task list in its metadata)"
         got = None
         if meta is not None and names:
@@ -374,170 +230,6 @@ def finished_task_names(run_dir: str | os.PathLike) -> set[str]:
     return names
 
 
-def _task_file_problem(path: Path, key: str) -> str | None:
-    """Why ``path`` is not a complete task file of ``key`` (None if it is).
-
-    A footer-level check that reads ~the footer's bytes and parses nothing
-    (~0.1 ms per file, where parsing the ~45 kB footer with pyarrow costs
-    ~1.5 ms): the file starts and ends with Parquet's magic bytes, the footer
-    length fits the file, and the footer holds this task's key (written by
-    :func:`write_task_table`).  Parquet writes its footer last and task files
-    are renamed into place only when complete, so a cut or partly copied file
-    fails the check; a file of another task fails the key test; counts or
-    histograms whose bytes no longer match their stored digest fail too
-    (:func:`_footer_table_problem`).
-    """
-    magic = b"PAR1"
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(4)
-            size = fh.seek(0, os.SEEK_END)
-            if size < 12:
-                return f"not a complete Parquet file ({size} bytes)"
-            fh.seek(size - 8)
-            tail = fh.read(8)
-            n = int.from_bytes(tail[:4], "little")
-            if head != magic or tail[4:] != magic or n <= 0 or n > size - 12:
-                return "not a complete Parquet file (no footer: truncated or not Parquet)"
-            fh.seek(size - 8 - n)
-            footer = fh.read(n)
-    except OSError as exc:
-        return f"unreadable ({exc.strerror or exc})"
-    if _META_TASK not in footer:
-        return "not a glaciar task file (no task key in its metadata)"
-    if key.encode("utf-8") not in footer:
-        return f"holds another task than {key}"
-    for meta_key in (_META_COUNTS, _META_HIST):
-        problem = _footer_table_problem(footer, meta_key)
-        if problem is not None:
-            return problem
-    return None
-
-
-def _footer_table_problem(footer: bytes, meta_key: bytes) -> str | None:
-    """Why the IPC table stored under ``meta_key`` in a raw Parquet footer is unreadable.
-
-    None when it is absent, or has no digest (a file written before digests),
-    or matches its BLAKE2b digest (``meta_key + _DIGEST_SUFFIX``, written
-    beside it by :func:`write_task_table`): hashing the few kB costs ~µs
-    where decoding the table costs ~1 ms.
-    """
-    digest = _raw_meta_value(footer, meta_key + _DIGEST_SUFFIX)
-    if digest is None:
-        return None
-    value = _raw_meta_value(footer, meta_key)
-    if value is None or _digest(value) != digest:
-        return f"unreadable {meta_key.decode()} metadata (digest mismatch)"
-    return None
-
-
-def _schema_digest(schema, n_rows: int) -> bytes:
-    """BLAKE2b of an Arrow schema's column names and types and a row count (metadata ignored)."""
-    text = json.dumps([[f.name, str(f.type)] for f in schema] + [int(n_rows)],
-                      ensure_ascii=False, separators=(",", ":"))
-    return _digest(text.encode("utf-8"))
-
-
-def _digest(data: bytes) -> bytes:
-    return hashlib.blake2b(data, digest_size=16).hexdigest().encode("ascii")
-
-
-def _raw_meta_value(footer: bytes, meta_key: bytes) -> bytes | None:
-    """The value of key-value metadata ``meta_key`` found in a raw (unparsed) Parquet footer.
-
-    Thrift's compact protocol writes an entry as field header 0x18, varint
-    length, key bytes, 0x18, varint length, value bytes; None if the key is
-    absent (or the value runs past the footer).
-    """
-    head = b"\x18" + _varint(len(meta_key)) + meta_key + b"\x18"
-    at = footer.find(head)
-    if at < 0:
-        return None
-    i, n, shift = at + len(head), 0, 0
-    while i < len(footer):
-        byte = footer[i]
-        n |= (byte & 0x7F) << shift
-        shift += 7
-        i += 1
-        if not byte & 0x80:
-            break
-    value = footer[i:i + n]
-    return value if len(value) == n else None
-
-
-def _varint(n: int) -> bytes:
-    out = bytearray()
-    while True:
-        out.append((n & 0x7F) | (0x80 if n > 0x7F else 0))
-        n >>= 7
-        if not n:
-            return bytes(out)
-
-
-
-def unit_problem(path: str | os.PathLike) -> str | None:
-    """Why a task file or compacted part is not intact (None if it is): every byte checked.
-
-    Parses the footer (a garbled one fails, or no longer matches the digests
-    glaciar wrote into it: row count, column names and types, counts,
-    histograms, a part's task list), then checks every byte before the footer
-    against its recorded digest (pages and page headers: one hash of the file).
-    A file written before page digests has every page of every row group
-    decoded instead, with Parquet's page checksums verified where it has them
-    (without: pages that no longer decode).  Detection of random in-page
-    garbage: benchmarks/corruption.py.
-    """
-    import pyarrow.parquet as pq
-
-    path = Path(path)
-    try:
-        pf = pq.ParquetFile(path, page_checksum_verification=True)
-        md = pf.metadata
-        meta = md.metadata or {}
-        rows = meta.get(_META_ROWS)
-        if rows is not None and int(rows) != md.num_rows:
-            return (f"corrupt footer ({md.num_rows} rows where its metadata records "
-                    f"{int(rows)})")
-        want = meta.get(_META_SCHEMA)
-        if want is not None and _schema_digest(pf.schema_arrow, md.num_rows) != want:
-            return "corrupt footer (columns or row count differ from its recorded digest)"
-        for k in (_META_COUNTS, _META_HIST, _META_PART_TASKS):
-            digest = meta.get(k + _DIGEST_SUFFIX)
-            if digest is not None and (k not in meta or _digest(meta[k]) != digest):
-                return f"corrupt footer (unreadable {k.decode()} metadata: digest mismatch)"
-        pages = meta.get(_META_PAGES)
-        if pages is not None:
-            if _file_pages_digest(path) != pages:
-                return "corrupt data pages (digest mismatch)"
-        else:       # a file from before page digests: decode every page (checksums if any)
-            for _ in pf.iter_batches(batch_size=_VERIFY_BATCH_ROWS, use_threads=False):
-                pass
-    except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad bytes
-        text = str(exc).strip().splitlines()
-        return f"corrupt ({type(exc).__name__}: {text[0] if text else 'unreadable'})"
-    return None
-
-
-def _file_pages_digest(path: Path) -> bytes:
-    """BLAKE2b of the bytes of a Parquet file before its footer, read in blocks."""
-    h = hashlib.blake2b(digest_size=16)
-    with open(path, "rb") as fh:
-        size = fh.seek(0, os.SEEK_END)
-        fh.seek(max(size - 8, 0))
-        tail = fh.read(8)
-        left = size - 8 - int.from_bytes(tail[:4], "little") if size >= 12 else 0
-        fh.seek(0)
-        while left > 0:
-            block = fh.read(min(left, 1 << 22))
-            if not block:
-                break
-            h.update(block)
-            left -= len(block)
-    return h.hexdigest().encode("ascii")
-
-
-#: Rows decoded at a time when a unit's pages are verified (memory: one batch of columns).
-_VERIFY_BATCH_ROWS = 1 << 16
 #: Sub-directory of results/ where corrupt task files and parts are set aside.
 CORRUPT_DIRNAME = "corrupt"
 
@@ -613,7 +305,7 @@ def verified_task_names(run_dir: str | os.PathLike, wanted: dict[str, str],
         name = f.name
         if name not in wanted or name in good:
             continue
-        problem = _task_file_problem(d / name, wanted[name]) or unit_problem(d / name)
+        problem = task_file_problem(d / name, wanted[name]) or unit_problem(d / name)
         if problem is None:
             good.add(name)
         else:
@@ -647,11 +339,11 @@ def _footer_problem(path: Path) -> str | None:
     try:
         md = pq.read_metadata(path)
         meta = md.metadata or {}
-        rows = meta.get(_META_ROWS)
+        rows = meta.get(META_ROWS)
         if rows is not None and int(rows) != md.num_rows:
             return f"corrupt footer ({md.num_rows} rows where its metadata records {int(rows)})"
-        want = meta.get(_META_SCHEMA)
-        if want is not None and _schema_digest(md.schema.to_arrow_schema(), md.num_rows) != want:
+        want = meta.get(META_SCHEMA)
+        if want is not None and schema_digest(md.schema.to_arrow_schema(), md.num_rows) != want:
             return "corrupt footer (columns or row count differ from its recorded digest)"
     except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad bytes
         text = str(exc).strip().splitlines()
@@ -815,14 +507,14 @@ def _unit_tables(run_dir, meta_key: bytes, tag_key: bytes):
     def table(path, meta):
         if meta is None or meta_key not in meta:
             return None
-        digest = meta.get(meta_key + _DIGEST_SUFFIX)
-        if digest is not None and _digest(meta[meta_key]) != digest:
+        digest = meta.get(meta_key + DIGEST_SUFFIX)
+        if digest is not None and blake2b_digest(meta[meta_key]) != digest:
             # Garbled bytes that may still decode: the rows say which file is corrupt.
             warnings.warn(f"{path}: unreadable {meta_key.decode()} metadata (digest mismatch); "
                           "reading rows instead", StoreWarning, stacklevel=4)
             return None
         try:
-            return _ipc_table(meta[meta_key]), meta.get(tag_key)
+            return ipc_table(meta[meta_key]), meta.get(tag_key)
         except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad bytes
             warnings.warn(f"{path}: unreadable {meta_key.decode()} metadata "
                           f"({type(exc).__name__}); reading rows instead", StoreWarning,
@@ -837,13 +529,13 @@ def _unit_tables(run_dir, meta_key: bytes, tag_key: bytes):
     for f in loose_all:
         if f.name in in_parts:
             continue
-        meta, _ = _footer(f)
+        meta, _ = footer_metadata(f)
         yield table(f, meta)
 
 
 def _unit_counts(run_dir):
     """:func:`_unit_tables` of the counts."""
-    return _unit_tables(run_dir, _META_COUNTS, _META_COUNTS_MAG)
+    return _unit_tables(run_dir, META_COUNTS, META_COUNTS_MAG)
 
 
 def _merge_counts(df: pd.DataFrame) -> pd.DataFrame:
@@ -987,7 +679,7 @@ def read_current_histograms(run_dir: str | os.PathLike):
     FileNotFoundError
         No task, or none of a listed task.
     """
-    got = _read_current_tables(run_dir, _unit_tables(run_dir, _META_HIST, _META_HIST_OBS),
+    got = _read_current_tables(run_dir, _unit_tables(run_dir, META_HIST, META_HIST_OBS),
                                _merge_histograms, warn=False)
     if got is None:
         return None
@@ -1026,19 +718,19 @@ def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.Dat
         The measured-magnitude column the histograms bin.
     """
     meta = {**(extra_meta or {}),
-            _META_PART_TASKS: json.dumps(tasks, ensure_ascii=False).encode("utf-8"),
-            _META_ROWS: str(table.num_rows).encode()}
+            META_PART_TASKS: json.dumps(tasks, ensure_ascii=False).encode("utf-8"),
+            META_ROWS: str(table.num_rows).encode()}
     if counts is not None:
-        meta[_META_COUNTS] = _ipc_bytes(counts)
-        meta[_META_COUNTS_MAG] = mag_column.encode("utf-8")
+        meta[META_COUNTS] = ipc_bytes(counts)
+        meta[META_COUNTS_MAG] = mag_column.encode("utf-8")
     if hist is not None:
-        meta[_META_HIST] = _ipc_bytes(hist)
-        meta[_META_HIST_OBS] = obs_column.encode("utf-8")
-    for k in (_META_COUNTS, _META_HIST, _META_PART_TASKS):
+        meta[META_HIST] = ipc_bytes(hist)
+        meta[META_HIST_OBS] = obs_column.encode("utf-8")
+    for k in (META_COUNTS, META_HIST, META_PART_TASKS):
         if k in meta:
-            meta[k + _DIGEST_SUFFIX] = _digest(meta[k])
-    meta[_META_SCHEMA] = _schema_digest(table.schema, table.num_rows)
-    data = _parquet_bytes(table.replace_schema_metadata(meta))
+            meta[k + DIGEST_SUFFIX] = blake2b_digest(meta[k])
+    meta[META_SCHEMA] = schema_digest(table.schema, table.num_rows)
+    data = parquet_bytes(table.replace_schema_metadata(meta))
     name = "part-" + _short_hash("\n".join(sorted(str(t[1]) for t in tasks)), 16) + ".parquet"
     part_dir = _partition_dir(Path(run_dir), field, float(z))
     run_subdir(run_dir, *part_dir.relative_to(Path(run_dir)).parts)
@@ -1075,11 +767,11 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
         return 0
     groups: dict = {}
     for f in loose:
-        meta, _ = _footer(f)
-        if meta is None or _META_TASK not in meta:
+        meta, _ = footer_metadata(f)
+        if meta is None or META_TASK not in meta:
             continue
-        key = meta[_META_TASK].decode("utf-8")
-        if _task_file_problem(f, key) is not None:
+        key = meta[META_TASK].decode("utf-8")
+        if task_file_problem(f, key) is not None:
             continue
         field, z, _, _ = json.loads(key)
         groups.setdefault((field, z), []).append((f, key, meta))
@@ -1105,11 +797,11 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
                 pandas_meta = {b"pandas": meta[b"pandas"]}
             tables.append(t.replace_schema_metadata(None))
             tasks.append([f.name, key, t.num_rows])
-            for got, tags, mk, tk in ((counts, mags, _META_COUNTS, _META_COUNTS_MAG),
-                                      (hists, obs, _META_HIST, _META_HIST_OBS)):
+            for got, tags, mk, tk in ((counts, mags, META_COUNTS, META_COUNTS_MAG),
+                                      (hists, obs, META_HIST, META_HIST_OBS)):
                 if mk in meta:
                     try:
-                        got.append(_ipc_table(meta[mk]))
+                        got.append(ipc_table(meta[mk]))
                         tags.add(meta.get(tk))
                     except Exception:  # noqa: BLE001 - a file from before digests, garbled:
                         pass           # the part goes without; readers then use the rows
@@ -1130,192 +822,3 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
             f.unlink(missing_ok=True)
         n_done += len(items)
     return n_done
-
-
-# --------------------------------------------------------------------------
-# Manifest
-# --------------------------------------------------------------------------
-def read_manifest(run_dir: str | os.PathLike) -> dict | None:
-    """The run's manifest, or None if there is none yet."""
-    p = Path(run_dir) / MANIFEST_NAME
-    if not p.exists():
-        return None
-    try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise StoreMismatchError(f"{p}: not valid JSON ({exc})") from exc
-    if not isinstance(data, dict):
-        raise StoreMismatchError(f"{p}: expected a JSON object, got {type(data).__name__}")
-    return data
-
-
-def manifest_text(manifest: dict) -> str:
-    """The manifest as written to disk (stable: sorted keys, 2-space indent)."""
-    return json.dumps(manifest, indent=2, sort_keys=True, ensure_ascii=False)
-
-
-def write_manifest(run_dir: str | os.PathLike, manifest: dict) -> None:
-    """Write the manifest atomically."""
-    atomic_write_text(Path(run_dir) / MANIFEST_NAME, manifest_text(manifest))
-
-
-def store_format(manifest: dict) -> int:
-    """The store format of a manifest (1 for manifests from before formats were recorded)."""
-    return int(manifest.get("store_format", 1))
-
-
-# --------------------------------------------------------------------------
-# Input fingerprints
-# --------------------------------------------------------------------------
-_FINGERPRINTS: dict = {}     # (path, size, mtime_ns) -> hex digest, this process
-
-
-def file_fingerprint(path: str | os.PathLike, cache: dict | None = None) -> dict:
-    """Size and BLAKE2b-128 digest of a file's bytes.
-
-    Parameters
-    ----------
-    path : path
-    cache : dict, optional
-        ``{path: {"size", "mtime_ns", "blake2b", ...}}`` (e.g. a run directory's
-        cache file): a file whose size and mtime are unchanged is not read
-        again.  Updated in place; the entry of a new or changed file is
-        replaced, so other facts recorded in it (e.g. "checked") are dropped.
-
-    Returns
-    -------
-    dict
-        ``{"size": bytes, "blake2b": hex}``.
-    """
-    p = Path(path).resolve()
-    st = p.stat()
-    mem_key = (str(p), st.st_size, st.st_mtime_ns)
-    entry = None if cache is None else cache.get(str(p))
-    if not (isinstance(entry, dict) and entry.get("size") == st.st_size
-            and entry.get("mtime_ns") == st.st_mtime_ns and isinstance(entry.get("blake2b"), str)):
-        entry = None
-    digest = entry["blake2b"] if entry is not None else _FINGERPRINTS.get(mem_key)
-    if digest is None:
-        h = hashlib.blake2b(digest_size=16)
-        with open(p, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 22), b""):
-                h.update(block)
-        digest = h.hexdigest()
-    _FINGERPRINTS[mem_key] = digest
-    if cache is not None and entry is None:
-        # A new or changed file: a fresh entry (whatever else was recorded about it is void).
-        cache[str(p)] = {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "blake2b": digest}
-    return {"size": st.st_size, "blake2b": digest}
-
-
-# --------------------------------------------------------------------------
-# Run-directory lock
-# --------------------------------------------------------------------------
-#: ``os.open`` flag that refuses a symbolic link as the last component (0 where unknown).
-_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
-
-
-class RunLock:
-    """Advisory, exclusive lock on a run directory (``fcntl.flock`` on ``RUN_DIR/.lock``).
-
-    Only the holder writes the manifest, the stored config and task files,
-    and removes stale temporary files.  The lock file holds the holder's pid
-    (for the refusal message); it is never deleted, so that two processes
-    always lock the same inode.
-    """
-
-    def __init__(self, run_dir: str | os.PathLike):
-        self.run_dir = Path(run_dir)
-        self.path = self.run_dir / LOCK_NAME
-        self._fd: int | None = None
-
-    @staticmethod
-    def _holder(fd: int) -> str:
-        try:
-            text = os.pread(fd, 64, 0).decode("ascii", "replace").strip()
-        except OSError:
-            text = ""
-        return text if text.isdigit() else "unknown"
-
-    def _link_or(self, exc: OSError) -> Exception:
-        """A refusal naming a lock file that is a symbolic link, else ``exc`` itself."""
-        if exc.errno == errno.ELOOP or self.path.is_symlink():
-            return UnsafePathError(f"{self.path}: is a symbolic link; glaciar writes only inside "
-                                   "the run directory: remove it")
-        return exc
-
-    def _refuse(self, fd: int):
-        pid = self._holder(fd)
-        return RunLockedError(f"{self.run_dir}: another glaciar run is writing here (pid {pid})")
-
-    def check_free(self) -> None:
-        """Raise :class:`RunLockedError` if another process holds the lock (creates nothing)."""
-        import fcntl
-
-        try:
-            fd = os.open(self.path, os.O_RDONLY | _NOFOLLOW)
-        except FileNotFoundError:
-            return
-        except OSError as exc:
-            raise self._link_or(exc) from None
-        try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-            except OSError as exc:
-                if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                    raise self._refuse(fd) from None
-                raise
-            fcntl.flock(fd, fcntl.LOCK_UN)
-        finally:
-            os.close(fd)
-
-    def acquire(self) -> "RunLock":
-        """Take the lock (creating the lock file) or raise :class:`RunLockedError`."""
-        import fcntl
-
-        try:
-            # Not through a symbolic link: the pid written below would land outside the run.
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | _NOFOLLOW, 0o666 & ~process_umask())
-        except OSError as exc:
-            raise self._link_or(exc) from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            try:
-                if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                    raise self._refuse(fd) from None
-                raise
-            finally:
-                os.close(fd)
-        try:
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        except OSError as exc:
-            # The pid only names the holder in refusals: on a full disk the lock holds
-            # without it, and the run's first real write says which file has no room.
-            if disk_full(self.path, exc) is None:
-                os.close(fd)
-                raise
-        self._fd = fd
-        return self
-
-    def release(self) -> None:
-        """Release the lock (the file stays)."""
-        import fcntl
-
-        if self._fd is not None:
-            try:
-                fcntl.flock(self._fd, fcntl.LOCK_UN)
-            finally:
-                os.close(self._fd)
-                self._fd = None
-
-    @property
-    def held(self) -> bool:
-        return self._fd is not None
-
-    def __enter__(self):
-        return self.acquire()
-
-    def __exit__(self, *exc):
-        self.release()

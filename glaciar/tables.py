@@ -40,7 +40,8 @@ from . import constants as C
 from .paths import file_stem, run_subdir
 from .counting import (COUNT_K_REC, COUNT_K_SEL, COUNT_N, COUNTS_MAG_RESOLUTION, STATUS_COLUMNS,
                        TRANSFER_MOBS_STEP, mobs_lattice_edge)
-from .store import atomic_write_bytes, atomic_write_text, field_file_prefix
+from .store import field_file_prefix
+from .rundir import atomic_write_bytes, atomic_write_text
 
 __all__ = ["summary_table", "box_summary_table", "write_summaries", "summary_stem", "region_file",
            "TransferMatrix", "transfer_matrix", "slice_edges", "TRANSFER_KINDS",

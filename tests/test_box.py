@@ -139,7 +139,7 @@ def test_box_simulates_resumes_to_the_same_table_grows_by_a_prefix_and_fits(smal
     from glaciar.inference.sampling import SamplerSettings
     from glaciar.pipeline.fit import run_fit
     from glaciar.execute import simulate
-    from glaciar.store import read_manifest
+    from glaciar.rundir import read_manifest
 
     # Written beside the survey: its paths are relative to the config.
     # One grid cell of one task beside the box keeps the test short.
@@ -292,7 +292,7 @@ def test_band_magnitudes_off_the_z_lattice_match_direct_integration_to_1e_3_mag(
 
 def test_a_seed_override_moves_the_box_points_and_the_stored_config_says_so(small_survey):
     from glaciar.execute import simulate
-    from glaciar.store import read_manifest
+    from glaciar.rundir import read_manifest
 
     here = small_survey.parent
     cfg = load_config(_config_with(small_survey, here, name="box_seed.yaml", box=BOX))

@@ -177,7 +177,7 @@ def test_run_catalog_identity_round_trip(small_run, tmp_path, suffix):
     import shutil
 
     from glaciar.pipeline.catalog import check_identity, read_catalog, run_catalog
-    from glaciar.store import read_manifest
+    from glaciar.rundir import read_manifest
 
     cfg, run = small_run
     out = tmp_path / f"cat{suffix}"

@@ -249,20 +249,20 @@ def test_stars_are_the_psf_with_the_catalogue_flux():
 
 def test_background_sersic_renderer():
     # Round n = 1 profile: half the flux inside r_e (truncation at 5 r_e drops 0.04 %).
-    y0, x0, img = demo_sky._sersic_stamp_fast(50.0, 50.0, 8.0, 1.0, 1.0, 0.0, (101, 101))
+    y0, x0, img = demo_sky.sersic_stamp_fast(50.0, 50.0, 8.0, 1.0, 1.0, 0.0, (101, 101))
     assert img.sum() == pytest.approx(1.0, rel=1e-12)
     yy, xx = np.mgrid[y0:y0 + img.shape[0], x0:x0 + img.shape[1]]
     rr = np.hypot(xx - 50.0, yy - 50.0)
     assert img[rr < 8.0].sum() == pytest.approx(0.5, abs=0.02)
     # q = 0.4 at PA 0: elongated along x; at PA 90: along y.
     for pa, axis in ((0.0, "x"), (90.0, "y")):
-        y0, x0, img = demo_sky._sersic_stamp_fast(50.0, 50.0, 6.0, 1.0, 0.4, pa, (101, 101))
+        y0, x0, img = demo_sky.sersic_stamp_fast(50.0, 50.0, 6.0, 1.0, 0.4, pa, (101, 101))
         yy, xx = np.mgrid[y0:y0 + img.shape[0], x0:x0 + img.shape[1]]
         vx = np.sum(img * (xx - 50.0) ** 2)
         vy = np.sum(img * (yy - 50.0) ** 2)
         assert (vx > 4 * vy) if axis == "x" else (vy > 4 * vx)
     # A stamp at the image edge is clipped, a stamp off the image is dropped.
-    assert demo_sky._sersic_stamp_fast(-500.0, 50.0, 2.0, 1.0, 1.0, 0.0, (101, 101)) is None
+    assert demo_sky.sersic_stamp_fast(-500.0, 50.0, 2.0, 1.0, 1.0, 0.0, (101, 101)) is None
 
 
 def test_bad_arguments():

@@ -19,7 +19,8 @@ from glaciar.engine.depth import depth_area_histogram, depth_at, disk_pixel_weig
 from glaciar.execute import simulate
 from glaciar.fieldprep import build_field_context
 from glaciar.manifest import prepare_run_dir
-from glaciar.store import read_manifest, read_results
+from glaciar.store import read_results
+from glaciar.rundir import read_manifest
 from glaciar.survey import Survey
 
 ZP = 25.946

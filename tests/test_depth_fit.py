@@ -22,7 +22,8 @@ from glaciar import constants as C
 from glaciar.inference import SelectionFunction
 from glaciar.inference.sampling import SamplerSettings
 from glaciar.pipeline import run_fit
-from glaciar.store import read_manifest, read_results
+from glaciar.store import read_results
+from glaciar.rundir import read_manifest
 
 
 def _fit(run_dir, out_name, **kw):

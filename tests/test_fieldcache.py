@@ -332,7 +332,8 @@ def test_run_keeps_its_cache_while_tasks_are_pending(small_survey, tmp_path):
 def test_resume_maps_the_cache_instead_of_measuring_the_field(small_survey, tmp_path, monkeypatch):
     """An interrupted run's resume maps its field cache (the field is not measured again),
     and its manifest and rows equal an uninterrupted run's."""
-    from glaciar.store import read_manifest, read_results
+    from glaciar.store import read_results
+    from glaciar.rundir import read_manifest
 
     cfg = load_config(small_survey)
     contexts.clear_contexts()

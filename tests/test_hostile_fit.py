@@ -10,7 +10,7 @@ import pytest
 
 from glaciar import constants as C
 from glaciar.cli import main
-from glaciar.store import RunLock
+from glaciar.rundir import RunLock
 
 from test_degenerate_fit import make_run
 

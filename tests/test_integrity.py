@@ -29,9 +29,9 @@ from glaciar.execute import simulate
 from glaciar.inputs import InputError
 from glaciar.manifest import prepare_run_dir
 from glaciar.plan import plan_tasks
-from glaciar.store import (RunLock, RunLockedError, StoreMismatchError, StoreWarning,
-                           atomic_write_text, file_fingerprint, read_current_results,
-                           read_manifest, read_results, task_filename)
+from glaciar.store import StoreWarning, read_current_results, read_results, task_filename
+from glaciar.rundir import (RunLock, RunLockedError, StoreMismatchError, atomic_write_text,
+                            file_fingerprint, read_manifest)
 
 
 # --------------------------------------------------------------------------
@@ -287,8 +287,8 @@ def test_fingerprint_cache_skips_unchanged_files(tmp_path):
     entry = cache[str(p.resolve())]
     # A cache entry with the same size and mtime is trusted (the file is not read again) ...
     cache[str(p.resolve())] = {**entry, "blake2b": "cached"}
-    from glaciar import store
-    store._FINGERPRINTS.clear()
+    from glaciar import rundir
+    rundir._FINGERPRINTS.clear()
     assert file_fingerprint(p, cache)["blake2b"] == "cached"
     # ... a new mtime is not.
     os.utime(p, ns=(entry["mtime_ns"] + 10**9, entry["mtime_ns"] + 10**9))
@@ -378,7 +378,7 @@ def test_second_writer_is_refused_and_live_temp_files_survive(run_copy, tmp_path
     cfg = _load(d, tmp_path / "c.yaml")
     tmp_file = run / C.RESULTS_DIRNAME / ".task_inflight.parquet.abc.tmp"
     tmp_file.write_bytes(b"half a task")
-    code = ("import sys; from glaciar.store import RunLock; RunLock(sys.argv[1]).acquire(); "
+    code = ("import sys; from glaciar.rundir import RunLock; RunLock(sys.argv[1]).acquire(); "
             "print('locked', flush=True); sys.stdin.read()")
     holder = subprocess.Popen([sys.executable, "-c", code, str(run)], stdin=subprocess.PIPE,
                               stdout=subprocess.PIPE, text=True)

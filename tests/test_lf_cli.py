@@ -24,7 +24,7 @@ from glaciar import constants as C
 from glaciar.cli import main
 from glaciar.lf import default_window, schechter
 from glaciar.pipeline.catalog import catalog_identity, read_catalog, write_catalog
-from glaciar.store import read_manifest
+from glaciar.rundir import read_manifest
 from test_lf import TRUE, lf_sf, mock_candidates
 
 

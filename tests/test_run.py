@@ -7,7 +7,8 @@ from glaciar import constants as C
 from glaciar.config import load_config
 from glaciar.execute import simulate
 from glaciar.plan import plan_tasks
-from glaciar.store import StoreMismatchError, read_results
+from glaciar.store import read_results
+from glaciar.rundir import StoreMismatchError
 
 
 def _sorted(df):

@@ -26,7 +26,7 @@ from glaciar.engine.task import TaskSpec
 from glaciar.execute import _chunks, simulate
 from glaciar.inputs import InputError
 from glaciar.plan import plan_tasks
-from glaciar.store import read_manifest
+from glaciar.rundir import read_manifest
 
 fork_only = pytest.mark.skipif(multiprocessing.get_start_method(allow_none=True) not in (None, "fork")
                                or multiprocessing.get_all_start_methods()[0] != "fork",

@@ -8,7 +8,7 @@ import yaml
 from glaciar import constants as C
 from glaciar.config import load_config
 from glaciar.execute import simulate
-from glaciar.store import StoreMismatchError
+from glaciar.rundir import StoreMismatchError
 
 
 def _older_store(small_run, tmp_path, key="CLEAN_STYLE"):
@@ -50,7 +50,8 @@ def test_task_files_without_checksums_or_digests_stay_done_and_readable(small_ru
     import pandas as pd
     import pyarrow.parquet as pq
 
-    from glaciar.store import compact, read_results, unit_problem
+    from glaciar.store import compact, read_results
+    from glaciar.taskfile import unit_problem
 
     cfg, src = small_run
     run = tmp_path / "run"

@@ -18,9 +18,10 @@ import pytest
 from glaciar import constants as C
 from glaciar.engine import fieldcache
 from glaciar.paths import DiskFullError, UnsafePathError, file_stem, run_subdir
-from glaciar.store import (StoreWarning, _read_task_file, atomic_write_bytes, compact,
-                           read_results, task_filename, task_key, unit_problem,
-                           verified_task_names, write_task_table)
+from glaciar.store import (StoreWarning, _read_task_file, compact, read_results, task_filename,
+                           task_key, verified_task_names, write_task_table)
+from glaciar.taskfile import unit_problem
+from glaciar.rundir import atomic_write_bytes
 from glaciar.tables import summary_stem, write_summaries
 
 

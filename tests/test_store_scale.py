@@ -18,10 +18,10 @@ from glaciar.config import load_config
 from glaciar.inference.fit import aggregate_cells
 from glaciar.pipeline.inputs import fit_inputs
 from glaciar.execute import simulate
-from glaciar.store import (COMPACT_DIRNAME, task_key,
-                           StoreWarning, compact, finished_task_names, read_current_counts,
-                           read_current_results, read_results, task_filename,
-                           verified_task_names, write_manifest, write_task_table)
+from glaciar.store import (COMPACT_DIRNAME, task_key, StoreWarning, compact, finished_task_names,
+                           read_current_counts, read_current_results, read_results, task_filename,
+                           verified_task_names, write_task_table)
+from glaciar.rundir import write_manifest
 from glaciar.counting import STATUS_COLUMNS
 from glaciar.tables import region_file, summary_table, write_regions
 

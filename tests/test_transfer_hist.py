@@ -12,8 +12,8 @@ import pytest
 from glaciar import constants as C
 from glaciar.pipeline import selection_file
 from glaciar.store import (COMPACT_DIRNAME, StoreWarning, compact, read_current_histograms,
-                           task_filename, task_key, verified_task_names, write_manifest,
-                           write_task_table)
+                           task_filename, task_key, verified_task_names, write_task_table)
+from glaciar.rundir import write_manifest
 from glaciar.counting import MOBS_BIN_BRIGHT, MOBS_BIN_FAINT, mobs_lattice_index
 from glaciar.tables import transfer_from_histograms, transfer_matrix
 

@@ -9,7 +9,7 @@ line glaciar prints (``file: key.path: what was expected, got what``) and
 adds the few types YAML users need: numbers that may arrive as strings
 (PyYAML reads ``1e-3`` as a string), integers that refuse booleans, choices
 matched case-insensitively with a "did you mean" hint, and lists that accept
-a single value (lists: ``models._float_list``).
+a single value (lists: ``section.float_list``).
 """
 from __future__ import annotations
 

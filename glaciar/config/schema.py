@@ -17,8 +17,9 @@ from pydantic import BaseModel
 from pydantic_core import PydanticUndefined
 
 from ..engine.selection import DEFAULT_JDROPOUT
-from .models import (SECTIONS, AxisSpec, BandConfig, DetectionImageConfig, PsfProfile, Section,
-                     SurveyConfig)
+from .models import SECTIONS, AxisSpec
+from .section import Section
+from .survey_models import BandConfig, DetectionImageConfig, PsfProfile, SurveyConfig
 
 __all__ = ["template_yaml", "schema_yaml"]
 

@@ -54,7 +54,7 @@ electrons / s; position angles are counter-clockwise from the +x pixel axis;
 """
 from .bands import DEMO_BANDS, DEMO_BANDS_SPEC, DEMO_CONFIG_NAME, DEMO_FIELD, DemoBand
 from .images import make_demo_images
-from .noise import _drizzle_kernel_1d, drizzle_noise_kernel  # noqa: F401 (benchmarks)
+from .noise import drizzle_noise_kernel
 from .survey import build_demo_survey
 
 __all__ = ["DEMO_FIELD", "DEMO_BANDS", "DEMO_BANDS_SPEC", "DEMO_CONFIG_NAME", "DemoBand",

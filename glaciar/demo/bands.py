@@ -12,7 +12,7 @@ DEMO_MOFFAT_BETA = 2.5
 DEPTH_APERTURE_RADIUS_ARCSEC = 0.2
 
 # An arbitrary high-latitude pointing; only there so the images carry a real celestial WCS.
-_CRVAL_DEG = (219.21135, 50.72650)
+CRVAL_DEG = (219.21135, 50.72650)
 
 
 @dataclass(frozen=True)
@@ -63,19 +63,19 @@ DEMO_BANDS_SPEC: dict[str, DemoBand] = {
 # Sersic-n range, axis-ratio range, size offset [dex]).  Blue star-forming galaxies are
 # nearly flat in f_nu, so they are bright in F606W -- they are what the optical veto of a
 # dropout selection has to reject.
-_SED_TYPES = (
+SED_TYPES = (
     ("sf_blue", 0.55, {"f098m": 0.10, "f125w": 0.05, "f606w": 0.35}, (0.5, 1.5), (0.2, 1.0), 0.0),
     ("sf_dusty", 0.30, {"f098m": 0.45, "f125w": 0.20, "f606w": 1.20}, (1.0, 2.5), (0.3, 1.0), 0.0),
     ("passive", 0.15, {"f098m": 1.00, "f125w": 0.40, "f606w": 2.60}, (2.5, 4.0), (0.5, 1.0), -0.1),
 )
-_COLOUR_SCATTER_MAG = 0.15
-_MAG_RANGE_F160W = (19.0, 29.0)
-_COUNT_SLOPE_BRIGHT = 0.3          # dN/dm ~ 10^(0.3 m) for H < 25 ...
-_COUNT_SLOPE_FAINT = 0.15          # ... and ~ 10^(0.15 m) for H > 25
-_COUNT_BREAK_MAG = 25.0
-_MAX_DENSITY_ARCMIN2 = 400.0       # beyond this the field becomes confusion-limited
-_SUPERSAMPLE = 4
-_TRUNCATION_R_EFF = 5.0
-_RENDER_PSF_SIZE = 61              # 4.9": encloses all but ~4e-4 of an IR beta=2.5 Moffat
+COLOUR_SCATTER_MAG = 0.15
+MAG_RANGE_F160W = (19.0, 29.0)
+COUNT_SLOPE_BRIGHT = 0.3          # dN/dm ~ 10^(0.3 m) for H < 25 ...
+COUNT_SLOPE_FAINT = 0.15          # ... and ~ 10^(0.15 m) for H > 25
+COUNT_BREAK_MAG = 25.0
+MAX_DENSITY_ARCMIN2 = 400.0       # beyond this the field becomes confusion-limited
+SUPERSAMPLE = 4
+TRUNCATION_R_EFF = 5.0
+RENDER_PSF_SIZE = 61              # 4.9": encloses all but ~4e-4 of an IR beta=2.5 Moffat
 
 

@@ -6,9 +6,9 @@ import numpy as np
 from ..constants import COL_AXIS_RATIO, COL_PA, COL_R_EFF_PIX, COL_SERSIC_N, COL_X, COL_Y
 
 from .bands import (DEMO_BANDS, DEMO_BANDS_SPEC, DEMO_FIELD, DEMO_MOFFAT_BETA,
-                    DEMO_PIXEL_SCALE_ARCSEC, _MAX_DENSITY_ARCMIN2, _RENDER_PSF_SIZE)
-from .noise import _correlated_unit_noise, _drizzle_kernel_1d, _pixel_rms_for_depth
-from .sky import _coverage, _draw_population, _relative_exposure, _sersic_stamp_fast
+                    DEMO_PIXEL_SCALE_ARCSEC, MAX_DENSITY_ARCMIN2, RENDER_PSF_SIZE)
+from .noise import correlated_unit_noise, drizzle_kernel_1d, pixel_rms_for_depth
+from .sky import dither_coverage, draw_population, relative_exposure, sersic_stamp_fast
 
 
 # --------------------------------------------------------------------------
@@ -62,18 +62,18 @@ def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
     """
     from scipy.signal import fftconvolve
 
-    shape = _check_arguments(shape, pixel_scale_arcsec, source_density_arcmin2, n_galaxies, n_stars)
-    noise_scale = _check_noise_scale(noise_scale, shape)
+    shape = check_arguments(shape, pixel_scale_arcsec, source_density_arcmin2, n_galaxies, n_stars)
+    noise_scale = check_noise_scale(noise_scale, shape)
     streams = np.random.SeedSequence(int(seed)).spawn(1 + 2 * len(DEMO_BANDS))
     rng_pop = np.random.default_rng(streams[0])
 
-    coverage = _coverage(shape)
-    exposure = {b: _relative_exposure(coverage, b) for b in DEMO_BANDS}
+    coverage = dither_coverage(shape)
+    exposure = {b: relative_exposure(coverage, b) for b in DEMO_BANDS}
     footprint = exposure[DEMO_BANDS[0]] > 0
     if n_galaxies is None:
         area_arcmin2 = footprint.sum() * (pixel_scale_arcsec / 60.0) ** 2
         n_galaxies = int(round(source_density_arcmin2 * area_arcmin2))
-    truth = _draw_population(rng_pop, footprint, int(n_galaxies), int(n_stars), pixel_scale_arcsec)
+    truth = draw_population(rng_pop, footprint, int(n_galaxies), int(n_stars), pixel_scale_arcsec)
 
     # Render the unit-flux morphology once, add it to every band with that band's flux.
     intrinsic = {b: np.zeros(shape) for b in DEMO_BANDS}
@@ -82,7 +82,7 @@ def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
     cols = [np.asarray(truth[c], dtype=np.float64)
             for c in (COL_X, COL_Y, COL_R_EFF_PIX, COL_SERSIC_N, COL_AXIS_RATIO, COL_PA)]
     for i in np.flatnonzero(~np.asarray(truth["is_star"])):
-        stamp = _sersic_stamp_fast(*(float(c[i]) for c in cols), shape)
+        stamp = sersic_stamp_fast(*(float(c[i]) for c in cols), shape)
         if stamp is None:
             continue
         y0, x0, img = stamp
@@ -98,34 +98,34 @@ def make_demo_images(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
         spec = DEMO_BANDS_SPEC[b]
         rng_noise = np.random.default_rng(streams[1 + 2 * k])
         rng_poisson = np.random.default_rng(streams[2 + 2 * k])
-        psf_image, kernel_1d, rms_nominal = _band_setup(b, pixel_scale_arcsec)
+        psf_image, kernel_1d, rms_nominal = band_setup(b, pixel_scale_arcsec)
         model = fftconvolve(intrinsic[b], psf_image, mode="same")
-        science, weight = _band_pixels(model, exposure[b], rms_nominal, noise_scale,
-                                       _correlated_unit_noise(rng_noise, shape, kernel_1d),
+        science, weight = band_science_weight(model, exposure[b], rms_nominal, noise_scale,
+                                       correlated_unit_noise(rng_noise, shape, kernel_1d),
                                        rng_poisson, spec.exptime_s)
         out["science"][b] = science
         out["weight"][b] = weight
         out["model"][b] = model
         out["rms_nominal"][b] = float(rms_nominal)
-        out["psf"][b] = _psf_file_image(b)
+        out["psf"][b] = psf_file_image(b)
         out["psf_pixel_scale_arcsec"][b] = spec.psf_pixel_scale_arcsec
     return out
 
 
-def _band_setup(band: str, pixel_scale_arcsec: float):
+def band_setup(band: str, pixel_scale_arcsec: float):
     """A band's rendering PSF (at the image scale), 1-D drizzle kernel and nominal pixel RMS."""
     from ..galaxy.psf import moffat_psf
 
     spec = DEMO_BANDS_SPEC[band]
     psf_image = moffat_psf(spec.psf_fwhm_arcsec, pixel_scale_arcsec, beta=DEMO_MOFFAT_BETA,
-                           size=_RENDER_PSF_SIZE)
-    kernel_1d = _drizzle_kernel_1d(spec.native_pixel_arcsec, spec.pixfrac, pixel_scale_arcsec)
-    rms_nominal = _pixel_rms_for_depth(spec, psf_image, np.outer(kernel_1d, kernel_1d),
+                           size=RENDER_PSF_SIZE)
+    kernel_1d = drizzle_kernel_1d(spec.native_pixel_arcsec, spec.pixfrac, pixel_scale_arcsec)
+    rms_nominal = pixel_rms_for_depth(spec, psf_image, np.outer(kernel_1d, kernel_1d),
                                        pixel_scale_arcsec)
     return psf_image, kernel_1d, rms_nominal
 
 
-def _psf_file_image(band: str) -> np.ndarray:
+def psf_file_image(band: str) -> np.ndarray:
     """The PSF written to the band's PSF file (at its own pixel scale)."""
     from ..galaxy.psf import moffat_psf
 
@@ -134,7 +134,7 @@ def _psf_file_image(band: str) -> np.ndarray:
                       size=spec.psf_size)
 
 
-def _check_arguments(shape, pixel_scale_arcsec, source_density_arcmin2, n_galaxies,
+def check_arguments(shape, pixel_scale_arcsec, source_density_arcmin2, n_galaxies,
                      n_stars) -> tuple[int, int]:
     """Validate :func:`make_demo_images`' arguments; the shape as a tuple of ints."""
     ny, nx = (int(v) for v in shape)
@@ -144,13 +144,13 @@ def _check_arguments(shape, pixel_scale_arcsec, source_density_arcmin2, n_galaxi
         raise ValueError(f"pixel_scale_arcsec must be > 0, got {pixel_scale_arcsec!r}")
     if n_stars < 0 or (n_galaxies is not None and n_galaxies < 0):
         raise ValueError("n_galaxies and n_stars must be >= 0")
-    if not 0 <= source_density_arcmin2 <= _MAX_DENSITY_ARCMIN2:
-        raise ValueError(f"source_density_arcmin2 must be in [0, {_MAX_DENSITY_ARCMIN2:g}] "
+    if not 0 <= source_density_arcmin2 <= MAX_DENSITY_ARCMIN2:
+        raise ValueError(f"source_density_arcmin2 must be in [0, {MAX_DENSITY_ARCMIN2:g}] "
                          f"(denser fields are confusion-limited), got {source_density_arcmin2!r}")
     return ny, nx
 
 
-def _band_pixels(model: np.ndarray, exposure: np.ndarray, rms_nominal: float,
+def band_science_weight(model: np.ndarray, exposure: np.ndarray, rms_nominal: float,
                  noise_scale: np.ndarray, unit_noise: np.ndarray, rng_poisson: np.random.Generator,
                  exptime_s: float) -> tuple[np.ndarray, np.ndarray]:
     """One band's science and weight pixels from its noiseless scene (whole image or a strip).
@@ -193,7 +193,7 @@ def _band_pixels(model: np.ndarray, exposure: np.ndarray, rms_nominal: float,
     return science.astype(np.float32), weight.astype(np.float32)
 
 
-def _check_noise_scale(noise_scale, shape: tuple[int, int]) -> np.ndarray:
+def check_noise_scale(noise_scale, shape: tuple[int, int]) -> np.ndarray:
     """``noise_scale`` as a float64 array of the image shape; finite and > 0 everywhere."""
     a = np.asarray(noise_scale, dtype=np.float64)
     if a.ndim not in (0, 2) or (a.ndim == 2 and a.shape != shape):

@@ -381,7 +381,7 @@ def render_mock_universe(cfg_path, truth: pd.DataFrame, seed: int, *,
     from ..galaxy.templates import TemplateCache
     from ..galaxy.population import SourceModel
     from ..fieldprep import band_psf
-    from ..store import atomic_write_bytes
+    from ..rundir import atomic_write_bytes
     from ..survey import Survey
 
     cfg_path = Path(cfg_path)
@@ -457,7 +457,7 @@ def _write_table(df: pd.DataFrame, path: Path, meta: dict) -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from ..store import atomic_write_bytes
+    from ..rundir import atomic_write_bytes
 
     df = df.copy()
     df.attrs = {}
@@ -502,8 +502,8 @@ def build_mock_survey(out_dir, *, n_fields: int = 4, shape=(1000, 1000), seed: i
     """
     import yaml
 
-    from ..store import atomic_write_text
-    from .survey import _config_dumper, build_demo_survey
+    from ..rundir import atomic_write_text
+    from .survey import config_dumper, build_demo_survey
 
     out_dir = Path(out_dir)
     if int(n_fields) < 1:
@@ -525,7 +525,7 @@ def build_mock_survey(out_dir, *, n_fields: int = 4, shape=(1000, 1000), seed: i
     head = (f"# glaciar mock universe survey: {len(fields)} demo fields ({', '.join(fields)}), "
             f"{shape[1]} x {shape[0]} px, image seeds {seed}..{int(seed) + len(fields) - 1}.\n"
             "# Written by glaciar.demo.mock.build_mock_survey; paths relative to this file.\n")
-    atomic_write_text(path, head + yaml.dump(cfg, Dumper=_config_dumper(), sort_keys=False,
+    atomic_write_text(path, head + yaml.dump(cfg, Dumper=config_dumper(), sort_keys=False,
                                              default_flow_style=False, width=100))
     try:
         Path(last).unlink()            # demo.yaml describes only the last field

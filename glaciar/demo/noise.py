@@ -11,7 +11,7 @@ from .bands import DEMO_PIXEL_SCALE_ARCSEC, DEPTH_APERTURE_RADIUS_ARCSEC, DemoBa
 # --------------------------------------------------------------------------
 # Noise
 # --------------------------------------------------------------------------
-def _drizzle_kernel_1d(native_pixel_arcsec: float, pixfrac: float,
+def drizzle_kernel_1d(native_pixel_arcsec: float, pixfrac: float,
                        pixel_scale_arcsec: float) -> np.ndarray:
     """1-D factor of :func:`drizzle_noise_kernel`, normalised to unit sum of squares."""
     if not (native_pixel_arcsec > 0 and pixel_scale_arcsec > 0 and 0 < pixfrac <= 1):
@@ -51,11 +51,11 @@ def drizzle_noise_kernel(native_pixel_arcsec: float, pixfrac: float,
     -------
     kernel : ndarray, float64, shape (2m + 1, 2m + 1), with ``sum(kernel**2) == 1``.
     """
-    k1 = _drizzle_kernel_1d(native_pixel_arcsec, pixfrac, pixel_scale_arcsec)
+    k1 = drizzle_kernel_1d(native_pixel_arcsec, pixfrac, pixel_scale_arcsec)
     return np.outer(k1, k1)
 
 
-def _correlated_unit_noise(rng: np.random.Generator, shape: tuple[int, int],
+def correlated_unit_noise(rng: np.random.Generator, shape: tuple[int, int],
                            kernel_1d: np.ndarray) -> np.ndarray:
     """Unit-variance correlated noise: white noise convolved with ``outer(kernel_1d, kernel_1d)``.
 
@@ -79,7 +79,7 @@ def _aperture_weights(radius_pix: float, supersample: int = 15) -> np.ndarray:
     return inside.reshape(n, supersample, n, supersample).mean(axis=(1, 3))
 
 
-def _pixel_rms_for_depth(band: DemoBand, psf_image: np.ndarray, kernel: np.ndarray,
+def pixel_rms_for_depth(band: DemoBand, psf_image: np.ndarray, kernel: np.ndarray,
                          pixel_scale_arcsec: float) -> float:
     """Per-pixel noise RMS [e-/s] that gives ``band.depth_5sigma``.
 

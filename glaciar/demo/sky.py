@@ -7,9 +7,9 @@ import numpy as np
 
 from ..constants import (COL_AXIS_RATIO, COL_PA, COL_R_EFF_ARCSEC, COL_R_EFF_PIX, COL_SERSIC_N,
                          COL_X, COL_Y)
-from .bands import (DEMO_BANDS, _COLOUR_SCATTER_MAG, _COUNT_BREAK_MAG, _COUNT_SLOPE_BRIGHT,
-                    _COUNT_SLOPE_FAINT, _MAG_RANGE_F160W, _SED_TYPES, _SUPERSAMPLE,
-                    _TRUNCATION_R_EFF)
+from .bands import (DEMO_BANDS, COLOUR_SCATTER_MAG, COUNT_BREAK_MAG, COUNT_SLOPE_BRIGHT,
+                    COUNT_SLOPE_FAINT, MAG_RANGE_F160W, SED_TYPES, SUPERSAMPLE,
+                    TRUNCATION_R_EFF)
 
 
 # --------------------------------------------------------------------------
@@ -18,7 +18,7 @@ from .bands import (DEMO_BANDS, _COLOUR_SCATTER_MAG, _COUNT_BREAK_MAG, _COUNT_SL
 _TILT_DEG = 4.0          # detector footprint tilted against the north-up drizzle grid
 
 
-def _coverage(shape: tuple[int, int], rows: tuple[int, int] | None = None) -> np.ndarray:
+def dither_coverage(shape: tuple[int, int], rows: tuple[int, int] | None = None) -> np.ndarray:
     """Fraction of the three dithered exposures covering each pixel (0, 1/3, 2/3, 1).
 
     ``rows = (y0, y1)`` computes only image rows ``y0 <= y < y1`` of the field of
@@ -43,12 +43,12 @@ def _coverage(shape: tuple[int, int], rows: tuple[int, int] | None = None) -> np
     return coverage / len(dither)
 
 
-def _relative_exposure(coverage: np.ndarray, band: str, shape: tuple[int, int] | None = None,
+def relative_exposure(coverage: np.ndarray, band: str, shape: tuple[int, int] | None = None,
                        row0: int = 0) -> np.ndarray:
     """Relative exposure map of ``band`` (1 = the nominal depth; 0 = no data), deterministic.
 
     ``coverage`` may be the strip of rows ``row0 ...`` of a field of ``shape``
-    (:func:`_coverage` with ``rows``); the result is then the same strip of the whole map.
+    (:func:`dither_coverage` with ``rows``); the result is then the same strip of the whole map.
     """
     ny, nx = coverage.shape if shape is None else shape
     yy = np.arange(row0, row0 + coverage.shape[0], dtype=np.float64)[:, None] - 0.5 * (ny - 1)
@@ -82,16 +82,16 @@ def _sample_counts_magnitudes(rng: np.random.Generator, n: int) -> np.ndarray:
     to a non-confused total would leave 3-4x too few galaxies at the magnitudes
     that are detected (H < 27), hence too little blending with real sources.
     """
-    lo, hi = _MAG_RANGE_F160W
-    a1, a2 = _COUNT_SLOPE_BRIGHT * math.log(10.0), _COUNT_SLOPE_FAINT * math.log(10.0)
+    lo, hi = MAG_RANGE_F160W
+    a1, a2 = COUNT_SLOPE_BRIGHT * math.log(10.0), COUNT_SLOPE_FAINT * math.log(10.0)
     # Counts per magnitude are exp(a1 (m - mb)) below the break, exp(a2 (m - mb)) above.
-    n1 = (1.0 - math.exp(-a1 * (_COUNT_BREAK_MAG - lo))) / a1
-    n2 = (math.exp(a2 * (hi - _COUNT_BREAK_MAG)) - 1.0) / a2
+    n1 = (1.0 - math.exp(-a1 * (COUNT_BREAK_MAG - lo))) / a1
+    n2 = (math.exp(a2 * (hi - COUNT_BREAK_MAG)) - 1.0) / a2
     u = rng.uniform(size=n) * (n1 + n2)
     bright = u < n1
     mag = np.empty(n)
-    mag[bright] = _COUNT_BREAK_MAG + np.log(np.exp(-a1 * (_COUNT_BREAK_MAG - lo)) + a1 * u[bright]) / a1
-    mag[~bright] = _COUNT_BREAK_MAG + np.log1p(a2 * (u[~bright] - n1)) / a2
+    mag[bright] = COUNT_BREAK_MAG + np.log(np.exp(-a1 * (COUNT_BREAK_MAG - lo)) + a1 * u[bright]) / a1
+    mag[~bright] = COUNT_BREAK_MAG + np.log1p(a2 * (u[~bright] - n1)) / a2
     return mag
 
 
@@ -114,7 +114,7 @@ class _ArrayFootprint:
         return self.pixels(self._inner[j])
 
 
-class _RowFootprint:
+class RowFootprint:
     """As :class:`_ArrayFootprint` without ever holding the whole map.
 
     ``rows(y0, y1)`` returns the footprint's rows ``y0 <= y < y1`` (bool); the
@@ -156,11 +156,11 @@ class _RowFootprint:
         return self._locate(j, self._cum_inner, 3)
 
 
-def _draw_population(rng: np.random.Generator, footprint, n_galaxies: int,
+def draw_population(rng: np.random.Generator, footprint, n_galaxies: int,
                      n_stars: int, pixel_scale_arcsec: float):
     """Catalogue of the injected real population (galaxies first, then stars).
 
-    ``footprint``: the boolean map, or a :class:`_RowFootprint` (same draws, same catalogue).
+    ``footprint``: the boolean map, or a :class:`RowFootprint` (same draws, same catalogue).
     """
     from astropy.table import Table
 
@@ -173,22 +173,22 @@ def _draw_population(rng: np.random.Generator, footprint, n_galaxies: int,
     gx = px + rng.uniform(-0.5, 0.5, size=n_galaxies)
     gy = py + rng.uniform(-0.5, 0.5, size=n_galaxies)
     mag_h = _sample_counts_magnitudes(rng, n_galaxies)
-    fractions = np.array([t[1] for t in _SED_TYPES])
-    sed = rng.choice(len(_SED_TYPES), size=n_galaxies, p=fractions / fractions.sum())
+    fractions = np.array([t[1] for t in SED_TYPES])
+    sed = rng.choice(len(SED_TYPES), size=n_galaxies, p=fractions / fractions.sum())
     sersic_n = np.empty(n_galaxies)
     q = np.empty(n_galaxies)
     size_offset = np.empty(n_galaxies)
     mags = {"f160w": mag_h}
     for b in DEMO_BANDS[1:]:
         mags[b] = np.empty(n_galaxies)
-    for k, (_, _, colours, n_range, q_range, dlogr) in enumerate(_SED_TYPES):
+    for k, (_, _, colours, n_range, q_range, dlogr) in enumerate(SED_TYPES):
         sel = sed == k
         m = int(sel.sum())
         sersic_n[sel] = rng.uniform(*n_range, size=m)
         q[sel] = rng.uniform(*q_range, size=m)
         size_offset[sel] = dlogr
         for b in DEMO_BANDS[1:]:
-            mags[b][sel] = mag_h[sel] + colours[b] + rng.normal(0.0, _COLOUR_SCATTER_MAG, size=m)
+            mags[b][sel] = mag_h[sel] + colours[b] + rng.normal(0.0, COLOUR_SCATTER_MAG, size=m)
     # Magnitude-size relation: r_e = 0.28" at H = 24, shrinking by 0.08 dex per magnitude,
     # 0.2 dex log-normal scatter (roughly the CANDELS H-band relation of faint galaxies).
     log_re = -0.55 - 0.08 * (mag_h - 24.0) + size_offset + rng.normal(0.0, 0.2, size=n_galaxies)
@@ -220,11 +220,11 @@ def _draw_population(rng: np.random.Generator, footprint, n_galaxies: int,
     table[COL_AXIS_RATIO] = np.concatenate([q, np.ones(n_stars)])
     table[COL_PA] = np.concatenate([pa, np.zeros(n_stars)])
     table["is_star"] = np.concatenate([np.zeros(n_galaxies, bool), np.ones(n_stars, bool)])
-    table["sed_type"] = [_SED_TYPES[k][0] for k in sed] + ["star"] * n_stars
+    table["sed_type"] = [SED_TYPES[k][0] for k in sed] + ["star"] * n_stars
     return table
 
 
-def _sersic_stamp_fast(x: float, y: float, r_eff_pix: float, n: float, q: float, pa_deg: float,
+def sersic_stamp_fast(x: float, y: float, r_eff_pix: float, n: float, q: float, pa_deg: float,
                        shape: tuple[int, int]):
     """Unit-flux Sersic stamp for the *background scene*, clipped to the image.
 
@@ -242,10 +242,10 @@ def _sersic_stamp_fast(x: float, y: float, r_eff_pix: float, n: float, q: float,
     from scipy.special import gammaincinv
 
     b_n = gammaincinv(2.0 * n, 0.5)
-    r_max = _TRUNCATION_R_EFF * r_eff_pix
+    r_max = TRUNCATION_R_EFF * r_eff_pix
     half = max(2, int(math.ceil(r_max + 1.0)))
     ix, iy = int(round(x)), int(round(y))
-    ss = _SUPERSAMPLE
+    ss = SUPERSAMPLE
     sub = (np.arange(ss) + 0.5) / ss - 0.5
     gx = (np.arange(ix - half, ix + half + 1)[:, None] + sub[None, :]).ravel() - x
     gy = (np.arange(iy - half, iy + half + 1)[:, None] + sub[None, :]).ravel() - y

@@ -11,10 +11,10 @@ It is the same field as :func:`make_demo_images` with the same seed:
 * exposure, coverage and weights are elementwise, computed on the strip's rows:
   bit-identical;
 * the population is drawn from the same streams through the footprint's row
-  counts (:class:`~glaciar.demo.sky._RowFootprint`): the same catalogue;
+  counts (:class:`~glaciar.demo.sky.RowFootprint`): the same catalogue;
 * every galaxy stamp is rendered once (kept while strips still touch it) and added
   in catalogue order, like the whole-image scene;
-* the PSF convolution of a strip reads the scene ``_RENDER_PSF_SIZE // 2`` rows
+* the PSF convolution of a strip reads the scene ``RENDER_PSF_SIZE // 2`` rows
   beyond it (zero beyond the image edge, as the whole-image ``fftconvolve``):
   the model equals the whole-image one up to FFT rounding (~1e-16 of the
   brightest pixel), which is the only difference;
@@ -37,10 +37,11 @@ import numpy as np
 
 from ..constants import COL_AXIS_RATIO, COL_PA, COL_R_EFF_PIX, COL_SERSIC_N, COL_X, COL_Y
 from .bands import (DEMO_BANDS, DEMO_BANDS_SPEC, DEMO_FIELD, DEMO_PIXEL_SCALE_ARCSEC,
-                    _RENDER_PSF_SIZE, _TRUNCATION_R_EFF)
-from .images import (_band_pixels, _band_setup, _check_arguments, _check_noise_scale,
-                     _psf_file_image)
-from .sky import _RowFootprint, _coverage, _draw_population, _relative_exposure, _sersic_stamp_fast
+                    RENDER_PSF_SIZE, TRUNCATION_R_EFF)
+from .images import (band_science_weight, band_setup, check_arguments, check_noise_scale,
+                     psf_file_image)
+from .sky import (RowFootprint, dither_coverage, draw_population, relative_exposure,
+                  sersic_stamp_fast)
 
 #: Above this many pixels :func:`build_demo_survey` writes the images strip by strip
 #: (the whole-image generator's peak is ~200 bytes per pixel: ~0.8 GB at 2048^2).
@@ -104,7 +105,7 @@ class _WrappedWhiteRows:
 
 
 def _unit_noise_strip(white: _WrappedWhiteRows, y0: int, y1: int, kernel_1d: np.ndarray) -> np.ndarray:
-    """Rows ``y0:y1`` of :func:`~glaciar.demo.noise._correlated_unit_noise` (bit-identical)."""
+    """Rows ``y0:y1`` of :func:`~glaciar.demo.noise.correlated_unit_noise` (bit-identical)."""
     from scipy.ndimage import convolve1d
 
     h = kernel_1d.size // 2
@@ -138,9 +139,9 @@ def iter_demo_strips(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
         [e-/s] and weight [(e-/s)^-2] pixels, top to bottom, covering the image once.
         Consume it once, in order.
     """
-    shape = _check_arguments(shape, pixel_scale_arcsec, source_density_arcmin2, n_galaxies, n_stars)
+    shape = check_arguments(shape, pixel_scale_arcsec, source_density_arcmin2, n_galaxies, n_stars)
     ny, nx = shape
-    noise_scale = _check_noise_scale(noise_scale, shape)
+    noise_scale = check_noise_scale(noise_scale, shape)
     rows_per = strip_rows_for(shape) if strip_rows is None else int(strip_rows)
     if rows_per < 1:
         raise ValueError(f"strip_rows must be >= 1, got {strip_rows!r}")
@@ -148,17 +149,17 @@ def iter_demo_strips(shape: tuple[int, int] = (1000, 1000), *, seed: int = 2018,
     rng_pop = np.random.default_rng(streams[0])
 
     def footprint_rows(y0, y1):
-        return _relative_exposure(_coverage(shape, (y0, y1)), DEMO_BANDS[0], shape, y0) > 0
+        return relative_exposure(dither_coverage(shape, (y0, y1)), DEMO_BANDS[0], shape, y0) > 0
 
-    footprint = _RowFootprint(footprint_rows, ny, rows_per)
+    footprint = RowFootprint(footprint_rows, ny, rows_per)
     if n_galaxies is None:
         area_arcmin2 = footprint.size * (pixel_scale_arcsec / 60.0) ** 2
         n_galaxies = int(round(source_density_arcmin2 * area_arcmin2))
-    truth = _draw_population(rng_pop, footprint, int(n_galaxies), int(n_stars), pixel_scale_arcsec)
+    truth = draw_population(rng_pop, footprint, int(n_galaxies), int(n_stars), pixel_scale_arcsec)
 
-    setup = {b: _band_setup(b, pixel_scale_arcsec) for b in DEMO_BANDS}
+    setup = {b: band_setup(b, pixel_scale_arcsec) for b in DEMO_BANDS}
     info = {"truth": truth, "field": str(field),
-            "psf": {b: _psf_file_image(b) for b in DEMO_BANDS},
+            "psf": {b: psf_file_image(b) for b in DEMO_BANDS},
             "psf_pixel_scale_arcsec": {b: DEMO_BANDS_SPEC[b].psf_pixel_scale_arcsec for b in DEMO_BANDS},
             "rms_nominal": {b: float(setup[b][2]) for b in DEMO_BANDS}}
     return info, _strips(shape, truth, streams, setup, noise_scale, rows_per)
@@ -168,7 +169,7 @@ def _strips(shape, truth, streams, setup, noise_scale, rows_per):
     from scipy.signal import fftconvolve
 
     ny, nx = shape
-    halo = _RENDER_PSF_SIZE // 2          # rows of scene the PSF carries into a strip
+    halo = RENDER_PSF_SIZE // 2          # rows of scene the PSF carries into a strip
     flux = {b: 10.0 ** (-0.4 * (np.asarray(truth[f"mag_{b}"]) - DEMO_BANDS_SPEC[b].zeropoint))
             for b in DEMO_BANDS}
     cols = [np.asarray(truth[c], dtype=np.float64)
@@ -177,7 +178,7 @@ def _strips(shape, truth, streams, setup, noise_scale, rows_per):
     galaxies = np.flatnonzero(~is_star)
     stars = np.flatnonzero(is_star)
     # Conservative row reach of every galaxy stamp (the stamp itself is clipped exactly).
-    reach = np.ceil(_TRUNCATION_R_EFF * cols[2][galaxies] + 2.0) + 1.0
+    reach = np.ceil(TRUNCATION_R_EFF * cols[2][galaxies] + 2.0) + 1.0
     g_lo, g_hi = cols[1][galaxies] - reach, cols[1][galaxies] + reach
     star_y = np.asarray(truth[COL_Y], dtype=np.int64)[stars]
     star_x = np.asarray(truth[COL_X], dtype=np.int64)[stars]
@@ -193,7 +194,7 @@ def _strips(shape, truth, streams, setup, noise_scale, rows_per):
         for j in np.flatnonzero((g_hi >= lo) & (g_lo < hi)):
             i = int(galaxies[j])
             if i not in stamps:
-                stamps[i] = _sersic_stamp_fast(*(float(c[i]) for c in cols), shape)
+                stamps[i] = sersic_stamp_fast(*(float(c[i]) for c in cols), shape)
             if stamps[i] is None:
                 continue
             sy, sx, img = stamps[i]
@@ -211,13 +212,13 @@ def _strips(shape, truth, streams, setup, noise_scale, rows_per):
         for j in np.flatnonzero(g_hi < y1 - halo):
             stamps.pop(int(galaxies[j]), None)
 
-        coverage = _coverage(shape, (y0, y1))
+        coverage = dither_coverage(shape, (y0, y1))
         science, weight = {}, {}
         for b in DEMO_BANDS:
             psf_image, kernel_1d, rms_nominal = setup[b]
             model = fftconvolve(scene.pop(b), psf_image, mode="same")[halo:halo + (y1 - y0)]
-            exposure = _relative_exposure(coverage, b, shape, y0)
-            science[b], weight[b] = _band_pixels(
+            exposure = relative_exposure(coverage, b, shape, y0)
+            science[b], weight[b] = band_science_weight(
                 model, exposure, rms_nominal, noise_scale[y0:y1],
                 _unit_noise_strip(white[b], y0, y1, kernel_1d), poisson[b],
                 DEMO_BANDS_SPEC[b].exptime_s)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .bands import (DEMO_BANDS, DEMO_BANDS_SPEC, DEMO_CONFIG_NAME, DEMO_FIELD, DEMO_MOFFAT_BETA,
-                    DEMO_PIXEL_SCALE_ARCSEC, _CRVAL_DEG)
+                    DEMO_PIXEL_SCALE_ARCSEC, CRVAL_DEG)
 from .images import make_demo_images
 from . import strips as _strips
 
@@ -42,8 +42,8 @@ def _image_header(shape: tuple[int, int], band: str, pixel_scale_arcsec: float, 
     h["CUNIT2"] = "deg"
     h["CRPIX1"] = 0.5 * (nx + 1)
     h["CRPIX2"] = 0.5 * (ny + 1)
-    h["CRVAL1"] = _CRVAL_DEG[0]
-    h["CRVAL2"] = _CRVAL_DEG[1]
+    h["CRVAL1"] = CRVAL_DEG[0]
+    h["CRVAL2"] = CRVAL_DEG[1]
     h["CD1_1"] = -pixel_scale_arcsec / 3600.0
     h["CD1_2"] = 0.0
     h["CD2_1"] = 0.0
@@ -89,7 +89,7 @@ class _FitsRowWriter:
     def __init__(self, path: Path, shape: tuple[int, int], header):
         from astropy.io import fits
 
-        from ..store import process_umask
+        from ..rundir import process_umask
 
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -147,7 +147,7 @@ def _write_images_by_strips(out_dir: Path, field: str, shape, seed, source_densi
     return info
 
 
-def _config_dumper():
+def config_dumper():
     """A SafeDumper (no Python tags) writing mappings as blocks and scalar lists inline."""
     import yaml
 
@@ -214,7 +214,7 @@ def build_demo_survey(out_dir, *, shape: tuple[int, int] = (1000, 1000), seed: i
     import yaml
     from astropy.io import fits
 
-    from ..store import atomic_write_bytes, atomic_write_text
+    from ..rundir import atomic_write_bytes, atomic_write_text
 
     if int(n_galaxies) < 1 or int(n_iterations) < 1:
         raise ValueError(f"n_galaxies and n_iterations must be >= 1, got {n_galaxies}, {n_iterations}")
@@ -298,6 +298,6 @@ def build_demo_survey(out_dir, *, shape: tuple[int, int] = (1000, 1000), seed: i
                    + (f" to {float(scale.max()):g} across the field" if np.ptp(scale) > 0 else "")
                    + " (the depths above are for 1).\n")
     path = out_dir / DEMO_CONFIG_NAME
-    atomic_write_text(path, header + yaml.dump(config, Dumper=_config_dumper(), sort_keys=False,
+    atomic_write_text(path, header + yaml.dump(config, Dumper=config_dumper(), sort_keys=False,
                                                default_flow_style=False, width=100))
     return path

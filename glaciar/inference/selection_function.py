@@ -31,13 +31,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..store import atomic_write_bytes
+from ..rundir import atomic_write_bytes
 from . import selection_format
 from .counts import SurveyVolume, count_kernel, expected_counts
 from .models import SurfaceModel
 from .products import (GRID_QUANTILES, EffectiveVolume, MagnitudeAt, TransferSlice, band_colour,
                        beta_nodes, kcorrection)
 from .transfer import transfer_function
+from .volume import (merge_depth_nodes, muv_magnitudes, muv_volume_draws, summarise_volume,
+                     volume_draws)
 
 __all__ = ["SelectionFunction", "MAX_DEPTH_NODES", "EXTRAPOLATION_TOLERANCE"]
 
@@ -49,22 +51,6 @@ MAX_DEPTH_NODES = 12
 #: V_eff(M_UV) is NaN (``outside="nan"``) when more than this fraction of it would come
 #: from (z, m) points outside the simulated magnitude range (the surface's extrapolation).
 EXTRAPOLATION_TOLERANCE = 1e-3
-
-
-def _depth_nodes(edges, area, max_nodes=MAX_DEPTH_NODES):
-    """Merge an area-by-depth histogram into <= max_nodes (depth, area) nodes."""
-    edges, area = np.asarray(edges, float), np.asarray(area, float)
-    centre = 0.5 * (edges[:-1] + edges[1:])
-    keep = area > 0
-    centre, area = centre[keep], area[keep]
-    if len(centre) <= max_nodes:
-        return centre, area
-    lo, hi = centre.min(), centre.max()
-    k = np.minimum(((centre - lo) / (hi - lo) * max_nodes).astype(int), max_nodes - 1)
-    a = np.bincount(k, weights=area, minlength=max_nodes)
-    d = np.bincount(k, weights=area * centre, minlength=max_nodes)
-    ok = a > 0
-    return d[ok] / a[ok], a[ok]
 
 
 class SelectionFunction:
@@ -262,7 +248,7 @@ class SelectionFunction:
         if len(keys) > 1 and not np.allclose(edges[1:-1], (centres + widths / 2)[:-1]):
             # Not contiguous: treat each bin as its own node.
             return centres, np.array([bins[k] for k in keys])
-        return _depth_nodes(edges, np.array([bins[k] for k in keys]))
+        return merge_depth_nodes(edges, np.array([bins[k] for k in keys]), MAX_DEPTH_NODES)
 
     def _mask(self, m, z, depth):
         """True where (m, z[, depth]) lies outside the simulated box."""
@@ -471,7 +457,6 @@ class SelectionFunction:
             No area known or given, or no redshift range (a single-z fit).
         """
         import astropy.units as u
-        from scipy.integrate import simpson
 
         if cosmology is None:
             from astropy.cosmology import Planck18 as cosmology
@@ -483,16 +468,7 @@ class SelectionFunction:
         dvdz = cosmology.differential_comoving_volume(zz).to_value(u.Mpc ** 3 / u.sr)
         m = np.asarray(m, float)
         mm = m.reshape(-1)
-        out = np.zeros((self.n_draws, mm.size))
-        ends = np.zeros((3, mm.size))            # P at the low and high end, its peak; draws 0..63
-        for dj, sr in zip(nodes, node_sr):
-            mrel = self.model.relative_magnitude(mm, dj)
-            for i in range(0, self.n_draws, 64):
-                c, s = self.model.surfaces_on_grid(self.draws[i:i + 64], zz, mrel)
-                out[i:i + 64] += simpson(c * s * dvdz[None, :, None], x=zz, axis=1) * sr
-                if i == 0:
-                    p = np.median(c * s, axis=0)                          # (n_z, n_m)
-                    ends += sr * np.stack([p[0], p[-1], p.max(axis=0)])
+        out, ends = volume_draws(self.model, self.draws, nodes, node_sr, zz, dvdz, mm)
         # V_eff counts only the simulated z range: say so when C*S is not ~0 at its ends --
         # except at a top that reaches the z where the detection band receives no flux
         # (nothing is selected beyond it, whatever the surface extrapolates).
@@ -511,12 +487,7 @@ class SelectionFunction:
                               stacklevel=2)
         if "mag" in self.domain:
             out[:, self._mask(mm, np.full(mm.shape, zz[0]), None)] = np.nan
-        out = out.reshape((self.n_draws,) + m.shape)
-        lo, hi = 0.5 - 0.5 * interval, 0.5 + 0.5 * interval
-        q = np.quantile(out, [0.5, lo, hi], axis=0)
-        unit = u.Mpc ** 3
-        return EffectiveVolume(median=q[0] * unit, lower=q[1] * unit, upper=q[2] * unit,
-                               draws=out * unit)
+        return summarise_volume(out.reshape((self.n_draws,) + m.shape), interval)
 
     def _area_nodes(self, area, field, who):
         """(depth nodes, their solid angles [sr]) for a V_eff integral."""
@@ -606,7 +577,6 @@ class SelectionFunction:
             redshift range, a bad ``outside``.
         """
         import astropy.units as u
-        from scipy.integrate import simpson
 
         from ..galaxy.population import get_cosmology
 
@@ -640,44 +610,10 @@ class SelectionFunction:
         k0 = kcorrection(zz, [b_centre], sed.detection_filter, **kw)[:, 0]      # (n_z,)
         M = np.asarray(M_uv, float)
         MM = M.reshape(-1)
-        flux = np.isfinite(K)[:, :, None]
-        m = np.where(flux, MM[None, None, :] + np.where(np.isfinite(K), K, 0.0)[:, :, None], 0.0)
-        if "mag" in self.domain:                  # m of the central beta outside the simulated range
-            lo, hi = self.domain["mag"]
-            tol = 1e-9 * max(1.0, abs(hi))
-            mc = MM[None, :] + k0[:, None]
-            ext = np.isfinite(mc) & ((mc < lo - tol) | (mc > hi + tol))          # (n_z, n_M)
-        else:
-            ext = np.zeros((len(zz), MM.size), bool)
-        out = np.zeros((self.n_draws, MM.size))
-        out_ext = np.zeros_like(out)
-        n_b = len(bnodes)
-        for i in range(0, self.n_draws, 256):
-            th = self.draws[i:i + 256]
-            p = np.zeros((len(th), len(zz), MM.size))
-            for dj, sr in zip(nodes, node_sr):
-                mrel = self.model.relative_magnitude(m, dj if self.model.depth_aware else None)
-                # One z at a time on the grid path (z terms once per z): ~40x faster than
-                # evaluating every (z, beta, M) point on its own.
-                for iz in range(len(zz)):
-                    c, sel = self.model.surfaces_on_grid(th, zz[iz:iz + 1], mrel[iz].ravel())
-                    pz = (c * sel)[:, 0].reshape(len(th), n_b, MM.size)
-                    p[:, iz] += sr * np.einsum("dbm,b->dm", np.where(flux[iz][None], pz, 0.0), bw)
-            out[i:i + 256] = simpson(p * dvdz[None, :, None], x=zz, axis=1)
-            if ext.any():
-                out_ext[i:i + 256] = simpson(np.where(ext[None], p, 0.0) * dvdz[None, :, None],
-                                             x=zz, axis=1)
-        if outside == "nan" and ext.any():
-            tot, part = np.median(out, axis=0), np.median(out_ext, axis=0)
-            # 0 of 0 (no volume at all): nothing extrapolated matters.
-            frac = np.where(tot > 0, part / np.where(tot > 0, tot, 1.0), 0.0)
-            out[:, ~(frac <= EXTRAPOLATION_TOLERANCE) & ext.any(axis=0)] = np.nan
-        out = out.reshape((self.n_draws,) + M.shape)
-        lo_q, hi_q = 0.5 - 0.5 * interval, 0.5 + 0.5 * interval
-        q = np.quantile(out, [0.5, lo_q, hi_q], axis=0)
-        unit = u.Mpc ** 3
-        return EffectiveVolume(median=q[0] * unit, lower=q[1] * unit, upper=q[2] * unit,
-                               draws=out * unit)
+        m, flux, ext = muv_magnitudes(MM, K, k0, self.domain["mag"] if "mag" in self.domain else None)
+        out = muv_volume_draws(self.model, self.draws, nodes, node_sr, zz, dvdz, m, flux, bw, ext,
+                               EXTRAPOLATION_TOLERANCE if outside == "nan" else None)
+        return summarise_volume(out.reshape((self.n_draws,) + M.shape), interval)
 
     def muv_grid(self, step: float = 0.1, sed=None, cosmology=None):
         """M_UV grid [AB mag] covering the simulated magnitude range at the z where it maps brightest.

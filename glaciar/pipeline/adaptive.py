@@ -97,7 +97,7 @@ def read_rounds(run_dir) -> list[dict]:
 
 
 def _write_rounds(run_dir, rounds: list[dict]) -> None:
-    from ..store import atomic_write_text
+    from ..rundir import atomic_write_text
 
     atomic_write_text(Path(run_dir) / ADAPTIVE_ROUNDS_NAME, json.dumps(rounds, indent=1) + "\n")
 
@@ -341,7 +341,7 @@ def run_adaptive(cfg, run_dir, settings: AdaptiveSettings, *, workers: int = 1,
     """
     from ..execute import simulate
     from ..inference.sampling import SamplerSettings
-    from ..store import read_manifest
+    from ..rundir import read_manifest
     from .fit import run_fit
 
     run_dir = Path(run_dir)

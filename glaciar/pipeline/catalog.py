@@ -104,7 +104,7 @@ def _resolve(source):
     """(Config, run directory or None, manifest or None) of a config path, Config or run directory."""
     from ..config import load_config
     from ..config.models import Config
-    from ..store import read_manifest
+    from ..rundir import read_manifest
 
     if isinstance(source, Config):
         return source, None, None
@@ -231,7 +231,7 @@ def _check_out(out: Path) -> None:
 
 def write_catalog(table: pd.DataFrame, path, meta: dict) -> Path:
     """Write a catalogue atomically; format by extension (:data:`CATALOG_FORMATS`)."""
-    from ..store import atomic_write_bytes
+    from ..rundir import atomic_write_bytes
 
     path = Path(path)
     _check_out(path)
@@ -315,7 +315,7 @@ def read_catalog(path) -> tuple[pd.DataFrame, dict]:
 
 def _write_regions(table: pd.DataFrame, path: Path) -> Path:
     """DS9 regions of the selected candidates (image coordinates, 1-based), one tile per field."""
-    from ..store import atomic_write_text
+    from ..rundir import atomic_write_text
 
     lines = ["# Region file format: DS9 version 4.1", "# glaciar catalog: selected candidates",
              'global color=green width=1 font="helvetica 9 normal"']

@@ -40,7 +40,7 @@ def chains_key(cells: Cells, model: SurfaceModel, seed, n_walkers) -> str:
 
 def save_chains(fit_dir, tag: str, res: FitResult, key: str) -> None:
     """Chains as .npy (no pickle) + a JSON with what is needed to resume, each atomically."""
-    from ..store import atomic_write_bytes, atomic_write_text
+    from ..rundir import atomic_write_bytes, atomic_write_text
 
     fit_dir = Path(fit_dir)
     state = {"key": key, "theta_map": res.theta_map.tolist(), "blocks": []}

@@ -200,7 +200,7 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False,
         Bad arguments (checked before anything is read or sampled), a bad
         per-source table or manifest, or a degenerate run (:func:`check_not_degenerate`:
         nothing recovered, or nothing selected, in the run or in a field).
-    glaciar.store.RunLockedError
+    glaciar.rundir.RunLockedError
         ``glaciar simulate`` (or another fit) is writing the run.
 
     Notes
@@ -287,7 +287,7 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, sampler, volume, mag_
     seed, n_walkers, max_steps = sampler.seed, sampler.n_walkers, sampler.max_steps
     progress = sampler.progress
     area_arcmin2, cosmology = volume.area, volume.cosmology
-    from ..store import atomic_write_bytes, atomic_write_text, read_manifest
+    from ..rundir import atomic_write_bytes, atomic_write_text, read_manifest
 
     manifest = read_manifest(run_dir) or {}
     magnitude_type = str(manifest.get("magnitude_type", "apparent"))

@@ -1,7 +1,7 @@
 """One consistent reader and writer of a run's fit outputs.
 
 ``glaciar fit``, ``report`` and ``next`` read a run while ``glaciar simulate``
-may be writing it.  They take the run's lock (:class:`glaciar.store.RunLock`,
+may be writing it.  They take the run's lock (:class:`glaciar.rundir.RunLock`,
 the one ``simulate`` holds while it writes) for as long as they read and
 write, so they never read a half-grown store and ``simulate`` cannot start
 under them; a run that is being written is refused in one line
@@ -104,7 +104,7 @@ def recover_fit_outputs(run_dir) -> None:
 def hold_run(run_dir, command: str):
     """Hold ``run_dir``'s lock while ``command`` reads (and writes) it.
 
-    Refuses (:class:`glaciar.store.RunLockedError`, one line naming the run) when
+    Refuses (:class:`glaciar.rundir.RunLockedError`, one line naming the run) when
     ``glaciar simulate`` or another fit/report holds the lock.  Inside, a killed
     fit's leftovers have been cleaned (:func:`recover_fit_outputs`).
 
@@ -112,11 +112,11 @@ def hold_run(run_dir, command: str):
     ------
     FileNotFoundError
         ``run_dir`` is not a directory.
-    glaciar.store.RunLockedError
+    glaciar.rundir.RunLockedError
         Another process is writing the run.
     """
     from ..paths import check_run_tree
-    from ..store import RunLock, RunLockedError
+    from ..rundir import RunLock, RunLockedError
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():

@@ -118,7 +118,7 @@ def read_candidates(run_dir, catalog, manifest: dict | None = None):
         :func:`glaciar.pipeline.catalog.check_identity`) when present, else the
         ``config_hash`` (both hashes and files named on a mismatch).
     """
-    from ..store import read_manifest
+    from ..rundir import read_manifest
 
     run_dir, catalog = Path(run_dir), Path(catalog)
     manifest = read_manifest(run_dir) if manifest is None else manifest
@@ -232,7 +232,7 @@ def run_lf(run_dir, catalog=None, *, model: str = "schechter", fix: dict | None 
         candidates; nothing is written then.
     """
     from ..plots import save_png
-    from ..store import atomic_write_text, read_manifest
+    from ..rundir import atomic_write_text, read_manifest
     from .lf_figures import FIGURE_DPI, lf_figure
 
     run_dir = Path(run_dir)
