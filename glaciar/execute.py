@@ -143,7 +143,7 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
         Bad arguments or input files (:class:`glaciar.inputs.InputError`), checked before anything is written.
     StoreMismatchError
         The run directory holds tasks made differently.
-    glaciar.store.RunLockedError
+    glaciar.rundir.RunLockedError
         Another run is writing into ``run_dir``.
     """
     from tqdm.auto import tqdm
