@@ -47,7 +47,8 @@ from scipy import optimize, signal
 
 from glaciar import constants as C
 from glaciar.config import load_config
-from glaciar.demo import DEMO_BANDS_SPEC, DEMO_FIELD, _drizzle_kernel_1d, build_demo_survey
+from glaciar.demo import DEMO_BANDS_SPEC, DEMO_FIELD, build_demo_survey
+from glaciar.demo.noise import drizzle_kernel_1d
 from glaciar.execute import simulate
 from glaciar.store import read_results
 
