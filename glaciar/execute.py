@@ -212,9 +212,8 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
     cfg_dict = config_to_dict(cfg)
     base_dir = str(cfg.base_dir)
     cfg_hash = config_hash(cfg)
-    prepare_context_cache(run_dir, cfg, cfg_hash, {s.field for s in pending},
-                          keep_temporaries=lock.shard is not None)
-    lock.end_setup()       # a shard's set-up (glaciar.manifest.open_run) ends here
+    if lock.shard is None:    # a shard prepared them in its set-up (glaciar.manifest.open_run)
+        prepare_context_cache(run_dir, cfg, cfg_hash, {s.field for s in pending})
     n_workers = 1 if executor is None and workers <= 1 else max(1, workers)
     chunks = _chunks(pending, n_workers)
     stats = {"n_tasks": len(specs), "n_done_before": n_done_before, "n_run": 0, "n_sources": 0,

@@ -19,7 +19,7 @@ from .version import __version__
 from . import constants as C
 from .config import Config, config_from_dict, config_hash, config_to_dict
 from .config.models import SECTIONS
-from .contexts import context_dir, main_context
+from .contexts import context_dir, main_context, prepare_context_cache
 from .fieldprep import field_depth_area, field_noise_record, field_settings
 from .galaxy import sed
 from .inputs import InputFile, check_inputs, file_or_none, input_files
@@ -254,9 +254,9 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
     fields measured (or a sibling's field caches mapped; caches written at once) and
     the shared files written under it.  A shard whose manifest or stored config
     differs from the run's is refused while a sibling shard runs; identical ones are
-    not written again.  A refused shard may leave its (empty) lock file.  Returned
-    with the set-up lock still held: the caller ends it once the field caches are
-    prepared (:meth:`glaciar.rundir.RunLock.end_setup`).
+    not written again; the field caches are prepared
+    (:func:`glaciar.contexts.prepare_context_cache`) before the set-up lock is released.
+    A refused shard may leave its (empty) lock file.
     """
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
@@ -338,6 +338,11 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
                 name = tmp.name[1:].partition(".parquet.")[0] + ".parquet"
                 if name in own:
                     tmp.unlink(missing_ok=True)
+            # The field caches (each written once its field was measured, above): those of
+            # other configurations go; then the sibling shards may start.
+            prepare_context_cache(run_dir, cfg, config_hash(cfg), set(cfg.survey.fields),
+                                  keep_temporaries=True)
+            lock.end_setup()
     except BaseException:
         lock.release()
         raise

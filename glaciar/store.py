@@ -773,9 +773,13 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0, tasks=None, tag: str
     stale_pattern = "field=*/z=*/.part-*.tmp" if not tag else f"field=*/z=*/.part-{tag}-*.tmp"
     for stale in (run_dir / RESULTS_DIRNAME / COMPACT_DIRNAME).glob(stale_pattern):
         stale.unlink(missing_ok=True)
+    # Listed before the units: a file listed here and not loose there is in a part.  (A
+    # second listing after them would also hold task files written meanwhile -- by this
+    # run's pool workers, or a sibling shard -- which no part holds yet.)
+    listed = set(_loose_files(run_dir))
     parts, loose = _store_units(run_dir, warn=False)
     own = set(tasks) if tasks is not None else None
-    for f in set(_loose_files(run_dir)) - set(loose):
+    for f in listed - set(loose):
         if own is None or f.name in own:
             f.unlink(missing_ok=True)        # already in a renamed part: a kill left it behind
     if own is not None:
