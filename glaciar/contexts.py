@@ -114,8 +114,9 @@ def prepare_context_cache(run_dir: Path, cfg: Config, cfg_hash: str, fields,
     and half-written ones, and put the context this process built (for the manifest) on disk,
     so its tasks, forked workers and spawned workers all map the same files.
 
-    ``keep_temporaries``: leave caches being written (``.*.tmp``, :func:`glaciar.engine.fieldcache.save`)
-    alone -- a shard whose sibling shards run (their workers may be writing one); it holds
+    ``keep_temporaries``: leave caches being written (``.*.tmp``,
+    :func:`glaciar.engine.fieldcache.save`) alone -- a shard (a sibling's worker may be
+    writing one); it holds
     the set-up lock, and the sibling shards share its configuration, so the caches of
     other configurations are no one's."""
     keep = {context_dir(run_dir, cfg_hash, f) for f in cfg.survey.fields}

@@ -23,7 +23,8 @@ from .engine.task import TaskSpec, run_task
 from .manifest import open_run
 from .plan import plan_tasks, spec_filename, spec_key
 from .shards import check_shard, shard_scope
-from .store import COMPACT_EVERY, compact, finished_task_names, verified_task_names, write_task_table
+from .store import (COMPACT_EVERY, compact, finished_task_names, verified_task_names,
+                    write_task_table)
 from .workers import process_cpu_seconds, terminate_workers, worker_init
 
 

@@ -6,8 +6,8 @@ file.  ``RUN_DIR/manifest.json`` records the run's settings, inputs and store fo
 (:func:`read_manifest`, :func:`write_manifest`); :func:`file_fingerprint` hashes the
 input files it names; :class:`RunLock` (``RUN_DIR/.lock``) lets one process write a run
 directory at a time, or the N shards of a sharded run together (``RUN_DIR/.shards/``:
-per-shard locks and records of the shard count, the set-up lock; :mod:`glaciar.shards`).  The task files and parts under ``results/`` are
-:mod:`glaciar.store`'s.
+per-shard locks and records of the shard count, the set-up lock; :mod:`glaciar.shards`).
+The task files and parts under ``results/`` are :mod:`glaciar.store`'s.
 """
 from __future__ import annotations
 
@@ -232,7 +232,7 @@ def run_holder(run_dir) -> str | None:
 
 
 def running_shards(run_dir, exclude: int | None = None) -> dict[int, str]:
-    """``{k: pid text}`` of the shards whose lock is held in ``run_dir`` (``exclude``: not that one)."""
+    """``{k: pid text}`` of the shards whose lock is held in ``run_dir`` (not ``exclude``'s)."""
     d = Path(run_dir) / SHARDS_DIRNAME
     out = {}
     for p in sorted(d.glob("shard-*.lock")) if d.is_dir() else ():
@@ -274,7 +274,7 @@ def check_shard_count(run_dir, shard: tuple[int, int]) -> None:
 
 
 def write_shard_record(run_dir, shard: tuple[int, int]) -> None:
-    """Record shard ``(k, n)``'s count (``RUN/.shards/shard-K.json``), written by that shard only."""
+    """Record shard ``(k, n)``'s count in ``RUN/.shards/shard-K.json`` (by that shard only)."""
     k, n = shard
     p = _shard_record_path(run_dir, k)
     text = json.dumps({"shard": int(k), "shards": int(n)}, sort_keys=True) + "\n"

@@ -735,7 +735,8 @@ def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.Dat
             meta[k + DIGEST_SUFFIX] = blake2b_digest(meta[k])
     meta[META_SCHEMA] = schema_digest(table.schema, table.num_rows)
     data = parquet_bytes(table.replace_schema_metadata(meta))
-    name = "part-" + (f"{tag}-" if tag else "") + _short_hash("\n".join(sorted(str(t[1]) for t in tasks)), 16) + ".parquet"
+    name = ("part-" + (f"{tag}-" if tag else "")
+            + _short_hash("\n".join(sorted(str(t[1]) for t in tasks)), 16) + ".parquet")
     part_dir = _partition_dir(Path(run_dir), field, float(z))
     run_subdir(run_dir, *part_dir.relative_to(Path(run_dir)).parts)
     path = part_dir / name
@@ -743,7 +744,8 @@ def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.Dat
     return path
 
 
-def compact(run_dir: str | os.PathLike, min_tasks: int = 0, tasks=None, tag: str | None = None) -> int:
+def compact(run_dir: str | os.PathLike, min_tasks: int = 0, tasks=None,
+            tag: str | None = None) -> int:
     """Merge loose task files into one part per (field, z); return the tasks compacted.
 
     Only the holder of the run's lock may call this.  Nothing happens when

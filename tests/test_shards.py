@@ -113,7 +113,7 @@ def test_bad_shard_text_is_refused_in_one_line(small_survey, tmp_path, capsys, t
     assert main(["simulate", str(small_survey), "--out", str(out), "--shard", text,
                  "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "--shard" in err and text in err
+    assert len(err.splitlines()) == 1 and "--shard" in err and text in err and "K/N" in err
     assert not out.exists()
 
 
