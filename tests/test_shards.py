@@ -5,7 +5,8 @@
   cut can move to their boundary cheaply.
 * ``--shard 1/2`` and ``--shard 2/2`` started at the same time (two processes) into one
   directory, shard 2 killed by SIGKILL after its first task file and run again, store
-  rows equal, bit for bit, to the serial run's (``small_run``).  While shard 2 is down,
+  rows equal, bit for bit, to the serial run's (``small_run``); the field is measured
+  once in all (the other shard and the resume map its cache).  While shard 2 is down,
   ``glaciar status`` counts its tasks missing, and running while its lock is held.
 * Refusals, one line and exit 2: bad ``--shard`` text; another shard count (nothing
   written); the same shard twice; an unsharded run while a shard runs.
@@ -31,8 +32,10 @@ import pandas as pd
 import pytest
 
 from glaciar import constants as C
+from glaciar import contexts
 from glaciar.cli import main
 from glaciar.config import load_config
+from glaciar.contexts import clear_contexts
 from glaciar.engine.task import TaskSpec
 from glaciar.execute import simulate
 from glaciar.rundir import RunLock
@@ -127,14 +130,22 @@ def test_bad_shard_tuple_is_refused_by_the_api(small_survey, tmp_path):
 # --------------------------------------------------------------------------
 # Two shards at the same time, one killed mid-run and resumed
 # --------------------------------------------------------------------------
-def _shard_command(config, out, shard, slow: float = 0.0) -> list[str]:
+def _shard_command(config, out, shard, builds: Path, slow: float = 0.0) -> list[str]:
     """``glaciar simulate --shard`` in a new interpreter; ``slow`` [s] is slept before each
-    task (so that a kill lands between tasks of a shard this small)."""
+    task (so that a kill lands between tasks of a shard this small); each field measurement
+    (``glaciar.contexts.build_field_context``) adds a line to ``builds``."""
     argv = ["simulate", str(config), "--out", str(out), "--workers", "1", "--quiet",
             "--shard", shard]
     code = textwrap.dedent(f"""
         import sys, time
+        import glaciar.contexts as contexts
         import glaciar.execute as execute
+        build = contexts.build_field_context
+        def counted(*a, **k):
+            with open({str(builds)!r}, "a") as fh:
+                fh.write({shard!r} + "\\n")
+            return build(*a, **k)
+        contexts.build_field_context = counted
         if {slow!r}:
             run_task = execute.run_task
             def slowed(*a, **k):
@@ -155,8 +166,9 @@ def two_shards(small_survey, tmp_path_factory):
     Returns (run directory, shard 1's stdout, number of shard 2's tasks done).
     """
     run = tmp_path_factory.mktemp("shards") / "run"
+    builds = run.parent / "builds.txt"
     second = shard_task_names(load_config(small_survey), (2, 2))
-    procs = [subprocess.Popen(_shard_command(small_survey, run, f"{k}/2", slow=slow),
+    procs = [subprocess.Popen(_shard_command(small_survey, run, f"{k}/2", builds, slow=slow),
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for k, slow in ((1, 0.0), (2, 0.5))]
     deadline = time.monotonic() + 180
@@ -170,11 +182,17 @@ def two_shards(small_survey, tmp_path_factory):
     assert procs[0].returncode == 0, err
     done = len(second & set(_task_files(run)))
     assert 1 <= done < 4            # killed mid-run
+    # The field was measured once, by one shard; the other mapped its cache.
+    assert len(builds.read_text().splitlines()) == 1
     return run, out, done
 
 
+def _no_measuring(*args, **kwargs):
+    raise AssertionError("the field was measured again: its cache is in the run")
+
+
 def test_two_shards_at_once_and_a_killed_one_resumed_give_the_serial_rows(
-        small_survey, small_run, two_shards, tmp_path):
+        small_survey, small_run, two_shards, tmp_path, monkeypatch):
     run = tmp_path / "run"
     shutil.copytree(two_shards[0], run)
     # Shard 1 ran its own half beside shard 2: not refused, nothing of shard 2's run by it.
@@ -185,6 +203,8 @@ def test_two_shards_at_once_and_a_killed_one_resumed_give_the_serial_rows(
     own, sibling = (sorted(shard_task_names(cfg, (k, 2)))[-1] for k in (2, 1))
     for name in (own, sibling):
         (run / C.RESULTS_DIRNAME / f".{name}.x1y2z3.tmp").write_bytes(b"half")
+    clear_contexts()
+    monkeypatch.setattr(contexts, "build_field_context", _no_measuring)
     with RunLock(run, shard=(1, 2)):                # as if shard 1 were still running
         stats = simulate(cfg, run, shard=(2, 2), progress=False)
     assert (stats["n_tasks"], stats["n_done_before"]) == (4, two_shards[2])
