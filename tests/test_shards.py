@@ -8,6 +8,7 @@
   rows equal, bit for bit, to the serial run's (``small_run``); the field is measured
   once in all (the other shard and the resume map its cache).  While shard 2 is down,
   ``glaciar status`` counts its tasks missing, and running while its lock is held.
+* An unsharded run afterwards completes what the shards left.
 * Refusals, one line and exit 2: bad ``--shard`` text; another shard count (nothing
   written); the same shard twice; an unsharded run while a shard runs.
 * A shard compacts, deletes and cleans only its own files.
@@ -215,6 +216,17 @@ def test_two_shards_at_once_and_a_killed_one_resumed_give_the_serial_rows(
     assert not (run / C.CONTEXT_DIRNAME).exists()
     assert [(r["shard"], r["done"], r["running"], r["missing"]) for r in run_status(run)] == \
         [(1, 4, 0, 0), (2, 4, 0, 0)]
+
+
+def test_an_unsharded_run_completes_what_the_shards_left(small_survey, small_run, two_shards,
+                                                         tmp_path):
+    # The merge job of docs/scale-out.md: shard 2 died; one unsharded pass does the rest.
+    run = tmp_path / "run"
+    shutil.copytree(two_shards[0], run)
+    stats = simulate(load_config(small_survey), run, progress=False)
+    assert (stats["n_tasks"], stats["n_run"]) == (8, 4 - two_shards[2])
+    _assert_same_rows(run, small_run[1])
+    assert not (run / C.CONTEXT_DIRNAME).exists()
 
 
 def test_status_counts_done_running_and_missing(two_shards, capsys):
