@@ -70,7 +70,7 @@ def _config(config):
 
 
 def simulate(config, out, *, workers: int = 1, seed: int | None = None, progress: bool = False,
-             executor=None, mode: str = "windowed") -> dict:
+             executor=None, mode: str = "windowed", shard: tuple[int, int] | None = None) -> dict:
     """Run (or resume) the injection-recovery simulation into the run directory ``out``.
 
     Parameters
@@ -87,6 +87,9 @@ def simulate(config, out, *, workers: int = 1, seed: int | None = None, progress
     executor : concurrent.futures.Executor, optional
         E.g. a Dask client's executor, instead of a process pool.
     mode : {"windowed", "full"}
+    shard : (int, int), optional
+        ``(k, n)``: run shard k of n of the tasks, beside the other shards' processes
+        into the same ``out`` (docs/scale-out.md).
 
     Returns
     -------
@@ -96,7 +99,7 @@ def simulate(config, out, *, workers: int = 1, seed: int | None = None, progress
     from .execute import simulate as _simulate
 
     return _simulate(_config(config), out, workers=workers, seed=seed, executor=executor,
-                     progress=progress, mode=mode)
+                     progress=progress, mode=mode, shard=shard)
 
 
 def catalog(source, out=None, *, regions: bool = False, progress: bool = False):

@@ -1,4 +1,4 @@
-"""The ``glaciar`` command: demo, init, simulate, report, fit, next, catalog, lf.
+"""The ``glaciar`` command: demo, init, simulate, status, report, fit, next, catalog, lf.
 
 Every sub-command turns expected failures (bad config, missing file, mismatched
 store, bad option value) into a one-line message on stderr and exit status 2
@@ -67,9 +67,12 @@ def _cmd_simulate(args) -> int:
     if args.cells:
         cfg = _with_cells_option(cfg, args.cells)
     if args.adaptive:
+        if args.shard is not None:
+            raise ValueError("--shard: not with --adaptive (its rounds fit the whole run between "
+                             "steps); run the shards, then `glaciar simulate --adaptive` unsharded")
         return _simulate_adaptive(args, cfg, out, workers, executor)
     stats = simulate(cfg, out, workers=workers, seed=args.seed, executor=executor,
-                     progress=not args.quiet, mode=args.mode)
+                     progress=not args.quiet, mode=args.mode, shard=args.shard)
     # Whole process: this command since it started (imports, config, checks, field set-up),
     # its reaped pool workers, and a Dask cluster's workers during their chunks.
     cpu = process_cpu_seconds() + stats["remote_cpu_seconds"]
@@ -79,10 +82,34 @@ def _cmd_simulate(args) -> int:
           f"({stats['setup_seconds']:.1f} s set-up), {1e3 * cpu / n:.3f} ms CPU per source "
           f"(whole process, all workers, set-up included; {1e3 * stats['cpu_seconds'] / n:.3f} "
           "inside the tasks)")
+    if args.shard is not None:
+        # The summary is the whole run's, written once: after every shard has finished.
+        k, n = args.shard
+        print(f"shard {k}/{n} finished; `glaciar status {out}` shows the others; once all are "
+              f"done, `glaciar report {out}` writes the summary")
+        return 0
     _print_noise(out)
     _report(out, regions=cfg.output.regions)
     print(f"results in {out}")
     return 0
+
+
+def _cmd_status(args) -> int:
+    from .shards import format_status, run_status
+
+    run_dir = Path(args.run_dir)
+    print(format_status(run_dir, run_status(run_dir)), end="")
+    return 0
+
+
+def _shard_option(text):
+    """argparse type: ``K/N`` (:func:`glaciar.shards.parse_shard`)."""
+    from .shards import parse_shard
+
+    try:
+        return parse_shard(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _print_noise(out: Path) -> None:
@@ -406,6 +433,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="windowed: detect each injected source in a window grown until it equals "
                         "the full-frame answer; full: extract the whole frame per task (for "
                         "validation, slower)")
+    s.add_argument("--shard", type=_shard_option, default=None, metavar="K/N",
+                   help="run only shard K of N of the tasks (1 <= K <= N; balanced by expected "
+                        "cost), beside the other shards' processes into the same --out, e.g. "
+                        "--shard ${SLURM_ARRAY_TASK_ID}/N in a SLURM array (docs/scale-out.md; "
+                        "default: every task)")
     s.add_argument("--cells", default=None, metavar="CELLS_YAML",
                    help="add the cells of this file (as written by `glaciar next --write`; "
                         "default: none)")
@@ -430,6 +462,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "glaciar fit)")
     s.add_argument("--quiet", action="store_true", help=_HELP_QUIET)
     s.set_defaults(func=_cmd_simulate)
+
+    s = sub.add_parser("status", help="tasks done, running and missing of a run, per shard")
+    s.add_argument("run_dir", metavar="RUN", help="a run directory written by `glaciar simulate`")
+    s.set_defaults(func=_cmd_status)
 
     s = sub.add_parser("report", help="summary tables (ECSV) and plots of a run")
     s.add_argument("run_dir", help="a run directory written by `glaciar simulate`")

@@ -125,6 +125,7 @@ SUMMARY_DIRNAME = "summary"
 SELECTION_FUNCTION_NAME = "selection_function.fits"
 CONTEXT_DIRNAME = ".context"        #: field contexts memory-mapped by workers (glaciar.engine.fieldcache)
 LOCK_NAME = ".lock"                  #: advisory lock of the run writing into the directory
+SHARDS_DIRNAME = ".shards"          #: per-shard locks and records, the set-up lock (glaciar.shards)
 FINGERPRINT_CACHE_NAME = ".input_fingerprints.json"   #: input hashes by (path, size, mtime)
 #: Format of a run directory.  2: task files named by a hash of the exact task key, with the
 #: key and row count in their metadata; manifest with store settings and input fingerprints.

@@ -108,16 +108,25 @@ def context_dir(run_dir, cfg_hash: str, field: str, inputs: dict | None = None) 
     return Path(run_dir) / C.CONTEXT_DIRNAME / hashlib.sha256(ident.encode("utf-8")).hexdigest()[:24]
 
 
-def prepare_context_cache(run_dir: Path, cfg: Config, cfg_hash: str, fields) -> None:
+def prepare_context_cache(run_dir: Path, cfg: Config, cfg_hash: str, fields,
+                          keep_temporaries: bool = False) -> None:
     """Before tasks run (lock held, no worker yet): remove caches of other configs or inputs
     and half-written ones, and put the context this process built (for the manifest) on disk,
-    so its tasks, forked workers and spawned workers all map the same files."""
+    so its tasks, forked workers and spawned workers all map the same files.
+
+    ``keep_temporaries``: leave caches being written (``.*.tmp``,
+    :func:`glaciar.engine.fieldcache.save`) alone -- a shard (a sibling's worker may be
+    writing one); it holds
+    the set-up lock, and the sibling shards share its configuration, so the caches of
+    other configurations are no one's."""
     keep = {context_dir(run_dir, cfg_hash, f) for f in cfg.survey.fields}
     root = run_subdir(run_dir, C.CONTEXT_DIRNAME, create=False)     # refused if a link
     if root.is_dir():
         for entry in root.iterdir():
             if entry.is_symlink():
                 entry.unlink()          # the link only: nothing outside the run is touched
+            elif keep_temporaries and entry.name.startswith("."):
+                continue
             elif entry not in keep:
                 shutil.rmtree(entry, ignore_errors=True)
             elif fieldcache.exists(entry):
@@ -169,12 +178,15 @@ def worker_context(cfg_dict: dict, base_dir: str, cfg_hash: str, field: str,
     return ctx
 
 
-def main_context(cfg: Config, survey: Survey, field: str, cached: Path | None = None) -> FieldContext:
+def main_context(cfg: Config, survey: Survey, field: str, cached: Path | None = None,
+                 save: bool = False) -> FieldContext:
     """The field's context from the main process's config, under :func:`worker_context`'s key.
 
     ``cached``: the field's cache directory in the run, if known: a complete cache
-    there (an interrupted run's, for its resume) is mapped instead of measuring the
-    field again.
+    there (an interrupted run's, for its resume, or a sibling shard's) is mapped instead
+    of measuring the field again.  ``save``: a context measured here is written there
+    at once (a shard, under the run's set-up lock: the shards started after it map it,
+    none measures it again).
     """
     key = (config_hash(cfg), str(cfg.base_dir), field)
     ctx = _CONTEXTS.get(key)
@@ -189,5 +201,7 @@ def main_context(cfg: Config, survey: Survey, field: str, cached: Path | None = 
                               "measured again", StoreWarning)
         if ctx is None:
             ctx = build_field_context(cfg, survey, field)
+            if save and cached is not None:
+                ctx = save_field_context(ctx, cached)
         _CONTEXTS[key] = ctx
     return ctx

@@ -22,7 +22,9 @@ from .engine import fieldcache
 from .engine.task import TaskSpec, run_task
 from .manifest import open_run
 from .plan import plan_tasks, spec_filename, spec_key
-from .store import COMPACT_EVERY, compact, verified_task_names, write_task_table
+from .shards import check_shard, shard_scope
+from .store import (COMPACT_EVERY, compact, finished_task_names, verified_task_names,
+                    write_task_table)
 from .workers import process_cpu_seconds, terminate_workers, worker_init
 
 
@@ -97,7 +99,7 @@ def _check_count(name: str, value, minimum: int) -> int:
 
 def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
              executor: cf.Executor | None = None, progress: bool = True, mode: str = "windowed",
-             max_tasks: int | None = None) -> dict:
+             max_tasks: int | None = None, shard: tuple[int, int] | None = None) -> dict:
     """Run (or resume) the injection-recovery simulation of a configuration.
 
     Parameters
@@ -123,11 +125,17 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
         Detection mode.
     max_tasks : int, optional
         Run at most this many of the pending tasks (the rest stay pending for a resume).
+    shard : (int, int), optional
+        ``(k, n)``: run only shard k of n of the plan (:func:`glaciar.shards.shard_tasks`),
+        beside the other shards' processes into the same ``run_dir`` (``glaciar simulate
+        --shard K/N``; docs/scale-out.md).  The same k twice, or another n than the run's
+        shards were started with, is refused.
 
     Returns
     -------
     dict
-        ``n_tasks``, ``n_done_before``, ``n_run``, ``n_sources``; ``cpu_seconds`` [s]: inside
+        ``n_tasks`` (of the shard, with ``shard``), ``n_done_before``, ``n_run``, ``n_sources``;
+        ``cpu_seconds`` [s]: inside
         the tasks (a worker's field set-up counted in its first task); ``process_cpu_seconds``
         [s]: this process and its pool workers, set-up, scheduling and compaction included (with
         ``executor``: this process plus its workers' CPU during their chunks, their imports
@@ -160,11 +168,14 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
         raise ValueError(f"mode: expected 'windowed' or 'full', got {mode!r}")
     if max_tasks is not None:
         max_tasks = _check_count("max_tasks", max_tasks, 0)
+    if shard is not None:
+        shard = check_shard(shard)
     c0, t0 = process_cpu_seconds(), time.perf_counter()
-    _, lock = open_run(cfg, run_dir, seed, parallel=_setup_parallelism(executor), warm=workers)
+    _, lock = open_run(cfg, run_dir, seed, parallel=_setup_parallelism(executor), warm=workers,
+                       shard=shard)
     try:
         stats = _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode,
-                                 max_tasks, tqdm, t0)
+                                 max_tasks, tqdm, t0, lock)
     finally:
         lock.release()
     # Whole-process CPU: this process (checks, manifest, scheduling) and its pool workers
@@ -188,8 +199,11 @@ def _setup_parallelism(executor: cf.Executor | None) -> cf.Executor | None:
 
 
 def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_tasks, tqdm,
-                     t_start):
-    specs = plan_tasks(cfg)
+                     t_start, lock):
+    # ---- sharded runs (glaciar.shards): this process's part of the plan, its own files ----
+    plan = plan_tasks(cfg)
+    specs, own_files = shard_scope(plan, lock.shard)
+    # ----
     wanted = {spec_filename(s): spec_key(s) for s in specs}
     finished = verified_task_names(run_dir, wanted, quarantine=True)
     pending = [s for s in specs if spec_filename(s) not in finished]
@@ -199,11 +213,12 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
     cfg_dict = config_to_dict(cfg)
     base_dir = str(cfg.base_dir)
     cfg_hash = config_hash(cfg)
-    prepare_context_cache(run_dir, cfg, cfg_hash, {s.field for s in pending})
+    if lock.shard is None:    # a shard prepared them in its set-up (glaciar.manifest.open_run)
+        prepare_context_cache(run_dir, cfg, cfg_hash, {s.field for s in pending})
     n_workers = 1 if executor is None and workers <= 1 else max(1, workers)
     chunks = _chunks(pending, n_workers)
     stats = {"n_tasks": len(specs), "n_done_before": n_done_before, "n_run": 0, "n_sources": 0,
-             "cpu_seconds": 0.0, "remote_cpu_seconds": 0.0}
+             "cpu_seconds": 0.0, "remote_cpu_seconds": 0.0, "shard": lock.shard}
     bar = tqdm(total=len(pending), unit="task", disable=not progress, desc="simulate")
 
     def account(result):
@@ -215,7 +230,7 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
         # Bound the number of loose task files of a long run (glaciar.store: Compaction).
         if stats["n_run"] // COMPACT_EVERY > account.compactions:
             account.compactions = stats["n_run"] // COMPACT_EVERY
-            compact(run_dir, min_tasks=COMPACT_EVERY)
+            compact(run_dir, min_tasks=COMPACT_EVERY, **own_files)
     account.compactions = 0
 
     t0 = time.perf_counter()
@@ -252,6 +267,12 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
         bar.close()
     stats["setup_seconds"] = t0 - t_start
     stats["task_seconds"] = time.perf_counter() - t0
-    compact(run_dir, min_tasks=COMPACT_EVERY)
-    finish_context_cache(run_dir, n_done_before + stats["n_run"] == len(specs))
+    compact(run_dir, min_tasks=COMPACT_EVERY, **own_files)
+    if lock.shard is None:
+        finish_context_cache(run_dir, n_done_before + stats["n_run"] == len(specs))
+    else:
+        # The field caches go once the whole plan is done, whichever shard sees it last.
+        with lock.setup():
+            done = finished_task_names(run_dir)
+            finish_context_cache(run_dir, all(spec_filename(s) in done for s in plan))
     return stats

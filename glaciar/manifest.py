@@ -19,14 +19,16 @@ from .version import __version__
 from . import constants as C
 from .config import Config, config_from_dict, config_hash, config_to_dict
 from .config.models import SECTIONS
-from .contexts import context_dir, main_context
+from .contexts import context_dir, main_context, prepare_context_cache
 from .fieldprep import field_depth_area, field_noise_record, field_settings
 from .galaxy import sed
 from .inputs import InputFile, check_inputs, file_or_none, input_files
 from .plan import detection_z_limit, manifest_cells, placement_preflight, plan_tasks
 from .store import StoreWarning, field_file_prefix, finished_task_names
-from .rundir import (RunLock, StoreMismatchError, atomic_write_text, manifest_text, read_manifest,
-                     store_format, write_manifest)
+from .rundir import (RunLock, StoreMismatchError, atomic_write_text, check_shard_count,
+                     manifest_text, read_manifest, running_shards, store_format, write_manifest,
+                     write_shard_record)
+from .shards import shard_task_names
 from .paths import check_run_tree, disk_full
 from .survey import Survey
 
@@ -135,12 +137,13 @@ def _summary(diffs: list[str], limit: int = 3) -> str:
     return "; ".join(diffs[:limit]) + more
 
 
-def _manifest(cfg: Config, survey: Survey, seed: int, z_limit=None, cached: dict | None = None) -> dict:
+def _manifest(cfg: Config, survey: Survey, seed: int, z_limit=None, cached: dict | None = None,
+              save: bool = False) -> dict:
     """The run's manifest.
 
     ``z_limit``: a future of :func:`glaciar.plan.detection_z_limit` (None: computed here);
-    ``cached``: field -> its context's cache directory in the run
-    (:func:`glaciar.contexts.main_context`).
+    ``cached``: field -> its context's cache directory in the run, and ``save``: write
+    a measured context there (:func:`glaciar.contexts.main_context`).
     """
     area = {}
     pixscale = {}
@@ -151,7 +154,7 @@ def _manifest(cfg: Config, survey: Survey, seed: int, z_limit=None, cached: dict
         # interrupted run's cache): the area, depth and noise records read it, a serial
         # run's tasks use it (glaciar.contexts.worker_context), and forked pool workers inherit it
         # instead of measuring the field again.
-        ctx = main_context(cfg, survey, f, (cached or {}).get(f))
+        ctx = main_context(cfg, survey, f, (cached or {}).get(f), save=save)
         ps = survey.pixel_scale_arcsec(f)
         pixscale[f] = ps
         area[f] = float(ctx.footprint_count) * ps ** 2 / 3600.0
@@ -218,8 +221,21 @@ def _check_same_store(run_dir: Path, old: dict, manifest: dict, items: list[Inpu
                                      "(content differs); use another --out")
 
 
+def _check_old(run_dir: Path, old: dict | None, finished: set[str]) -> None:
+    """Refuse a store with task files but no manifest, or of another store format."""
+    if finished and old is None:
+        raise StoreMismatchError(f"{run_dir / C.RESULTS_DIRNAME}: holds task files but "
+                                 f"{run_dir / C.MANIFEST_NAME} is missing; use another --out")
+    if finished and store_format(old) != C.STORE_FORMAT:
+        raise StoreMismatchError(
+            f"{run_dir}: made by glaciar {old.get('glaciar_version', '?')} (store format "
+            f"{store_format(old)}, whose task file names can collide); glaciar {__version__} "
+            f"(format {C.STORE_FORMAT}) does not add to it; use another --out "
+            "(fit and report still read it)")
+
+
 def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None = None,
-             warm: int = 1) -> tuple[dict, RunLock]:
+             warm: int = 1, shard: tuple[int, int] | None = None) -> tuple[dict, RunLock]:
     """Validate everything, then create or update the run directory under its lock.
 
     Every check (inputs, store identity, lock) runs before anything is
@@ -231,6 +247,16 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
     before the field's context exists) that computes the detection z limit while
     this process checks the inputs and measures the field, and of which ``warm``
     workers are asked to import glaciar and warm their caches meanwhile (:class:`_SetupJobs`).
+
+    ``shard``: ``(k, n)`` for shard k of n (:mod:`glaciar.shards`).  Its lock
+    (:class:`glaciar.rundir.RunLock`) is taken once the inputs are checked, then the
+    set-up lock, waiting for a sibling shard's set-up: the manifest is read, the
+    fields measured (or a sibling's field caches mapped; caches written at once) and
+    the shared files written under it.  A shard whose manifest or stored config
+    differs from the run's is refused while a sibling shard runs; identical ones are
+    not written again; the field caches are prepared
+    (:func:`glaciar.contexts.prepare_context_cache`) before the set-up lock is released.
+    A refused shard may leave its (empty) lock file.
     """
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
@@ -239,36 +265,105 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
         # A results/, .context/, summary/, ... that is a symbolic link would receive task
         # files, caches and reports outside the run: refused before anything is written.
         check_run_tree(run_dir)
-    lock = RunLock(run_dir)
+    lock = RunLock(run_dir, shard=shard)
     lock.check_free()
+    if shard is not None:
+        check_shard_count(run_dir, shard)
     old = read_manifest(run_dir) if run_dir.is_dir() else None
     finished = finished_task_names(run_dir)
-    if finished and old is None:
-        raise StoreMismatchError(f"{run_dir / C.RESULTS_DIRNAME}: holds task files but "
-                                 f"{run_dir / C.MANIFEST_NAME} is missing; use another --out")
-    if finished and store_format(old) != C.STORE_FORMAT:
-        raise StoreMismatchError(
-            f"{run_dir}: made by glaciar {old.get('glaciar_version', '?')} (store format "
-            f"{store_format(old)}, whose task file names can collide); glaciar {__version__} "
-            f"(format {C.STORE_FORMAT}) does not add to it; use another --out "
-            "(fit and report still read it)")
+    _check_old(run_dir, old, finished)
     cache = _load_fingerprint_cache(run_dir) if run_dir.is_dir() else {}
     cache_before = json.dumps(cache, sort_keys=True)
     survey = Survey.from_config(cfg)
-    # An interrupted run left its fields' contexts on disk: with the inputs checked first
-    # (the cache's key holds their fingerprints), the resume maps them, not measuring again.
-    resuming = old is not None and (run_dir / C.CONTEXT_DIRNAME).is_dir()
     jobs = _SetupJobs(cfg, parallel, warm)
     inputs = check_inputs(cfg, survey, cache)
     _preflight(cfg, survey)        # before the field is measured: a field nothing fits fails fast
+    if shard is not None:
+        # A shard locks before it measures: a sibling's set-up is waited for, its field
+        # caches then mapped (never measured twice at once); what it wrote is read afresh.
+        try:
+            run_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise (disk_full(run_dir, exc) or exc) from None
+        lock.acquire()
+        try:
+            lock.begin_setup()
+            check_shard_count(run_dir, shard)
+            old, finished = read_manifest(run_dir), finished_task_names(run_dir)
+            _check_old(run_dir, old, finished)
+        except BaseException:
+            lock.release()
+            raise
+    try:
+        manifest, config_text = _new_manifest(cfg, run_dir, survey, seed, old, finished, inputs,
+                                              jobs, shard)
+    except BaseException:
+        lock.release()
+        raise
+    # ---- everything is checked: from here on the directory is created or modified ----
+    if shard is None:
+        try:
+            run_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise (disk_full(run_dir, exc) or exc) from None
+        lock.acquire()
+    try:
+        if shard is None and (read_manifest(run_dir) != old
+                              or finished_task_names(run_dir) - finished):
+            raise StoreMismatchError(f"{run_dir}: changed while this run was starting (another "
+                                     "glaciar run?); run the command again")
+        mpath = run_dir / C.MANIFEST_NAME
+        cpath = run_dir / C.RUN_CONFIG_NAME
+        stale = [p for p, text in ((mpath, manifest_text(manifest)), (cpath, config_text))
+                 if not p.exists() or p.read_text(encoding="utf-8") != text]
+        differ = [p for p in stale if p.exists()]        # absent: this shard is the first
+        if shard is not None and differ:
+            _refuse_while_siblings_run(run_dir, shard, differ)
+        if mpath in stale:
+            write_manifest(run_dir, manifest)
+        if cpath in stale:
+            atomic_write_text(cpath, config_text)
+        _write_fingerprint_cache(run_dir, cache, cache_before, shard)
+        if shard is None:
+            # Temporary files of tasks that were in flight when an earlier run was killed:
+            # removed only while holding the lock, so never those of a live run.
+            for tmp in (run_dir / C.RESULTS_DIRNAME).glob(".task_*.tmp"):
+                tmp.unlink(missing_ok=True)
+        else:
+            write_shard_record(run_dir, shard)
+            # A shard's own only: its siblings' temporaries may be in flight.
+            own = shard_task_names(cfg, shard)
+            for tmp in (run_dir / C.RESULTS_DIRNAME).glob(".task_*.tmp"):
+                # ".<task file name>.<random>.tmp" (glaciar.rundir.atomic_write_bytes)
+                name = tmp.name[1:].partition(".parquet.")[0] + ".parquet"
+                if name in own:
+                    tmp.unlink(missing_ok=True)
+            # The field caches (each written once its field was measured, above): those of
+            # other configurations go; then the sibling shards may start.
+            prepare_context_cache(run_dir, cfg, config_hash(cfg), set(cfg.survey.fields),
+                                  keep_temporaries=True)
+            lock.end_setup()
+    except BaseException:
+        lock.release()
+        raise
+    return manifest, lock
+
+
+def _new_manifest(cfg, run_dir, survey, seed, old, finished, inputs, jobs, shard):
+    """The run's manifest (fields measured, store identity checked) and stored config text."""
+    # An interrupted run left its fields' contexts on disk: with the inputs checked first
+    # (the cache's key holds their fingerprints), the resume maps them, not measuring again.
+    # A shard maps a sibling's, and writes those it measures at once (set-up lock held).
+    resuming = old is not None and (run_dir / C.CONTEXT_DIRNAME).is_dir()
     cached = None
-    if resuming:
+    if resuming or shard is not None:
         recorded, chash = _recorded_inputs(old, finished, inputs), config_hash(cfg)
         cached = {f: context_dir(run_dir, chash, f, recorded) for f in cfg.survey.fields}
     # Each warning of measuring the fields is said once (not per field or band that repeats it).
     with warnings.catch_warnings(record=True) as measured:
         warnings.simplefilter("always")
-        manifest = _manifest(cfg, survey, seed, z_limit=jobs.z_limit, cached=cached)
+        manifest = _manifest(cfg, survey, seed, z_limit=jobs.z_limit, cached=cached,
+                             save=shard is not None)
     for w in {(str(w.message), w.category): w for w in measured}.values():
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     items = input_files(cfg)
@@ -284,33 +379,32 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
     elif old is not None:
         manifest["glaciar_version"] = old.get("glaciar_version", __version__)
     config_text = yaml.safe_dump(config_to_dict(cfg), sort_keys=False, allow_unicode=True)
-    # ---- everything is checked: from here on the directory is created or modified ----
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise (disk_full(run_dir, exc) or exc) from None
-    lock.acquire()
-    try:
-        if read_manifest(run_dir) != old or finished_task_names(run_dir) - finished:
-            raise StoreMismatchError(f"{run_dir}: changed while this run was starting (another "
-                                     "glaciar run?); run the command again")
-        mpath = run_dir / C.MANIFEST_NAME
-        if not mpath.exists() or mpath.read_text(encoding="utf-8") != manifest_text(manifest):
-            write_manifest(run_dir, manifest)
-        cpath = run_dir / C.RUN_CONFIG_NAME
-        if not cpath.exists() or cpath.read_text(encoding="utf-8") != config_text:
-            atomic_write_text(cpath, config_text)
-        if json.dumps(cache, sort_keys=True) != cache_before:
-            atomic_write_text(run_dir / C.FINGERPRINT_CACHE_NAME,
-                              json.dumps(cache, sort_keys=True, indent=1))
-        # Temporary files of tasks that were in flight when an earlier run was killed:
-        # removed only while holding the lock, so never those of a live run.
-        for stale in (run_dir / C.RESULTS_DIRNAME).glob(".task_*.tmp"):
-            stale.unlink(missing_ok=True)
-    except BaseException:
-        lock.release()
-        raise
-    return manifest, lock
+    return manifest, config_text
+
+
+def _refuse_while_siblings_run(run_dir: Path, shard: tuple[int, int], stale: list[Path]) -> None:
+    """A shard whose manifest or config differs from the run's: refused while a sibling runs
+    (its tasks were planned from the stored ones; two plans could give one task two shards)."""
+    others = running_shards(run_dir, exclude=shard[0])
+    if others:
+        k, n = shard
+        who = ", ".join(f"{j}/{n} (pid {pid})" for j, pid in others.items())
+        raise StoreMismatchError(
+            f"{run_dir}: shard {who} is running with another configuration "
+            f"({' and '.join(p.name for p in stale)} differ from this shard's); start shard "
+            f"{k}/{n} with the same configuration, or once the others have finished")
+
+
+def _write_fingerprint_cache(run_dir: Path, cache: dict, cache_before: str, shard) -> None:
+    """Write the input-fingerprint cache if this run learnt something (a shard: unless the
+    file already says it, e.g. a sibling shard wrote the same)."""
+    text = json.dumps(cache, sort_keys=True, indent=1)
+    path = run_dir / C.FINGERPRINT_CACHE_NAME
+    if json.dumps(cache, sort_keys=True) == cache_before:
+        return
+    if shard is not None and path.is_file() and path.read_text(encoding="utf-8") == text:
+        return
+    atomic_write_text(path, text)
 
 
 def _recorded_inputs(old: dict | None, finished, inputs: dict) -> dict:

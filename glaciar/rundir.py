@@ -5,8 +5,9 @@ the same directory, then a rename), so an interrupted run never leaves a half-wr
 file.  ``RUN_DIR/manifest.json`` records the run's settings, inputs and store format
 (:func:`read_manifest`, :func:`write_manifest`); :func:`file_fingerprint` hashes the
 input files it names; :class:`RunLock` (``RUN_DIR/.lock``) lets one process write a run
-directory at a time.  The task files and parts under ``results/`` are
-:mod:`glaciar.store`'s.
+directory at a time, or the N shards of a sharded run together (``RUN_DIR/.shards/``:
+per-shard locks and records of the shard count, the set-up lock; :mod:`glaciar.shards`).
+The task files and parts under ``results/`` are :mod:`glaciar.store`'s.
 """
 from __future__ import annotations
 
@@ -15,14 +16,16 @@ import hashlib
 import json
 import os
 import tempfile
+import time
 from pathlib import Path
 
-from .constants import LOCK_NAME, MANIFEST_NAME
-from .paths import UnsafePathError, allocate, disk_full
+from .constants import LOCK_NAME, MANIFEST_NAME, SHARDS_DIRNAME
+from .paths import UnsafePathError, allocate, disk_full, run_subdir
 
 __all__ = ["process_umask", "atomic_write_bytes", "atomic_write_text", "StoreMismatchError",
            "RunLockedError", "read_manifest", "manifest_text", "write_manifest", "store_format",
-           "file_fingerprint", "RunLock"]
+           "file_fingerprint", "RunLock", "read_shard_counts", "check_shard_count",
+           "write_shard_record", "shard_holder", "run_holder", "running_shards"]
 
 
 class StoreMismatchError(RuntimeError):
@@ -169,102 +172,319 @@ def file_fingerprint(path: str | os.PathLike, cache: dict | None = None) -> dict
 # --------------------------------------------------------------------------
 #: ``os.open`` flag that refuses a symbolic link as the last component (0 where unknown).
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+#: A shard lock found held is tried again this many times, this far apart [s], before the
+#: shard is refused: another process's probe (:func:`shard_holder`, a joining shard's check)
+#: holds it for microseconds.
+_SHARD_LOCK_TRIES, _SHARD_LOCK_PAUSE = 5, 0.05
+_BUSY = (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
+
+
+def _shard_lock_path(run_dir, k: int) -> Path:
+    return Path(run_dir) / SHARDS_DIRNAME / f"shard-{int(k)}.lock"
+
+
+def _shard_record_path(run_dir, k: int) -> Path:
+    return Path(run_dir) / SHARDS_DIRNAME / f"shard-{int(k)}.json"
+
+
+def _pid_text(fd: int) -> str:
+    try:
+        text = os.pread(fd, 64, 0).decode("ascii", "replace").strip()
+    except OSError:
+        text = ""
+    return text if text.isdigit() else "unknown"
+
+
+def _probe(path: Path, how: int) -> str | None:
+    """The pid text of the holder of a conflicting flock on ``path`` (``how``: LOCK_SH or
+    LOCK_EX), or None when it is free or missing (creates nothing, holds nothing)."""
+    import fcntl
+
+    try:
+        fd = os.open(path, os.O_RDONLY | _NOFOLLOW)
+    except FileNotFoundError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, how | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno in _BUSY:
+                return _pid_text(fd)
+            raise
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
+def shard_holder(run_dir, k: int) -> str | None:
+    """Pid text of the process running shard ``k`` in ``run_dir`` (its shard lock), or None."""
+    import fcntl
+
+    return _probe(_shard_lock_path(run_dir, k), fcntl.LOCK_SH)
+
+
+def run_holder(run_dir) -> str | None:
+    """Pid text of the unsharded run, fit or report holding ``run_dir``'s lock, or None."""
+    import fcntl
+
+    return _probe(Path(run_dir) / LOCK_NAME, fcntl.LOCK_SH)
+
+
+def running_shards(run_dir, exclude: int | None = None) -> dict[int, str]:
+    """``{k: pid text}`` of the shards whose lock is held in ``run_dir`` (not ``exclude``'s)."""
+    d = Path(run_dir) / SHARDS_DIRNAME
+    out = {}
+    for p in sorted(d.glob("shard-*.lock")) if d.is_dir() else ():
+        try:
+            k = int(p.name[len("shard-"):-len(".lock")])
+        except ValueError:
+            continue
+        pid = None if k == exclude else shard_holder(run_dir, k)
+        if pid is not None:
+            out[k] = pid
+    return dict(sorted(out.items()))
+
+
+def read_shard_counts(run_dir) -> dict[int, int]:
+    """``{k: n}`` from the records of the shards that have started in ``run_dir``."""
+    d = Path(run_dir) / SHARDS_DIRNAME
+    out = {}
+    for p in sorted(d.glob("shard-*.json")) if d.is_dir() else ():
+        try:
+            data = json.loads(p.read_text(encoding="utf-8"))
+            out[int(data["shard"])] = int(data["shards"])
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise StoreMismatchError(f"{p}: unreadable shard record ({exc}); expected "
+                                     '{"shard": K, "shards": N}') from None
+    return out
+
+
+def check_shard_count(run_dir, shard: tuple[int, int]) -> None:
+    """Refuse (:class:`StoreMismatchError`, one line naming both counts) shard ``(k, n)`` of a run
+    directory whose shards were started with another count."""
+    k, n = shard
+    other = sorted({m for m in read_shard_counts(run_dir).values() if m != n})
+    if other:
+        m = other[0]
+        raise StoreMismatchError(
+            f"{run_dir}: its shards were started as {m} shards (--shard K/{m}); --shard {k}/{n} "
+            f"asks for {n}: a run's shard count cannot change; use --shard K/{m}, no --shard once "
+            "every shard has finished, or another --out")
+
+
+def write_shard_record(run_dir, shard: tuple[int, int]) -> None:
+    """Record shard ``(k, n)``'s count in ``RUN/.shards/shard-K.json`` (by that shard only)."""
+    k, n = shard
+    p = _shard_record_path(run_dir, k)
+    text = json.dumps({"shard": int(k), "shards": int(n)}, sort_keys=True) + "\n"
+    try:
+        if p.read_text(encoding="utf-8") == text:
+            return
+    except OSError:
+        pass
+    atomic_write_text(p, text)
 
 
 class RunLock:
-    """Advisory, exclusive lock on a run directory (``fcntl.flock`` on ``RUN_DIR/.lock``).
+    """Advisory lock on a run directory (``fcntl.flock`` on ``RUN_DIR/.lock``).
 
-    Only the holder writes the manifest, the stored config and task files,
-    and removes stale temporary files.  The lock file holds the holder's pid
-    (for the refusal message); it is never deleted, so that two processes
-    always lock the same inode.
+    Unsharded (``shard=None``): exclusive on ``.lock``; only the holder writes the
+    manifest, the stored config and task files, and removes stale temporary files.
+
+    Shard ``(k, n)``: shared on ``.lock`` and exclusive on ``RUN_DIR/.shards/shard-K.lock``.
+    Shards with different K hold it together; the same K twice is refused, and so is an
+    unsharded run (or a fit/report, which take ``.lock`` exclusively) while any shard
+    holds it, and a shard while one of those does.  A shard writes only its own task
+    files, parts and shard record; the shared files (manifest, stored config,
+    fingerprint cache, field caches) only while it also holds the set-up lock
+    (:meth:`setup`, exclusive on ``RUN_DIR/.shards/setup.lock``), which shards take in
+    turn.
+
+    The lock file of an exclusive holder holds its pid (for the refusal message); lock
+    files are never deleted, so that two processes always lock the same inode.
     """
 
-    def __init__(self, run_dir: str | os.PathLike):
+    def __init__(self, run_dir: str | os.PathLike, shard: tuple[int, int] | None = None):
         self.run_dir = Path(run_dir)
         self.path = self.run_dir / LOCK_NAME
+        self.shard = None if shard is None else (int(shard[0]), int(shard[1]))
         self._fd: int | None = None
+        self._shard_fd: int | None = None
+        self._setup_fd: int | None = None
 
-    @staticmethod
-    def _holder(fd: int) -> str:
-        try:
-            text = os.pread(fd, 64, 0).decode("ascii", "replace").strip()
-        except OSError:
-            text = ""
-        return text if text.isdigit() else "unknown"
-
-    def _link_or(self, exc: OSError) -> Exception:
+    def _link_or(self, exc: OSError, path: Path | None = None) -> Exception:
         """A refusal naming a lock file that is a symbolic link, else ``exc`` itself."""
-        if exc.errno == errno.ELOOP or self.path.is_symlink():
-            return UnsafePathError(f"{self.path}: is a symbolic link; glaciar writes only inside "
+        path = self.path if path is None else path
+        if exc.errno == errno.ELOOP or path.is_symlink():
+            return UnsafePathError(f"{path}: is a symbolic link; glaciar writes only inside "
                                    "the run directory: remove it")
         return exc
 
-    def _refuse(self, fd: int):
-        pid = self._holder(fd)
+    def _refuse(self, fd: int | None = None, shards: dict | None = None):
+        shards = running_shards(self.run_dir) if shards is None else shards
+        if shards and self.shard is None:
+            n = (read_shard_counts(self.run_dir) or {}).values()
+            of = f"/{max(n)}" if n else ""
+            who = ", ".join(f"{k}{of} (pid {pid})" for k, pid in shards.items())
+            return RunLockedError(f"{self.run_dir}: shards of a sharded run are writing here "
+                                  f"(shard {who}); run again once they have finished")
+        pid = "unknown" if fd is None else _pid_text(fd)
+        if self.shard is not None:
+            return RunLockedError(f"{self.run_dir}: an unsharded glaciar run (or a fit/report) is "
+                                  f"writing here (pid {pid}); a shard starts once it has finished")
         return RunLockedError(f"{self.run_dir}: another glaciar run is writing here (pid {pid})")
 
+    def _refuse_shard(self, pid: str):
+        k, n = self.shard
+        return RunLockedError(f"{self.run_dir}: shard {k}/{n} is already running here (pid {pid}); "
+                              "each shard runs once at a time")
+
     def check_free(self) -> None:
-        """Raise :class:`RunLockedError` if another process holds the lock (creates nothing)."""
+        """Raise :class:`RunLockedError` if a process holds what :meth:`acquire` would take
+        (creates nothing)."""
         import fcntl
 
         try:
             fd = os.open(self.path, os.O_RDONLY | _NOFOLLOW)
         except FileNotFoundError:
-            return
+            fd = None
         except OSError as exc:
             raise self._link_or(exc) from None
-        try:
+        if fd is not None:
             try:
-                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-            except OSError as exc:
-                if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                    raise self._refuse(fd) from None
-                raise
-            fcntl.flock(fd, fcntl.LOCK_UN)
-        finally:
-            os.close(fd)
-
-    def acquire(self) -> "RunLock":
-        """Take the lock (creating the lock file) or raise :class:`RunLockedError`."""
-        import fcntl
-
-        try:
-            # Not through a symbolic link: the pid written below would land outside the run.
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | _NOFOLLOW, 0o666 & ~process_umask())
-        except OSError as exc:
-            raise self._link_or(exc) from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            try:
-                if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                    raise self._refuse(fd) from None
-                raise
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+                except OSError as exc:
+                    if exc.errno in _BUSY:
+                        raise self._refuse(fd, shards={}) from None
+                    raise
+                fcntl.flock(fd, fcntl.LOCK_UN)
             finally:
                 os.close(fd)
+        if self.shard is None:
+            shards = running_shards(self.run_dir)
+            if shards:
+                raise self._refuse(shards=shards)
+        else:
+            pid = shard_holder(self.run_dir, self.shard[0])
+            if pid is not None:
+                raise self._refuse_shard(pid)
+
+    def _open(self, path: Path) -> int:
+        try:
+            # Not through a symbolic link: the pid written below would land outside the run.
+            return os.open(path, os.O_RDWR | os.O_CREAT | _NOFOLLOW, 0o666 & ~process_umask())
+        except OSError as exc:
+            raise self._link_or(exc, path) from None
+
+    def _write_pid(self, fd: int, path: Path) -> None:
         try:
             os.ftruncate(fd, 0)
             os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         except OSError as exc:
             # The pid only names the holder in refusals: on a full disk the lock holds
             # without it, and the run's first real write says which file has no room.
-            if disk_full(self.path, exc) is None:
+            if disk_full(path, exc) is None:
                 os.close(fd)
                 raise
-        self._fd = fd
-        return self
 
-    def release(self) -> None:
-        """Release the lock (the file stays)."""
+    def acquire(self) -> "RunLock":
+        """Take the lock (creating the lock files) or raise :class:`RunLockedError`."""
         import fcntl
 
-        if self._fd is not None:
+        fd = self._open(self.path)
+        how = fcntl.LOCK_EX if self.shard is None else fcntl.LOCK_SH
+        try:
+            fcntl.flock(fd, how | fcntl.LOCK_NB)
+        except OSError as exc:
             try:
-                fcntl.flock(self._fd, fcntl.LOCK_UN)
+                if exc.errno in _BUSY:
+                    raise self._refuse(fd, shards=None if self.shard is None else {}) from None
+                raise
             finally:
-                os.close(self._fd)
-                self._fd = None
+                os.close(fd)
+        if self.shard is None:
+            self._write_pid(fd, self.path)
+            self._fd = fd
+            return self
+        # A shard: .lock shared (never written: other shards hold it too), its own lock exclusive.
+        self._fd = fd
+        try:
+            run_subdir(self.run_dir, SHARDS_DIRNAME)
+            path = _shard_lock_path(self.run_dir, self.shard[0])
+            sfd = self._open(path)
+            for attempt in range(_SHARD_LOCK_TRIES):
+                try:
+                    fcntl.flock(sfd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except OSError as exc:
+                    if exc.errno not in _BUSY:
+                        os.close(sfd)
+                        raise
+                    if attempt == _SHARD_LOCK_TRIES - 1:
+                        pid = _pid_text(sfd)
+                        os.close(sfd)
+                        raise self._refuse_shard(pid) from None
+                    time.sleep(_SHARD_LOCK_PAUSE)
+            self._write_pid(sfd, path)
+            self._shard_fd = sfd
+        except BaseException:
+            self.release()
+            raise
+        return self
+
+    def begin_setup(self) -> None:
+        """A shard: wait for, then take, the set-up lock (no-op when unsharded or held)."""
+        import fcntl
+
+        if self.shard is None or self._setup_fd is not None:
+            return
+        fd = self._open(Path(self.run_dir) / SHARDS_DIRNAME / "setup.lock")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        except BaseException:
+            os.close(fd)
+            raise
+        self._setup_fd = fd
+
+    def end_setup(self) -> None:
+        """Release the set-up lock (no-op when not held)."""
+        import fcntl
+
+        if self._setup_fd is not None:
+            try:
+                fcntl.flock(self._setup_fd, fcntl.LOCK_UN)
+            finally:
+                os.close(self._setup_fd)
+                self._setup_fd = None
+
+    def setup(self):
+        """Context manager: the set-up lock held inside (a shard; nothing unsharded)."""
+        import contextlib
+
+        @contextlib.contextmanager
+        def held():
+            self.begin_setup()
+            try:
+                yield self
+            finally:
+                self.end_setup()
+        return held()
+
+    def release(self) -> None:
+        """Release every lock held (the files stay)."""
+        import fcntl
+
+        self.end_setup()
+        for attr in ("_shard_fd", "_fd"):
+            fd = getattr(self, attr)
+            if fd is not None:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_UN)
+                finally:
+                    os.close(fd)
+                    setattr(self, attr, None)
 
     @property
     def held(self) -> bool:

@@ -699,7 +699,8 @@ def _partition_dir(run_dir: Path, field: str, z: float) -> Path:
 
 def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.DataFrame | None,
                mag_column: str | None, extra_meta: dict | None = None,
-               hist: pd.DataFrame | None = None, obs_column: str | None = None) -> Path:
+               hist: pd.DataFrame | None = None, obs_column: str | None = None,
+               tag: str | None = None) -> Path:
     """Write one compacted part of (field, z) atomically; return its path.
 
     Parameters
@@ -716,6 +717,9 @@ def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.Dat
         The tasks' :func:`glaciar.counting.task_histogram` (None: a part without histograms).
     obs_column : str or None
         The measured-magnitude column the histograms bin.
+    tag : str, optional
+        Put in the part's name (``part-<tag>-<hash>.parquet``): a shard's parts and their
+        temporaries are told from its siblings' by it (:func:`compact`).
     """
     meta = {**(extra_meta or {}),
             META_PART_TASKS: json.dumps(tasks, ensure_ascii=False).encode("utf-8"),
@@ -731,7 +735,8 @@ def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.Dat
             meta[k + DIGEST_SUFFIX] = blake2b_digest(meta[k])
     meta[META_SCHEMA] = schema_digest(table.schema, table.num_rows)
     data = parquet_bytes(table.replace_schema_metadata(meta))
-    name = "part-" + _short_hash("\n".join(sorted(str(t[1]) for t in tasks)), 16) + ".parquet"
+    name = ("part-" + (f"{tag}-" if tag else "")
+            + _short_hash("\n".join(sorted(str(t[1]) for t in tasks)), 16) + ".parquet")
     part_dir = _partition_dir(Path(run_dir), field, float(z))
     run_subdir(run_dir, *part_dir.relative_to(Path(run_dir)).parts)
     path = part_dir / name
@@ -739,7 +744,8 @@ def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.Dat
     return path
 
 
-def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
+def compact(run_dir: str | os.PathLike, min_tasks: int = 0, tasks=None,
+            tag: str | None = None) -> int:
     """Merge loose task files into one part per (field, z); return the tasks compacted.
 
     Only the holder of the run's lock may call this.  Nothing happens when
@@ -752,17 +758,34 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
     files whose footer digests or page checksums fail are set aside in
     ``results/corrupt/`` (:func:`set_aside`), never copied into a part.
     Parts are written with page checksums like task files.
+
+    A shard of a run (:mod:`glaciar.shards`) passes ``tasks``, the file names of its
+    own tasks, and ``tag`` (e.g. ``s2``): it compacts, deletes and sets aside only its own
+    task files, names its parts ``part-<tag>-...`` and removes only its own stale part
+    temporaries, so that it never touches a file a sibling shard is writing.  Each task
+    is in one shard, so its loose file and its part are written by one process, and
+    readers see it once (:func:`_store_units`).  Without them (an unsharded run, which
+    excludes every shard): every loose file and stale temporary.
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     run_dir = Path(run_dir)
     # Temporary parts of a compaction that was killed (the caller holds the lock).
-    for stale in (run_dir / RESULTS_DIRNAME / COMPACT_DIRNAME).glob("field=*/z=*/.part-*.tmp"):
+    stale_pattern = "field=*/z=*/.part-*.tmp" if not tag else f"field=*/z=*/.part-{tag}-*.tmp"
+    for stale in (run_dir / RESULTS_DIRNAME / COMPACT_DIRNAME).glob(stale_pattern):
         stale.unlink(missing_ok=True)
+    # Listed before the units: a file listed here and not loose there is in a part.  (A
+    # second listing after them would also hold task files written meanwhile -- by this
+    # run's pool workers, or a sibling shard -- which no part holds yet.)
+    listed = set(_loose_files(run_dir))
     parts, loose = _store_units(run_dir, warn=False)
-    for f in set(_loose_files(run_dir)) - set(loose):
-        f.unlink(missing_ok=True)            # already in a renamed part: a kill left it behind
+    own = set(tasks) if tasks is not None else None
+    for f in listed - set(loose):
+        if own is None or f.name in own:
+            f.unlink(missing_ok=True)        # already in a renamed part: a kill left it behind
+    if own is not None:
+        loose = [f for f in loose if f.name in own]
     if len(loose) < max(1, int(min_tasks)):
         return 0
     groups: dict = {}
@@ -817,7 +840,8 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0) -> int:
                if hists and len(hists) == len(items) and len(obs) == 1 else None)
         write_part(run_dir, field, float(z), table, tasks, cnt,
                    mags.pop().decode("utf-8") if cnt is not None else None, pandas_meta,
-                   hist=hst, obs_column=obs.pop().decode("utf-8") if hst is not None else None)
+                   hist=hst, obs_column=obs.pop().decode("utf-8") if hst is not None else None,
+                   tag=tag)
         for f, _, _ in items:                # only after the part is in place
             f.unlink(missing_ok=True)
         n_done += len(items)
