@@ -216,6 +216,144 @@ def run_glaciar(params: Path, job_dir: Path) -> dict:
     return meas
 
 
+class StageClock:
+    """Exclusive CPU time (``time.process_time``) per stage of wrapped functions.
+
+    A wrapped call's time goes to its stage minus the time of wrapped calls inside
+    it (which go to theirs), so the stages add up to the instrumented part of the
+    process.  The wrappers cost ~1 us a call (a few thousand calls per task).
+    """
+
+    def __init__(self):
+        self.cpu: dict[str, float] = {}
+        self.calls: dict[str, int] = {}
+        self._stack: list[list] = []          # [stage, CPU of wrapped calls inside it]
+
+    def add(self, stage: str, dt: float) -> None:
+        self.cpu[stage] = self.cpu.get(stage, 0.0) + dt
+        self.calls[stage] = self.calls.get(stage, 0) + 1
+
+    def wrap(self, stage: str, fn):
+        import functools
+
+        @functools.wraps(fn)
+        def timed(*a, **k):
+            own = stage
+            outer = self._stack[-1][0] if self._stack else ""
+            if outer.startswith(DEFER_TO) and not stage.startswith(outer.split(":")[0]):
+                own = outer          # e.g. sep.extract inside the set-up stays set-up
+            t0 = time.process_time()
+            self._stack.append([own, 0.0])
+            try:
+                return fn(*a, **k)
+            finally:
+                dt = time.process_time() - t0
+                inner = self._stack.pop()[1]
+                self.add(own, dt - inner)
+                if self._stack:
+                    self._stack[-1][1] += dt
+        return timed
+
+    def patch(self, owner, name: str, stage: str) -> None:
+        """Wrap ``owner.name`` (a module's function or a class's method) in place."""
+        fn = owner.__dict__.get(name) if isinstance(owner, type) else getattr(owner, name, None)
+        if fn is None:
+            raise RuntimeError(f"stage profile: {getattr(owner, '__name__', owner)}.{name} is gone "
+                               "(glaciar changed: update STAGES in benchmarks/vs_glaciar.py)")
+        setattr(owner, name, self.wrap(stage, fn))
+
+
+#: Stages whose nested calls of other kinds (sep.extract, photometry, ...) stay theirs.
+DEFER_TO = ("set-up", "writing")
+#: (module, attribute[, class], stage): where each stage's functions are looked up at call
+#: time.  Names imported with ``from x import f`` are patched in the importing module.
+STAGES = [
+    ("glaciar.config", "load_config", None, "config: read and validate"),
+    ("glaciar.config", "check_files", None, "config: read and validate"),
+    ("glaciar.execute", "open_run", None, "set-up: input checks, fingerprints, manifest"),
+    ("glaciar.manifest", "check_inputs", None, "set-up: input checks, fingerprints, manifest"),
+    ("glaciar.manifest", "detection_z_limit", None, "set-up: detection z limit, placement check"),
+    ("glaciar.manifest", "placement_preflight", None, "set-up: detection z limit, placement check"),
+    ("glaciar.fieldprep", "field_settings", None, "set-up: settings, PSFs, templates"),
+    ("glaciar.manifest", "field_settings", None, "set-up: settings, PSFs, templates"),
+    ("glaciar.fieldprep", "band_pixels", None, "set-up: read images, background"),
+    ("glaciar.fieldprep", "reference_extraction", None, "set-up: reference extraction"),
+    ("glaciar.fieldprep", "correlated_noise", None, "set-up: empty apertures (noise record)"),
+    ("glaciar.fieldprep", "field_depth", None, "set-up: depth map"),
+    ("glaciar.manifest", "field_depth_area", None, "set-up: depth map"),
+    ("glaciar.manifest", "field_noise_record", None, "set-up: empty apertures (noise record)"),
+    ("glaciar.execute", "prepare_context_cache", None, "writing: field cache"),
+    ("glaciar.engine.task", "task_rng", None, "draws (spectra, shapes, sizes, positions)"),
+    ("glaciar.engine.task", "draw_task_sources", None, "draws (spectra, shapes, sizes, positions)"),
+    ("glaciar.engine.task", "draw_positions", None, "draws (spectra, shapes, sizes, positions)"),
+    ("glaciar.galaxy.templates", "stamp", "TemplateCache", "stamps (render, convolve, cache)"),
+    ("glaciar.engine.scene", "__init__", "Scene", "injection (scenes, canvases, band windows)"),
+    ("glaciar.engine.context", "detection_scene", "FieldContext",
+     "injection (scenes, canvases, band windows)"),
+    ("glaciar.engine.canvas", "__init__", "Canvas", "injection (scenes, canvases, band windows)"),
+    ("glaciar.engine.canvas", "band", "Canvas", "injection (scenes, canvases, band windows)"),
+    ("glaciar.engine.task", "measure_injected", None,
+     "extraction: windows, exactness checks, CLEAN"),
+    ("sep", "extract", None, "extraction: sep.extract"),
+    ("glaciar.engine.measure", "_finish", None, "photometry (ISO, AUTO, apertures, template AUTO)"),
+    ("glaciar.engine.measure", "classify", None, "classification"),
+    ("glaciar.engine.measure", "footprint_overlap", None, "classification"),
+    ("glaciar.engine.selection", "__call__", "Selection", "selection"),
+    ("glaciar.execute", "run_task", None, "per-task table (fluxes, columns, DataFrame)"),
+    ("glaciar.execute", "write_task_table", None, "writing: task files, compaction"),
+    ("glaciar.execute", "compact", None, "writing: task files, compaction"),
+    ("glaciar.execute", "finish_context_cache", None, "writing: field cache"),
+    ("glaciar.cli", "_report", None, "writing: summaries (report tables, PNG maps)"),
+]
+
+
+def stages_child(params: str, out: str) -> None:
+    """In this process: import glaciar, wrap the stages, run ``glaciar simulate``; print JSON."""
+    import importlib
+
+    c0 = time.process_time()
+    clock = StageClock()
+    import glaciar.cli
+    for mod in {m for m, *_ in STAGES}:
+        importlib.import_module(mod)
+    import glaciar.report  # noqa: F401  (imported by the summaries at the end)
+    import glaciar.plots  # noqa: F401
+    clock.add("imports (glaciar, numpy, scipy, astropy, pandas, matplotlib)", time.process_time() - c0)
+    for mod, name, cls, stage in STAGES:
+        owner = importlib.import_module(mod)
+        clock.patch(getattr(owner, cls) if cls else owner, name, stage)
+    import contextlib
+    import io
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        rc = glaciar.cli.main(["simulate", params, "--out", out, "--workers", "1", "--quiet"])
+    if rc:
+        raise SystemExit(f"glaciar simulate exited {rc}")
+    import resource
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    print(json.dumps({"cpu": clock.cpu, "calls": clock.calls, "total": ru.ru_utime + ru.ru_stime}))
+
+
+def stage_table(job_dir: Path, params: Path, n: int) -> list[str]:
+    """Run :func:`stages_child` in a new process on one job; the lines of its table."""
+    out = job_dir / "glaciar_stages_run"
+    if out.exists():
+        shutil.rmtree(out)
+    proc = subprocess.run([sys.executable, __file__, "--stages-child", str(params), str(out)],
+                          env=child_env(), capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"stage profile failed:\n{proc.stderr[-3000:]}")
+    r = json.loads(proc.stdout.strip().splitlines()[-1])
+    total = r["total"]
+    rows = sorted(r["cpu"].items(), key=lambda kv: -kv[1])
+    rest = total - sum(r["cpu"].values())
+    lines = [f"glaciar simulate, {n} sources, 1 worker, stages instrumented: whole-process CPU "
+             f"{total:.2f} s = {1e3 * total / n:.3f} ms per source; exclusive CPU by stage",
+             f"{'stage':<56s} {'CPU s':>7s} {'ms/source':>9s} {'share':>6s}"]
+    for stage, t in rows + [("interpreter start-up and the rest", rest)]:
+        lines.append(f"{stage:<56s} {t:7.2f} {1e3 * t / n:9.3f} {t / total:6.1%}")
+    return lines
+
+
 def fmt_row(label, a, b, unit, ratio=True, digits=1):
     r = f"{a / b:8.1f}x" if ratio and b else f"{'':9s}"
     return f"{label:<40s} {a:>10.{digits}f} {b:>10.{digits}f} {r}  {unit}"
@@ -233,14 +371,21 @@ def main(argv=None):
     ap.add_argument("--scratch", default=None, help="scratch directory (default: a new temporary one)")
     ap.add_argument("--keep", action="store_true", help="keep the scratch directory (GLACiAR writes "
                                                          "~70 MB of catalogues per 100 iterations)")
+    ap.add_argument("--stages", action="store_true",
+                    help="also profile glaciar's whole process by stage on the largest job "
+                         "(another run, in a new process)")
+    ap.add_argument("--stages-child", nargs=2, metavar=("PARAMS", "OUT"), help=argparse.SUPPRESS)
     ap.add_argument("--glaciar-only", action="store_true",
                     help="stage the inputs with the harness but time glaciar alone (no ratio)")
     opt = ap.parse_args(argv)
+    if opt.stages_child:
+        stages_child(*opt.stages_child)
+        return
 
     harness, src, py = peer_paths(opt)
     scratch = Path(opt.scratch) if opt.scratch else Path(tempfile.mkdtemp(prefix="glaciar-vs-peer-"))
     scratch.mkdir(parents=True, exist_ok=True)
-    rows = []
+    rows, stages = [], []
     try:
         for it in opt.iterations:
             cfg = job_config(harness, opt.z_bins, it)
@@ -259,6 +404,8 @@ def main(argv=None):
             if g["n"] != peer["n"]:
                 raise RuntimeError(f"glaciar injected {g['n']} sources, GLACiAR {peer['n']}: not the same job")
             rows.append((peer["n"], peer["meas"], g))
+        if opt.stages:
+            stages = stage_table(job, peer["params"], peer["n"])
     finally:
         if not opt.keep:
             shutil.rmtree(scratch, ignore_errors=True)
@@ -299,6 +446,9 @@ def main(argv=None):
         if p is not None:
             print(f"GLACiAR {n}: stamp builds {p['stamp_s']:.1f} s, SExtractor {p['sextractor_s']:.1f} s "
                   f"(harness timing.json, wall); glaciar {n}: set-up {g['setup_wall_s']:.1f} s wall")
+    if stages:
+        print()
+        print("\n".join(stages))
     if opt.keep:
         print(f"scratch kept in {scratch}")
 
