@@ -20,11 +20,17 @@ this one run (never from constants measured elsewhere):
 
 The job is the harness's ``config.yaml`` (4-band 1200x1200 WFC3-like field,
 z = 9.6-11.0 in 8 bins, m = 24.0-28.0 in 21 bins, 100 galaxies per
-iteration, 3 iterations: 50 400 sources, ~20 min wall / ~48 min CPU for GLACiAR
-here) with the number of redshift bins and iterations overridden:
-the default is 2 z bins (9.6, 9.8) x 21 mags x 100 galaxies x 1 and 2
-iterations, i.e. jobs of 4 200 and 8 400 sources (~4 and ~6 min CPU for
-GLACiAR).  ``--z-bins 8 --iterations 3`` runs the harness's full job.
+iteration, 3 iterations: 50 400 sources, ~19 min of GLACiAR CPU on an idle
+2-core machine, the harness's README says) with the number of redshift bins and
+iterations overridden: the default is 2 z bins (9.6, 9.8) x 21 mags x 100
+galaxies x 1 and 2 iterations, i.e. jobs of 4 200 and 8 400 sources (~2 and
+~3.5 min of GLACiAR CPU, ~10 s and ~15 s of glaciar's).  ``--z-bins 8
+--iterations 3`` runs the harness's full job.
+
+``--stages`` then runs glaciar once more on the largest job with its stages
+wrapped (:class:`StageClock`) and prints the whole process's CPU by stage
+(set-up, draws, stamps, injection, extraction, photometry, classification,
+selection, writing, imports, configuration).
 
 Set-up of the peer (once; see the harness's README.md)::
 
@@ -37,7 +43,7 @@ Set-up of the peer (once; see the harness's README.md)::
 Usage (from the repository's root, with glaciar importable)::
 
     python benchmarks/vs_glaciar.py [--harness DIR] [--z-bins 2] [--iterations 1 2]
-                                    [--scratch DIR] [--keep] [--glaciar-only]
+                                    [--scratch DIR] [--keep] [--glaciar-only] [--stages]
 
 Without the peer set up it says what is missing and exits with status 2.
 Both children run with OMP/OpenBLAS/MKL threads = 1 (one worker each).
