@@ -222,6 +222,11 @@ def run_glaciar(params: Path, job_dir: Path) -> dict:
     return meas
 
 
+def _maxrss_mb() -> float:
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 class StageClock:
     """Exclusive CPU time (``time.process_time``) per stage of wrapped functions.
 
@@ -233,11 +238,17 @@ class StageClock:
     def __init__(self):
         self.cpu: dict[str, float] = {}
         self.calls: dict[str, int] = {}
+        self.rss_growth: dict[str, float] = {}      # MB by which the peak RSS grew in a stage
+        self._peak = _maxrss_mb()
         self._stack: list[list] = []          # [stage, CPU of wrapped calls inside it]
 
     def add(self, stage: str, dt: float) -> None:
         self.cpu[stage] = self.cpu.get(stage, 0.0) + dt
         self.calls[stage] = self.calls.get(stage, 0) + 1
+        peak = _maxrss_mb()
+        if peak > self._peak:
+            self.rss_growth[stage] = self.rss_growth.get(stage, 0.0) + peak - self._peak
+            self._peak = peak
 
     def wrap(self, stage: str, fn):
         import functools
@@ -318,7 +329,9 @@ def stages_child(params: str, out: str) -> None:
     import importlib
 
     c0 = time.process_time()
+    rss0 = _maxrss_mb()
     clock = StageClock()
+    clock.rss_growth["interpreter start-up"] = rss0
     import glaciar.cli
     for mod in {m for m, *_ in STAGES}:
         importlib.import_module(mod)
@@ -336,7 +349,8 @@ def stages_child(params: str, out: str) -> None:
         raise SystemExit(f"glaciar simulate exited {rc}")
     import resource
     ru = resource.getrusage(resource.RUSAGE_SELF)
-    print(json.dumps({"cpu": clock.cpu, "calls": clock.calls, "total": ru.ru_utime + ru.ru_stime}))
+    print(json.dumps({"cpu": clock.cpu, "calls": clock.calls, "total": ru.ru_utime + ru.ru_stime,
+                      "rss_growth": clock.rss_growth, "maxrss": ru.ru_maxrss / 1024.0}))
 
 
 def stage_table(job_dir: Path, params: Path, n: int) -> list[str]:
@@ -357,6 +371,9 @@ def stage_table(job_dir: Path, params: Path, n: int) -> list[str]:
              f"{'stage':<56s} {'CPU s':>7s} {'ms/source':>9s} {'share':>6s}"]
     for stage, t in rows + [("interpreter start-up and the rest", rest)]:
         lines.append(f"{stage:<56s} {t:7.2f} {1e3 * t / n:9.3f} {t / total:6.1%}")
+    grow = sorted(r["rss_growth"].items(), key=lambda kv: -kv[1])
+    lines.append(f"peak RSS {r['maxrss']:.0f} MB, reached by steps in: "
+                 + ", ".join(f"{k} +{v:.0f}" for k, v in grow if v >= 1.0) + " (MB)")
     return lines
 
 
