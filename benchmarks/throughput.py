@@ -16,12 +16,21 @@ per injected source (``time.process_time``):
 * the full-frame alternative: one ``sep.extract`` of the whole injected
   detection image plus ``sep.sum_circle`` on the whole band images;
 * ratios from the same run (the machine may be shared: absolute times are
-  noisy, ratios much less), and the speed-up over GLACiAR's 18 ms per
-  injected source.
+  noisy, ratios much less).
+
+No ratio to GLACiAR is printed here: a ratio must come from one run on one
+machine, which ``benchmarks/vs_glaciar.py`` does (the original GLACiAR through
+the peer harness and ``glaciar simulate`` on the same job, whole process).
+
+``--save-tables DIR`` writes each timed task's per-source table as Parquet
+(``m<mag>_task<k>.parquet``); ``--compare-tables DIR`` compares this run's
+tables with such a directory, bit for bit (NaN equal to NaN), e.g. before and
+after an engine change.
 
 Usage::
 
     python benchmarks/throughput.py [--size 1200] [--tasks 10] [--n 100] [--z 8] [--mag 24 26 28] [--warmup 1] [--profile]
+                                    [--save-tables DIR] [--compare-tables DIR]
 """
 from __future__ import annotations
 
@@ -44,7 +53,6 @@ from glaciar.fieldprep import build_field_context
 from glaciar.plan import plan_tasks
 from glaciar.survey import Survey
 
-GLACIAR_MS_PER_SOURCE = 18.0   # Carrasco et al. 2018 code on a BoRG field (issue 3)
 MIN_WINDOW = 33
 
 
@@ -171,7 +179,7 @@ def measure_mag(opt, mag, tmp):
 
     task_module.measure_injected = recording
     r = dict(t_pipe=0.0, t_meas=0.0, t_floor=0.0, t_full=0.0, n_src=0, n_det=0, rounds=[], areas=[],
-             t_build=t_build, t_ctx=t_ctx, ctx=ctx, prof=None)
+             t_build=t_build, t_ctx=t_ctx, ctx=ctx, prof=None, tables=[])
     try:
         for spec in specs[:opt.warmup]:                           # warm-up (template cache)
             task_module.run_task(ctx, spec, seed)
@@ -187,6 +195,7 @@ def measure_mag(opt, mag, tmp):
             if r["prof"] is not None:
                 r["prof"].disable()
             r["t_meas"] += rec["t_measure"]
+            r["tables"].append(table)
             r["n_src"] += len(table)
             r["n_det"] += int(np.sum(table["status"].to_numpy() != STATUS_NOT_DETECTED))
             a = _bind(rec["args"], rec["kwargs"])
@@ -201,6 +210,56 @@ def measure_mag(opt, mag, tmp):
     finally:
         task_module.measure_injected = real
     return r
+
+
+def table_path(directory, mag: float, k: int):
+    from pathlib import Path
+    return Path(directory) / f"m{mag:g}_task{k}.parquet"
+
+
+def save_tables(directory, rows) -> None:
+    """Each timed task's per-source table, as Parquet (float bits kept)."""
+    from pathlib import Path
+    Path(directory).mkdir(parents=True, exist_ok=True)
+    for mag, r in rows:
+        for k, table in enumerate(r["tables"]):
+            table.to_parquet(table_path(directory, mag, k), index=False)
+
+
+def same_bits(a, b) -> bool:
+    """Two columns equal bit for bit (floats by their bytes, so NaN == NaN)."""
+    a, b = np.asarray(a), np.asarray(b)
+    if a.dtype != b.dtype or a.shape != b.shape:
+        return False
+    if a.dtype.kind in "fc":
+        return a.tobytes() == b.tobytes()
+    return bool(np.all(a == b))
+
+
+def compare_tables(directory, rows) -> bool:
+    """Print whether this run's tables equal those saved in ``directory``; True if all do."""
+    import pandas as pd
+    n_same = n_all = 0
+    diffs = []
+    for mag, r in rows:
+        for k, table in enumerate(r["tables"]):
+            n_all += 1
+            path = table_path(directory, mag, k)
+            if not path.exists():
+                diffs.append(f"{path.name}: missing")
+                continue
+            old = pd.read_parquet(path)
+            if list(old.columns) != list(table.columns):
+                diffs.append(f"{path.name}: columns differ")
+                continue
+            bad = [c for c in table.columns if not same_bits(old[c].to_numpy(), table[c].to_numpy())]
+            if bad:
+                diffs.append(f"{path.name}: {', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}")
+            else:
+                n_same += 1
+    print(f"tables vs {directory}: {n_same} of {n_all} task tables bit-identical"
+          + ("" if not diffs else "; differ: " + "; ".join(diffs[:10])))
+    return n_same == n_all
 
 
 def main(argv=None):
@@ -220,6 +279,10 @@ def main(argv=None):
     ap.add_argument("--top", type=int, default=25, help="cProfile rows printed (default 25)")
     ap.add_argument("--clean-style", default=None,
                     help="DetectionParams.clean_style (default: the configuration's, i.e. glaciar's default)")
+    ap.add_argument("--save-tables", default=None, metavar="DIR",
+                    help="write each timed task's per-source table to DIR (Parquet)")
+    ap.add_argument("--compare-tables", default=None, metavar="DIR",
+                    help="compare each timed task's table with those saved in DIR, bit for bit")
     opt = ap.parse_args(argv)
 
     rows = []
@@ -234,7 +297,7 @@ def main(argv=None):
           f"figures; ms = CPU milliseconds per injected source, ratios from this run)")
     print()
     hdr = (f"{'m':>5s} {'detected':>8s} {'pipeline':>9s} {'measure':>8s} {'rest':>7s} {'floor':>7s} "
-           f"{'full':>7s} {'pipe/floor':>10s} {'meas/floor':>10s} {'vs GLACiAR':>10s} {'rounds':>6s} "
+           f"{'full':>7s} {'pipe/floor':>10s} {'meas/floor':>10s} {'rounds':>6s} "
            f"{'median win':>10s}")
     print(hdr)
     for mag, r in rows:
@@ -243,14 +306,19 @@ def main(argv=None):
         print(f"{mag:5.1f} {r['n_det'] / r['n_src']:8.0%} {ms(r['t_pipe']):9.3f} {ms(r['t_meas']):8.3f} "
               f"{ms(r['t_pipe'] - r['t_meas']):7.3f} {ms(r['t_floor']):7.3f} {ms(r['t_full']):7.3f} "
               f"{r['t_pipe'] / r['t_floor']:10.2f} {r['t_meas'] / r['t_floor']:10.2f} "
-              f"{GLACIAR_MS_PER_SOURCE / ms(r['t_pipe']):9.1f}x {np.mean(r['rounds']):6.1f} "
+              f"{np.mean(r['rounds']):6.1f} "
               f"{np.median(area):10.0f}")
     print()
     print("pipeline: run_task (draws, stamps, injection, detection, classification, photometry, selection);")
     print("measure: measure_injected alone; rest = pipeline - measure; floor: 1 tiled sep.extract of the last")
     print(f"windows (>= {MIN_WINDOW}^2) + sum_circle per aperture and band; full: sep.extract of the whole image "
           f"+ sum_circle;")
-    print("targets (issue 11): pipe/floor <= 2, >= 25x GLACiAR's 18 ms/source at m = 26.")
+    print("target (issues 11, 24): pipe/floor <= 2 (<= 3 at m = 26); the ratio to GLACiAR: "
+          "benchmarks/vs_glaciar.py (same job, same machine).")
+    if opt.save_tables:
+        save_tables(opt.save_tables, rows)
+    if opt.compare_tables:
+        compare_tables(opt.compare_tables, rows)
     if opt.profile:
         import pstats
         for mag, r in rows:

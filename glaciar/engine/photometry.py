@@ -484,12 +484,17 @@ def masked_cutout(image, rms, segmap, seg_id, nodata, x, y, box, mask_type, boun
             bad |= (s != 0) & (s != seg_id)
         return bad
 
-    jj, ii = np.nonzero(np.ones((y1 - y0, x1 - x0), dtype=bool))
-    ys, xs = jj + y0, ii + x0
-    bad = invalid(ys, xs)
+    # The cut-out's invalid pixels from slices (no index arrays: this runs once per object
+    # and band); np.nonzero lists them in row-major order, as the mirror step expects.
+    bad = np.zeros((y1 - y0, x1 - x0), dtype=bool)
+    if nodata is not None:
+        bad |= np.asarray(nodata[y0:y1, x0:x1], dtype=bool)
+    if mask_type != "none":
+        s = np.asarray(segmap[y0:y1, x0:x1])
+        bad |= (s != 0) & (s != seg_id)
     if not bad.any():
         return data, err, (y0, x0)
-    jb, ib = jj[bad], ii[bad]
+    jb, ib = np.nonzero(bad)
     if mask_type == "correct":
         # C's (int) truncates toward zero
         x2 = np.trunc(2.0 * x + 0.49999 - (ib + x0)).astype(np.int64)
@@ -559,6 +564,8 @@ def sextractor_photometry(image, rms, segmap, labels, nodata, ellipses: Ellipses
     fau = np.full(k, np.nan)
     feau = fau.copy()
     rap = 0.5 * max(float(d) for d in diameters)
+    radii = np.array([0.5 * float(d) for d in diameters], dtype=np.float64)
+    factors = None if noise is None else [noise.variance_factor(np.pi * r * r) for r in radii]
     dya, dxa = _half_extent(a, b, theta, scale)
     for i in range(k):
         hy, hx = max(dya[i], rap), max(dxa[i], rap)
@@ -568,17 +575,18 @@ def sextractor_photometry(image, rms, segmap, labels, nodata, ellipses: Ellipses
                                        mask_type, bounds=bounds[i])
         if d.size == 0:
             continue
-        one = np.ones_like(d)
-        cx, cy = np.array([x[i] - ox]), np.array([y[i] - oy])
-        for j, dia in enumerate(diameters):
-            r = 0.5 * float(dia)
-            f, fe, _ = sep.sum_circle(d, cx, cy, r, err=e, gain=gain, subpix=0)
-            if noise is not None:
-                fb = fe if gain is None else sep.sum_circle(d, cx, cy, r, err=e, subpix=0)[1]
-                fe = _scaled_error(fb, fe, noise.variance_factor(np.pi * r * r))
-            if dbkg[i] != 0.0:
-                f = f - dbkg[i] * sep.sum_circle(one, cx, cy, r, subpix=0)[0]
-            fa[j, i], fea[j, i] = f[0], fe[0]
+        # All apertures of the object in one sep call (sep sums each (x, y, r) on its own:
+        # the same numbers as one call per radius, at a fifth of the calls for 5 apertures).
+        cxs, cys = np.full(nd, x[i] - ox), np.full(nd, y[i] - oy)
+        f, fe, _ = sep.sum_circle(d, cxs, cys, radii, err=e, gain=gain, subpix=0)
+        if noise is not None:
+            fb = fe if gain is None else sep.sum_circle(d, cxs, cys, radii, err=e, subpix=0)[1]
+            fe = np.array([_scaled_error(fb[j:j + 1], fe[j:j + 1], factors[j])[0] for j in range(nd)])
+        one = np.ones_like(d) if dbkg[i] != 0.0 else None      # the area under each aperture
+        if one is not None:
+            f = f - dbkg[i] * sep.sum_circle(one, cxs, cys, radii, subpix=0)[0]
+        fa[:, i], fea[:, i] = f, fe
+        cx, cy = cxs[:1], cys[:1]
         args = (cx, cy, a[i:i + 1], b[i:i + 1], theta[i:i + 1], scale[i:i + 1])
         f, fe, _ = sep.sum_ellipse(d, *args, err=e, gain=gain, subpix=0)
         fe = np.asarray(fe, dtype=np.float64)
@@ -586,7 +594,7 @@ def sextractor_photometry(image, rms, segmap, labels, nodata, ellipses: Ellipses
             fb = fe if gain is None else np.asarray(sep.sum_ellipse(d, *args, err=e, subpix=0)[1])
             area = np.pi * a[i] * b[i] * scale[i] ** 2
             fe = _scaled_error(fb, fe, noise.variance_factor(area))
-        if dbkg[i] != 0.0:
+        if one is not None:
             f = f - dbkg[i] * sep.sum_ellipse(one, *args, subpix=0)[0]
         fau[i], feau[i] = f[0], fe[0]
     return fa, fea, fau, feau
