@@ -8,7 +8,10 @@ PY=${PYTHON:-python3}
 .venv-test/bin/python -m pip install --quiet --upgrade pip
 .venv-test/bin/python -m pip install --quiet -e ".[test]"
 set +e
-.venv-test/bin/python -m pytest -q "$@"
+# Two test processes (pytest-xdist; GLACIAR_TEST_PROCESSES overrides, 0 = in this process):
+# the suite is mostly single-threaded, so on the 2-core CI machine this halves its wall time.
+# Work-stealing balances the long end-to-end tests (notebooks, fits) across the two.
+.venv-test/bin/python -m pytest -q -n "${GLACIAR_TEST_PROCESSES:-2}" --dist worksteal "$@"
 rc=$?
 set -e
 if [ "$rc" -eq 5 ]; then echo "no tests collected: failing" >&2; exit 1; fi
