@@ -22,8 +22,10 @@ import yaml
 from glaciar import constants as C
 from glaciar.cli import main
 from glaciar.config import ConfigError, config_to_dict, load_config
+from glaciar.engine.task import field_key
 from glaciar.engine.user_selection import draw_selected
 from glaciar.execute import simulate
+from glaciar.pipeline.catalog import run_catalog
 from glaciar.rundir import StoreMismatchError
 from glaciar.store import read_results
 
@@ -154,6 +156,16 @@ def test_probabilities_are_drawn_reproducibly(small_survey, user_module, tmp_pat
     # Expected count among the recovered, within 4 binomial standard deviations.
     pr = p[rec]
     assert abs(sel.sum() - pr.sum()) <= 4 * np.sqrt((pr * (1 - pr)).sum()) + 1
+    # The same callable selects the catalogue; its draw comes from the run's seed and field.
+    cat = run_catalog(tmp_path / "w1")
+    fn = sys.modules[MODULE].logistic
+    p_cat = fn({c: cat[c].to_numpy(float) for c in cat.columns if c.endswith(
+        ("_f160w", "_f098m", "_f125w", "_f606w"))}, sn0=10.0, width=4.0)
+    np.testing.assert_array_equal(cat[C.COL_P_SELECTED].to_numpy(), p_cat)
+    usable = cat[C.COL_RECOVERED].to_numpy() & cat["in_footprint"].to_numpy()
+    want = usable & draw_selected(p_cat, (cfg.simulation.seed, field_key(cfg.survey.fields[0])))
+    np.testing.assert_array_equal(cat[C.COL_SELECTED].to_numpy(), want)
+    assert want.any() and (~want & usable).any()
     # The draw itself, on many rows: mean matches, reproducible, depends on the entropy.
     q = np.random.default_rng(1).uniform(0, 1, 40_000)
     a = draw_selected(q, (7, 9))

@@ -228,16 +228,14 @@ def _input_table(table, columns: Sequence[str], spec: str) -> tuple[dict, int]:
     if missing:
         raise SelectionError(f"selection function {spec!r}: the table lacks column(s) "
                              f"{', '.join(missing[:5])}")
-    cols = {}
-    for c in columns:
-        col = table[c]
-        a = col.to_numpy(dtype=np.float64) if hasattr(col, "to_numpy") else \
-            np.asarray(col, dtype=np.float64)
-        a = a.view()
-        a.flags.writeable = False       # the engine's table is not the function's to change
-        cols[c] = a
-    n = len(table) if hasattr(table, "columns") else (len(cols[columns[0]]) if columns else 0)
-    return cols, n
+    if hasattr(table, "columns"):
+        # One copy of the whole block (a DataFrame column at a time costs ~10 us each).
+        block = np.ascontiguousarray(table[list(columns)].to_numpy(dtype=np.float64).T)
+    else:
+        block = np.array([np.asarray(table[c], dtype=np.float64) for c in columns])
+    block.flags.writeable = False       # the engine's table is not the function's to change
+    n = block.shape[1] if block.ndim == 2 else 0
+    return dict(zip(columns, block)), n
 
 
 def evaluate(func: Callable, spec: str, table, columns: Sequence[str],
