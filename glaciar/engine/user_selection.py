@@ -46,7 +46,7 @@ from .measure import output_columns
 from .selection import SelectionError
 
 __all__ = ["SelectionFunction", "BOOLEAN", "PROBABILITY", "function_columns",
-           "import_selection_function", "declared_version", "check_table",
+           "import_selection_function", "declared_version", "check_table", "evaluate",
            "load_selection_function", "draw_selected", "apply_selection"]
 
 BOOLEAN = "boolean"            #: the function returns selected / not selected
