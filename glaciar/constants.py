@@ -68,6 +68,12 @@ COL_M_UV = "M_uv"
 COL_STATUS = "status"
 COL_RECOVERED = "recovered"
 COL_SELECTED = "selected"
+#: Selection probability a user selection function returned (``selection: {function: ...}``
+#: returning floats; ``selected`` is then drawn from it).  Absent for boolean selections.
+COL_P_SELECTED = "p_selected"
+#: Attribute by which a user selection function declares its version (on the function, or
+#: on its module); it enters the run's identity (glaciar.engine.user_selection).
+SELECTION_VERSION_ATTRIBUTE = "glaciar_selection_version"
 COL_DETECTION_ID = "detection_id"
 #: Bit field of FLAG_* values.  Not "flags": a DataFrame column of that name is shadowed by
 #: ``DataFrame.flags`` in attribute access (``rows.flags``).

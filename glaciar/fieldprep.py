@@ -29,7 +29,7 @@ from .engine.context import FieldContext
 from .engine.depth import depth_area_histogram, local_depth_map
 from .engine.noise import (MAX_RISE_EXPONENT, CorrelatedNoise, background_excess, empty_aperture_scatter,
                            empty_sky, rise_exponent, source_margin, weight_rescale_factor)
-from .engine.selection import compile_selection
+from .config.user_selection import engine_selection
 from .engine.task import field_key
 from .galaxy import population
 from .galaxy.filters import get_filter
@@ -415,7 +415,7 @@ def field_settings(cfg: Config, survey: Survey, field: str) -> tuple[dict, dict]
         magnitude_type=cfg.grid.magnitude_type, n_galaxies=cfg.simulation.n_galaxies,
         detection_params=detection_params(cfg),
         classification_params=ClassificationParams(**cfg.classification.model_dump()),
-        selection=compile_selection(cfg.selection) if cfg.selection else None,
+        selection=engine_selection(cfg),
         enclosed_fraction=model.stamp_flux_fraction,
         isolation_fraction=cfg.simulation.isolation_fraction)
     return settings, psfs

@@ -19,6 +19,7 @@ from .version import __version__
 from . import constants as C
 from .config import Config, config_from_dict, config_hash, config_to_dict
 from .config.models import SECTIONS
+from .config.user_selection import selection_description
 from .contexts import context_dir, main_context, prepare_context_cache
 from .fieldprep import field_depth_area, field_noise_record, field_settings
 from .galaxy import sed
@@ -63,6 +64,9 @@ def store_settings(cfg: Config) -> dict:
     # Definitions that change rows without a config key: a store made under another
     # definition is another store.
     d["classification"]["flux_test"] = "auto_vs_template"
+    if isinstance(d.get("selection"), dict):
+        # A selection function is identified by the version it declares, not only its name.
+        d["selection"]["version"] = cfg.selection.version
     sv = d["survey"]
     sv.pop("fields", None)
     sv.pop("image_dir", None)
@@ -171,7 +175,7 @@ def _manifest(cfg: Config, survey: Survey, seed: int, z_limit=None, cached: dict
         "fields": list(cfg.survey.fields),
         "bands": [b.name for b in cfg.survey.bands],
         "detection_band": cfg.survey.detection_band,
-        "selection": list(cfg.selection),
+        "selection": selection_description(cfg.selection),
         "z_values": list(map(float, cfg.grid.z_values)),
         "mag_values": list(map(float, cfg.grid.mag_values)),
         "magnitude_type": cfg.grid.magnitude_type,

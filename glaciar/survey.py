@@ -221,10 +221,13 @@ def _gz_alternative(path: Path) -> Path:
 
 def selection_bands(cfg: Config) -> tuple[str, ...]:
     """Bands whose columns the configuration's selection reads, in config order."""
+    from .config.user_selection import SelectionFunctionConfig
     from .engine.selection import compile_selection
 
     if not cfg.selection:
         return ()
+    if isinstance(cfg.selection, SelectionFunctionConfig):      # given every band's columns
+        return tuple(b.name for b in cfg.survey.bands)
     columns = compile_selection(cfg.selection).columns
     return tuple(b.name for b in cfg.survey.bands
                  if any(c.endswith("_" + b.name.lower()) for c in columns))

@@ -23,6 +23,7 @@ from .common import (At, ConfigError, format_validation_error, read_yaml, show,
                      unknown_key_error)
 from .glaciar_compat import GLACIAR_TO_SCHEMA, TOP_KEYS, glaciar_to_schema, is_glaciar_parameters
 from .models import Config
+from .user_selection import selection_data
 
 __all__ = ["config_from_dict", "load_config", "config_to_dict", "config_hash", "store_hash",
            "missing_files", "check_files"]
@@ -159,7 +160,7 @@ def config_to_dict(cfg: Config, relative_to: str | os.PathLike | None = None) ->
         "detection": cfg.detection.model_dump(mode="json", by_alias=True),
         "classification": cfg.classification.model_dump(mode="json"),
         "noise": cfg.noise.model_dump(mode="json"),
-        "selection": list(cfg.selection),
+        "selection": selection_data(cfg.selection),
         "output": cfg.output.model_dump(mode="json"),
     }
     out = copy.deepcopy(_plain(out))

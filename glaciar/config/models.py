@@ -28,6 +28,7 @@ from ..engine import noise as _noise
 from ..engine.classify import ClassificationParams
 from ..engine.detect import BACKENDS, CLEAN_STYLES, THRESHOLD_RMS, DetectionParams, builtin_filter_names
 from ..engine.selection import DEFAULT_JDROPOUT, MAX_EXPRESSIONS, SelectionError, compile_selection
+from ..engine.user_selection import load_selection_function
 from ..galaxy.filters import looks_like_path
 from ..galaxy.population import SourceModel
 from ..galaxy.sersic import Q_MIN
@@ -36,8 +37,9 @@ from .common import (At, Choice, ConfigError, Float, Int, add_warning, read_yaml
 from .sextractor import detection_keys_from_sex
 from .section import (Bool, context_base_dir, engine_default, float_list, MAX_ABS_MAGNITUDE,
                       MAX_APERTURE_PIX, MAX_BOX_POINTS, MAX_DETECT_THRESH, MAX_GRID_VALUES,
-                      MAX_R_EFF_KPC, MAX_REDSHIFT, MAX_TASKS, Section)
+                      MAX_R_EFF_KPC, MAX_REDSHIFT, MAX_TASKS, Section, validate_nested)
 from .survey_models import SurveyConfig
+from .user_selection import SelectionFunctionConfig
 
 __all__ = ["AxisSpec", "GridCell", "GridConfig", "GridBox", "SimulationConfig", "SourceConfig",
            "DetectionConfig", "ClassificationConfig", "OutputConfig", "NoiseConfig", "Config", "SECTIONS",
@@ -559,11 +561,17 @@ def selection_columns(band_names, n_apertures: int) -> tuple[str, ...]:
     return tuple(dict.fromkeys(cols))
 
 
-def _selection_list(value):
+def _selection_list(value, info: ValidationInfo):
     if isinstance(value, str):
         return [value]
+    if isinstance(value, SelectionFunctionConfig):
+        return value
+    if isinstance(value, Mapping):
+        # A user function (glaciar.engine.user_selection); imported once every band is known.
+        return validate_nested(SelectionFunctionConfig, value, info)
     if not isinstance(value, (list, tuple)):
-        raise At(f"expected a list of expression strings, got {show(value)}")
+        raise At(f"expected a list of expression strings or {{function: "
+                 f"'package.module:callable'}}, got {show(value)}")
     for i, e in enumerate(value):
         if not isinstance(e, str):
             raise At(f"expected an expression string, got {show(e)} (quote expressions in YAML)",
@@ -593,10 +601,12 @@ class Config(Section):
                                                  description="recovery status")
     noise: NoiseConfig = Field(default_factory=NoiseConfig, description="correlated noise of "
                                                                         "real images")
-    selection: Annotated[tuple[str, ...], BeforeValidator(_selection_list)] | None = Field(
+    selection: Annotated[tuple[str, ...] | SelectionFunctionConfig,
+                         BeforeValidator(_selection_list)] | None = Field(
         None, description="all must hold; expressions over per-source columns (default: the "
                           "BoRG J125-dropout of Bernard et al. 2016 when its bands exist; "
-                          "[] = selected means recovered)")
+                          "[] = selected means recovered), or {function: "
+                          "'package.module:callable'} (docs/configuration.md)")
     output: OutputConfig = Field(default_factory=OutputConfig, description="optional outputs")
     path: Path | None = None
     base_dir: Path = Path(".")
@@ -656,6 +666,14 @@ class Config(Section):
                      f"{cells} = {n_tasks:.3g} tasks, more than the {MAX_TASKS:.0e} one run can "
                      "plan",
                      "simulation", "n_iterations")
+        if isinstance(self.selection, SelectionFunctionConfig):
+            try:
+                self.selection.resolved(load_selection_function(
+                    self.selection.function, self.selection.kwargs, self.survey.band_names,
+                    {b.name: float(b.zeropoint) for b in self.survey.bands}, n_ap))
+            except SelectionError as exc:
+                raise At(str(exc), "selection", "function") from None
+            return self
         columns = selection_columns(self.survey.band_names, n_ap)
         if self.selection is None:
             try:

@@ -27,6 +27,8 @@ from .depth import depth_at
 from .detect import DetectionError, sep_extract, detection_rms, sanitize
 from .measure import MeasureSetup, measure_injected, output_columns
 from .scene import Scene
+from .task import field_key
+from .user_selection import apply_selection
 
 __all__ = ["measure_catalog", "segment_pixels", "CATALOG_ID", "CATALOG_IN_FOOTPRINT",
            "CATALOG_RECOVERED", "INJECTION_ONLY_COLUMNS"]
@@ -145,7 +147,7 @@ def _measure_missing(ctx, scenes, seg, missing, x, y) -> dict | None:
 
 
 def measure_catalog(ctx, scenes: Mapping[str, Scene] | None = None, *,
-                    positions=None) -> pd.DataFrame:
+                    positions=None, seed: int = 0) -> pd.DataFrame:
     """Detect, measure and select every source of a field's images.
 
     Parameters
@@ -160,6 +162,9 @@ def measure_catalog(ctx, scenes: Mapping[str, Scene] | None = None, *,
         Extra input pixels (e.g. where stamps were added).  The first extraction is
         given these and :func:`_first_positions`; each further one adds a pixel of
         every segment no input reached, until every segment is reached.
+    seed : int
+        The run's seed: with the field's name, the stream from which a probabilistic
+        selection function's ``selected`` is drawn (else unused).
 
     Returns
     -------
@@ -171,7 +176,8 @@ def measure_catalog(ctx, scenes: Mapping[str, Scene] | None = None, *,
         :data:`INJECTION_ONLY_COLUMNS`: ISO, AUTO and aperture fluxes and errors,
         ``mag``, ``magerr``, ``sn``, ``maglim``, ``mag_auto``, ``magerr_auto``),
         ``source_flags``, ``depth_local`` [AB mag], ``in_footprint``,
-        ``recovered`` and ``selected``.
+        ``recovered`` and ``selected`` (and ``p_selected`` for a probabilistic
+        selection function).
     """
     if scenes is None:
         scenes = {b: Scene(ctx.bases[b]) for b in ctx.bases}
@@ -226,6 +232,10 @@ def measure_catalog(ctx, scenes: Mapping[str, Scene] | None = None, *,
     sn = frame[C.band_column("sn", ctx.detection_band)].to_numpy(float)
     recovered = passes_sn(sn, ctx.classification_params.min_sn)
     frame[CATALOG_RECOVERED] = recovered
-    passed = ctx.selection(frame) if ctx.selection is not None else np.ones(n, bool)
-    frame[C.COL_SELECTED] = recovered & frame[CATALOG_IN_FOOTPRINT].to_numpy() & np.asarray(passed, bool)
+    # A probabilistic user selection draws from the run's seed and the field (not the order
+    # fields are catalogued in).
+    passed, probability = apply_selection(ctx.selection, frame, (int(seed), field_key(ctx.field)))
+    frame[C.COL_SELECTED] = recovered & frame[CATALOG_IN_FOOTPRINT].to_numpy() & passed
+    if probability is not None:
+        frame[C.COL_P_SELECTED] = probability
     return frame

@@ -22,6 +22,7 @@ from .depth import depth_at
 from .measure import MeasureSetup, measure_injected
 from .positions import draw_positions
 from .scene import Scene
+from .user_selection import apply_selection
 
 __all__ = ["TaskSpec", "task_rng", "field_key", "grid_key", "run_task", "SourceDraws", "draw_task_sources"]
 
@@ -209,6 +210,9 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
     recovered = np.isin(status, C.RECOVERED_STATUSES)
     cols[C.COL_RECOVERED] = recovered
     table = pd.DataFrame(cols)
-    cols_sel = ctx.selection(table) if ctx.selection is not None else np.ones(m, bool)
-    table[C.COL_SELECTED] = recovered & np.asarray(cols_sel, dtype=bool)
+    # A probabilistic user selection draws from the task's own stream id: reproducible.
+    passed, probability = apply_selection(ctx.selection, table, (ident,))
+    table[C.COL_SELECTED] = recovered & passed
+    if probability is not None:
+        table[C.COL_P_SELECTED] = probability
     return table

@@ -153,6 +153,7 @@ def run_catalog(source, out=None, *, regions: bool = False, progress: bool = Fal
         A missing or unusable input, a run whose inputs changed, a bad ``out``.
     """
     from ..config.io import config_hash
+    from ..config.user_selection import selection_description
     from ..engine import fieldcache
     from ..engine.catalog import measure_catalog
     from ..contexts import context_dir, open_field_context
@@ -182,6 +183,10 @@ def run_catalog(source, out=None, *, regions: bool = False, progress: bool = Fal
             raise ValueError(f"{run_dir}: its stored configuration's settings differ from the "
                              f"manifest's store_hash (edited {C.RUN_CONFIG_NAME}?)")
     chash = config_hash(cfg)
+    # The run's seed (a config's own without a run): a probabilistic selection function's
+    # draw for the catalogue is derived from it and the field (glaciar.engine.catalog).
+    seed = int(manifest["seed"]) if manifest is not None and "seed" in manifest \
+        else int(cfg.simulation.seed)
     frames = []
     det = cfg.survey.detection_band
     for field in cfg.survey.fields:
@@ -193,7 +198,7 @@ def run_catalog(source, out=None, *, regions: bool = False, progress: bool = Fal
         else:
             ctx = build_field_context(cfg, survey, field)
             how = "measured"
-        frame = measure_catalog(ctx)
+        frame = measure_catalog(ctx, seed=seed)
         ra, dec = _sky_coordinates(survey, field, det, frame[C.COL_X], frame[C.COL_Y])
         frame.insert(4, "ra", ra)
         frame.insert(5, "dec", dec)
@@ -207,7 +212,9 @@ def run_catalog(source, out=None, *, regions: bool = False, progress: bool = Fal
             **catalog_identity(settings_hash, manifest.get("inputs") if manifest else inputs,
                                cfg.survey.fields, det),
             "obs_mag_column": C.band_column(C.OBS_MAG_QUANTITY, det),
-            "selection": list(cfg.selection), "bands": [b.name for b in cfg.survey.bands],
+            "selection": selection_description(cfg.selection),
+            **({"selection_seed": seed} if C.COL_P_SELECTED in table.columns else {}),
+            "bands": [b.name for b in cfg.survey.bands],
             "zeropoints": {b.name: float(b.zeropoint) for b in cfg.survey.bands},
             "min_sn": float(cfg.classification.min_sn),
             "run_dir": None if run_dir is None else str(Path(run_dir).resolve())}
