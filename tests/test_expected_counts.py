@@ -12,7 +12,8 @@ from glaciar.galaxy.filters import get_filter
 from glaciar.inference import SelectionFunction, SurfaceModel
 from glaciar.inference.counts import Quadrature, SurveyVolume, expected_counts
 from glaciar.inference.products import InjectionSED
-from glaciar.tables import TransferMatrix, slice_edges
+
+from analytic_sf import gauss_matrix
 
 M_LIM = 27.5          # step of the synthetic selection [AB mag]
 AREA = 10.0           # [arcmin^2]
@@ -31,21 +32,6 @@ def step_sf(sed=None, *, domain_mag=(23.0, 30.0), m_lim=M_LIM, magnitude_type="a
     sed = sed or InjectionSED(get_filter(F160W), beta_mean=-2.0, beta_sd=0.0)
     return SelectionFunction(mdl, draws, meta={"area_arcmin2": AREA, "magnitude_type": magnitude_type},
                              domain={"z": z, "mag": domain_mag}, sed=sed)
-
-
-def gauss_matrix(grid, zs, *, shift=0.15, sigma=0.2, step=0.2, n_draws=1):
-    """TransferMatrix whose selected rows are exactly m_obs = m_in + shift + N(0, sigma)."""
-    zs = np.asarray(zs, float)
-    sig = sigma if callable(sigma) else (lambda m: sigma + 0 * m)
-    inner = np.round(np.arange(np.floor(grid[0] - 1.5), grid[-1] + 1.51, step), 6)
-    oe = np.concatenate([[-np.inf], inner, [np.inf]])
-    mat = np.zeros((2, len(zs), len(grid), len(oe)))
-    for j, g in enumerate(grid):
-        mat[:, :, j, 1:] = np.diff(norm.cdf(oe, g + shift, sig(g)))
-    return TransferMatrix(kinds=("recovered", "selected"), z_edges=slice_edges(zs, 0.25),
-                          z_mean=zs, m_in_edges=slice_edges(grid, 0.25), m_obs_edges=oe,
-                          counts=np.rint(mat * 1e6).astype(np.int64), matrix=mat,
-                          draws=np.repeat(mat[None], n_draws, axis=0), alpha=0.01)
 
 
 def volume(z0=6.0, z1=8.0):

@@ -18,7 +18,7 @@ from glaciar.cli import main
 from glaciar.config import load_config
 from glaciar.inputs import InputError, check_inputs
 
-import test_noise_real as synthetic
+from noise_fields import SIGMA, big_galaxy_survey, hff
 
 BANDS = ("f160w", "f098m", "f125w", "f606w")
 
@@ -151,10 +151,10 @@ def test_background_no_model_describes_is_refused(tmp_path, capsys):
     """The synthetic egg-crate background of test_noise_real: simulate exits 2 in one line
     naming the field, band, r(N) and the settings to change; nothing written."""
     root = tmp_path / "syn"
-    data = synthetic.big_galaxy_survey(root, amp=0.0, n=192, back_size=64)
+    data = big_galaxy_survey(root, amp=0.0, n=192, back_size=64)
     sci = fits.getdata(root / "img" / "f_b.fits").astype(np.float32)
     y, x = np.mgrid[:192, :192]
-    sci += (3.0 * synthetic.SIGMA * np.sin(2 * np.pi * x / 96)
+    sci += (3.0 * SIGMA * np.sin(2 * np.pi * x / 96)
             * np.sin(2 * np.pi * y / 96)).astype(np.float32)
     fits.writeto(root / "img" / "f_b.fits", sci, overwrite=True)
     cfg = root / "syn.yaml"
@@ -168,7 +168,7 @@ def test_big_galaxy_warns_once_and_prints_the_factors(tmp_path, capsys):
     """Documented behaviour, not a refusal: the mesh's residuals around a large galaxy are
     said in one warning line, and the simulate summary prints the factors used."""
     root = tmp_path / "syn"
-    data = synthetic.big_galaxy_survey(root)
+    data = big_galaxy_survey(root)
     cfg = root / "syn.yaml"
     cfg.write_text(yaml.safe_dump(data, sort_keys=False))
     capsys.readouterr()
@@ -181,11 +181,11 @@ def test_big_galaxy_warns_once_and_prints_the_factors(tmp_path, capsys):
     assert "about local backgrounds" in line[0]
 
 
-@pytest.mark.skipif(not (synthetic.hff.DATA / "abell_2744_dwarf_galaxy_f105w_rms.fits.gz").is_file(),
-                    reason=f"HFF A2744 cutouts not present at {synthetic.hff.DATA}")
+@pytest.mark.skipif(not (hff.DATA / "abell_2744_dwarf_galaxy_f105w_rms.fits.gz").is_file(),
+                    reason=f"HFF A2744 cutouts not present at {hff.DATA}")
 def test_hff_rms_map_declared_weight_is_refused(tmp_path, capsys):
     """The issue's case: before, it ran and gave C = 0 everywhere."""
-    data = synthetic.hff.hff_config(synthetic.hff.DATA, 64)
+    data = hff.hff_config(hff.DATA, 64)
     data["survey"]["noise_type"] = "weight"
     cfg = tmp_path / "hff.yaml"
     cfg.write_text(yaml.safe_dump(data, sort_keys=False))

@@ -4,44 +4,12 @@ import pytest
 from scipy.special import logsumexp
 from scipy.stats import poisson
 
-from glaciar.galaxy.filters import get_filter
-from glaciar.inference import SelectionFunction, SurfaceModel
-from glaciar.inference.products import InjectionSED
 from glaciar.inference.sampling import SamplerSettings
 from glaciar.lf import (LFPosterior, default_window, double_power_law, fit_lf, get_model,
                         parse_fix, schechter, stepwise)
 from glaciar.lf.fit import Marginalisation
-from test_expected_counts import gauss_matrix
 
-TRUE = {"log_phi_star": -3.3, "M_star": -20.9, "alpha": -2.0}
-
-
-def lf_sf(n_draws=4, area=800.0, seed=0):
-    """A smooth selection (m50 = 27.6, w = 0.25, z edges of 0.15) over z 6-8, m 24-30.
-
-    Draws scatter by 0.02 in every parameter; the transfer function is m_obs = m_in + 0.15
-    + N(0, 0.1 + 0.1 (m_in - 24)).
-    """
-    mdl = SurfaceModel(shape="logistic", z_ref=7.0, z_scale=1.0, m_ref=27.0, m_scale=2.0)
-    base = dict.fromkeys(mdl.param_names, 0.0)
-    base.update(logit_c_max_0=3.0, m50_0=27.6, m50_1=0.1, log_w_0=np.log(0.25), logit_s_max=3.0,
-                eta_lo_0=-1.0, log_dz_lo_0=np.log(0.15), eta_hi_0=-1.0, log_dz_hi_0=np.log(0.15))
-    th = np.array([base[n] for n in mdl.param_names])
-    draws = th + 0.02 * np.random.default_rng(seed).standard_normal((n_draws, len(th)))
-    sed = InjectionSED(get_filter("wfc3_ir_f160w"), beta_mean=-2.0, beta_sd=0.4)
-    sf = SelectionFunction(mdl, draws, meta={"area_arcmin2": area}, sed=sed,
-                           domain={"z": (6.0, 8.0), "mag": (24.0, 30.0)})
-    sf.transfer_matrix = gauss_matrix(np.arange(24.0, 30.01, 0.5), [6.0, 6.5, 7.0, 7.5, 8.0],
-                                      sigma=lambda m: 0.1 + 0.1 * (m - 24.0))
-    return sf
-
-
-def mock_candidates(sf, phi, edges, seed):
-    """Candidates drawn from the forward model: Poisson counts per bin, uniform inside it."""
-    ec = sf.expected_counts(lambda M, z: phi(M) + 0 * z, edges, draws=1, warn=False)
-    rng = np.random.default_rng(seed)
-    n = rng.poisson(ec.median)
-    return np.concatenate([rng.uniform(a, b, k) for a, b, k in zip(edges[:-1], edges[1:], n)])
+from analytic_sf import TRUE, lf_sf, mock_candidates
 
 
 WINDOW = np.round(np.arange(24.4, 29.01, 0.2), 6)      # faint end where P is ~0.1

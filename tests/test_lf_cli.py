@@ -25,7 +25,7 @@ from glaciar.cli import main
 from glaciar.lf import default_window, schechter
 from glaciar.pipeline.catalog import catalog_identity, read_catalog, write_catalog
 from glaciar.rundir import read_manifest
-from test_lf import TRUE, lf_sf, mock_candidates
+from analytic_sf import TRUE, lf_sf, mock_candidates
 
 
 def _cli(capsys, *argv):

@@ -126,3 +126,24 @@ def test_errors(psfs):
         cache.stamp("f200w", 1.0, 1.0, 0.0, 1.0, 0.0, 0.0)
     with pytest.raises(ValueError, match="finite"):
         cache.stamp("f125w", 1.0, 1.0, 0.0, 1.0, np.nan, 0.0)
+
+
+# ------------------------------------------------------------------------------
+# Fast kernels of the windowed measurement against independent computations.
+# ------------------------------------------------------------------------------
+def test_template_convolution_with_a_kept_raw_transform_equals_fftconvolve():
+    """The template cache reuses a raw stamp's FFT across PSF offsets: bit for bit
+    scipy.signal.fftconvolve(raw, psf, "full"), the first time and from the kept transform."""
+    from scipy.signal import fftconvolve
+
+    from glaciar.galaxy.templates import TemplateCache
+
+    rng = np.random.default_rng(5)
+    psf0 = rng.random((15, 15))
+    cache = TemplateCache({"b": psf0 / psf0.sum()})
+    for raw_shape, psf_shape in (((23, 23), (15, 15)), ((57, 41), (15, 15)), ((57, 41), (21, 19))):
+        raw = rng.random(raw_shape)
+        for _ in range(2):
+            psf = rng.random(psf_shape)
+            got = cache._convolve(raw, psf, ("raw", raw_shape))
+            assert np.array_equal(got, fftconvolve(raw, psf, mode="full"))

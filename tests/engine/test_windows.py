@@ -1,25 +1,139 @@
-"""The batching shortcuts of windowed detection change speed, never answers.
+"""Windowed detection equals a full-frame extraction: 2000 injected sources.
 
-* ``Scene.paste_windows`` (all windows of a canvas in one pass) writes exactly
-  the pixels ``Scene.window`` returns, bit for bit, with overlapping, clipped
-  and flux-scaled stamps;
-* a stamp given as (template, flux) equals the pre-multiplied stamp bit for bit;
-* ``measure_injected`` gives the same per-source results whatever the first
-  window size (a speed-only setting), and the same as a full-frame extraction;
-  its diagnostics report windows that hold each source.
+A 600x600 synthetic field (exponential-disk galaxies of a wide range of
+sizes and fluxes, Gaussian noise with a varying RMS map) receives 20 x 100
+non-overlapping Gaussian stamps; every per-source column from
+``mode="windowed"`` must equal ``mode="full"`` (floats to 1e-9 relative).
 """
 import dataclasses
 
 import numpy as np
 import pytest
 
-from glaciar.constants import STATUS_NOT_DETECTED
+from glaciar.constants import STATUS_CODES, STATUS_NOT_DETECTED
 from glaciar.engine.classify import ClassificationParams
 from glaciar.engine.detect import DetectionParams, measure_background
-from glaciar.engine.measure import MeasureSetup, measure_injected, reference_extraction
+from glaciar.engine.measure import MeasureSetup, measure_injected, output_columns, reference_extraction
 from glaciar.engine.scene import Scene
 
+N = 600
 
+
+def _field(seed=0, ngal=150):
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:N, :N]
+    img = np.zeros((N, N))
+    for _ in range(ngal):
+        x0, y0 = rng.uniform(0, N, 2)
+        r = rng.lognormal(np.log(2.0), 0.5)
+        q, pa = rng.uniform(0.4, 1.0), rng.uniform(0, np.pi)
+        f = 10 ** rng.uniform(0.5, 3.0)
+        s = int(min(12 * r + 5, 60))
+        ya, yb, xa, xb = max(int(y0) - s, 0), min(int(y0) + s + 1, N), max(int(x0) - s, 0), min(int(x0) + s + 1, N)
+        dx, dy = xx[ya:yb, xa:xb] - x0, yy[ya:yb, xa:xb] - y0
+        u = dx * np.cos(pa) + dy * np.sin(pa)
+        v = (-dx * np.sin(pa) + dy * np.cos(pa)) / q
+        img[ya:yb, xa:xb] += f * np.exp(-np.hypot(u, v) / r) / (2 * np.pi * r * r * q)
+    rms = 0.05 * (1 + 0.5 * np.sin(xx / 90.0) * np.cos(yy / 70.0))
+    return img + rng.normal(size=(N, N)) * rms
+
+
+def _stamps(rng, nsrc=100, size=21):
+    h = size // 2
+    yy, xx = np.mgrid[-h:h + 1, -h:h + 1]
+    g = int(np.ceil(np.sqrt(nsrc)))
+    cell = (N - 2 * h) / g
+    cells = rng.permutation(g * g)[:nsrc]         # one per cell: stamps never overlap
+    xs = np.clip(((cells % g) + rng.uniform(0.2, 0.8, nsrc)) * cell + h / 2, 1, N - 2)
+    ys = np.clip(((cells // g) + rng.uniform(0.2, 0.8, nsrc)) * cell + h / 2, 1, N - 2)
+    flux = 10 ** rng.uniform(-0.3, 1.7, nsrc)
+    out = []
+    for x, y, f in zip(xs, ys, flux):
+        ix, iy = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))
+        s = rng.uniform(0.8, 2.5)
+        p = np.exp(-((xx - (x - ix)) ** 2 + (yy - (y - iy)) ** 2) / (2 * s * s))
+        out.append((iy - h, ix - h, f * p / p.sum()))
+    return xs, ys, flux, out
+
+
+@pytest.fixture(scope="module")
+def field():
+    img = _field()
+    params = DetectionParams()
+    back, rms = measure_background(img, None, params)
+    sub = img - back
+    return sub, rms, params, reference_extraction(sub, rms, params, 25.0)
+
+
+def test_windowed_equals_full_frame(field, assert_same_outputs):
+    sub, rms, params, ref = field
+    cls = ClassificationParams()
+    rng = np.random.default_rng(5)
+    statuses = []
+    n_checked = 0
+    for it in range(20):
+        xs, ys, flux, st = _stamps(rng)
+        det = Scene(sub, st)
+        bands = {"h": det, "j": Scene(0.7 * sub, [(a, b, 0.5 * d) for a, b, d in st])}
+        setup = MeasureSetup(band_rms={"h": rms, "j": 1.3 * rms}, reference=ref, params=params,
+                             classification=cls, zeropoints={"h": 25.0, "j": 26.0},
+                             gains={"h": None, "j": 2.0}, detection_band="h")
+        kw = dict(det_rms=rms, band_scenes=bands, x=xs, y=ys, input_flux_det=flux,
+                  input_mag_det=25.0 - 2.5 * np.log10(flux))
+        w = measure_injected(setup, det, mode="windowed", **kw)
+        f = measure_injected(setup, det, mode="full", **kw)
+        assert set(w) == set(output_columns(["h", "j"], 2))
+        assert_same_outputs(w, f, it)
+        statuses.append(w["status"])
+        n_checked += xs.size
+    s = np.concatenate(statuses)
+    assert n_checked >= 2000
+    # the comparison covers every class, deblended blends included
+    counts = {c: int((s == c).sum()) for c in STATUS_CODES}
+    assert all(v > 0 for v in counts.values()), counts
+
+
+def test_scene_adds_and_clips_stamps():
+    base = np.arange(50.0).reshape(5, 10)
+    st = np.ones((3, 3))
+    sc = Scene(base, [(-1, -1, st), (0, 0, 2 * st), (3, 8, st)])
+    full = sc.full()
+    expected = base.copy()
+    expected[0:2, 0:2] += 1          # first stamp, clipped at the corner
+    expected[0:3, 0:3] += 2          # overlapping stamps add, never overwrite
+    expected[3:5, 8:10] += 1
+    np.testing.assert_array_equal(full, expected)
+    np.testing.assert_array_equal(sc.window(1, 4, 1, 9), expected[1:4, 1:9])
+    np.testing.assert_array_equal(sc.window(-5, 2, 8, 20), expected[0:2, 8:10])
+    np.testing.assert_array_equal(sc.clipped(), [True, False, True])
+    assert base[0, 0] == 0.0         # the base image is never modified
+
+
+def test_sep_errors_are_flagged_not_raised(field):
+    from glaciar.constants import COL_FLAGS, FLAG_SEP_ERROR, STATUS_NOT_DETECTED
+    sub, rms, _, ref = field
+    bad = DetectionParams(sub_object_limit=1, deblend_mincont=0.0)
+    xs, ys, flux, st = _stamps(np.random.default_rng(1), nsrc=20)
+    det = Scene(sub, st)
+    setup = MeasureSetup(band_rms={"h": rms}, reference=ref, params=bad, classification=ClassificationParams(),
+                         zeropoints={"h": 25.0}, gains={"h": None}, detection_band="h")
+    out = measure_injected(setup, det, rms, {"h": det}, xs, ys, flux, 25 - 2.5 * np.log10(flux))
+    err = (out[COL_FLAGS] & FLAG_SEP_ERROR) > 0
+    assert err.any()
+    assert np.all(out["status"][err] == STATUS_NOT_DETECTED) and np.all(np.isnan(out["flux_iso_h"][err]))
+
+
+# ------------------------------------------------------------------------------
+# The batching shortcuts of windowed detection change speed, never answers.
+#
+# * ``Scene.paste_windows`` (all windows of a canvas in one pass) writes exactly
+#   the pixels ``Scene.window`` returns, bit for bit, with overlapping, clipped
+#   and flux-scaled stamps;
+# * a stamp given as (template, flux) equals the pre-multiplied stamp bit for bit;
+# * ``measure_injected`` gives the same per-source results whatever the first
+#   window size (a speed-only setting), and the same as a full-frame extraction;
+#   its diagnostics report windows that hold each source.
+# ------------------------------------------------------------------------------
 def _random_scene(rng, shape=(60, 80), n=12, scaled=False):
     base = rng.normal(size=shape).astype(np.float32)
     stamps, premult = [], []
@@ -70,16 +184,16 @@ def test_scene_rejects_malformed_stamp():
         Scene(np.zeros((5, 5)), [(0, 0, np.ones((2, 2)), "bright")])
 
 
-N = 240
+N_BATCH = 240
 
 
 @pytest.fixture(scope="module")
 def small_field():
     rng = np.random.default_rng(4)
-    yy, xx = np.mgrid[:N, :N]
-    img = rng.normal(size=(N, N)) * 0.05
+    yy, xx = np.mgrid[:N_BATCH, :N_BATCH]
+    img = rng.normal(size=(N_BATCH, N_BATCH)) * 0.05
     for _ in range(40):
-        x0, y0 = rng.uniform(0, N, 2)
+        x0, y0 = rng.uniform(0, N_BATCH, 2)
         r = rng.lognormal(np.log(2.0), 0.5)
         f = 10 ** rng.uniform(0.5, 2.5)
         img += f * np.exp(-np.hypot(xx - x0, yy - y0) / r) / (2 * np.pi * r * r)
@@ -90,7 +204,7 @@ def small_field():
     # 36 Gaussian sources on a grid (never overlapping), fluxes from faint to bright
     h = 10
     py, px = np.mgrid[-h:h + 1, -h:h + 1]
-    cells = np.arange(6) * (N / 6.0) + N / 12.0
+    cells = np.arange(6) * (N_BATCH / 6.0) + N_BATCH / 12.0
     xs = (cells[None, :] + rng.uniform(-5, 5, (6, 6))).ravel()
     ys = (cells[:, None] + rng.uniform(-5, 5, (6, 6))).ravel()
     flux = 10 ** rng.uniform(-0.3, 1.7, xs.size)
@@ -123,12 +237,12 @@ def test_results_do_not_depend_on_first_window_size(small_field, assert_same_out
         ix, iy = np.floor(xs + 0.5), np.floor(ys + 0.5)
         assert win.shape == (xs.size, 4)
         assert np.all((win[:, 0] <= iy) & (iy < win[:, 1]) & (win[:, 2] <= ix) & (ix < win[:, 3]))
-        assert np.all((win[:, 0] >= 0) & (win[:, 1] <= N) & (win[:, 2] >= 0) & (win[:, 3] <= N))
+        assert np.all((win[:, 0] >= 0) & (win[:, 1] <= N_BATCH) & (win[:, 2] >= 0) & (win[:, 3] <= N_BATCH))
         # no window is smaller than the first one unless clipped by the image edge, or the
         # source was found undetectable before any extraction (early exit): its window is
         # then the search box plus the filter's reach, and it is not detected
         side = np.minimum(win[:, 1] - win[:, 0], win[:, 3] - win[:, 2])
-        inner = (win[:, 0] > 0) & (win[:, 1] < N) & (win[:, 2] > 0) & (win[:, 3] < N)
+        inner = (win[:, 0] > 0) & (win[:, 1] < N_BATCH) & (win[:, 2] > 0) & (win[:, 3] < N_BATCH)
         early = side == ClassificationParams().search_box + 2 * (params.filter_halfwidth + 1)
         assert np.all(w["status"][early] == STATUS_NOT_DETECTED)
         inner &= ~early
@@ -231,3 +345,51 @@ def test_object_boxes_candidates_hold_every_meeting_box():
     want = set(zip(*[v.tolist() for v in np.nonzero(meet)]))
     assert want <= got
     assert len(got) < 0.2 * q.shape[0] * region.shape[0]       # an index, not all pairs
+
+
+# ------------------------------------------------------------------------------
+# Fast kernels of the windowed measurement against independent computations.
+# ------------------------------------------------------------------------------
+def _stamp_ctx(templates, x, y, rms=1.0, shape=(200, 200)):
+    from types import SimpleNamespace
+
+    from glaciar.engine.detect import DetectionParams
+    return SimpleNamespace(x=np.asarray(x, float), y=np.asarray(y, float), shape=shape,
+                           det_rms=np.full(shape, rms), params=DetectionParams(), templates=templates,
+                           margin=DetectionParams().filter_halfwidth + 1)
+
+
+def test_stamp_half_sizes_follow_the_gaussian_width():
+    """A bright circular Gaussian of sigma s: the above-threshold second moments give a -> s
+    (the part below threshold carries a negligible share of the weight), so the
+    predicted half-size is ceil(6 s + slack) + margin."""
+    from glaciar.engine import windows as W
+
+    h = 40
+    yy, xx = np.mgrid[-h:h + 1, -h:h + 1]
+    out = []
+    for s in (1.5, 3.0, 5.0):
+        g = np.exp(-(xx ** 2 + yy ** 2) / (2 * s * s))
+        g /= g.sum()
+        out.append((100 - h, 100 - h, g, 1e9))
+    ctx = _stamp_ctx(out + [None, (100 - h, 100 - h, g, 1e-9)], [100.0] * 5, [100.0] * 5)
+    half = W.stamp_half_sizes(ctx)
+    for k, s in enumerate((1.5, 3.0, 5.0)):
+        lo = int(np.ceil(6 * 0.99 * s + W._STAMP_SLACK)) + ctx.margin
+        hi = int(np.ceil(6 * s + W._STAMP_SLACK)) + ctx.margin
+        assert lo <= half[k] <= hi
+    assert half[3] == 0 and half[4] == 0          # no template; nothing above threshold
+
+
+def test_initial_windows_hold_the_predicted_half_size():
+    from glaciar.engine.detect import DetectionParams
+    from glaciar.engine.windows import initial_windows
+
+    params = DetectionParams()
+    x = np.array([100.0, 100.0, 3.0])
+    y = np.array([100.0, 150.0, 3.0])
+    win = initial_windows(x, y, (400, 400), params, 3, 3, own_half=np.array([0, 35, 35]))
+    r = params.initial_window // 2
+    assert tuple(win[0]) == (100 - r, 101 + r, 100 - r, 101 + r)
+    assert tuple(win[1]) == (150 - 35, 186, 100 - 35, 136)
+    assert tuple(win[2]) == (0, 39, 0, 39)         # clipped to the image

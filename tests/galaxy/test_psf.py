@@ -246,3 +246,22 @@ def test_prepare_psf_errors(tmp_path):
         prepare_psf("nope.fits", 0.08, base_dir=tmp_path)
 
 
+# ------------------------------------------------------------------------------
+# Fast kernels of the windowed measurement against independent computations.
+# ------------------------------------------------------------------------------
+def test_resample_matrix_equals_a_fresh_spline_through_the_cumulative():
+    """The cached spline per input size gives the matrix a spline built on the spot gives."""
+    from scipy.interpolate import CubicSpline
+
+    from glaciar.galaxy.psf import _resample_matrix
+
+    rng = np.random.default_rng(3)
+    for n in (5, 17, 41, 17):
+        new_edges = np.sort(rng.uniform(-3.0, n + 3.0, n + 1))
+        edges = np.arange(-2.5, n + 2.5)
+        cum = np.zeros((edges.size, n))
+        cum[3:3 + n] = np.tril(np.ones((n, n)))
+        cum[3 + n:] = 1.0
+        ref = np.diff(CubicSpline(edges, cum, axis=0, bc_type="clamped")(np.clip(new_edges, edges[0], edges[-1])),
+                      axis=0)
+        assert np.array_equal(_resample_matrix(n, new_edges), ref)
