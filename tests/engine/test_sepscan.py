@@ -1,4 +1,4 @@
-"""sep's detection scan reproduced in numpy (glaciar.engine.sepscan), against sep's loops written out."""
+"""sep's detection scan reproduced in numpy (glaciar.engine.sepscan) against its loops written out."""
 import numpy as np
 
 

@@ -9,6 +9,7 @@ import copy
 import dataclasses
 import shutil
 import subprocess
+import textwrap
 
 import numpy as np
 import pytest
@@ -22,6 +23,8 @@ from glaciar.engine.detect import DetectionParams
 from glaciar.engine.measure import MeasureSetup, measure_injected, reference_extraction
 from glaciar.engine.scene import Scene
 from glaciar.fieldprep import detection_params
+
+from config_dicts import base, error_of, load
 
 MOFFAT = {"profile": "moffat", "fwhm_arcsec": 0.18}
 BASE = {"survey": {
@@ -394,3 +397,180 @@ def test_windowed_equals_full_frame_with_the_keys(keys):
                                    err_msg=c)
     if "satur_level" in keys:
         assert 0 < int(((w["source_flags"] & FLAG_SATURATED) > 0).sum()) < (w["detection_id"] > 0).sum()
+
+
+# ------------------------------------------------------------------------------
+# Configuration: defaults, validation errors, round trips, hashing, .sex files, GLACiAR files.
+# ------------------------------------------------------------------------------
+def test_sex_file_merge(tmp_path):
+    sexdir = tmp_path / "sex"
+    sexdir.mkdir()
+    (sexdir / "my.conv").write_text("CONV NORM\n1 2 1\n2 4 2\n1 2 1\n")
+    (sexdir / "default.sex").write_text(textwrap.dedent("""\
+        # SExtractor config
+        CATALOG_NAME     test.cat       # ignored
+        DETECT_MINAREA   5
+        DETECT_THRESH    1.5,25.0       # sigma first
+        FILTER           Y
+        FILTER_NAME      my.conv
+        DEBLEND_NTHRESH  64
+        CLEAN            N
+        PHOT_APERTURES   2,4,6          # diameters
+        PHOT_AUTOPARAMS  2.5, 3.5
+        BACK_SIZE        128
+        """))
+    d = base()
+    d["detection"] = {"sex_file": "sex/default.sex", "DEBLEND_NTHRESH": 16}
+    det = load(d, tmp_path).detection
+    assert det.sex_file == str((sexdir / "default.sex").resolve())
+    assert det.detect_minarea == 5 and det.detect_thresh == 1.5      # from the .sex file
+    assert det.deblend_nthresh == 16                                     # explicit key wins
+    assert det.clean is False and det.phot_apertures == (2.0, 4.0, 6.0)
+    assert det.phot_autoparams == (2.5, 3.5) and det.back_size == 128
+    assert det.filter_name == str((sexdir / "my.conv").resolve())       # next to the .sex
+    assert det.deblend_mincont == 0.005                                  # default kept
+    (sexdir / "abs.sex").write_text("THRESH_TYPE ABSOLUTE\nDETECT_THRESH 0.01\n")
+    d["detection"] = {"sex_file": "sex/abs.sex"}
+    assert "THRESH_TYPE: only RELATIVE" in error_of(d, tmp_path)
+    d["detection"] = {"sex_file": "sex/none.sex"}
+    assert "detection.sex_file: file not found" in error_of(d, tmp_path)
+
+
+# ---------------------------------------------------------------------------
+# SExtractor keys -> the engine's DetectionParams (one reader, one validator)
+# ---------------------------------------------------------------------------
+def test_sex_file_reader_and_detection_params(tmp_path):
+    from glaciar.config import read_sex_file
+    from glaciar.engine.detect import DetectionParams
+    from glaciar.fieldprep import detection_params
+
+    (tmp_path / "my.conv").write_text("CONV NORM\n0 1 0\n1 4 1\n0 1 0\n")
+    sex = tmp_path / "det.sex"
+    sex.write_text("# comment\nDETECT_THRESH   1.5   # sigma\nDETECT_MINAREA 5\n"
+                   "PHOT_APERTURES 2,4,6\nFILTER_NAME my.conv\nCATALOG_NAME out.cat\nCLEAN N\n")
+    raw = read_sex_file(sex)
+    assert raw["DETECT_THRESH"] == "1.5" and raw["PHOT_APERTURES"] == ["2", "4", "6"]
+    d = base()
+    d["detection"] = {"sex_file": "det.sex", "DETECT_MINAREA": 12}
+    p = detection_params(load(d, tmp_path))
+    assert p.detect_thresh == 1.5 and p.detect_minarea == 12          # explicit key wins
+    assert p.phot_apertures == (2.0, 4.0, 6.0) and p.clean is False
+    np.testing.assert_array_equal(p.filter_kernel, [[0, 1, 0], [1, 4, 1], [0, 1, 0]])
+    d["detection"] = {"FILTER": False}
+    q = detection_params(load(d, tmp_path))
+    assert q.filter_kernel is None and q.filter_halfwidth == 0
+    d["detection"] = {"FILTER_NAME": "gauss_3.0_7x7"}
+    assert detection_params(load(d, tmp_path)).filter_halfwidth == 3
+    # The config's defaults are the engine's defaults (one place).
+    assert detection_params(load(base(), tmp_path)) == DetectionParams()
+
+
+@pytest.mark.parametrize("key,value,expected", [
+    ("DETECT_THRESH", "abc", "expected a number"), ("DETECT_MINAREA", 2.5, "expected an integer"),
+    ("CLEAN", "maybe", "expected true/false"), ("PHOT_APERTURES", [1, "x"], "expected a number"),
+    ("DEBLEND_MINCONT", 2.0, "must be <= 1"), ("FILTER_NAME", "nofilter", "unknown built-in filter"),
+    ("FILTER_TYPE", "gauss", "expected one of conv, matched")])
+def test_detection_errors_name_the_key(tmp_path, key, value, expected):
+    d = base()
+    d["detection"] = {key: value}
+    msg = error_of(d, tmp_path)
+    assert msg.startswith(f"config.yaml: detection.{key}") and expected in msg, msg
+
+
+def test_sex_file_values_are_checked_and_named(tmp_path):
+    (tmp_path / "bad.sex").write_text("DETECT_MINAREA 2.5\n")
+    d = base()
+    d["detection"] = {"sex_file": "bad.sex"}
+    msg = error_of(d, tmp_path)
+    assert "detection.DETECT_MINAREA: expected an integer" in msg
+    assert str((tmp_path / "bad.sex").resolve()) in msg        # where the value came from
+
+
+# ---------------------------------------------------------------------------
+# Every SExtractor key honoured or refused (issue 9, point 2)
+# ---------------------------------------------------------------------------
+SEX_DEFAULTS = """\
+CATALOG_NAME     test.cat
+CATALOG_TYPE     ASCII_HEAD
+PARAMETERS_NAME  default.param
+DETECT_TYPE      CCD
+DETECT_MINAREA   3
+DETECT_THRESH    1.5
+ANALYSIS_THRESH  1.5
+FILTER           Y
+FILTER_NAME      gauss_2.0_5x5.conv
+DEBLEND_NTHRESH  32
+DEBLEND_MINCONT  0.005
+CLEAN            Y
+CLEAN_PARAM      1.0
+MASK_TYPE        CORRECT
+WEIGHT_TYPE      NONE
+WEIGHT_IMAGE     weight.fits
+FLAG_IMAGE       flag.fits
+FLAG_TYPE        OR
+PHOT_APERTURES   5
+PHOT_AUTOPARAMS  2.5, 3.5
+PHOT_PETROPARAMS 2.0, 3.5
+PHOT_AUTOAPERS   0.0,0.0
+SATUR_LEVEL      50000.0
+SATUR_KEY        SATURATE
+MAG_ZEROPOINT    0.0
+GAIN             0.0
+GAIN_KEY         GAIN
+PIXEL_SCALE      1.0
+SEEING_FWHM      1.2
+BACK_TYPE        AUTO
+BACK_VALUE       0.0
+BACK_SIZE        64
+BACK_FILTERSIZE  3
+BACKPHOTO_TYPE   GLOBAL
+CHECKIMAGE_TYPE  NONE
+MEMORY_OBJSTACK  3000
+VERBOSE_TYPE     NORMAL
+"""
+
+
+def test_sextractor_default_file_is_accepted(tmp_path):
+    (tmp_path / "default.sex").write_text(SEX_DEFAULTS)
+    d = base()
+    d["detection"] = {"sex_file": "default.sex"}
+    cfg = load(d, tmp_path)
+    det = cfg.detection
+    assert (det.detect_thresh, det.detect_minarea, det.phot_apertures) == (1.5, 3, (5.0,))
+    assert det.filter_name == "gauss_2.0_5x5" and det.weight_type is None
+    assert any("WEIGHT_TYPE NONE" in w for w in cfg.warnings)
+
+
+@pytest.mark.parametrize("line, needle", [
+    ("BACK_TYPE MANUAL", "BACK_TYPE MANUAL: not supported"),
+    ("GAIN 2.5", "GAIN 2.5: not supported"),
+    ("INTERP_TYPE ALL", "INTERP_TYPE ALL: not supported"),
+    ("DETECT_TYPE PHOTO", "DETECT_TYPE PHOTO"),
+    ("FANCY_NEW_KEY 3", "FANCY_NEW_KEY: SExtractor key not supported"),
+    ("WEIGHT_TYPE MAP_WEIGHT,MAP_RMS", "different types for detection and measurement"),
+])
+def test_sextractor_keys_that_would_change_the_answer_are_refused(tmp_path, line, needle):
+    (tmp_path / "x.sex").write_text(SEX_DEFAULTS.replace("WEIGHT_TYPE      NONE\n", "") + line + "\n")
+    d = base()
+    d["detection"] = {"sex_file": "x.sex"}
+    msg = error_of(d, tmp_path)
+    assert msg.startswith("config.yaml: detection.sex_file: ") and needle in msg, msg
+    assert str(tmp_path / "x.sex") in msg
+
+
+def test_weight_type_from_sex_and_consistency(tmp_path):
+    (tmp_path / "w.sex").write_text("WEIGHT_TYPE MAP_WEIGHT,MAP_WEIGHT\nWEIGHT_GAIN Y\n")
+    d = base()
+    d["detection"] = {"sex_file": "w.sex"}
+    cfg = load(d, tmp_path)
+    assert cfg.detection.weight_type == "map_weight" and cfg.detection.weight_gain is True
+    d["survey"]["noise_type"] = "rms"
+    assert "detection.WEIGHT_TYPE: MAP_WEIGHT needs survey.noise_type: weight" in error_of(d, tmp_path)
+    d = base()
+    d["detection"] = {"WEIGHT_GAIN": True}
+    d["survey"]["bands"]["f160w"]["gain"] = 2000.0
+    assert "detection.WEIGHT_GAIN: WEIGHT_GAIN Y" in error_of(d, tmp_path)
+    d = base()
+    del d["survey"]["noise"]
+    d["detection"] = {"WEIGHT_TYPE": "MAP_WEIGHT"}
+    assert "needs a noise map" in error_of(d, tmp_path)
