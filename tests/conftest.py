@@ -174,3 +174,38 @@ def fallocate_enospc(monkeypatch):
             return real(fd, offset, length)
         monkeypatch.setattr(os, "posix_fallocate", fake)
     return enospc
+
+
+# --------------------------------------------------------------------------
+# Tiny runs of ``small_survey`` (helpers in tiny_runs.py), per test module
+# --------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def small_survey_dict(small_survey):
+    """The small survey's configuration as a dict with absolute paths."""
+    from tiny_runs import absolute_config
+
+    return absolute_config(small_survey)
+
+
+@pytest.fixture(scope="module")
+def one_task_run(small_survey_dict, tmp_path_factory):
+    """A finished one-task run (1 field, z = 8, m = 24, 3 sources): (config dict, run dir)."""
+    from glaciar.execute import simulate
+    from tiny_runs import load_dict, tiny_config
+
+    d = tiny_config(small_survey_dict)
+    tmp = tmp_path_factory.mktemp("one_task")
+    cfg = load_dict(d, tmp / "c.yaml")
+    simulate(cfg, tmp / "run", workers=1, progress=False)
+    return d, tmp / "run"
+
+
+@pytest.fixture
+def run_copy(one_task_run, tmp_path):
+    """A private copy of ``one_task_run``: (config dict, run dir)."""
+    import json
+    import shutil
+
+    d, run = one_task_run
+    shutil.copytree(run, tmp_path / "run")
+    return json.loads(json.dumps(d)), tmp_path / "run"

@@ -8,6 +8,7 @@ no simulation); the full disk is simulated by making ``os.posix_fallocate`` fail
 import errno
 import os
 import re
+import shutil
 import warnings
 
 import numpy as np
@@ -16,13 +17,18 @@ import pyarrow.parquet as pq
 import pytest
 
 from glaciar import constants as C
+from glaciar.config import load_config
 from glaciar.engine import fieldcache
+from glaciar.execute import simulate
 from glaciar.paths import DiskFullError, UnsafePathError, file_stem, run_subdir
-from glaciar.store import (StoreWarning, _read_task_file, compact, read_results, task_filename,
-                           task_key, verified_task_names, write_task_table)
+from glaciar.store import (StoreWarning, _read_task_file, compact, read_current_results,
+                           read_results, task_filename, task_key, verified_task_names,
+                           write_task_table)
 from glaciar.taskfile import unit_problem
 from glaciar.rundir import atomic_write_bytes
 from glaciar.tables import summary_stem, write_summaries
+
+from tiny_runs import link_field, load_dict, sorted_rows, tiny_config, write_yaml
 
 
 # --------------------------------------------------------------------------
@@ -78,7 +84,7 @@ def _poke(path, at, junk=b"\xa5"):
 
 
 # --------------------------------------------------------------------------
-# 6. One function from user strings to file names
+# One function from user strings to file names
 # --------------------------------------------------------------------------
 @pytest.mark.parametrize("name", ["demo01", "shallow", "deep", "f160w", "borg_0240+1857",
                                   "all_logistic", "a-b.c"])
@@ -143,7 +149,7 @@ def test_a_linked_partition_of_compacted_parts_is_refused(tmp_path):
 
 
 # --------------------------------------------------------------------------
-# 7. Full disks: one line naming the file; mapped files allocated before they are mapped
+# Full disks: one line naming the file; mapped files allocated before they are mapped
 # --------------------------------------------------------------------------
 def test_atomic_write_on_a_full_disk_names_the_file_and_changes_nothing(tmp_path, monkeypatch,
                                                                         fallocate_enospc):
@@ -172,7 +178,7 @@ def test_field_cache_is_allocated_before_it_is_mapped(tmp_path, monkeypatch, fal
 
 
 # --------------------------------------------------------------------------
-# 7. Corrupt pages and footers: detected, set aside, named by readers
+# Corrupt pages and footers: detected, set aside, named by readers
 # --------------------------------------------------------------------------
 def test_deterministic_in_page_corruptions_are_all_detected(tmp_path):
     """Garbage in the pages of one task file: simulate's check catches every case, and a
@@ -250,3 +256,117 @@ def test_compaction_sets_corrupt_task_files_aside_and_parts_are_checked(tmp_path
     with pytest.warns(StoreWarning, match=rf"{_at(part)}: corrupt .*set aside .*its tasks"):
         assert verified_task_names(tmp_path, wanted, quarantine=True) == set()
     assert not part.exists()
+
+
+# ------------------------------------------------------------------------------
+# Run-directory integrity under hostile use (issue 10): task identity, corrupt and foreign
+# task files, the renamed flags column.  Every simulation is tiny (the ``small_survey``
+# images, 1-6 tasks of 3-6 sources).
+#
+# Collision-free task identity
+# ------------------------------------------------------------------------------
+def test_task_filenames_are_injective():
+    keys = [("par α", 8.0, 24.0, 0), ("par β", 8.0, 24.0, 0), ("a b", 8.0, 24.0, 0),
+            ("a_b", 8.0, 24.0, 0), ("a/b", 8.0, 24.0, 0), ("a_b", 9.0, 24.0, 0),
+            ("a_b", 9.00004, 24.0, 0), ("a_b", 9.0, 24.00001, 0), ("a_b", 9.0, 24.0, 1),
+            ("a_b", -9.0, 24.0, 0), ("a_b", 9.0 + 1e-15, 24.0, 0)]
+    names = [task_filename(*k) for k in keys]
+    assert len(set(names)) == len(keys)
+    # Deterministic, one path component, readable start.
+    assert task_filename("par α", 8.0, 24.0, 0) == names[0]
+    assert all("/" not in n and n.startswith("task_") and n.endswith(".parquet") for n in names)
+    assert names[2].startswith("task_a_b-") and "_z+008.0000_m+024.0000_i0000_" in names[2]
+
+
+def test_fields_and_grid_values_that_used_to_collide_keep_their_rows(small_survey_dict, tmp_path):
+    """'a b' / 'a_b' / 'par α' and z = 8.0 / 8.00004: every task its own file and rows."""
+    image_dir = tmp_path / "images"
+    image_dir.mkdir()
+    fields = ("a b", "a_b", "par α")
+    for f in fields:
+        link_field(load_config(write_yaml(small_survey_dict, tmp_path / "b.yaml")).survey.image_dir,
+                    "demo01", f, image_dir)
+    d = tiny_config(small_survey_dict, fields=fields, z=(8.0, 8.00004), n_gal=3)
+    d["survey"]["image_dir"] = str(image_dir)
+    cfg = load_dict(d, tmp_path / "c.yaml")
+    stats = simulate(cfg, tmp_path / "run", workers=1, progress=False)
+    assert stats["n_run"] == 6 and stats["n_done_before"] == 0
+    assert len(list((tmp_path / "run" / C.RESULTS_DIRNAME).glob("task_*.parquet"))) == 6
+    rows = read_results(tmp_path / "run")
+    counts = rows.groupby([C.COL_FIELD, C.COL_Z]).size()
+    assert sorted(counts.index) == sorted((f, z) for f in fields for z in (8.0, 8.00004))
+    assert (counts == 3).all()
+    # Resume finds every finished task of this format.
+    again = simulate(cfg, tmp_path / "run", workers=1, progress=False)
+    assert again["n_run"] == 0 and again["n_done_before"] == 6
+
+
+def test_rows_no_longer_listed_are_excluded_by_report_and_fit_alike(small_survey_dict, tmp_path):
+    from glaciar.cli import _report
+    from glaciar.pipeline.inputs import read_columns
+
+    d = tiny_config(small_survey_dict, z=(8.0, 10.4), n_iter=2)
+    run = tmp_path / "run"
+    simulate(load_dict(d, tmp_path / "c.yaml"), run, workers=1, progress=False)
+    assert len(read_results(run)) == 2 * 2 * 3
+    # Drop z = 10.4 and the second iteration: the manifest describes the run as now configured.
+    small = tiny_config(small_survey_dict, z=(8.0,), n_iter=1)
+    assert simulate(load_dict(small, tmp_path / "s.yaml"), run, workers=1, progress=False)["n_run"] == 0
+    with pytest.warns(StoreWarning, match=r"ignoring 9 rows of 3 task\(s\)"):
+        rows = read_current_results(run)
+    assert set(rows[C.COL_Z]) == {8.0} and set(rows[C.COL_ITERATION]) == {0} and len(rows) == 3
+    with pytest.warns(StoreWarning):
+        fit_rows = read_columns(run, [C.COL_FIELD, C.COL_Z, C.COL_MAG, C.COL_RECOVERED])
+    pd.testing.assert_frame_equal(fit_rows, rows[fit_rows.columns.tolist()])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", StoreWarning)
+        _report(run)
+    from astropy.table import Table
+    t = Table.read(run / C.SUMMARY_DIRNAME / "summary_all.ecsv")
+    assert list(t["z"]) == [8.0] and list(t["n_input"]) == [3]
+
+
+# --------------------------------------------------------------------------
+# Truncated or foreign task files are redone
+# --------------------------------------------------------------------------
+def test_truncated_and_foreign_task_files_are_redone(small_survey_dict, tmp_path):
+    d = tiny_config(small_survey_dict, mag=(24.0, 27.5), n_iter=2)
+    cfg = load_dict(d, tmp_path / "c.yaml")
+    run = tmp_path / "run"
+    simulate(cfg, run, workers=1, progress=False)
+    ref = sorted_rows(read_results(run))
+    files = sorted((run / C.RESULTS_DIRNAME).glob("task_*.parquet"))
+    assert len(files) == 4
+    cut, foreign = files[0], files[1]
+    data = cut.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    shutil.copyfile(files[2], foreign)                   # a complete file of another task
+    with pytest.warns(StoreWarning) as rec:
+        stats = simulate(cfg, run, workers=1, progress=False)
+    msgs = [str(w.message) for w in rec]
+    assert any(str(cut) in m and "not a complete Parquet file" in m for m in msgs)
+    assert any(str(foreign) in m and "holds another task" in m for m in msgs)
+    assert stats["n_done_before"] == 2 and stats["n_run"] == 2
+    pd.testing.assert_frame_equal(sorted_rows(read_results(run)), ref)
+
+
+def test_unreadable_task_file_is_named_when_reading(run_copy):
+    _, run = run_copy
+    f = next((run / C.RESULTS_DIRNAME).glob("task_*.parquet"))
+    f.write_bytes(f.read_bytes()[:100])
+    with pytest.raises(ValueError, match=re.escape(f"{f}: unreadable task file")):
+        read_current_results(run)
+
+
+# --------------------------------------------------------------------------
+# The flags column no longer shadows DataFrame.flags
+# --------------------------------------------------------------------------
+def test_flags_column_is_renamed(one_task_run):
+    from glaciar.config import selection_columns
+
+    _, run = one_task_run
+    rows = read_results(run)
+    assert C.COL_FLAGS in rows.columns and "flags" not in rows.columns
+    assert isinstance(rows.flags, pd.Flags)                 # attribute access is pandas' own
+    assert rows[C.COL_FLAGS].dtype.kind == "i"
+    assert C.COL_FLAGS in selection_columns(["f160w"], 1) and "flags" not in selection_columns(["f160w"], 1)

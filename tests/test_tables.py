@@ -59,3 +59,19 @@ def test_region_file_is_one_based_and_coloured():
     rows = pd.DataFrame({C.COL_X: [0.0], C.COL_Y: [9.5], C.COL_STATUS: [-3], C.COL_Z: [9.0], C.COL_MAG: [26.0]})
     txt = region_file(rows)
     assert "circle(1.000,10.500," in txt and "color=red" in txt
+
+
+# ------------------------------------------------------------------------------
+# Region files of fields whose names differ only where a file name cannot (issue 10)
+# ------------------------------------------------------------------------------
+def test_region_files_do_not_collide(tmp_path):
+    from glaciar.tables import write_regions
+
+    keys = [("a b", 8.0), ("a_b", 8.0), ("a_b", 8.00004), ("par α", 8.0)]
+    rows = pd.DataFrame({C.COL_FIELD: [k[0] for k in keys], C.COL_Z: [k[1] for k in keys],
+                         C.COL_MAG: 24.0, C.COL_ITERATION: 0, C.COL_X: 1.0, C.COL_Y: 2.0,
+                         C.COL_STATUS: C.STATUS_ISOLATED})
+    paths = write_regions(rows, tmp_path)
+    # One file per field: "a b" and "a_b" do not share one; "a_b" holds both of its tasks.
+    assert len(set(paths)) == 3 and all(p.is_file() for p in paths)
+    assert sorted(p.read_text().count("circle(") for p in paths) == [1, 1, 2]

@@ -164,3 +164,23 @@ def test_holes_in_a_band_kept_and_flagged_or_left_out(small_survey, tmp_path):
             assert not survey.footprint("demo01")[:, :160].any()
             assert not left.any() and not no_data.any()
     assert flagged > 0
+
+
+# ------------------------------------------------------------------------------
+# Run-directory integrity under hostile use (issue 10): task identity, content-aware store
+# identity, validate-then-write, the run lock, process hygiene, corrupt task files, umask,
+# the renamed flags column and one-line CLI errors.
+# ------------------------------------------------------------------------------
+def test_near_equal_grid_values_get_their_own_random_streams():
+    """z = 9.0 and 9.00004 are different tasks with different files *and* different draws."""
+    from glaciar.engine.task import TaskSpec, task_rng
+
+    a = TaskSpec("f", 0, 0, 0, 0, 9.0, 25.0)
+    b = TaskSpec("f", 0, 1, 0, 0, 9.00004, 25.0)
+    c = TaskSpec("f", 0, 0, 1, 0, 9.0, 25.0 + 1e-12)
+    ra, ia = task_rng(1, a)
+    rb, ib = task_rng(1, b)
+    rc, ic = task_rng(1, c)
+    assert len({ia, ib, ic}) == 3
+    assert len({tuple(r.random(3)) for r in (ra, rb, rc)}) == 3
+    assert task_rng(1, a)[1] == ia                     # and each is reproducible
