@@ -209,3 +209,32 @@ def run_copy(one_task_run, tmp_path):
     d, run = one_task_run
     shutil.copytree(run, tmp_path / "run")
     return json.loads(json.dumps(d)), tmp_path / "run"
+
+
+@pytest.fixture(scope="module")
+def two_task_run(small_survey_dict, tmp_path_factory):
+    """The small survey's field, z = 8, m = 24 and 27.5, 1 iteration of 3 sources:
+    (config path, finished run directory)."""
+    from glaciar.config import load_config
+    from glaciar.execute import simulate
+    from tiny_runs import tiny_config, write_yaml
+
+    root = tmp_path_factory.mktemp("two_task")
+    cfg_path = write_yaml(tiny_config(small_survey_dict, mag=(24.0, 27.5)), root / "c.yaml")
+    simulate(load_config(cfg_path), root / "run", workers=1, progress=False)
+    return cfg_path, root / "run"
+
+
+@pytest.fixture
+def store_run(two_task_run, tmp_path):
+    """A copy of ``two_task_run`` in ``tmp_path/run``, beside ``tmp_path/outside`` (one file)."""
+    import shutil
+
+    from glaciar import constants as C
+
+    _, src = two_task_run
+    dst = tmp_path / "run"
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns(C.LOCK_NAME))
+    (tmp_path / "outside").mkdir()
+    (tmp_path / "outside" / "keep.txt").write_text("not glaciar's\n")
+    return dst

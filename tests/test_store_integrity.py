@@ -6,6 +6,7 @@ no simulation); the full disk is simulated by making ``os.posix_fallocate`` fail
 ``ENOSPC`` (benchmarks/full_disk.py does it on real tiny file systems).  ~2 s in all.
 """
 import errno
+import json
 import os
 import re
 import shutil
@@ -17,6 +18,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from glaciar import constants as C
+from glaciar.cli import main
 from glaciar.config import load_config
 from glaciar.engine import fieldcache
 from glaciar.execute import simulate
@@ -28,7 +30,8 @@ from glaciar.taskfile import unit_problem
 from glaciar.rundir import atomic_write_bytes
 from glaciar.tables import summary_stem, write_summaries
 
-from tiny_runs import link_field, load_dict, sorted_rows, tiny_config, write_yaml
+from tiny_runs import (cli, kept, link_field, load_dict, one_error, run_rows, sorted_rows,
+                       task_files, tiny_config, tree_bytes, write_yaml)
 
 
 # --------------------------------------------------------------------------
@@ -370,3 +373,256 @@ def test_flags_column_is_renamed(one_task_run):
     assert isinstance(rows.flags, pd.Flags)                 # attribute access is pandas' own
     assert rows[C.COL_FLAGS].dtype.kind == "i"
     assert C.COL_FLAGS in selection_columns(["f160w"], 1) and "flags" not in selection_columns(["f160w"], 1)
+
+
+# ------------------------------------------------------------------------------
+# Hostile cases of issue 21, bullets 6 and 7, through the command line: nothing written
+# outside the run directory (linked sub-directories, field names holding paths), full disks
+# and corrupt task files.
+#
+# Every case runs ``glaciar.cli.main`` in this process (so that ``os.posix_fallocate`` can be
+# made to fail with ENOSPC, and the field's measurement is shared between cases) on a copy of
+# one 2-task run of the small survey (3 sources per task), or on a synthetic store, and
+# asserts: the exit status (2 for a refusal, 0 where the documented behaviour is to go on),
+# one line on stderr for a refusal (naming the path), nothing outside the run directory
+# touched, and nothing already written lost or changed (a corrupt file set aside is kept,
+# byte for byte, in ``results/corrupt/``).  ~15 s in all.
+# ------------------------------------------------------------------------------
+# --------------------------------------------------------------------------
+# 6. Linked sub-directories of a run are refused, naming the link
+# --------------------------------------------------------------------------
+LINKED = [  # (sub-directory of the run, command)
+    ("results", "simulate"),
+    (".context", "simulate"),
+    ("results/compact", "simulate"),
+    ("results/corrupt", "simulate"),
+    ("summary", "simulate"),
+    ("summary", "report"),
+    ("summary/regions", "report --regions"),
+    ("fit", "fit"),
+]
+
+
+@pytest.mark.parametrize("sub, command", LINKED, ids=[f"{s}-{c}" for s, c in LINKED])
+def test_linked_subdirectory_is_refused(sub, command, store_run, two_task_run, capsys):
+    cfg_path, _ = two_task_run
+    outside = store_run.parent / "outside"
+    link = store_run / sub
+    if link.exists():                       # its content moves outside, behind the link
+        shutil.move(str(link), str(outside / "moved"))
+        target = outside / "moved"
+    else:
+        target = outside
+    link.parent.mkdir(parents=True, exist_ok=True)
+    link.symlink_to(target, target_is_directory=True)
+    before_run, before_out = tree_bytes(store_run), tree_bytes(outside)
+    words = command.split()
+    argv = ([words[0], cfg_path, "--out", store_run, "--workers", 1, "--quiet"] if words[0] ==
+            "simulate" else [words[0], store_run, *words[1:]] + (["--quiet"] if words[0] == "fit"
+                                                            else []))
+    code, lines = cli(capsys, *argv)
+    assert code == 2
+    one_error(lines, words[0], rf"{re.escape(str(link))}: is a symbolic link")
+    assert tree_bytes(outside) == before_out
+    kept(before_run, tree_bytes(store_run))
+
+
+def test_linked_lock_file_is_refused(store_run, two_task_run, capsys):
+    cfg_path, _ = two_task_run
+    keep = store_run.parent / "outside" / "keep.txt"
+    (store_run / C.LOCK_NAME).symlink_to(keep)
+    before_run = tree_bytes(store_run)
+    code, lines = cli(capsys, "simulate", cfg_path, "--out", store_run, "--workers", 1, "--quiet")
+    assert code == 2
+    one_error(lines, "simulate", rf"{re.escape(str(store_run / C.LOCK_NAME))}: is a symbolic link")
+    assert keep.read_text() == "not glaciar's\n"          # no pid written through the link
+    kept(before_run, tree_bytes(store_run))
+
+
+# --------------------------------------------------------------------------
+# 6. Field names holding paths: report writes inside summary/, one file per field
+# --------------------------------------------------------------------------
+HOSTILE_FIELDS = ["../../up", "sub/x", "all", ".."]
+
+
+@pytest.fixture(scope="module")
+def hostile_report(tmp_path_factory):
+    """A synthetic store whose fields are :data:`HOSTILE_FIELDS`, reported by ``glaciar
+    report``: (root, run, exit status, stderr, files below root before, after)."""
+    root = tmp_path_factory.mktemp("hostile_names") / "deep" / "er"
+    run = root / "run"
+    rng = np.random.default_rng(1)
+    for f in HOSTILE_FIELDS:
+        for mag in (24.0, 26.0):
+            n = 6
+            status = rng.choice(C.STATUS_CODES, size=n)
+            rec = np.isin(status, C.RECOVERED_STATUSES)
+            t = pd.DataFrame({C.COL_FIELD: f, C.COL_Z: 8.0, C.COL_MAG: mag, C.COL_ITERATION: 0,
+                              C.COL_SOURCE: np.arange(n), C.COL_MAG_INPUT: mag,
+                              C.COL_STATUS: status, C.COL_RECOVERED: rec,
+                              C.COL_SELECTED: rec & (rng.uniform(size=n) < 0.5)})
+            write_task_table(run, task_filename(f, 8.0, mag, 0), t,
+                             key=task_key(f, 8.0, mag, 0), mag_column=C.COL_MAG_INPUT)
+    (run / C.MANIFEST_NAME).write_text(json.dumps({"fields": HOSTILE_FIELDS}))
+    top = root.parent.parent
+    before = sorted(str(p.relative_to(top)) for p in top.rglob("*"))
+    code = main(["report", str(run)])
+    after = sorted(str(p.relative_to(top)) for p in top.rglob("*"))
+    return top, run, code, before, after
+
+
+@pytest.mark.parametrize("field", HOSTILE_FIELDS)
+def test_field_names_holding_paths_stay_in_the_summary_directory(field, hostile_report):
+    from astropy.table import Table
+
+    from glaciar.tables import summary_stem
+
+    top, store_run, code, before, after = hostile_report
+    assert code == 0
+    # The run's own lock (report holds it while it reads) is the one file beside summary/.
+    made = set(after) - set(before) - {str((store_run / C.LOCK_NAME).relative_to(top))}
+    summary = str((store_run / C.SUMMARY_DIRNAME).relative_to(top))
+    assert made and all(m == summary or os.path.dirname(m) == summary for m in made)
+    stem = summary_stem(field)
+    t = Table.read(store_run / C.SUMMARY_DIRNAME / f"summary_{stem}.ecsv")
+    assert t.meta["field"] == field and int(t["n_input"].sum()) == 12
+    for kind in ("completeness", "selection_total", "selection"):
+        assert (store_run / C.SUMMARY_DIRNAME / f"{kind}_{stem}.png").is_file()
+    pooled = Table.read(store_run / C.SUMMARY_DIRNAME / "summary_all.ecsv")
+    assert pooled.meta["field"] == "all" and int(pooled["n_input"].sum()) == 12 * len(
+        HOSTILE_FIELDS)
+
+
+# --------------------------------------------------------------------------
+# 7. Full disks: one line naming the file; the same command resumes
+# --------------------------------------------------------------------------
+def test_full_disk_while_writing_a_task(store_run, two_task_run, capsys, monkeypatch,
+                                        fallocate_enospc):
+    cfg_path, _ = two_task_run
+    ref = run_rows(store_run)
+    gone = task_files(store_run)[1]
+    gone.unlink()
+    before_run = tree_bytes(store_run)
+    fallocate_enospc(where=f"/{C.RESULTS_DIRNAME}/")
+    code, lines = cli(capsys, "simulate", cfg_path, "--out", store_run, "--workers", 1, "--quiet")
+    assert code == 2
+    one_error(lines, "simulate", rf"{re.escape(str(gone))}: no space left on device; free "
+                                  r"some space and run the same command again: .*resumes")
+    kept(before_run, tree_bytes(store_run))
+    assert not list((store_run / C.RESULTS_DIRNAME).glob(".*.tmp"))           # nothing half-written
+    monkeypatch.undo()
+    code, _ = cli(capsys, "simulate", cfg_path, "--out", store_run, "--workers", 1, "--quiet")
+    assert code == 0
+    pd.testing.assert_frame_equal(run_rows(store_run), ref)
+
+
+def test_full_disk_before_anything_is_written(two_task_run, tmp_path, capsys, monkeypatch,
+                                              fallocate_enospc):
+    cfg_path, _ = two_task_run
+    out = tmp_path / "new_run"
+    fallocate_enospc()
+    code, lines = cli(capsys, "simulate", cfg_path, "--out", out, "--workers", 1, "--quiet")
+    assert code == 2
+    one_error(lines, "simulate", rf"{re.escape(str(out / C.MANIFEST_NAME))}: no space left")
+    assert sorted(os.listdir(tmp_path)) == ["new_run"]
+    assert set(os.listdir(out)) <= {C.LOCK_NAME}
+
+
+def test_full_disk_while_reporting(store_run, capsys, monkeypatch, fallocate_enospc):
+    before_run = tree_bytes(store_run)
+    fallocate_enospc()
+    code, lines = cli(capsys, "report", store_run)
+    assert code == 2
+    summary = re.escape(str(store_run / C.SUMMARY_DIRNAME))
+    one_error(lines, "report", rf"{summary}/\S+: no space left")
+    kept(before_run, tree_bytes(store_run))
+
+
+# --------------------------------------------------------------------------
+# 7. Corrupt task files: named by readers, set aside and redone by simulate (no loop)
+# --------------------------------------------------------------------------
+def _in_pages(f):
+    """One byte of the pages of column ``x`` (read by ``report --regions``) flipped."""
+    import pyarrow.parquet as pq
+
+    md = pq.read_metadata(f)
+    col = md.row_group(0).column(md.schema.to_arrow_schema().names.index(C.COL_X))
+    start = col.dictionary_page_offset if col.has_dictionary_page else col.data_page_offset
+    data = bytearray(f.read_bytes())
+    at = int(start) + int(col.total_compressed_size) // 2
+    data[at] ^= 0xFF
+    f.write_bytes(bytes(data))
+
+
+def _renamed_column(f):
+    import pyarrow.parquet as pq
+
+    name = pq.read_schema(f).names[12].encode()
+    f.write_bytes(f.read_bytes().replace(name, name[:-1] + (b"X" if name[-1:] != b"X" else b"Y")))
+
+
+def _garbled_footer(f):
+    data = bytearray(f.read_bytes())
+    n = int.from_bytes(data[-8:-4], "little")
+    start = len(data) - 8 - n
+    data[start:start + 24] = b"\xff" * 24
+    f.write_bytes(bytes(data))
+
+
+CORRUPTIONS = {"data page": _in_pages, "renamed column": _renamed_column,
+               "garbled footer": _garbled_footer}
+READERS = [("data page", "report --regions"), ("renamed column", "report --regions"),
+           ("garbled footer", "report"), ("garbled footer", "fit")]
+
+
+@pytest.mark.parametrize("kind, command", READERS, ids=[f"{k}-{c}" for k, c in READERS])
+def test_readers_name_the_corrupt_file(kind, command, store_run, capsys):
+    f = task_files(store_run)[1]
+    CORRUPTIONS[kind](f)
+    before_run = tree_bytes(store_run)
+    words = command.split()
+    code, lines = cli(capsys, words[0], store_run, *words[1:], *(["--quiet"] if words[0] == "fit"
+                                                             else []))
+    assert code == 2
+    errors = [ln for ln in lines if not ln.startswith("warning:")]
+    assert len(errors) == 1, lines
+    one_error(errors, words[0], rf"{re.escape(str(f))}: unreadable task file \(.*\); `glaciar "
+                                 r"simulate` into this run directory sets it aside")
+    kept(before_run, tree_bytes(store_run))
+
+
+@pytest.mark.parametrize("kind", sorted(CORRUPTIONS))
+def test_simulate_sets_the_corrupt_file_aside_and_redoes_it(kind, store_run, two_task_run, capsys):
+    """The advice readers give holds: simulate detects what they detect (it used to count a
+    task with a garbled footer as done while readers told the user to run simulate)."""
+    cfg_path, _ = two_task_run
+    ref = run_rows(store_run)
+    f = task_files(store_run)[1]
+    CORRUPTIONS[kind](f)
+    bad = f.read_bytes()
+    code, lines = cli(capsys, "simulate", cfg_path, "--out", store_run, "--workers", 1, "--quiet")
+    assert code == 0
+    aside = store_run / C.RESULTS_DIRNAME / "corrupt" / f.name
+    warned = [ln for ln in lines if ln.startswith(f"warning: {f}: ")]
+    assert len(warned) == 1 and f"set aside as {aside}; the task will be run again" in warned[0]
+    assert aside.read_bytes() == bad                  # kept, byte for byte, inside the run
+    pd.testing.assert_frame_equal(run_rows(store_run), ref)   # every page read, checksums verified
+
+
+def test_garbled_counts_are_read_from_the_rows(store_run, capsys):
+    """Documented: counts whose digest fails are replaced by the rows' (a warning names it)."""
+    import pyarrow.parquet as pq
+
+    assert main(["report", str(store_run)]) == 0
+    capsys.readouterr()
+    f = task_files(store_run)[0]
+    value = pq.read_metadata(f).metadata[b"glaciar.counts"]
+    data = f.read_bytes()
+    at = data.index(value) + len(value) // 2
+    f.write_bytes(data[:at] + bytes([data[at] ^ 0x01]) + data[at + 1:])
+    ref = (store_run / C.SUMMARY_DIRNAME / "summary_all.ecsv").read_text()
+    code, lines = cli(capsys, "report", store_run)
+    assert code == 0
+    assert len(lines) == 1 and lines[0].startswith(f"warning: {f}: unreadable glaciar.counts "
+                                                   "metadata (digest mismatch)")
+    assert (store_run / C.SUMMARY_DIRNAME / "summary_all.ecsv").read_text() == ref

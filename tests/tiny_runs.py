@@ -5,12 +5,15 @@ loaded; snapshots of a directory's files; the rows of a run in a stable order.
 """
 import json
 import os
+import re
 import shutil
 
 import yaml
 
 from glaciar import constants as C
+from glaciar.cli import main
 from glaciar.config import load_config
+from glaciar.store import read_results
 
 
 def absolute_config(small_survey):
@@ -65,3 +68,52 @@ def link_field(image_dir, src_field, new_field, dst_dir, copy=False):
             shutil.copyfile(p, q)
         else:
             q.symlink_to(p)
+
+
+#: Files a command may rewrite in place without changing what a run holds.
+VOLATILE_FILES = {C.LOCK_NAME, C.FINGERPRINT_CACHE_NAME}
+TASK_KEYS = [C.COL_FIELD, C.COL_Z, C.COL_MAG, C.COL_ITERATION, C.COL_SOURCE]
+
+
+# --------------------------------------------------------------------------
+# Fixtures and helpers
+# --------------------------------------------------------------------------
+
+
+def tree_bytes(root):
+    """{relative path: bytes} of every file below ``root`` (links not followed)."""
+    out = {}
+    for dirpath, _dirs, files in os.walk(root):
+        for f in files:
+            p = os.path.join(dirpath, f)
+            if not os.path.islink(p):
+                out[os.path.relpath(p, root)] = open(p, "rb").read()
+    return out
+
+
+def cli(capsys, *argv):
+    """``main(argv)``: (exit status, stderr lines)."""
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    return code, [ln for ln in err.splitlines() if ln.strip()]
+
+
+def kept(before, after):
+    """Every file of ``before`` is in ``after`` unchanged (volatile files aside)."""
+    for rel, data in before.items():
+        if os.path.basename(rel) in VOLATILE_FILES:
+            continue
+        assert after.get(rel) == data, rel
+
+
+def one_error(lines, command, pattern):
+    assert len(lines) == 1, lines
+    assert re.match(rf"glaciar {command}: error: {pattern}", lines[0]), lines[0]
+
+
+def run_rows(run):
+    return read_results(run).sort_values(TASK_KEYS).reset_index(drop=True)
+
+
+def task_files(run):
+    return sorted((run / C.RESULTS_DIRNAME).glob("task_*.parquet"))
