@@ -90,3 +90,55 @@ def test_a_coadd_detects_what_one_band_misses(small_survey, tmp_path):
                           for i in range(4)])
         detected[name] = np.mean(rows[C.COL_STATUS] != C.STATUS_NOT_DETECTED)
     assert detected["coadd"] > detected["band"]
+
+
+# ------------------------------------------------------------------------------
+# Field set-up with bounded memory gives the same answers.
+# ------------------------------------------------------------------------------
+@pytest.mark.parametrize("method", ["ivw", "chi2"])
+def test_coadd_by_row_blocks_is_the_pixelwise_stack(monkeypatch, tmp_path, method):
+    """The stack of a large image by blocks of 2 rows (inputs memory-mapped, float32 output)
+    against its definition on whole arrays: inverse-variance mean and 1/sqrt(sum w), or the
+    Gaussianised chi-square deviate of the bands with data."""
+    from scipy import special
+
+    from glaciar.engine import coadd as co
+
+    rng = np.random.default_rng(12)
+    shape = (41, 23)
+    images = [rng.standard_normal(shape).astype(np.float32) * s for s in (1.0, 2.0, 0.5)]
+    rms = [np.full(shape, s, np.float32) for s in (1.0, 2.0, 0.5)]
+    rms[0][3:9, 4:6] = np.inf
+    rms[1][3:7, 4:5] = 0.0
+    rms[2][3:5, 4:5] = np.nan                            # (3..4, 4): no band has data
+    images[1][10, 10] = 1e3                              # a bright pixel: large chi2
+    maps = []
+    for k, a in enumerate(images + rms):
+        np.save(tmp_path / f"{k}.npy", a)
+        maps.append(np.load(tmp_path / f"{k}.npy", mmap_mode="r"))
+    with np.errstate(divide="ignore"):
+        w = [np.where(np.isfinite(r) & (r > 0), 1.0 / np.square(r.astype(np.float64)), 0.0)
+             for r in rms]
+    wsum = sum(w)
+    has = wsum > 0
+    if method == "ivw":
+        with np.errstate(divide="ignore", invalid="ignore"):
+            want = (np.where(has, sum(wi * np.where(wi > 0, im, 0.0) for wi, im in zip(w, images)) / wsum, 0),
+                    np.where(has, 1.0 / np.sqrt(wsum), np.inf))
+    else:
+        x = sum(wi * np.where(wi > 0, im.astype(np.float64), 0.0) ** 2 for wi, im in zip(w, images))
+        k = sum((wi > 0).astype(int) for wi in w)
+        z = np.zeros(shape)
+        z[has] = np.clip(-special.ndtri(np.clip(special.chdtrc(k[has], x[has]), 1e-300, 1)), -37, 37)
+        want = (z, np.where(has, 1.0, np.inf))
+    monkeypatch.setattr(co, "COADD_BLOCK_PIXELS", 2 * shape[1])
+    got = co.coadd(maps[:3], maps[3:], method)
+    got32 = co.coadd(maps[:3], maps[3:], method, dtype=np.float32)
+    for g, g32, wnt in zip(got, got32, want):
+        assert g.dtype == np.float64 and g32.dtype == np.float32
+        assert np.allclose(g, wnt, rtol=1e-12, atol=0) or np.array_equal(g, wnt)
+        assert np.array_equal(g32, g.astype(np.float32))
+    monkeypatch.setattr(co, "COADD_BLOCK_PIXELS", 1 << 20)
+    for g, whole in zip(got, co.coadd(images, rms, method)):
+        assert np.array_equal(g, whole)                  # bit for bit: the same pixelwise ops
+    assert (~has).sum() == 2 and np.isinf(got[1][~has]).all()

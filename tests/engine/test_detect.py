@@ -109,3 +109,90 @@ def test_params_validation():
         DetectionParams(phot_apertures=())
     with pytest.raises(ValueError, match="filter_type"):
         DetectionParams(filter_type="gauss")
+
+
+# ------------------------------------------------------------------------------
+# Field set-up with bounded memory gives the same answers.
+# ------------------------------------------------------------------------------
+def test_sep_extraction_with_a_small_first_pixel_stack_is_unchanged(monkeypatch):
+    """A pixel stack too small for the image's objects retries with the image area:
+    the catalogue and segmentation are those of the whole-area stack."""
+    import sep
+
+    from glaciar.engine import detect
+    from glaciar.engine.detect import DetectionParams
+
+    rng = np.random.default_rng(1)
+    img = rng.standard_normal((150, 140)).astype(np.float32)
+    yy, xx = np.mgrid[:150, :140]
+    for y, x, f in ((40, 30, 60.0), (100, 90, 200.0), (70, 120, 30.0)):
+        img += f * np.exp(-((yy - y) ** 2 + (xx - x) ** 2) / (2 * 4.0 ** 2))
+    err = np.ones_like(img)
+    nodata = np.zeros(img.shape, bool)
+    params = DetectionParams()
+    want_cat, want_seg = detect.sep_extract(img, err, nodata, params, True)
+    stacks = []
+    real = sep.set_extract_pixstack
+    monkeypatch.setattr(detect.sep, "set_extract_pixstack", lambda n: (stacks.append(n), real(n)))
+    monkeypatch.setattr(detect, "PIXSTACK_START", 64)
+    cat, seg = detect.sep_extract(img, err, nodata, params, True)
+    assert stacks == [64, img.size + 1024]           # overflowed, retried with the image area
+    assert np.array_equal(seg, want_seg) and len(want_cat) >= 3
+    for name in ("x", "y", "flux", "a", "b", "theta", "npix"):
+        assert np.array_equal(cat[name], want_cat[name])
+
+
+def test_sanitize_is_idempotent_and_the_reference_extraction_unchanged():
+    from glaciar.engine.detect import DetectionParams, sanitize
+    from glaciar.engine.measure import reference_extraction
+    from glaciar.engine.segmentation import sep_segmentation
+
+    rng = np.random.default_rng(2)
+    img = rng.standard_normal((120, 130)).astype(np.float32)
+    yy, xx = np.mgrid[:120, :130]
+    for y, x, f in ((30, 30, 40.0), (34, 40, 25.0), (90, 100, 80.0)):     # a blend and a single
+        img += f * np.exp(-((yy - y) ** 2 + (xx - x) ** 2) / (2 * 3.0 ** 2))
+    img[5, 7] = np.nan
+    rms = np.full(img.shape, 1.0, np.float32)
+    rms[60, 61] = np.inf
+    mask = np.zeros(img.shape, bool)
+    mask[:, :4] = True
+    once = sanitize(img, rms, mask)
+    twice = sanitize(*once)
+    for a, b in zip(once, twice):
+        assert np.array_equal(a, b)
+    params = DetectionParams()
+    ref = reference_extraction(img, rms, params, 25.0, mask=mask)
+    # The former order: segmentation of the sanitized arrays (so, by idempotence, this call).
+    former = reference_extraction(once[0], once[1], params, 25.0, mask=once[2])
+    assert np.array_equal(sep_segmentation(*once[:2], params, mask=once[2]).seg,
+                          sep_segmentation(img, rms, params, mask=mask).seg)
+    assert ref.segmap.max() >= 3
+    assert np.array_equal(ref.segmap, former.segmap)
+    assert np.array_equal(ref.flux, former.flux) and np.array_equal(ref.mag, former.mag, equal_nan=True)
+
+
+def test_sanitize_by_blocks_and_from_a_map_is_the_elementwise_definition(monkeypatch, tmp_path):
+    from glaciar.engine import detect
+
+    rng = np.random.default_rng(9)
+    img = rng.standard_normal((37, 29)).astype(np.float64)
+    img[3, 4], img[10, 1] = np.nan, np.inf
+    err = rng.uniform(0.5, 2.0, img.shape).astype(np.float32)
+    err[5, 5], err[6, 6], err[7, 7] = 0.0, -1.0, np.nan
+    mask = rng.uniform(size=img.shape) < 0.1
+    # The definition, elementwise on whole arrays.
+    i32 = img.astype(np.float32)
+    with np.errstate(invalid="ignore"):
+        nodata = ~np.isfinite(i32) | mask | ~(np.isfinite(err) & (err > 0))
+    want = (np.where(nodata, 0, i32).astype(np.float32), np.where(nodata, 1, err).astype(np.float32),
+            nodata)
+    np.save(tmp_path / "img.npy", i32)
+    mapped = np.load(tmp_path / "img.npy", mmap_mode="r")
+    for pixels in (1 << 22, 29, 60):                     # one block; one row; two rows
+        monkeypatch.setattr(detect, "SANITIZE_BLOCK_PIXELS", pixels)
+        for image in (img, mapped):
+            got = detect.sanitize(image, err, mask)
+            for g, w in zip(got, want):
+                assert g.dtype == w.dtype and np.array_equal(g, w)
+    assert np.array_equal(detect.sanitize(img)[0], np.where(~np.isfinite(i32), 0, i32))

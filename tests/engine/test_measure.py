@@ -31,6 +31,7 @@ streak that the first window cuts below DETECT_MINAREA (the "minarea gap").
 import numpy as np
 import pytest
 import sep
+from scipy import ndimage
 
 from glaciar.engine.classify import ClassificationParams
 from glaciar.engine.detect import DetectionParams, builtin_filter
@@ -317,3 +318,49 @@ def test_region_clean_never_acts_across_regions(field, minarea):
     same_flux = (np.isnan(f_g) & np.isnan(f_s)) | (np.abs(f_g - f_s) <= 1e-9 * np.abs(f_s))
     bad = np.flatnonzero((st_g != st_s) | ~same_flux)
     assert bad.size == 0, (bad, st_g[bad], st_s[bad])
+
+
+# ------------------------------------------------------------------------------
+# Field set-up with bounded memory gives the same answers.
+# ------------------------------------------------------------------------------
+@pytest.mark.parametrize("filter_type,threshold_rms", [("conv", "pixel"), ("matched", "pixel"),
+                                                       ("conv", "filtered")])
+def test_reference_boxes_by_row_tiles_equal_the_full_frame_definition(monkeypatch, filter_type,
+                                                                      threshold_rms):
+    """Region boxes: bounding boxes of the 8-connected components of (sep's detection mask |
+    segmentation), taken here on the whole frame at once as the reference."""
+    import dataclasses
+
+    from glaciar.engine import blocks, sepscan
+    from glaciar.engine.detect import DetectionParams, builtin_filter, detection_rms, sanitize
+    from glaciar.engine.measure import reference_extraction
+
+    rng = np.random.default_rng(6)
+    img = rng.standard_normal((90, 75)).astype(np.float32)
+    yy, xx = np.mgrid[:90, :75]
+    for y, x, f in ((20, 20, 30.0), (24, 27, 20.0), (45, 60, 50.0), (70, 15, 9.0), (44, 40, 6.0)):
+        img += f * np.exp(-((yy - y) ** 2 + (xx - x) ** 2) / (2 * 2.5 ** 2))
+    rms = np.full(img.shape, 1.0, np.float32)
+    rms[30:40, :] = 1.7
+    params = dataclasses.replace(DetectionParams(), filter_kernel=builtin_filter("gauss_2.0_5x5"),
+                                 filter_type=filter_type, threshold_rms=threshold_rms)
+    ref = reference_extraction(img, rms, params, 25.0)
+    data, err, nodata = sanitize(img, rms, None)
+    dmask = sepscan.detection_mask(data, detection_rms(err, nodata, params), nodata, params)[0] \
+        | (ref.segmap > 0)
+    comp, _ = ndimage.label(dmask, structure=np.ones((3, 3), bool))
+    boxes = ndimage.find_objects(comp)
+    n = int(ref.segmap.max())
+    assert n >= 4
+    for rows in (1, 2, 7):
+        monkeypatch.setattr(blocks, "REFERENCE_TILE_PIXELS", rows * img.shape[1])
+        tiled = reference_extraction(img, rms, params, 25.0)
+        assert np.array_equal(tiled.segmap, ref.segmap)
+        for i in range(1, n + 1):
+            c = np.unique(comp[ref.segmap == i])
+            assert c.size == 1
+            sl = boxes[c[0] - 1]
+            want = (sl[0].start, sl[0].stop, sl[1].start, sl[1].stop)
+            got = tuple(int(v) for v in tiled.objects.region[i - 1])
+            assert got == want, (rows, i)
+        assert np.array_equal(tiled.objects.need, ref.objects.need)

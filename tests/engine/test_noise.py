@@ -18,8 +18,8 @@ from scipy import ndimage, signal
 from glaciar.config import config_from_dict
 from glaciar.engine import noise as N
 from glaciar.engine.detect import DetectionParams, measure_background
-from glaciar.engine.noise import (CorrelatedNoise, empty_aperture_scatter,
-                                  weight_rescale_factor)
+from glaciar.engine.noise import (CorrelatedNoise, DEFAULT_EMPTY_APERTURE_RADII_PIX, distance_cap,
+                                  empty_aperture_scatter, empty_sky_distance, weight_rescale_factor)
 from glaciar.fieldprep import field_noise_record
 from glaciar.survey import Survey, clear_cache
 
@@ -392,3 +392,122 @@ def test_hff_dwarf_cutout_does_not_depend_on_the_mesh(tmp_path):
         # sources; completeness levelling at ~0.65), the same for both meshes (module docstring
         # of benchmarks/hff_noise.py): bounded here, not equal.
         assert 1.0 <= sep_depth - r["m50"] <= 2.5
+
+
+# ------------------------------------------------------------------------------
+# Field set-up with bounded memory gives the same answers.
+# ------------------------------------------------------------------------------
+def _mask(shape=(97, 83), seed=0):
+    rng = np.random.default_rng(seed)
+    usable = rng.uniform(size=shape) > 0.004
+    usable[40:60, 10:30] = False                     # a large hole: distances up to ~40 px
+    usable = ~ndimage.binary_dilation(~usable, iterations=1)
+    return usable
+
+
+@pytest.mark.parametrize("rows", [1, 4, 13, 200])
+def test_capped_tiled_distance_is_the_capped_whole_image_one(rows):
+    usable = _mask()
+    whole = ndimage.distance_transform_edt(np.pad(usable, 1))[1:-1, 1:-1]
+    for cap in (3.7, 13.2):
+        d = empty_sky_distance(usable, cap=cap, tile_rows=rows)
+        assert np.array_equal(d, np.minimum(whole, cap))
+        assert d.max() == cap                        # some pixels are farther than the cap
+    # Independent: brute-force distance to the nearest unusable pixel (the border counts).
+    ys, xs = np.nonzero(usable)
+    pad = np.pad(usable, 1)
+    zy, zx = np.nonzero(~pad)
+    d = empty_sky_distance(usable, cap=13.2, tile_rows=rows)
+    for y, x in zip(ys[::701], xs[::701]):
+        brute = np.sqrt(np.min((zy - 1 - y) ** 2 + (zx - 1 - x) ** 2))
+        assert d[y, x] == min(brute, 13.2)
+
+
+def _sky_field():
+    """A noise image, unit RMS and a usable-sky mask with holes, for the empty apertures."""
+    rng = np.random.default_rng(3)
+    usable = _mask((120, 110), seed=2)
+    img = rng.standard_normal(usable.shape).astype(np.float32)
+    return img, np.full(usable.shape, 1.0, np.float32), usable
+
+
+def test_empty_aperture_scatter_unchanged_by_the_capped_map():
+    img, rms, usable = _sky_field()
+    radii = DEFAULT_EMPTY_APERTURE_RADII_PIX
+    uncapped = empty_sky_distance(usable)
+    capped = empty_sky_distance(usable, cap=distance_cap(radii), tile_rows=7)
+    outs = [empty_aperture_scatter(img, rms, usable, radii, 150, np.random.default_rng(5), distance=d)
+            for d in (uncapped, capped, None)]
+    for out in outs[1:]:
+        for a, b in zip(outs[0], out):
+            assert np.array_equal(a, b)
+    assert outs[0][0].size >= 5                      # several radii measured
+    with pytest.raises(ValueError, match="cap"):
+        empty_sky_distance(usable, cap=0.0)
+
+
+def test_empty_aperture_centres_by_chunks_are_unchanged(monkeypatch):
+    """Candidate centres taken by chunks of 37 pixels (int32): the same apertures as at once."""
+    from glaciar.engine import noise
+
+    rng = np.random.default_rng(8)
+    usable = _mask((80, 90), seed=4)
+    img = rng.standard_normal(usable.shape).astype(np.float32)
+    rms = np.full(usable.shape, 1.0, np.float32)
+    radii = (0.5, 2.2, 4.2, 8.2)
+    whole = noise.empty_aperture_scatter(img, rms, usable, radii, 120, np.random.default_rng(1))
+    flat = empty_sky_distance(usable).ravel()
+    monkeypatch.setattr(noise, "_CHUNK", 37)
+    got = noise._indices_beyond(flat, 3.2, np.int32)
+    assert got.dtype == np.int32 and np.array_equal(got, np.flatnonzero(flat > 3.2))
+    assert np.array_equal(noise._keep_beyond(flat, got, 5.2), np.flatnonzero(flat > 5.2))
+    chunked = noise.empty_aperture_scatter(img, rms, usable, radii, 120, np.random.default_rng(1))
+    for a, b in zip(whole, chunked):
+        assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("rows", [1, 2, 5, 500])
+def test_source_margin_by_tiles_is_the_whole_frame_dilation(rows):
+    from glaciar.engine.noise import source_margin
+
+    rng = np.random.default_rng(5)
+    seg = np.zeros((70, 64), np.int32)
+    seg[rng.uniform(size=seg.shape) < 0.01] = 7
+    seg[30:33, 0:5] = 2
+    seg[0, 63] = seg[69, 0] = 3                        # sources at the image's corners
+    for margin in (1, 3):
+        want = ndimage.binary_dilation(seg > 0, iterations=margin)
+        assert np.array_equal(source_margin(seg, margin, tile_rows=rows), want)
+    with pytest.raises(ValueError, match="margin"):
+        source_margin(seg, 0)
+
+
+@pytest.mark.parametrize("rows", [1, 3, 11, 400])
+def test_empty_sky_centres_are_the_whole_image_distance_comparisons(rows):
+    """EmptySky.beyond(limit): the pixels whose whole-image (uncapped, scipy in one call)
+    distance to an unusable pixel exceeds the limit, ascending."""
+    from glaciar.engine.noise import empty_sky
+
+    usable = _mask()
+    whole = ndimage.distance_transform_edt(np.pad(usable, 1))[1:-1, 1:-1].ravel()
+    limits = [r + 1.0 for r in DEFAULT_EMPTY_APERTURE_RADII_PIX]
+    sky = empty_sky(usable, limits, tile_rows=rows)
+    assert sky.indices.dtype == np.int32
+    for lim in limits:
+        want = np.flatnonzero(whole > lim)
+        assert np.array_equal(sky.beyond(lim), want), lim
+    assert sky.beyond(limits[-1]).size > 0              # the hole's middle is far from all
+
+
+def test_empty_aperture_scatter_with_empty_sky_centres_is_unchanged():
+    from glaciar.engine.noise import empty_sky
+
+    img, rms, usable = _sky_field()
+    radii = DEFAULT_EMPTY_APERTURE_RADII_PIX
+    want = empty_aperture_scatter(img, rms, usable, radii, 150, np.random.default_rng(5),
+                                  distance=empty_sky_distance(usable))
+    sky = empty_sky(usable, [r + 1.0 for r in radii], tile_rows=7)
+    got = empty_aperture_scatter(img, rms, usable, radii, 150, np.random.default_rng(5), sky=sky)
+    for a, b in zip(want, got):
+        assert np.array_equal(a, b)
+    assert want[0].size >= 5

@@ -111,3 +111,53 @@ def test_correlated_noise_scales_only_the_background_variance():
     _, eg0 = aperture_photometry(img, rms, [20.0], [20.0], [6.0], gain=gain)
     assert eg[0, 0] ** 2 - eg0[0, 0] ** 2 == pytest.approx((model.variance_factor(area) - 1) * area * 4.0,
                                                             rel=1e-6)
+
+
+# ------------------------------------------------------------------------------
+# Field set-up with bounded memory gives the same answers.
+# ------------------------------------------------------------------------------
+# ---------------------------------------------------------------------------
+# Lean field set-up: row tiles and in-place work against whole-frame definitions
+# ---------------------------------------------------------------------------
+def _aperture_inputs(seed=4, shape=(90, 110), n=60):
+    rng = np.random.default_rng(seed)
+    img = (rng.standard_normal(shape) * 2.0 + rng.uniform(0.0, 4.0, shape)).astype(np.float32)
+    rms = rng.uniform(0.5, 2.0, shape).astype(np.float32)
+    seg = rng.integers(0, 4, shape).astype(np.int32)
+    nodata = rng.uniform(size=shape) < 0.05
+    x, y = rng.uniform(-3, shape[1] + 3, n), rng.uniform(-3, shape[0] + 3, n)
+    a = rng.uniform(1.0, 6.0, n)
+    b = a * rng.uniform(0.2, 1.0, n)
+    th = rng.uniform(-1.5, 1.5, n)
+    return img, rms, seg, nodata, x, y, a, b, th, rng.integers(1, 4, n).astype(np.int32)
+
+
+@pytest.mark.parametrize("gain", [None, 2.5])
+def test_sep_photometry_of_float32_images_is_that_of_their_float64_copies(gain):
+    """kron_radius, auto_photometry and aperture_photometry no longer copy a float32 image to
+    float64 (8 bytes per pixel on a field's reference photometry): sep on the float64 copies,
+    called directly, is the reference, bit for bit; a read-only map is accepted."""
+    import sep
+
+    from glaciar.engine import photometry as phot
+
+    img, rms, seg, nodata, x, y, a, b, th, ids = _aperture_inputs()
+    i64, r64 = img.astype(np.float64), rms.astype(np.float64)
+    ro = img.copy()
+    ro.setflags(write=False)
+    for data in (img, ro):
+        kr = phot.kron_radius(data, x, y, a, b, th, segmap=seg, seg_id=ids, mask=nodata)
+        want = sep.kron_radius(i64, x, y, a, b, th, 6.0, mask=nodata, segmap=seg, seg_id=ids)[0]
+        assert np.array_equal(kr, want, equal_nan=True)
+        scale = phot.auto_scale(kr, (2.5, 3.5))
+        f, fe = phot.auto_photometry(data, rms, phot.Ellipses(x, y, a, b, th, scale), gain=gain, segmap=seg,
+                                     seg_id=ids, mask=nodata)
+        wf, wfe, _ = sep.sum_ellipse(i64, x, y, a, b, th, scale, err=r64, mask=nodata, gain=gain,
+                                     subpix=0, segmap=seg, seg_id=ids)
+        assert np.array_equal(f, wf, equal_nan=True) and np.array_equal(fe, wfe, equal_nan=True)
+        fa, fea = phot.aperture_photometry(data, rms, x, y, (4.0, 8.0), gain=gain, mask=nodata)
+        for k, d in enumerate((4.0, 8.0)):
+            wf, wfe, _ = sep.sum_circle(i64, x, y, d / 2, err=r64, mask=nodata, gain=gain, subpix=0)
+            assert np.array_equal(fa[k], wf, equal_nan=True)
+            assert np.array_equal(fea[k], wfe, equal_nan=True)
+    assert np.isfinite(f).sum() > 30
