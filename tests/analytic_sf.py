@@ -2,7 +2,8 @@
 
 Built from closed forms (no simulation): a transfer matrix whose rows are exact normal bin
 probabilities, and a smooth selection function with a Gaussian transfer for the
-luminosity-function fits (``lf_sf``, its truth ``TRUE`` and candidates drawn from it)."""
+luminosity-function fits (``lf_sf``, its truth ``TRUE`` and candidates drawn from it).
+"""
 import numpy as np
 from scipy.stats import norm
 
@@ -25,7 +26,6 @@ def gauss_matrix(grid, zs, *, shift=0.15, sigma=0.2, step=0.2, n_draws=1):
                           z_mean=zs, m_in_edges=slice_edges(grid, 0.25), m_obs_edges=oe,
                           counts=np.rint(mat * 1e6).astype(np.int64), matrix=mat,
                           draws=np.repeat(mat[None], n_draws, axis=0), alpha=0.01)
-
 
 
 TRUE = {"log_phi_star": -3.3, "M_star": -20.9, "alpha": -2.0}

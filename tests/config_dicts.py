@@ -1,13 +1,13 @@
 """A valid four-band configuration as a dict, and loading it: shared by the configuration tests.
 
 ``base()`` is a fresh copy of the BoRG-like survey section (Moffat PSFs); ``load`` validates a
-dict as if read from ``tmp_path/config.yaml``; ``error_of`` returns the ConfigError's message."""
+dict as if read from ``tmp_path/config.yaml``; ``error_of`` returns the ConfigError's message.
+"""
 import copy
 
 import pytest
 
 from glaciar.config import ConfigError, config_from_dict
-
 
 
 MOFFAT = {"profile": "moffat", "fwhm_arcsec": 0.18}

@@ -2,7 +2,8 @@
 
 A large de Vaucouleurs galaxy on noise of a known correlation (white noise convolved with
 a 3x3 binomial kernel) in a small image; and the HFF A2744 cutout benchmark
-(``benchmarks/hff_noise.py``, loaded as ``hff``), whose data are local only."""
+(``benchmarks/hff_noise.py``, loaded as ``hff``), whose data are local only.
+"""
 import importlib.util
 import math
 from pathlib import Path

@@ -84,8 +84,6 @@ def _poke(path, at, junk=b"\xa5"):
     path.write_bytes(bytes(data))
 
 
-
-
 # --------------------------------------------------------------------------
 # One function from user strings to file names
 # --------------------------------------------------------------------------
@@ -387,10 +385,9 @@ def test_flags_column_is_renamed(one_task_run):
 # one line on stderr for a refusal (naming the path), nothing outside the run directory
 # touched, and nothing already written lost or changed (a corrupt file set aside is kept,
 # byte for byte, in ``results/corrupt/``).  ~15 s in all.
-# ------------------------------------------------------------------------------
-# --------------------------------------------------------------------------
+#
 # 6. Linked sub-directories of a run are refused, naming the link
-# --------------------------------------------------------------------------
+# ------------------------------------------------------------------------------
 LINKED = [  # (sub-directory of the run, command)
     ("results", "simulate"),
     (".context", "simulate"),

@@ -1,6 +1,7 @@
 """Worker processes (glaciar.workers) die with their parent; SIGTERM stops a run cleanly and it resumes.
 
-The two subprocess tests run ~18 tasks of the small survey with 2 workers."""
+The two subprocess tests run ~18 tasks of the small survey with 2 workers.
+"""
 import os
 import signal
 import subprocess

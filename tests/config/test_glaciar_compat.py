@@ -119,11 +119,8 @@ def test_glaciar_gzipped_layout_with_headerless_psfs_runs(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------------------
-# Configuration: defaults, validation errors, round trips, hashing, .sex files, GLACiAR files.
-# ------------------------------------------------------------------------------
-# ---------------------------------------------------------------------------
 # GLACiAR parameters.yaml
-# ---------------------------------------------------------------------------
+# ------------------------------------------------------------------------------
 GLACIAR_PARAMETERS = """\
 n_galaxies: 100
 n_iterations: 3

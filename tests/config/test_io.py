@@ -1,12 +1,14 @@
 """Reading, writing and identifying configurations (glaciar.config.io).
 
 YAML-level errors, numeric strings and YAML 1.1 words, round trips, the hashes, fields files
-and the check of the files a configuration names."""
+and the check of the files a configuration names.
+"""
+from __future__ import annotations
+
 import copy
 import json
 import os
 import time
-from __future__ import annotations
 from pathlib import Path
 
 import numpy as np

@@ -19,7 +19,7 @@ import yaml
 from glaciar.config import load_config, missing_files
 from glaciar.engine.selection import DEFAULT_JDROPOUT, compile_selection
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CONFIGS = REPO / "configs"
 SHIPPED = ("demo.yaml", "borg_jdropout.yaml", "jwst_nircam_z10.yaml")
 

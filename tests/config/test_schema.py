@@ -1,5 +1,6 @@
 """``glaciar init``'s template and the documented schema (glaciar.config.schema): valid, generated from the
-models, covering every key."""
+models, covering every key.
+"""
 from pathlib import Path
 
 import yaml
@@ -10,8 +11,7 @@ from glaciar.engine.selection import DEFAULT_JDROPOUT
 from config_dicts import base, load
 
 
-
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_template_is_valid_and_documents_defaults(tmp_path):

@@ -399,9 +399,6 @@ def test_windowed_equals_full_frame_with_the_keys(keys):
         assert 0 < int(((w["source_flags"] & FLAG_SATURATED) > 0).sum()) < (w["detection_id"] > 0).sum()
 
 
-# ------------------------------------------------------------------------------
-# Configuration: defaults, validation errors, round trips, hashing, .sex files, GLACiAR files.
-# ------------------------------------------------------------------------------
 def test_sex_file_merge(tmp_path):
     sexdir = tmp_path / "sex"
     sexdir.mkdir()

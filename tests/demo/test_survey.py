@@ -20,7 +20,7 @@ from glaciar.demo import (DEMO_BANDS, DEMO_BANDS_SPEC, DEMO_FIELD, build_demo_su
 from glaciar.galaxy.psf import moffat_psf, read_psf
 
 SHAPE = (300, 300)
-SCHEMA = Path(__file__).resolve().parents[1] / "docs" / "config-schema.yaml"
+SCHEMA = Path(__file__).resolve().parents[2] / "docs" / "config-schema.yaml"
 
 
 @pytest.fixture(scope="module")

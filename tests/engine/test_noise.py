@@ -187,7 +187,7 @@ def test_empty_aperture_scatter_equals_the_plain_procedure_bit_for_bit():
 # holds both, with more sources and the table of all variants).
 # ------------------------------------------------------------------------------
 _SPEC = importlib.util.spec_from_file_location(
-    "correlated_noise_benchmark", Path(__file__).resolve().parents[1] / "benchmarks" / "correlated_noise.py")
+    "correlated_noise_benchmark", Path(__file__).resolve().parents[2] / "benchmarks" / "correlated_noise.py")
 bench = importlib.util.module_from_spec(_SPEC)
 _SPEC.loader.exec_module(bench)
 

@@ -115,10 +115,9 @@ def test_correlated_noise_scales_only_the_background_variance():
 
 # ------------------------------------------------------------------------------
 # Field set-up with bounded memory gives the same answers.
-# ------------------------------------------------------------------------------
-# ---------------------------------------------------------------------------
+#
 # Lean field set-up: row tiles and in-place work against whole-frame definitions
-# ---------------------------------------------------------------------------
+# ------------------------------------------------------------------------------
 def _aperture_inputs(seed=4, shape=(90, 110), n=60):
     rng = np.random.default_rng(seed)
     img = (rng.standard_normal(shape) * 2.0 + rng.uniform(0.0, 4.0, shape)).astype(np.float32)

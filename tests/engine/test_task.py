@@ -167,9 +167,7 @@ def test_holes_in_a_band_kept_and_flagged_or_left_out(small_survey, tmp_path):
 
 
 # ------------------------------------------------------------------------------
-# Run-directory integrity under hostile use (issue 10): task identity, content-aware store
-# identity, validate-then-write, the run lock, process hygiene, corrupt task files, umask,
-# the renamed flags column and one-line CLI errors.
+# Task identity under hostile grids (issue 10): near-equal values are different tasks
 # ------------------------------------------------------------------------------
 def test_near_equal_grid_values_get_their_own_random_streams():
     """z = 9.0 and 9.00004 are different tasks with different files *and* different draws."""

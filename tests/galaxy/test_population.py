@@ -1,12 +1,19 @@
 """Per-source draws: Sérsic mix, shapes, sizes, UV slopes; model validation."""
+from __future__ import annotations
+
 import dataclasses
+import math
+import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, strategies as st
 from scipy import stats
 
-from glaciar.galaxy.population import (SourceModel, draw_beta, draw_shapes, get_cosmology,
-                                       kpc_to_arcsec, r_eff_kpc)
+from glaciar.galaxy.population import (SourceModel, Z_MIN_DISTANCE, draw_beta, draw_shapes,
+                                       get_cosmology, kpc_to_arcsec, r_eff_kpc)
+
+from renderer_box import CHEAP_SETTINGS, magnitude, redshift
 
 
 def test_defaults_match_config_schema():
@@ -164,3 +171,31 @@ def test_get_cosmology():
     assert get_cosmology(Planck18) is Planck18
     with pytest.raises(ValueError, match="Planck18"):
         get_cosmology("planck2018")
+
+
+# ------------------------------------------------------------------------------
+# Property-based stress of the source renderer (issue 10, point 8): hypothesis draws over
+# the parameter box of tests/renderer_box.py, against its independent references.
+#
+# Sizes
+# ------------------------------------------------------------------------------
+@CHEAP_SETTINGS
+@given(z=redshift, m=magnitude, slope=st.floats(-0.5, 0.5), scatter=st.floats(0.0, 0.5),
+       seed=st.integers(0, 2**32 - 1))
+def test_sizes_are_finite_and_follow_the_angular_diameter_distance(z, m, slope, scatter, seed):
+    """r_e [kpc] finite and > 0 at any z in the box; in arcsec r_e / D_A(z)
+    (astropy's angular-diameter distance); at z = 0 (below Z_MIN_DISTANCE) there is
+    no angular size and kpc_to_arcsec says so."""
+    model = SourceModel(size_luminosity_slope=slope, r_eff_scatter_dex=scatter)
+    rng = np.random.default_rng(seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r_kpc = r_eff_kpc(z, model, M_uv=np.full(3, m - 47.0), rng=rng)
+        assert np.all(np.isfinite(r_kpc)) and np.all(r_kpc > 0)
+        if z < Z_MIN_DISTANCE:
+            with pytest.raises(ValueError, match="z must be > 0"):
+                kpc_to_arcsec(r_kpc, z)
+            return
+        arcsec = kpc_to_arcsec(r_kpc, z)
+    d_a_kpc = get_cosmology("Planck18").angular_diameter_distance(z).to_value("kpc")
+    np.testing.assert_allclose(arcsec, r_kpc / d_a_kpc * (180 / math.pi * 3600), rtol=1e-9)

@@ -1,15 +1,22 @@
 """Band magnitudes of UV power laws: normalisations, colours, speed, edge cases."""
+from __future__ import annotations
+
 import time
 import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, strategies as st
 
-from glaciar.constants import AB_ZEROPOINT_FNU, C_ANGSTROM_PER_S, UV_REST_ANGSTROM
+from glaciar.constants import AB_ZEROPOINT_FNU, C_ANGSTROM_PER_S, FAINT_MAG_LIMIT, UV_REST_ANGSTROM
 from glaciar.galaxy.filters import Filter, ab_magnitude, builtin_filter_names, get_filter
-from glaciar.galaxy.igm import igm_transmission
+from glaciar.galaxy.igm import IGM_MODELS, igm_transmission
+from glaciar.galaxy.population import Z_MIN_DISTANCE
 from glaciar.galaxy.sed import (_BETA_GRID, _band_table, absolute_magnitude, band_magnitudes,
                                 bands_to_skip, flux_to_mag, mag_to_flux, uv_flambda)
+
+from renderer_box import (BANDS, FAINT_EDGE_MAG, PROPERTY_SETTINGS, ZEROPOINT, beta, distance_term,
+                          mag_tol, magnitude, redshift, ref_colour)
 
 HST = ["wfc3_uvis_f606w", "wfc3_ir_f098m", "wfc3_ir_f105w", "wfc3_ir_f125w", "wfc3_ir_f140w",
        "wfc3_ir_f160w"]
@@ -205,3 +212,69 @@ def test_mag_flux_round_trip():
     np.testing.assert_allclose(back[:2], mags[:2], rtol=1e-14)
     assert back[2] == np.inf
     assert isinstance(mag_to_flux(25.0, 25.0), float) and mag_to_flux(25.0, 25.0) == 1.0
+
+
+# ------------------------------------------------------------------------------
+# Property-based stress of the source renderer (issue 10, point 8): hypothesis draws over
+# the parameter box of tests/renderer_box.py, against its independent references.
+#
+# Spectra and band magnitudes
+# ------------------------------------------------------------------------------
+def _check_against_reference(mags, expected, z):
+    """Band by band: +inf exactly where the reference is beyond the faint limit,
+    else within MAG_TOL, or MAG_TOL_OFF_LATTICE at a z off sed's lattice (bands
+    within FAINT_EDGE_MAG of the limit may go either way)."""
+    assert not np.any(np.isnan(mags)) and not np.any(np.isneginf(mags))
+    clear = np.abs(expected - FAINT_MAG_LIMIT) > FAINT_EDGE_MAG
+    np.testing.assert_array_equal(np.isinf(mags)[clear], (expected > FAINT_MAG_LIMIT)[clear])
+    ok = clear & (expected < FAINT_MAG_LIMIT)
+    np.testing.assert_allclose(mags[ok], expected[ok], atol=mag_tol(z), rtol=0)
+
+
+@PROPERTY_SETTINGS
+@given(z=redshift, b=beta, m=magnitude, det=st.integers(0, len(BANDS) - 1),
+       igm=st.sampled_from(IGM_MODELS))
+def test_apparent_band_magnitudes(z, b, m, det, igm):
+    """Normalised to m in a detection band: that band is exactly m, the others match
+    the reference colours, every flux is finite; or the detection band receives no
+    flux at this z (< 1e-20 of the 1600 A flux: the faint-limit rule) and the call
+    says so."""
+    colours = np.array([ref_colour(z, b, band, igm) for band in BANDS])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            mags = band_magnitudes(z, b, BANDS, mag=m, detection_index=det, igm=igm)[0]
+        except ValueError as e:
+            assert "receives no flux" in str(e)
+            assert colours[det] > FAINT_MAG_LIMIT - FAINT_EDGE_MAG
+            return
+        flux = mag_to_flux(mags, ZEROPOINT)
+        m_uv = absolute_magnitude(m, z, b, BANDS[det], igm=igm) if z >= Z_MIN_DISTANCE else None
+    assert colours[det] <= FAINT_MAG_LIMIT + FAINT_EDGE_MAG
+    assert mags[det] == m
+    _check_against_reference(mags, m + colours - colours[det], z)
+    assert np.all(np.isfinite(flux)) and np.all(flux >= 0)
+    np.testing.assert_array_equal(flux == 0, np.isinf(mags))
+    if m_uv is not None:       # the inverse normalisation, through the distance term
+        assert np.isfinite(m_uv)
+        assert m_uv == pytest.approx(m - colours[det] - distance_term(z), abs=mag_tol(z))
+
+
+@PROPERTY_SETTINGS
+@given(z=redshift, b=beta, m=magnitude, igm=st.sampled_from(IGM_MODELS))
+def test_absolute_band_magnitudes(z, b, m, igm):
+    """Normalised to M_UV (here m - 47, i.e. -37 ... -7): m_band = M_UV + DM(z) -
+    2.5 log10(1+z) + colour; at z = 0 (below Z_MIN_DISTANCE) there is no distance
+    and the call says so."""
+    M_uv = m - 47.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        if z < Z_MIN_DISTANCE:
+            with pytest.raises(ValueError, match="need z > 0"):
+                band_magnitudes(z, b, BANDS, M_uv=M_uv, igm=igm)
+            return
+        mags = band_magnitudes(z, b, BANDS, M_uv=M_uv, igm=igm)[0]
+        flux = mag_to_flux(mags, ZEROPOINT)
+    colours = np.array([ref_colour(z, b, band, igm) for band in BANDS])
+    _check_against_reference(mags, M_uv + distance_term(z) + colours, z)
+    assert np.all(np.isfinite(flux)) and np.all(flux >= 0)

@@ -26,16 +26,16 @@ import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, strategies as st
 from scipy import integrate, optimize, special
 
-from glaciar.galaxy.sersic import (
-    enclosed_fraction,
-    radius_enclosing,
-    sersic_bn,
-    sersic_intensity,
-    sersic_stamp,
-    stamp_shape,
-)
+from glaciar.galaxy.sed import mag_to_flux
+from glaciar.galaxy.sersic import (MAX_STAMP_PIXELS, N_MAX, enclosed_fraction, radius_enclosing,
+                                   sersic_bn, sersic_intensity, sersic_stamp, stamp_shape)
+
+from renderer_box import (CHEAP_SETTINGS, RENDER_SIDE, R_EFF_MAX, STAMP_SUM_TOL, ZEROPOINT,
+                          axis_ratio, light_in_rectangle, magnitude, odd_cap, offset,
+                          position_angle, r_eff, sersic_n)
 
 DEFAULT_TOL = 1e-9          # the module's stated default accuracy (fraction of flux)
 
@@ -410,3 +410,55 @@ def test_helpers_reject_bad_input():
         radius_enclosing(1.0, 0.0)
     with pytest.raises(ValueError, match="axis_ratio"):
         stamp_shape(1.0, 1.0, axis_ratio=0.0)
+
+
+# ------------------------------------------------------------------------------
+# Property-based stress of the source renderer (issue 10, point 8): hypothesis draws over
+# the parameter box of tests/renderer_box.py, against its independent references.
+#
+# Sersic stamps
+# ------------------------------------------------------------------------------
+@CHEAP_SETTINGS
+@given(n=sersic_n, r=r_eff, q=axis_ratio, pa=position_angle, dx=offset, dy=offset, m=magnitude)
+def test_stamp_sum_is_flux_times_light_in_its_rectangle(n, r, q, pa, dx, dy, m):
+    """Any profile, any sub-pixel centre: pixels finite and >= 0, and their sum is
+    flux x (light inside the rectangle) to the documented tolerance."""
+    flux = mag_to_flux(m, ZEROPOINT)
+    ny, nx = stamp_shape(n, r, q, pa)
+    shape = (odd_cap(ny, RENDER_SIDE), odd_cap(nx, RENDER_SIDE))
+    center = ((shape[1] - 1) / 2 + dx, (shape[0] - 1) / 2 + dy)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        stamp = sersic_stamp(n, r, q, pa, shape=shape, center=center, flux=flux)
+    assert stamp.shape == shape
+    assert np.all(np.isfinite(stamp)) and np.all(stamp >= 0)
+    inside = light_in_rectangle(n, r, q, pa, center, shape)
+    assert abs(stamp.sum() / flux - inside) <= STAMP_SUM_TOL
+    assert stamp.sum() <= flux * (1 + 1e-12)
+
+
+@CHEAP_SETTINGS
+@given(n=sersic_n, r=r_eff, q=axis_ratio, pa=position_angle,
+       frac=st.floats(0.5, 0.9999), corner=st.sampled_from([(-0.5, -0.5), (-0.5, 0.5), (0.5, -0.5),
+                                                            (0.5, 0.5)]))
+def test_default_stamp_shape_holds_requested_light(n, r, q, pa, frac, corner):
+    """stamp_shape's promise over the whole box, checked by the reference without
+    rendering: even with the centre at a corner of the central pixel, the rectangle
+    holds at least ``enclosed_fraction``.  Stamps beyond MAX_STAMP_PIXELS are
+    refused with a ValueError (before anything is allocated)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ny, nx = stamp_shape(n, r, q, pa, enclosed_fraction=frac)
+    assert ny % 2 == 1 and nx % 2 == 1
+    center = ((nx - 1) / 2 + corner[0], (ny - 1) / 2 + corner[1])
+    assert light_in_rectangle(n, r, q, pa, center, (ny, nx)) >= frac - 1e-12
+    if ny * nx > MAX_STAMP_PIXELS:
+        with pytest.raises(ValueError, match="exceeds MAX_STAMP_PIXELS"):
+            sersic_stamp(n, r, q, pa, enclosed_fraction=frac)
+
+
+def test_largest_default_stamps_are_refused_clearly():
+    """The corner of the box the issue names: n = 10, r_eff = 100 px at 99.5 %."""
+    assert stamp_shape(N_MAX, R_EFF_MAX) == (39699, 39699)
+    with pytest.raises(ValueError, match=r"39699 x 39699 px .* exceeds MAX_STAMP_PIXELS"):
+        sersic_stamp(N_MAX, R_EFF_MAX)

@@ -1,12 +1,21 @@
 """Tests for glaciar.galaxy.templates.TemplateCache."""
+from __future__ import annotations
+
+import warnings
+
 import numpy as np
 import pytest
+from hypothesis import given, strategies as st
 
 from scipy import signal
 
 from glaciar.galaxy.psf import gaussian_psf, moffat_psf
+from glaciar.galaxy.sed import mag_to_flux
 from glaciar.galaxy.sersic import sersic_stamp, stamp_shape
 from glaciar.galaxy.templates import PlacedStamp, TemplateCache
+
+from renderer_box import (CHEAP_SETTINGS, STAMP_SUM_TOL, TEMPLATE_SIDE, ZEROPOINT, axis_ratio,
+                          light_in_rectangle, magnitude, position_angle, r_eff, sersic_n)
 
 
 @pytest.fixture(scope="module")
@@ -147,3 +156,50 @@ def test_template_convolution_with_a_kept_raw_transform_equals_fftconvolve():
             psf = rng.random(psf_shape)
             got = cache._convolve(raw, psf, ("raw", raw_shape))
             assert np.array_equal(got, fftconvolve(raw, psf, mode="full"))
+
+
+# ------------------------------------------------------------------------------
+# Property-based stress of the source renderer (issue 10, point 8): hypothesis draws over
+# the parameter box of tests/renderer_box.py, against its independent references.
+# ------------------------------------------------------------------------------
+def _fitting_fraction(n, r, q, pa, frac):
+    """``frac``, lowered (bisection, >= 0.5) until the raw template fits TEMPLATE_SIDE."""
+    def fits(f):
+        ny, nx = stamp_shape(n, r, q, pa, enclosed_fraction=f)
+        return max(ny, nx) + 2 <= TEMPLATE_SIDE
+    if fits(frac):
+        return frac
+    lo, hi = 0.5, frac
+    assert fits(lo)
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+    return lo
+
+
+@CHEAP_SETTINGS
+@given(n=sersic_n, r=r_eff, q=axis_ratio, pa=position_angle, frac=st.floats(0.5, 0.9999),
+       x=st.floats(0.0, 500.0), y=st.floats(0.0, 500.0), fwhm=st.floats(1.0, 6.0), m=magnitude)
+def test_template_reports_the_light_it_holds(n, r, q, pa, frac, x, y, fwhm, m):
+    """The injection path (render, sub-pixel PSF shift, "full" convolution): the
+    stamp is finite, its sum is the ``in_stamp_fraction`` it reports, that is the
+    Sersic light in the raw render's rectangle (the PSF conserves flux) and at
+    least the requested fraction; a source of magnitude m then carries
+    flux(m) x that fraction.  Big profiles get a lower fraction so the render stays
+    within TEMPLATE_SIDE (the shape rule at any size is the test above)."""
+    frac = _fitting_fraction(n, r, q, pa, frac)
+    flux = mag_to_flux(m, ZEROPOINT)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cache = TemplateCache({"b": gaussian_psf(fwhm * 0.06, 0.06)}, enclosed_fraction=frac)
+        placed = cache.stamp("b", n, q, pa, r, x, y)
+        injected = flux * placed.data
+    assert np.all(np.isfinite(placed.data))
+    # FFT round-off only (scipy.signal.fftconvolve: ~1e-15 of the peak)
+    assert placed.data.min() >= -1e-13 * placed.data.max()
+    assert placed.in_stamp_fraction == pytest.approx(placed.data.sum(), rel=1e-12)
+    ny, nx = stamp_shape(n, r, q, pa, enclosed_fraction=frac)
+    raw_light = light_in_rectangle(n, r, q, pa, ((nx + 1) / 2, (ny + 1) / 2), (ny + 2, nx + 2))
+    assert abs(placed.in_stamp_fraction - raw_light) <= STAMP_SUM_TOL
+    assert placed.in_stamp_fraction >= frac - STAMP_SUM_TOL
+    assert injected.sum() == pytest.approx(flux * placed.in_stamp_fraction, rel=1e-12)

@@ -309,7 +309,7 @@ def test_documented_reader_without_glaciar_matches(fitted_run):
     import pathlib
     import re
     run, path, df, mdl, th = fitted_run
-    doc = pathlib.Path(__file__).parents[1] / "docs" / "selection-function-file.md"
+    doc = pathlib.Path(__file__).parents[2] / "docs" / "selection-function-file.md"
     code = re.findall(r"```python\n(.*?)```", doc.read_text(), re.S)[1]
     ns = {}
     exec(code.replace('"selection_function.fits"', repr(str(path))), ns)

@@ -3,7 +3,6 @@ import numpy as np
 import pytest
 
 
-
 #: simulated values of the synthetic run: 6.5 is not a row of the file's uniform grid
 #: linspace(6, 7.3, 24) (step 0.0565), so a legend built from the grid rows says "z = 6.51"
 SIM_Z = (6.0, 6.5, 7.3)

@@ -523,7 +523,7 @@ def test_deep_corner_documented_reader_averages_depth_bins(deep_corner_run):
     import re
     cfg, run = deep_corner_run
     sf, dst = _fit(run, "fit_corner", depth="auto", sampler=SamplerSettings(max_steps=60000))
-    doc = pathlib.Path(__file__).parents[1] / "docs" / "selection-function-file.md"
+    doc = pathlib.Path(__file__).parents[2] / "docs" / "selection-function-file.md"
     code = re.findall(r"```python\n(.*?)```", doc.read_text(), re.S)[1]
     ns = {}
     exec(code.replace('"selection_function.fits"', repr(str(dst / C.SELECTION_FUNCTION_NAME))), ns)
