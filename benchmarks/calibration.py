@@ -1,6 +1,6 @@
 """Calibration at fixed truths with more replicates than the test runs.
 
-The three truths of ``tests/test_inference_calibration.py`` (logistic with both
+The three truths of ``tests/inference/test_fit_calibration.py`` (logistic with both
 selection edges inside the simulated z range; the upper edge just beyond it,
 as in the demo; an erf step fitted with ``fit_and_choose`` over every step),
 each fitted to ``N`` replicate data sets of 2800 sources with the production

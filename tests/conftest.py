@@ -74,7 +74,7 @@ def _write_config(demo_config, path, *, fields, z_values, mag_values, n_galaxies
     # with grids placed around their completeness curves. The correlated-noise model
     # (noise.correlated, default auto) moves the demo's m50 0.44 mag brighter
     # (benchmarks/correlated_noise.py) and off those grids; it has its own acceptance
-    # test (tests/test_correlated_noise.py), so these scenarios keep uncorrelated errors.
+    # test (tests/engine/test_noise.py), so these scenarios keep uncorrelated errors.
     cfg["noise"] = {"correlated": "off"}
     path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     return path

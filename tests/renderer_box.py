@@ -1,6 +1,6 @@
 """The parameter box, budgets and independent references of the property-based tests
-of the source renderer (issue 10, point 8): tests/galaxy/test_sersic.py, test_templates.py,
-test_sed.py, test_igm.py and test_population.py draw from here.
+of the source renderer (issue 10, point 8): the property tests of tests/galaxy/ (sersic,
+templates, sed, igm, population) draw from here.
 
 Over the whole parameter box of the issue -- Sersic n in [0.2, 10], r_eff in
 [0.05, 100] px, axis ratio q in [0.05, 1], magnitude m in [10, 40], redshift

@@ -8,7 +8,7 @@ the page.  Headless Chromium (Debian package ``chromium``; ``.ci/run`` installs 
 loads the page over the DevTools protocol (a pipe, no network port) in a 1280 px wide
 window and must report no console error and every figure decoded and laid out at its own
 (readable) size.  Without Chromium that test skips.  The figures' contents (legends, log
-axes, empty cells) are checked on the Figure objects in ``test_report_figures.py``.
+axes, empty cells) are checked on the Figure objects (below).
 """
 import ast
 import base64
@@ -39,6 +39,8 @@ import glaciar
 from glaciar import constants as C, plots, report
 from glaciar.cli import main
 from glaciar.report import ADAPTIVE_ROUNDS_NAME, REPORT_NAME, load_report_data
+
+from figure_cases import SIM_M, SIM_Z, legend_labels, report_figures
 
 #: every figure a fitted single-fit report shows (ids of <figure> elements)
 FITTED_FIGURES = ("fig-status", "fig-completeness-all", "fig-selection-all", "fig-p-all",
@@ -504,23 +506,12 @@ def test_pooled_depth_aware_fit_gives_each_field_its_own_m50(tmp_path):
 # * legends name simulated values only; V_eff is on a log axis; a cell without data has
 #   no point; figures are drawn at a readable size.
 #
-# All data are synthetic and tiny (no run, no fit): the file costs ~3 s.
+# All data are synthetic and tiny (no run, no fit; tests/figure_cases.py): ~3 s in all.
 # ------------------------------------------------------------------------------
-#: simulated values of the synthetic run: 6.5 is not a row of the file's uniform grid
-#: linspace(6, 7.3, 24) (step 0.0565), so a legend built from the grid rows says "z = 6.51"
-SIM_Z = (6.0, 6.5, 7.3)
-SIM_M = (26.0, 27.0, 28.5)
-
-
 def _texts(fig):
     from matplotlib.text import Text
 
     return [t for t in fig.findobj(Text) if t.get_text().strip() and t.get_visible()]
-
-
-def _legend_labels(ax):
-    leg = ax.get_legend()
-    return [t.get_text() for t in leg.get_texts()] if leg is not None else []
 
 
 def _errorbar_x(ax):
@@ -577,8 +568,8 @@ def curve_figures():
 
 def test_report_c_and_s_legends_list_only_simulated_values(curve_figures):
     c_fig, s_fig = curve_figures
-    assert _legend_labels(c_fig.axes[0]) == ["z = 6", "z = 6.5", "z = 7.3"]
-    assert _legend_labels(s_fig.axes[0]) == ["m = 26", "m = 27", "m = 28.5"]
+    assert legend_labels(c_fig.axes[0]) == ["z = 6", "z = 6.5", "z = 7.3"]
+    assert legend_labels(s_fig.axes[0]) == ["m = 26", "m = 27", "m = 28.5"]
 
 
 def test_report_curves_are_the_stored_quantiles_at_the_simulated_value(curve_figures):
@@ -619,34 +610,9 @@ def test_effective_volume_leaves_out_zero_volume_instead_of_clipping():
     assert np.isnan(y[-1]) and np.all(y[:-1] == v[:-1])
 
 
-def _report_figures():
-    labels = {0: ("n_status_0", "recovered"), -3: ("n_status_m3", "not detected")}
-    summ = pd.DataFrame({"mag": [26.0, 27.0], "n_input": [10, 10], "n_status_0": [9, 3],
-                         "n_status_m3": [1, 7]})
-    ppc = pd.DataFrame({k: [0.5, 0.6] for k in (
-        "c_binned", "c_binned_q16", "c_binned_q84", "c_model", "c_model_q16", "c_model_q84",
-        "s_binned", "s_binned_q16", "s_binned_q84", "s_model", "s_model_q16", "s_model_q84")})
-    ppc["n"], ppc["k_rec"], ppc["extreme"] = [10, 10], [5, 0], [False, True]
-    grid = np.full((3, 4), 0.5)
-    m = np.linspace(25, 28, 7)
-    return {
-        "status": plots.plot_status_fractions(summ, labels, "m"),
-        "curves": plots.plot_quantile_curves(m, [("z = 7", np.tile(np.linspace(1, 0, 7), (5, 1)))],
-                                             xlabel="m", ylabel="C", title="C"),
-        "grid": plots.plot_grid_map(np.arange(4.0), np.arange(3.0), grid, xlabel="m", ylabel="z",
-                                    label="P", title="P"),
-        "ppc": plots.plot_ppc(ppc),
-        "depth": plots.plot_depth_completeness(np.arange(4.0), np.array([27.0, 27.25, 27.5]), 0.25,
-                                               grid, grid, mag_label="m"),
-        "area": plots.plot_area_by_depth({"f1": ([27.0, 27.05, 27.1], [1.0, 2.0])}),
-        "veff": plots.plot_effective_volume(m, 10 ** (5 - m / 10), 10 ** (4.9 - m / 10),
-                                            10 ** (5.1 - m / 10), mag_label="m", title="V"),
-    }
-
-
 def test_report_figures_are_drawn_at_a_readable_size():
     """Shown at one PNG pixel per CSS pixel: >= 800 px wide and no text under 9 pt (12.5 px)."""
-    for name, fig in _report_figures().items():
+    for name, fig in report_figures().items():
         png = plots.png_bytes(fig)
         width = int.from_bytes(png[16:20], "big")
         assert width >= 800, (name, width)
@@ -662,12 +628,12 @@ _NOTEBOOK_USER = """
     from glaciar.plots import plot_summary_maps
     from glaciar.pipeline.figures import completeness_figure, selection_figure
     sys.path.insert(0, {tests!r})
-    from test_report_figures import _report_figures, _toy_sf
+    from figure_cases import report_figures, toy_sf
     summ = pd.DataFrame({{"z": [7.0, 7.0], "mag": [26.0, 27.0], "completeness": [0.9, 0.2],
                          "selection_total": [0.5, 0.1], "selection": [0.55, 0.5]}})
     plot_summary_maps(summ, tempfile.mkdtemp(), "f1")
-    _report_figures()
-    sf = _toy_sf(True)
+    report_figures()
+    sf = toy_sf(True)
     completeness_figure(sf), selection_figure(sf)
     print(matplotlib.get_backend(), "matplotlib.pyplot" in sys.modules)
 """

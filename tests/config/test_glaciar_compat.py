@@ -1,4 +1,6 @@
 """A GLACiAR user's parameters.yaml and file layout run as they are."""
+from __future__ import annotations
+
 import re
 from pathlib import Path
 
@@ -352,3 +354,73 @@ def test_glaciar_errors(glaciar_dir, change, pattern):
     assert msg.startswith("parameters.yaml: ")
     if pattern:
         assert re.search(pattern, msg), msg
+
+
+# ------------------------------------------------------------------------------
+# GLACiAR's own SExtractor file through the command line (issue 21, bullet 9)
+# ------------------------------------------------------------------------------
+# GLACiAR's SExtractor template as its repository ships it: values GLACiAR fills per
+# band before each call are left empty (GAIN, MAG_ZEROPOINT, WEIGHT_IMAGE, ...).
+GLACIAR_SEX = """\
+CATALOG_TYPE     ASCII_HEAD
+PARAMETERS_NAME  SExtractor_files/default3.param
+DETECT_TYPE      CCD
+DETECT_MINAREA   9
+DETECT_THRESH    0.7
+ANALYSIS_THRESH  0.7
+FILTER           Y
+FILTER_NAME      SExtractor_files/gauss_2.0_5x5.conv
+DEBLEND_NTHRESH  32
+DEBLEND_MINCONT  0.005
+CLEAN            Y
+CLEAN_PARAM      1.0
+MASK_TYPE        CORRECT
+PHOT_APERTURES   2,4,6,8,10
+PHOT_AUTOPARAMS  1.5, 3.5
+PHOT_PETROPARAMS 2.0, 3.5
+SATUR_LEVEL      50000.0
+MAG_ZEROPOINT
+MAG_GAMMA        4.0
+GAIN
+PIXEL_SCALE      0.08
+SEEING_FWHM      0.2
+STARNNW_NAME     SExtractor_files/default.nnw
+BACK_SIZE        64
+BACK_FILTERSIZE  3
+BACKPHOTO_TYPE   GLOBAL
+CHECKIMAGE_TYPE
+CHECKIMAGE_NAME
+MEMORY_OBJSTACK  3000
+MEMORY_PIXSTACK  300000
+MEMORY_BUFSIZE   1024
+VERBOSE_TYPE     NORMAL
+WRITE_XML        N
+XML_NAME         sex.xml
+WEIGHT_IMAGE
+CATALOG_NAME
+WEIGHT_TYPE MAP_RMS, MAP_RMS
+WEIGHT_GAIN N,N
+"""
+
+
+def test_glaciar_own_parameters_sex_runs_with_the_per_band_gain(tmp_path, capsys):
+    from glaciar import constants as C
+    from glaciar.config import load_config
+    from glaciar.store import read_results
+
+    _write_glaciar_images(tmp_path, ".fits")
+    (tmp_path / "fields.txt").write_text("0440-5244\n")
+    (tmp_path / "parameters.yaml").write_text(PARAMS)
+    (tmp_path / "SExtractor_files").mkdir()
+    (tmp_path / "SExtractor_files" / "parameters.sex").write_text(GLACIAR_SEX)
+    out = tmp_path / "run"
+    rc = main(["simulate", str(tmp_path / "parameters.yaml"), "--out", str(out), "--workers", "1",
+               "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert "GAIN without a value" in err and "survey.bands.<band>.gain" in err
+    stored = load_config(out / C.RUN_CONFIG_NAME)
+    assert [b.gain for b in stored.survey.bands] == [2800, 4200, 2600, 3200]
+    assert stored.detection.weight_type == "map_rms" and stored.detection.weight_gain is False
+    assert stored.detection.phot_apertures == (2.0, 4.0, 6.0, 8.0, 10.0)
+    assert len(read_results(out)) == 12

@@ -48,7 +48,7 @@ def test_default_selection_needs_its_bands(tmp_path):
     assert load(d, tmp_path).selection == ("sn_f160w > 5",)
 
 
-# The shipped configs/ examples are tested in tests/test_configs.py.
+# The shipped configs/ examples are tested in tests/config/test_io_examples.py.
 
 
 # ---------------------------------------------------------------------------

@@ -365,21 +365,22 @@ def test_against_sextractor(tmp_path):
                                   dict(backphoto_type="local", backphoto_thick=8, mask_type="blank",
                                        satur_level=5.0)])
 def test_windowed_equals_full_frame_with_the_keys(keys):
-    """100 sources on test_windowed's field: every column identical in both modes.
+    """100 sources on the crowded field of tests/engine/test_windows.py (toy_images.crowded_field):
+    every column identical in both modes.
 
     The windows must hold each annulus and every region touching it (LOCAL), and the
     mirrored pixels (CORRECT), as the full frame sees them.
     """
-    from test_windowed import _field, _stamps
-
     from glaciar.engine.detect import measure_background
 
-    img = _field(seed=2, ngal=120)
+    from toy_images import crowded_field, gaussian_stamps
+
+    img = crowded_field(seed=2, ngal=120)
     params = dataclasses.replace(DetectionParams(), **keys)
     back, rms = measure_background(img, None, params)
     sub = img - back
     ref = reference_extraction(sub, rms, params, 25.0)
-    xs, ys, flux, st = _stamps(np.random.default_rng(8))
+    xs, ys, flux, st = gaussian_stamps(np.random.default_rng(8))
     det = Scene(sub, st)
     bands = {"h": det, "j": Scene(0.7 * sub, [(a, b, 0.5 * d) for a, b, d in st])}
     setup = MeasureSetup(band_rms={"h": rms, "j": 1.3 * rms}, reference=ref, params=params,

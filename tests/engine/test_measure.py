@@ -5,7 +5,7 @@ with the same filter, threshold, RMS map, DETECT_MINAREA, deblending and CLEAN
 (no glaciar code: the search-box rule, the isophotal sums and the S/N are
 written out below); glaciar runs with sep's semantics (``clean_style="sep"``,
 ``threshold_rms="pixel"``; SExtractor's are checked against SExtractor in
-``tests/test_sextractor_backend.py``).  Per injected source the test compares
+``tests/engine/test_sextractor_backend.py``).  Per injected source the test compares
 
 * recovered or not (something in the 3x3 search box with FLUX_ISO /
   FLUXERR_ISO >= min_sn), and which of -3 (nothing), -2 (low S/N), detected;

@@ -16,49 +16,12 @@ from glaciar.engine.detect import DetectionParams, measure_background
 from glaciar.engine.measure import MeasureSetup, measure_injected, output_columns, reference_extraction
 from glaciar.engine.scene import Scene
 
-N = 600
-
-
-def _field(seed=0, ngal=150):
-    rng = np.random.default_rng(seed)
-    yy, xx = np.mgrid[:N, :N]
-    img = np.zeros((N, N))
-    for _ in range(ngal):
-        x0, y0 = rng.uniform(0, N, 2)
-        r = rng.lognormal(np.log(2.0), 0.5)
-        q, pa = rng.uniform(0.4, 1.0), rng.uniform(0, np.pi)
-        f = 10 ** rng.uniform(0.5, 3.0)
-        s = int(min(12 * r + 5, 60))
-        ya, yb, xa, xb = max(int(y0) - s, 0), min(int(y0) + s + 1, N), max(int(x0) - s, 0), min(int(x0) + s + 1, N)
-        dx, dy = xx[ya:yb, xa:xb] - x0, yy[ya:yb, xa:xb] - y0
-        u = dx * np.cos(pa) + dy * np.sin(pa)
-        v = (-dx * np.sin(pa) + dy * np.cos(pa)) / q
-        img[ya:yb, xa:xb] += f * np.exp(-np.hypot(u, v) / r) / (2 * np.pi * r * r * q)
-    rms = 0.05 * (1 + 0.5 * np.sin(xx / 90.0) * np.cos(yy / 70.0))
-    return img + rng.normal(size=(N, N)) * rms
-
-
-def _stamps(rng, nsrc=100, size=21):
-    h = size // 2
-    yy, xx = np.mgrid[-h:h + 1, -h:h + 1]
-    g = int(np.ceil(np.sqrt(nsrc)))
-    cell = (N - 2 * h) / g
-    cells = rng.permutation(g * g)[:nsrc]         # one per cell: stamps never overlap
-    xs = np.clip(((cells % g) + rng.uniform(0.2, 0.8, nsrc)) * cell + h / 2, 1, N - 2)
-    ys = np.clip(((cells // g) + rng.uniform(0.2, 0.8, nsrc)) * cell + h / 2, 1, N - 2)
-    flux = 10 ** rng.uniform(-0.3, 1.7, nsrc)
-    out = []
-    for x, y, f in zip(xs, ys, flux):
-        ix, iy = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))
-        s = rng.uniform(0.8, 2.5)
-        p = np.exp(-((xx - (x - ix)) ** 2 + (yy - (y - iy)) ** 2) / (2 * s * s))
-        out.append((iy - h, ix - h, f * p / p.sum()))
-    return xs, ys, flux, out
+from toy_images import crowded_field, gaussian_stamps
 
 
 @pytest.fixture(scope="module")
 def field():
-    img = _field()
+    img = crowded_field()
     params = DetectionParams()
     back, rms = measure_background(img, None, params)
     sub = img - back
@@ -72,7 +35,7 @@ def test_windowed_equals_full_frame(field, assert_same_outputs):
     statuses = []
     n_checked = 0
     for it in range(20):
-        xs, ys, flux, st = _stamps(rng)
+        xs, ys, flux, st = gaussian_stamps(rng)
         det = Scene(sub, st)
         bands = {"h": det, "j": Scene(0.7 * sub, [(a, b, 0.5 * d) for a, b, d in st])}
         setup = MeasureSetup(band_rms={"h": rms, "j": 1.3 * rms}, reference=ref, params=params,
@@ -113,7 +76,7 @@ def test_sep_errors_are_flagged_not_raised(field):
     from glaciar.constants import COL_FLAGS, FLAG_SEP_ERROR, STATUS_NOT_DETECTED
     sub, rms, _, ref = field
     bad = DetectionParams(sub_object_limit=1, deblend_mincont=0.0)
-    xs, ys, flux, st = _stamps(np.random.default_rng(1), nsrc=20)
+    xs, ys, flux, st = gaussian_stamps(np.random.default_rng(1), nsrc=20)
     det = Scene(sub, st)
     setup = MeasureSetup(band_rms={"h": rms}, reference=ref, params=bad, classification=ClassificationParams(),
                          zeropoints={"h": 25.0}, gains={"h": None}, detection_band="h")

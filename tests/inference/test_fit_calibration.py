@@ -1,6 +1,6 @@
 """Calibration at fixed truths, not only prior draws.
 
-Simulation-based calibration (test_inference_sbc.py) averages over truths drawn
+Simulation-based calibration (tests/inference/test_fit_sbc.py) averages over truths drawn
 from the prior; a survey has one truth, and the prior's influence on the edges
 (an edge outside the simulated range is bounded from one side only) or a
 wrong completeness step could leave its intervals miscalibrated while SBC
@@ -60,7 +60,7 @@ is seeded on its own (``SeedSequence([SEED, truth, replicate])`` for the flags,
 ``[SEED, truth, replicate]`` for the sampler), so results do not depend on the
 process scheduling; 2 worker processes (fork) by default.  The 3 x 40 production fits
 (the third truth fits four steps each) take ~20 CPU-minutes, too long for CI: the
-coverage test is marked ``slow`` (``pytest -m slow tests/test_inference_calibration.py``;
+coverage test is marked ``slow`` (``pytest -m slow tests/inference/test_fit_calibration.py``;
 ``python benchmarks/calibration.py`` runs more replicates).  Environment:
 ``GLACIAR_CAL_REPS`` (default 40), ``GLACIAR_CAL_WORKERS`` (default 2).
 """

@@ -21,7 +21,7 @@ evaluated surfaces.
 Two sizes.  The default test (``test_depth_aware_sbc_coverage_small``) fits the
 first 64 data sets and holds the coverages to 8 points at 68 % and 5 at 95 %; the
 full test (``test_depth_aware_sbc_coverage``, marked ``slow``: ``pytest -m slow
-tests/test_inference_sbc.py``, or ``python benchmarks/sbc.py``) fits 220 and holds
+tests/inference/test_fit_sbc.py``, or ``python benchmarks/sbc.py``) fits 220 and holds
 them to 5 and 3 points.  The small set is the full one's first 64 (each data set is
 seeded by its index), so the two differ only in how many data sets they average.
 

@@ -4,7 +4,7 @@ The run is a copy of the session's ``small_run`` (a real store and manifest: the
 catalogue must match).  Catalogues of other configurations are made by ``glaciar catalog``
 itself, from a configuration with another setting (``classification.min_sn``) and from a
 survey with other images (the same settings, another image seed).  The selection function
-put into the copy is the analytic one of ``tests/test_lf.py`` (``lf_sf``: 4 draws, a
+put into the copy is the analytic one of ``tests/analytic_sf.py`` (``lf_sf``: 4 draws, a
 transfer matrix; stamped with the run's ``config_hash``), so that a fit takes seconds; the
 candidates of the success paths are drawn from its forward model and written with the run's
 identity, as ``benchmarks/lf_speed.py`` writes them.
@@ -47,7 +47,7 @@ def _refused(code, err, *needles):
 @pytest.fixture(scope="module")
 def lf_run(small_run, tmp_path_factory):
     """A copy of ``small_run`` with its own catalogue (``glaciar catalog RUN``) and the analytic
-    selection function of tests/test_lf.py; shared by this module's tests, which copy it again
+    selection function of tests/analytic_sf.py; shared by this module's tests, which copy it again
     when they write into it."""
     _, run = small_run
     dst = tmp_path_factory.mktemp("lf_cli") / "run"
