@@ -23,9 +23,9 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "inference"))
 
-import test_inference_calibration as cal  # noqa: E402
+import test_fit_calibration as cal  # noqa: E402
 
 
 def main(n_reps=200, workers=2):

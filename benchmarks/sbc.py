@@ -21,9 +21,9 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "inference"))
 
-import test_inference_sbc as sbc  # noqa: E402
+import test_fit_sbc as sbc  # noqa: E402
 
 
 def main(n_sets=sbc.N_SETS, workers=sbc.N_WORKERS) -> int:

@@ -148,7 +148,7 @@ def test_the_verdict_is_cached_per_file_and_noise_type(demo):
 
 
 def test_background_no_model_describes_is_refused(tmp_path, capsys):
-    """The synthetic egg-crate background of test_noise_real: simulate exits 2 in one line
+    """The synthetic egg-crate background of tests/engine/test_noise.py: simulate exits 2 in one line
     naming the field, band, r(N) and the settings to change; nothing written."""
     root = tmp_path / "syn"
     data = big_galaxy_survey(root, amp=0.0, n=192, back_size=64)
