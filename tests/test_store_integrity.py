@@ -303,8 +303,8 @@ def test_fields_and_grid_values_that_used_to_collide_keep_their_rows(small_surve
 
 
 def test_rows_no_longer_listed_are_excluded_by_report_and_fit_alike(small_survey_dict, tmp_path):
-    from glaciar.cli import _report
     from glaciar.pipeline.inputs import read_columns
+    from glaciar.report import write_summary_files
 
     d = tiny_config(small_survey_dict, z=(8.0, 10.4), n_iter=2)
     run = tmp_path / "run"
@@ -321,7 +321,7 @@ def test_rows_no_longer_listed_are_excluded_by_report_and_fit_alike(small_survey
     pd.testing.assert_frame_equal(fit_rows, rows[fit_rows.columns.tolist()])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", StoreWarning)
-        _report(run)
+        write_summary_files(run)
     from astropy.table import Table
     t = Table.read(run / C.SUMMARY_DIRNAME / "summary_all.ecsv")
     assert list(t["z"]) == [8.0] and list(t["n_input"]) == [3]
