@@ -19,6 +19,18 @@ The ``*_run`` fixtures simulate once per session (into a temporary run directory
 that every test reading those results shares one run; ``small_run`` is ``small_survey``
 simulated serially (8 tasks, 96 sources: 0.5-2 s of CPU), read by the run, CLI and Dask
 tests.  Tests never write into a shared run: they copy it first (without its lock file).
+``one_task_run`` and ``two_task_run`` are 1 and 2 tasks of 3 sources of the small survey
+(run-directory, manifest, store and CLI tests; ``run_copy`` and ``store_run`` are copies).
+
+Layout: the tests of ``glaciar/<pkg>/<module>.py`` are in ``tests/<pkg>/test_<module>.py``
+(``tests/test_<module>_<aspect>.py`` where one file would be too long; end-to-end tests
+with the entry point they drive: ``test_execute*.py``, ``test_cli*.py``,
+``pipeline/test_fit.py``).  Modules without the ``test_`` prefix hold what several test
+files share: ``toy_images`` (synthetic images, the crowded field, FITS surveys),
+``tiny_runs`` (configurations as dicts, directory snapshots, one-line CLI errors),
+``config_dicts``, ``noise_fields``, ``analytic_sf``, ``figure_cases``, ``renderer_box``
+(the property tests' parameter box).  pytest imports test files in importlib mode with
+``tests/`` on ``sys.path`` (pyproject.toml), so no test file imports another.
 """
 import numpy as np
 import pytest
@@ -177,9 +189,10 @@ def fallocate_enospc(monkeypatch):
 
 
 # --------------------------------------------------------------------------
-# Tiny runs of ``small_survey`` (helpers in tiny_runs.py), per test module
+# Tiny runs of ``small_survey`` (helpers in tiny_runs.py), once per session: the tests that
+# share one read it or copy it (``run_copy``, ``store_run``), never write into it.
 # --------------------------------------------------------------------------
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def small_survey_dict(small_survey):
     """The small survey's configuration as a dict with absolute paths."""
     from tiny_runs import absolute_config
@@ -187,7 +200,7 @@ def small_survey_dict(small_survey):
     return absolute_config(small_survey)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def one_task_run(small_survey_dict, tmp_path_factory):
     """A finished one-task run (1 field, z = 8, m = 24, 3 sources): (config dict, run dir)."""
     from glaciar.execute import simulate
@@ -211,7 +224,7 @@ def run_copy(one_task_run, tmp_path):
     return json.loads(json.dumps(d)), tmp_path / "run"
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def two_task_run(small_survey_dict, tmp_path_factory):
     """The small survey's field, z = 8, m = 24 and 27.5, 1 iteration of 3 sources:
     (config path, finished run directory)."""
