@@ -1,6 +1,6 @@
 """Calibration at fixed truths with more replicates than the test runs.
 
-The three truths of ``tests/test_inference_calibration.py`` (logistic with both
+The three truths of ``tests/inference/test_fit_calibration.py`` (logistic with both
 selection edges inside the simulated z range; the upper edge just beyond it,
 as in the demo; an erf step fitted with ``fit_and_choose`` over every step),
 each fitted to ``N`` replicate data sets of 2800 sources with the production
@@ -23,9 +23,9 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "inference"))
 
-import test_inference_calibration as cal  # noqa: E402
+import test_fit_calibration as cal  # noqa: E402
 
 
 def main(n_reps=200, workers=2):

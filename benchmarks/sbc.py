@@ -1,6 +1,6 @@
 """The full simulation-based calibration of the depth-aware surfaces.
 
-Runs ``tests/test_inference_sbc.py``'s full check (the suite runs its first 64
+Runs ``tests/inference/test_fit_sbc.py``'s full check (the suite runs its first 64
 data sets by default; the full one is marked ``slow``): N data sets drawn from
 the prior, each refitted with the production ``fit_surfaces``; prints the
 coverage of the central 68 % and 95 % credible intervals of C and S at the 18
@@ -21,9 +21,9 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "inference"))
 
-import test_inference_sbc as sbc  # noqa: E402
+import test_fit_sbc as sbc  # noqa: E402
 
 
 def main(n_sets=sbc.N_SETS, workers=sbc.N_WORKERS) -> int:

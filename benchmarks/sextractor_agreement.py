@@ -174,7 +174,7 @@ def main(argv=None):
         print(f"{clean_name:>5} {what:>24}  {_m50(mags, rg):7.3f} / {_m50(mags, rs):7.3f}")
     if ("on", "sep") in per_style:
         # glaciar's CLEAN styles against plain sep's CLEAN (clean_style "sep" reproduces a
-        # full-frame sep.extract: tests/test_sep_crosscheck.py)
+        # full-frame sep.extract: tests/engine/test_measure.py)
         print("\nagainst clean_style 'sep' (plain sep's CLEAN on the full frame), CLEAN on")
         for (clean_name, what), tg in per_style.items():
             if clean_name != "on" or what == "sep":

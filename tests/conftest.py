@@ -19,6 +19,18 @@ The ``*_run`` fixtures simulate once per session (into a temporary run directory
 that every test reading those results shares one run; ``small_run`` is ``small_survey``
 simulated serially (8 tasks, 96 sources: 0.5-2 s of CPU), read by the run, CLI and Dask
 tests.  Tests never write into a shared run: they copy it first (without its lock file).
+``one_task_run`` and ``two_task_run`` are 1 and 2 tasks of 3 sources of the small survey
+(run-directory, manifest, store and CLI tests; ``run_copy`` and ``store_run`` are copies).
+
+Layout: the tests of ``glaciar/<pkg>/<module>.py`` are in ``tests/<pkg>/test_<module>.py``
+(``tests/test_<module>_<aspect>.py`` where one file would be too long; end-to-end tests
+with the entry point they drive: ``test_execute*.py``, ``test_cli*.py``,
+``pipeline/test_fit.py``).  Modules without the ``test_`` prefix hold what several test
+files share: ``toy_images`` (synthetic images, the crowded field, FITS surveys),
+``tiny_runs`` (configurations as dicts, directory snapshots, one-line CLI errors),
+``config_dicts``, ``noise_fields``, ``analytic_sf``, ``figure_cases``, ``renderer_box``
+(the property tests' parameter box).  pytest imports test files in importlib mode with
+``tests/`` on ``sys.path`` (pyproject.toml), so no test file imports another.
 """
 import numpy as np
 import pytest
@@ -74,7 +86,7 @@ def _write_config(demo_config, path, *, fields, z_values, mag_values, n_galaxies
     # with grids placed around their completeness curves. The correlated-noise model
     # (noise.correlated, default auto) moves the demo's m50 0.44 mag brighter
     # (benchmarks/correlated_noise.py) and off those grids; it has its own acceptance
-    # test (tests/test_correlated_noise.py), so these scenarios keep uncorrelated errors.
+    # test (tests/engine/test_noise.py), so these scenarios keep uncorrelated errors.
     cfg["noise"] = {"correlated": "off"}
     path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     return path
@@ -174,3 +186,68 @@ def fallocate_enospc(monkeypatch):
             return real(fd, offset, length)
         monkeypatch.setattr(os, "posix_fallocate", fake)
     return enospc
+
+
+# --------------------------------------------------------------------------
+# Tiny runs of ``small_survey`` (helpers in tiny_runs.py), once per session: the tests that
+# share one read it or copy it (``run_copy``, ``store_run``), never write into it.
+# --------------------------------------------------------------------------
+@pytest.fixture(scope="session")
+def small_survey_dict(small_survey):
+    """The small survey's configuration as a dict with absolute paths."""
+    from tiny_runs import absolute_config
+
+    return absolute_config(small_survey)
+
+
+@pytest.fixture(scope="session")
+def one_task_run(small_survey_dict, tmp_path_factory):
+    """A finished one-task run (1 field, z = 8, m = 24, 3 sources): (config dict, run dir)."""
+    from glaciar.execute import simulate
+    from tiny_runs import load_dict, tiny_config
+
+    d = tiny_config(small_survey_dict)
+    tmp = tmp_path_factory.mktemp("one_task")
+    cfg = load_dict(d, tmp / "c.yaml")
+    simulate(cfg, tmp / "run", workers=1, progress=False)
+    return d, tmp / "run"
+
+
+@pytest.fixture
+def run_copy(one_task_run, tmp_path):
+    """A private copy of ``one_task_run``: (config dict, run dir)."""
+    import json
+    import shutil
+
+    d, run = one_task_run
+    shutil.copytree(run, tmp_path / "run")
+    return json.loads(json.dumps(d)), tmp_path / "run"
+
+
+@pytest.fixture(scope="session")
+def two_task_run(small_survey_dict, tmp_path_factory):
+    """The small survey's field, z = 8, m = 24 and 27.5, 1 iteration of 3 sources:
+    (config path, finished run directory)."""
+    from glaciar.config import load_config
+    from glaciar.execute import simulate
+    from tiny_runs import tiny_config, write_yaml
+
+    root = tmp_path_factory.mktemp("two_task")
+    cfg_path = write_yaml(tiny_config(small_survey_dict, mag=(24.0, 27.5)), root / "c.yaml")
+    simulate(load_config(cfg_path), root / "run", workers=1, progress=False)
+    return cfg_path, root / "run"
+
+
+@pytest.fixture
+def store_run(two_task_run, tmp_path):
+    """A copy of ``two_task_run`` in ``tmp_path/run``, beside ``tmp_path/outside`` (one file)."""
+    import shutil
+
+    from glaciar import constants as C
+
+    _, src = two_task_run
+    dst = tmp_path / "run"
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns(C.LOCK_NAME))
+    (tmp_path / "outside").mkdir()
+    (tmp_path / "outside" / "keep.txt").write_text("not glaciar's\n")
+    return dst

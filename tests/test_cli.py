@@ -2,12 +2,15 @@
 import shutil
 
 import numpy as np
+import pytest
 import yaml
 from astropy.table import Table
 
 from glaciar import constants as C
 from glaciar.cli import main
 from glaciar.config import load_config
+
+from tiny_runs import write_yaml
 
 
 def test_init_writes_a_loadable_template(tmp_path, capsys):
@@ -89,3 +92,47 @@ def test_fit_and_next_on_a_run(small_survey, small_run, tmp_path, capsys):
         z, m = map(float, line.split()[:2])
         assert min(cfg.grid.z_values) <= z <= max(cfg.grid.z_values)
         assert min(cfg.grid.mag_values) <= m <= max(cfg.grid.mag_values)
+
+
+# --------------------------------------------------------------------------
+# CLI values: one line, exit 2, nothing written
+# --------------------------------------------------------------------------
+CLI_CASES = [
+    (["simulate", "{cfg}", "--out", "{out}", "--workers", "0"], "--workers: expected an integer >= 1, got '0'"),
+    (["simulate", "{cfg}", "--out", "{out}", "--workers", "-3"], "--workers: expected an integer >= 1, got '-3'"),
+    (["simulate", "{cfg}", "--out", "{out}", "--seed", "abc"], "--seed: expected an integer >= 0, got 'abc'"),
+    (["simulate", "{cfg}", "--out", "{out}", "--seed", "-1"], "--seed: expected an integer >= 0, got '-1'"),
+    (["simulate", "{cfg}", "--out", "{out}", "--mode", "fast"], "--mode: invalid choice: 'fast'"),
+    (["fit", "{out}", "--area-arcmin2", "-1"], "--area-arcmin2: expected a finite number > 0, got '-1'"),
+    (["fit", "{out}", "--area-arcmin2", "nan"], "--area-arcmin2: expected a finite number > 0, got 'nan'"),
+    (["fit", "{out}", "--area-arcmin2", "inf"], "--area-arcmin2: expected a finite number > 0, got 'inf'"),
+    (["fit", "{out}", "--max-steps", "0"], "--max-steps: expected an integer >= 1, got '0'"),
+    (["next", "{out}", "-n", "0"], "-n: expected an integer >= 1, got '0'"),
+    (["next", "{out}", "-n", "-1"], "-n: expected an integer >= 1, got '-1'"),
+    (["simulate"], "the following arguments are required: config"),
+]
+
+
+@pytest.mark.parametrize("argv, expected", CLI_CASES, ids=[" ".join(c[0][2:]) or c[0][0] for c in CLI_CASES])
+def test_bad_cli_values_one_line_exit_2(argv, expected, one_task_run, tmp_path, capsys):
+    d, _ = one_task_run
+    cfg = write_yaml(d, tmp_path / "c.yaml")
+    out = tmp_path / "out"
+    argv = [a.format(cfg=cfg, out=out) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.splitlines() == [f"glaciar: error: {expected}" if "invalid choice" not in expected
+                                else err.splitlines()[0]]
+    assert expected in err and "usage" not in err
+    assert not out.exists()
+
+
+def test_out_pointing_to_a_file_is_refused(one_task_run, tmp_path, capsys):
+    d, _ = one_task_run
+    cfg = write_yaml(d, tmp_path / "c.yaml")
+    f = tmp_path / "results.txt"
+    f.write_text("keep me")
+    assert main(["simulate", str(cfg), "--out", str(f), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.splitlines() == [f"glaciar simulate: error: --out {f}: exists and is not a directory"]
+    assert f.read_text() == "keep me"

@@ -20,6 +20,8 @@ import ast
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import pytest
+
 PACKAGE = "glaciar"
 ROOT = Path(__file__).resolve().parents[1] / PACKAGE
 MAX_MODULE_LINES = 900
@@ -289,3 +291,48 @@ def test_the_reader_sees_what_python_would_import(tmp_path):
     assert modules["glaciar.d"].private == {"glaciar.sub._impl"}
     assert _cycles(modules, ()) == [["glaciar.a", "glaciar.c", "glaciar.sub.b"]]
     assert _cycles(modules, {"glaciar.c -> glaciar.a"}) == []
+
+
+# ------------------------------------------------------------------------------
+# The run layer's layout (issue 22 point 1): one module per concept, strictly layered.
+#
+# Field preparation < context cache < plan < input checks < manifest < execution, and the
+# worker-process helpers below them all; read from the modules' own import statements (AST),
+# so a function-level import counts too.
+# ------------------------------------------------------------------------------
+#: Bottom to top: a module may import only those before it.
+LAYERS = ("workers", "fieldprep", "contexts", "plan", "inputs", "manifest", "execute")
+
+
+def _imports(name: str) -> list[tuple[str, str]]:
+    """``(module, imported name)`` of every relative import in ``glaciar/<name>.py``."""
+    tree = ast.parse((ROOT / f"{name}.py").read_text(encoding="utf-8"))
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.level == 1:
+            for alias in node.names:
+                out.append((node.module or "", alias.name))
+    return out
+
+
+def test_run_py_is_gone_and_nothing_imports_it():
+    assert not (ROOT / "run.py").exists()
+    for path in ROOT.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom):
+                target = ("." * node.level) + (node.module or "")
+                assert target not in (".run", "..run", "glaciar.run"), path
+                assert not (node.module is None and any(a.name == "run" for a in node.names)
+                            and node.level >= 1), path
+
+
+@pytest.mark.parametrize("name", LAYERS)
+def test_each_run_module_is_small_and_imports_only_below_it(name):
+    assert len((ROOT / f"{name}.py").read_text(encoding="utf-8").splitlines()) <= MAX_MODULE_LINES
+    below = set(LAYERS[:LAYERS.index(name)])
+    for module, imported in _imports(name):
+        top = module.split(".")[0]
+        if top in LAYERS:
+            assert top in below, f"glaciar.{name} imports glaciar.{module} (not below it)"
+            # Shared names are public: no module reaches into another's private names.
+            assert not imported.startswith("_"), f"glaciar.{name} imports {module}.{imported}"

@@ -9,6 +9,8 @@ from astropy.io import fits
 from glaciar.config import config_from_dict
 from glaciar.survey import Survey, clear_cache
 
+from toy_images import fits_survey
+
 
 @pytest.fixture(autouse=True)
 def _fresh_cache():
@@ -283,7 +285,6 @@ def test_fits_and_region_masks(tmp_path):
         s.footprint("a")
 
 
-
 def test_gzipped_and_plain_images_mix(tmp_path):
     """A layout where some images are .fits.gz and the template says .fits (or back) still runs."""
     import gzip
@@ -298,3 +299,70 @@ def test_gzipped_and_plain_images_mix(tmp_path):
     assert s.science_path("a", "f125w").name.endswith(".fits.gz")
     np.testing.assert_array_equal(s.science("a", "f125w"), np.ones((40, 60), np.float32))
     assert s.science_path("a", "f160w").name.endswith("_sci.fits")
+
+
+# ------------------------------------------------------------------------------
+# Field set-up with bounded memory gives the same answers.
+# ------------------------------------------------------------------------------
+@pytest.mark.parametrize("dtype", [">f4", ">f8", ">i2"])
+def test_survey_reads_by_row_blocks_are_the_whole_image(monkeypatch, tmp_path, dtype):
+    """Science, RMS and footprint read by blocks of 3 rows equal astropy's whole-image data
+    turned into them elementwise (1/sqrt(weight), inf without weight)."""
+    from astropy.io import fits
+
+    from glaciar import survey as sv
+
+    rng = np.random.default_rng(2)
+    sci = (rng.standard_normal((23, 17)) * 50).astype(dtype)
+    sci[0, 0] = 0
+    wht = rng.uniform(0.1, 4.0, sci.shape).astype(">f4")
+    wht[2, 3], wht[4, 5], wht[6, 7] = 0.0, np.nan, np.inf
+    if dtype != ">i2":
+        sci[8, 9] = np.nan
+    s = fits_survey(tmp_path, sci, wht)
+    monkeypatch.setattr(sv, "ROW_BLOCK_PIXELS", 3 * 17)
+    sv.clear_cache()
+    whole = fits.getdata(tmp_path / "f_b_drz.fits")
+    native = np.float32 if dtype != ">f8" else np.float64
+    got = s.science("f", "b", cache=False)
+    assert got.dtype == native and got.flags.writeable
+    assert np.array_equal(got, whole.astype(native), equal_nan=True)
+    w = fits.getdata(tmp_path / "f_b_wht.fits").astype(np.float32)
+    good = np.isfinite(w) & (w > 0)
+    with np.errstate(divide="ignore"):
+        want_rms = np.where(good, np.float32(1) / np.sqrt(w), np.float32(np.inf))
+    assert np.array_equal(s.rms("f", "b"), want_rms)
+    assert np.array_equal(s.rms("f", "b", cache=False), want_rms)
+    sci_n = whole.astype(native)
+    want_fp = np.isfinite(sci_n) & (sci_n != 0) & good
+    assert np.array_equal(s.footprint("f"), want_fp) and not want_fp.all()
+    assert np.array_equal(s.band_valid("f", "b"), want_fp)
+
+
+def test_negative_weights_are_counted_over_every_block(monkeypatch, tmp_path):
+    from glaciar import survey as sv
+
+    sci = np.ones((20, 10), ">f4")
+    wht = np.ones((20, 10), ">f4")
+    wht[1, 1] = wht[12, 3] = wht[19, 9] = -1.0           # in three different blocks
+    s = fits_survey(tmp_path, sci, wht, negative="error")
+    monkeypatch.setattr(sv, "ROW_BLOCK_PIXELS", 40)
+    sv.clear_cache()
+    for call in (lambda: s.rms("f", "b"), lambda: s.footprint("f")):
+        with pytest.raises(ValueError, match=r"3 negative weight pixel\(s\)"):
+            call()
+
+
+def test_gzipped_image_by_row_blocks_is_the_whole_image(monkeypatch, tmp_path):
+    """A .fits.gz image (decompressed once, then cut in blocks) reads as astropy's whole data."""
+    from astropy.io import fits
+
+    from glaciar import survey as sv
+
+    data = np.random.default_rng(3).standard_normal((1, 31, 19)).astype(">f4")   # NAXIS3 = 1
+    path = tmp_path / "img.fits.gz"
+    fits.writeto(path, data)
+    monkeypatch.setattr(sv, "ROW_BLOCK_PIXELS", 4 * 19)
+    got = sv.read_array(path)
+    assert got.dtype == np.float32 and got.shape == (31, 19)
+    assert np.array_equal(got, fits.getdata(path)[0].astype(np.float32))

@@ -16,7 +16,7 @@ The population (:func:`draw_mock_population`)
 * z from dV/dz (the injections' cosmology, ``source.cosmology``), M_UV from
   phi(M): exact inverse CDFs of fine tabulations (4097 nodes, piecewise
   linear; the tabulated integrals agree with ``scipy.integrate.quad`` to < 1e-6,
-  tests/test_mock_universe.py).
+  tests/demo/test_mock.py).
 * beta, Sersic index, axis ratio, position angle and r_eff from the config's
   :class:`~glaciar.galaxy.population.SourceModel`, drawn as
   :func:`glaciar.engine.task.draw_task_sources` draws them (same functions, same

@@ -20,7 +20,7 @@ only the survivors, so two things cannot be had from it:
 So glaciar extracts with CLEAN off and applies CLEAN itself, with exactly
 sep's arithmetic (float32 where sep uses ``float``), on any list of objects.
 
-What is reproduced, bit for bit (``tests/test_sep_crosscheck.py`` checks the
+What is reproduced, bit for bit (``tests/engine/test_measure.py`` checks the
 survivors against ``sep.extract(..., clean=True)`` on full frames):
 
 * the detection mask: sep's line convolution compared with ``DETECT_THRESH x

@@ -183,7 +183,7 @@ class DetectionParams:
         half-width of a pixel without data, and smooths the threshold across
         depth steps).  The two differ only where the RMS varies; with
         ``"filtered"`` and ``clean_style="sextractor"`` glaciar's segmentation
-        is SExtractor's (``tests/test_sextractor_backend.py``).
+        is SExtractor's (``tests/engine/test_sextractor_backend.py``).
     detect_minarea : int
         Minimum number of pixels above threshold [DETECT_MINAREA].
     filter_kernel : ndarray or None

@@ -2,7 +2,7 @@
 
 What CLEAN (:mod:`glaciar.engine.clean`) and the exactness checks of the windows
 (:mod:`glaciar.engine.windows`) need of sep's extraction, bit for bit
-(``tests/test_sep_crosscheck.py``, ``tests/test_fullframe_clean.py``):
+(``tests/engine/test_measure.py``, ``tests/engine/test_clean.py``):
 
 * the detection mask: sep's line convolution (:func:`sep_filter`) compared with
   ``DETECT_THRESH x rms`` per pixel -- the one definition of the threshold
@@ -121,7 +121,7 @@ def threshold_map(err, nodata, params, y0=None) -> np.ndarray:
         Image row of the arrays' first row.  sep masks each row as it reads it
         into its filter buffer, except the image's first ``filter_halfwidth``
         rows, read before its loop: there no-data pixels keep the RMS passed
-        (checked against sep in ``tests/test_fullframe_clean.py``).  Given,
+        (checked against sep in ``tests/engine/test_clean.py``).  Given,
         that quirk is applied; None (arrays that are not rows of the image sep
         saw from its top, e.g. a canvas of windows) masks every no-data pixel.
 
@@ -360,7 +360,7 @@ def lutz_one(mask):
     by a rule that needs no scan: each new row's pixels left of the previous
     row's run start come first, then the list so far, then the rest of the
     row; the region closes at (last row + 1, end of the last row's run).
-    (Checked against the full scan in ``tests/test_sep_crosscheck.py``.)
+    (Checked against the full scan in ``tests/engine/test_measure.py``.)
     Other shapes go through the scan.
 
     Returns

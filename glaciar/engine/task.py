@@ -129,7 +129,7 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
         Render no stamp in a band where the source has no flux or is fainter
         than FAINT_MAG_LIMIT (blueward of the break).  The skip is exact: with
         it off, those bands receive stamps of zero or < 1e-9 counts, and the
-        rows are the same (tests/test_task.py).
+        rows are the same (tests/engine/test_task.py).
     """
     rng, ident = task_rng(seed, spec)
     n = ctx.n_galaxies

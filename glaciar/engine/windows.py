@@ -59,7 +59,7 @@ mask is recomputed only approximately.
 Speed without changing answers
 ------------------------------
 Each shortcut below only decides *how much* is computed, never a result
-(``tests/test_windowed.py``, ``tests/test_windowed_batching.py``):
+(``tests/engine/test_windows.py``):
 
 * the first window is ``DetectionParams.initial_window`` (41 px: most faint
   sources are exact after one extraction), or larger where the source's own

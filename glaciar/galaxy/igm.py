@@ -98,7 +98,7 @@ def _tau_inoue14(lobs: np.ndarray, zs: np.ndarray) -> np.ndarray:
     # lambda_L: the fits' polynomials in x = lobs / lambda_L are not valid for
     # x < 1 and, extended there, turn negative (tau = -0.25 at 100 A for z_S = 3,
     # -362 for z_S = 20, i.e. "transmission" e^362; property test in
-    # tests/test_properties.py), against the documented 0 <= T <= 1.
+    # tests/galaxy/test_igm.py), against the documented 0 <= T <= 1.
     lc = np.flatnonzero(lobs < _INOUE_LYMAN_LIMIT * one_z)
     if lc.size:
         x = np.maximum(lobs[lc], _INOUE_LYMAN_LIMIT) / _INOUE_LYMAN_LIMIT

@@ -23,7 +23,7 @@ __all__ = ["SourceModel", "get_cosmology", "r_eff_kpc", "kpc_to_arcsec",
 M_UV_SIZE_PIVOT = -21.0
 #: Smallest redshift given a distance (angular sizes, absolute magnitudes): a luminosity
 #: distance of ~0.04 pc, far below any use.  Not just z > 0: float64 distances break
-#: down for denormal z (found by tests/test_properties.py): at z = 5e-324 astropy's
+#: down for denormal z (found by tests/galaxy/test_population.py): at z = 5e-324 astropy's
 #: D_L is 0 (distmod -inf, with a divide-by-zero warning), at z = 2e-313 its
 #: arcsec per kpc overflows to inf.
 Z_MIN_DISTANCE = 1e-8

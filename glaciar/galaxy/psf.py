@@ -6,7 +6,7 @@ here is a 2-D float64 array with odd sides, its centroid on the central
 pixel, and pixel values that are *pixel integrals* of the PSF, normalised so
 that the array sums to 1.
 
-Accuracy (each number is held by a test in ``tests/test_psf.py``):
+Accuracy (each number is held by a test in ``tests/galaxy/test_psf.py``):
 
 * analytic PSFs: pixel integrals by tensor Gauss-Legendre quadrature; the
   Gaussian agrees with the exact erf product to < 1e-9 of the peak pixel

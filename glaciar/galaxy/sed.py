@@ -252,7 +252,7 @@ def _check_detection_colour(c_det: np.ndarray, name: str, z: float, igm: str,
     trace (e.g. F160W at z >= 13.0 is attenuated by 50-800 mag, F200W at
     z = 19.9 by ~800); normalising m = 10 there made the other bands as bright
     as -803 mag, whose fluxes overflow float64 (``mag_to_flux`` -> inf, then
-    inf/NaN pixels).  Found by the property tests (tests/test_properties.py).
+    inf/NaN pixels).  Found by the property tests (tests/galaxy/test_sed.py).
     """
     if np.any(~(c_det <= faint_limit)):
         worst = float(np.max(c_det))

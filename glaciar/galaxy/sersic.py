@@ -46,7 +46,7 @@ grid line share d, so w and the polar angle are computed once per grid node.
 Accuracy.  ``tolerance`` (default 1e-9) bounds |pixel error| / total flux
 through the error bound above, which is conservative: over random n in
 [0.2, 10], r_eff in [0.05, 20] px, q in [0.05, 1], any PA and sub-pixel
-centres the worst measured error is 0.012 x tolerance.  tests/test_sersic.py
+centres the worst measured error is 0.012 x tolerance.  tests/galaxy/test_sersic.py
 holds every tested pixel to < 1e-9 (measured <= 5e-12) against independent
 adaptive 2-D quadrature for n = 0.5, 1, 2, 4, 8, r_eff = 0.3, 1, 3, 10 px,
 q = 0.2, 1 (plus n = 0.2, 10 and q = 0.05 extremes), and the stamp sum to

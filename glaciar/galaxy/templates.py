@@ -240,7 +240,7 @@ class TemplateCache:
         # raw stamp's transform kept in the LRU: one raw shape is convolved with
         # subpixel^2 shifted PSFs per band, and its FFT was a third of each convolution.
         # Same transforms, same product, same inverse: the same bits
-        # (tests/test_speed_kernels.py compares with fftconvolve).
+        # (tests/galaxy/test_templates.py compares with fftconvolve).
         shape = (raw.shape[0] + psf.shape[0] - 1, raw.shape[1] + psf.shape[1] - 1)
         fshape = [sp_fft.next_fast_len(n, True) for n in shape]
         key = ("rawfft",) + tuple(raw_key) + tuple(fshape)

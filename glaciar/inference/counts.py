@@ -24,7 +24,7 @@ the transfer function (``transfer=False``: measured magnitude := input magnitude
 of M contributes to bin k the fraction of its image [m - dM/2, m + dM/2] inside the bin,
 so that the bin edges cost no quadrature error.
 
-Accuracy (tests/test_expected_counts.py), for a step selection (P = 1 to m = 27.5) and a
+Accuracy (tests/inference/test_counts.py), for a step selection (P = 1 to m = 27.5) and a
 constant phi, against the comoving volume times the bin width: < 1e-4 relative without
 the transfer function; with a Gaussian transfer function (m_obs = m_in + 0.15 +
 N(0, 0.2)) against the analytic convolution: < 2e-4 in bins 0.5 mag or more bright of

@@ -39,7 +39,7 @@ the matrix into a :class:`TransferFunction` that does this:
   no usable shape; it borrows the offset distribution of the nearest usable row of its
   slice, and a slice without any usable row is left out.
 
-Accuracy (tests/test_transfer_interp.py): for a Gaussian scatter m_obs = m_in + 0.15 +
+Accuracy (tests/inference/test_transfer.py): for a Gaussian scatter m_obs = m_in + 0.15 +
 N(0, sigma(m_in)), sigma growing linearly from 0.1 mag (m_in = 24) to 0.5 mag (28),
 tabulated exactly on a 0.5 mag grid of input magnitudes in 0.2 mag m_obs bins, the
 probabilities of 0.2 mag bins at off-grid (m_in, z) agree with the exact normal ones to
