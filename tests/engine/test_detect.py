@@ -93,6 +93,24 @@ def test_background_rms_and_big_endian_input():
     assert seg[128, 128] > 0 and seg.dtype == np.int32
 
 
+def test_background_mesh_larger_than_the_image_is_one_mesh_of_the_whole_image():
+    """BACK_SIZE beyond the image: the result of a mesh cut to the image (sep allocated
+    BACK_SIZE^2 pixels first: MemoryError with an empty message at 1e9)."""
+    import sep
+
+    rng = np.random.default_rng(4)
+    img = (rng.normal(0, 1, (120, 90)) + np.linspace(0, 3, 90)[None, :]).astype(np.float32)
+    mask = np.zeros(img.shape, bool)
+    mask[:7] = True
+    back, rms = measure_background(img, mask, DetectionParams(back_size=10 ** 9))
+    # Independent: sep itself with the mesh cut to the image (one mesh: a constant map).
+    ref = sep.Background(img, mask=mask, bw=90, bh=120, fw=3, fh=3)
+    np.testing.assert_array_equal(back, ref.back(dtype=np.float32))
+    np.testing.assert_array_equal(rms, ref.rms(dtype=np.float32))
+    good = img[~mask]
+    assert np.ptp(back) == 0 and abs(back[0, 0] - np.median(good)) < 0.2
+
+
 def test_sep_failure_becomes_detection_error():
     p = DetectionParams(detect_thresh=0.1, detect_minarea=1, deblend_nthresh=64, deblend_mincont=0.0,
                         sub_object_limit=1, filter_kernel=None)

@@ -359,6 +359,12 @@ def test_autocorr_time_of_ar1_walkers_matches_analytic_tau():
     np.testing.assert_allclose(autocorr_time(x), (1 + phi) / (1 - phi), rtol=0.15)
     # one walker's chain (a single walker is a valid ensemble): same tau, wider tolerance
     np.testing.assert_allclose(autocorr_time(x[:, :1]), (1 + phi) / (1 - phi), rtol=0.5)
+    # A parameter no walker has moved (a chain of a few steps): no estimate (0/0), reported
+    # as the chain's length, so burn-in and thinning stay finite (it was NaN -> int error).
+    stuck = x[:20].copy()
+    stuck[:, :, 1] = 0.5 * np.arange(walkers)       # each walker where it started
+    tau = autocorr_time(stuck)
+    assert tau[1] == 20.0 and np.all(np.isfinite(tau))
 
 
 def test_sample_block_reproduces_a_known_posterior():
