@@ -453,8 +453,12 @@ def runs_full_frame(params: DetectionParams) -> bool:
     the outcome depends on every object of the image) and for the matched filter
     (``filter_type="matched"`` with a kernel: noise-aware, its detection mask is
     reproduced only up to rounding, so windows could not be proven exact).  Keeping
-    them windowed took a task-wide CLEAN machinery of ~600 lines for a full/windowed
-    CPU ratio of ~1.5-2.6 on the demo field (``benchmarks/fullframe_styles.py``).
+    them windowed took ~650 lines of task-wide CLEAN machinery for a full/windowed CPU
+    ratio of 1.04-1.16 (CLEAN styles) and 0.29-0.81 (matched filter: windowed was
+    slower) on the 1000^2 demo field at m = 26 (``benchmarks/fullframe_styles.py``).
+    ``threshold_rms="filtered"`` stays windowed: exact with no machinery of its own
+    (the filtered RMS of the canvas, gaps counting as outside the image) and 1.4-1.7x
+    faster than full frame there.
     """
     matched = params.filter_kernel is not None and params.filter_type == "matched"
     return _task_wide_clean(params) or matched

@@ -47,7 +47,9 @@ The other CLEAN styles (CLEAN through the whole image's object list) and the
 matched filter (noise-aware: its detection mask is recomputed only up to
 rounding) never come here windowed: :func:`glaciar.engine.measure.runs_full_frame`
 sends them to the full frame.  The full-frame mode (:func:`segment_full`) runs this
-module's code on one canvas, the whole image, with the checks off.
+module's code on one canvas, the whole image, with the checks off (with a
+whole-image CLEAN, the full frame is instead the image's segmentation product,
+:func:`glaciar.engine.segmentation.sep_segmentation`).
 
 Speed without changing answers
 ------------------------------
