@@ -374,7 +374,8 @@ class DetectionConfig(Section):
                              description="built-in kernel name or a .conv file")
     filter_type: Choice("conv", "matched", aliases={"convolve": "conv"}) = Field(
         _det("filter_type"), alias="FILTER_TYPE",
-        description="CONVOLVE (SExtractor's) | MATCHED (sep's noise-aware filter)")
+        description="CONVOLVE (SExtractor's) | MATCHED (sep's noise-aware filter; "
+                    "runs full frame, not windowed)")
     deblend_nthresh: Int = Field(_det("deblend_nthresh"), ge=1, alias="DEBLEND_NTHRESH",
                                  description="deblending sub-thresholds")
     deblend_mincont: Float = Field(_det("deblend_mincont"), ge=0, le=1, alias="DEBLEND_MINCONT",
@@ -389,7 +390,8 @@ class DetectionConfig(Section):
                     "deblended region only (fast); sextractor = SExtractor 2.x's CLEAN on "
                     "the whole injected image, cleaned pixels handed to the absorbing "
                     "object; sep = plain sep's CLEAN on the whole image; sep-merge = sep's "
-                    "decisions with SExtractor's hand-over")
+                    "decisions with SExtractor's hand-over.  With CLEAN on, the three last "
+                    "run full frame, not windowed")
     threshold_rms: Choice(*THRESHOLD_RMS) = Field(
         _det("threshold_rms"), alias="THRESHOLD_RMS",
         description="glaciar's key: the RMS DETECT_THRESH multiplies (THRESH_TYPE RELATIVE): "

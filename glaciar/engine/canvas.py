@@ -1,9 +1,8 @@
 """Canvases of windows: the per-call context, windows tiled into one array, and box helpers.
 
 The lower layer of :mod:`glaciar.engine.windows` (which decides the windows and checks
-their exactness) that :mod:`glaciar.engine.measure` (photometry on a canvas) and
-:mod:`glaciar.engine.localclean` (regions packed for one sep call) share, so that
-neither imports the windowing itself:
+their exactness) that :mod:`glaciar.engine.measure` (photometry on a canvas) shares, so
+that it need not import the windowing itself for these:
 
 * :class:`MeasureContext` -- everything one :func:`~glaciar.engine.measure.measure_injected`
   call works with;
@@ -65,9 +64,6 @@ class MeasureContext:
         Window at ``max_window``: done once more unchecked, flagged.
     isolated : dict
         Cache of isolated region extractions (image box, pixels) -> result.
-    tclean : TaskClean or None
-        Task-wide CLEAN outcome (:mod:`glaciar.engine.localclean`), None for
-        ``clean_style="region"`` or CLEAN off.
     det_background : ndarray or None
         Background map subtracted from the detection band [image units]
         (SATUR_LEVEL flag: pixel + background); None = 0.
@@ -100,7 +96,6 @@ class MeasureContext:
     out: dict
     at_max: np.ndarray
     isolated: dict
-    tclean: object = None
     det_background: np.ndarray | None = None
     ref_objects: "ObjectBoxes | None" = None
 
@@ -361,11 +356,20 @@ def ellipse_half_extent(a, b, theta, r):
 
 
 def safe_shape(a, b, theta):
-    """Ellipse shape sep accepts (a >= b > 0, |theta| <= pi/2)."""
-    # sep requires a >= b >= 0 and |theta| <= pi/2; guard degenerate 1-pixel-wide objects
-    a = np.maximum(np.asarray(a, dtype=np.float64), 1e-3)
-    b = np.clip(np.asarray(b, dtype=np.float64), 1e-3, a)
-    th = np.clip(np.asarray(theta, dtype=np.float64), -np.pi / 2, np.pi / 2)
+    """Ellipse shape sep accepts (a >= b > 0, |theta| <= pi/2), semi-axes [pixels], angle [radians].
+
+    sep requires a >= b >= 0 and finite values; degenerate 1-pixel-wide objects get
+    the 1e-3 px floor.  sep's catalogue reports ``b = NaN`` (and, in principle, ``a``)
+    when an object's second-moment matrix is not positive (negative pixels weigh in,
+    as the matched filter allows): its smaller variance is negative, so the axis is
+    taken as degenerate (the floor) and a NaN angle as 0.  Finite inputs are unchanged.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    a = np.where(np.isfinite(a), np.maximum(a, 1e-3), 1e-3)
+    b = np.asarray(b, dtype=np.float64)
+    b = np.where(np.isfinite(b), np.clip(b, 1e-3, a), 1e-3)
+    th = np.asarray(theta, dtype=np.float64)
+    th = np.where(np.isfinite(th), np.clip(th, -np.pi / 2, np.pi / 2), 0.0)
     return a, b, th
 
 

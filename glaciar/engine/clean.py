@@ -51,7 +51,7 @@ import numpy as np
 from glaciar.engine.sepscan import heap_mthresh
 
 __all__ = ["CleanObjects", "clean_objects", "eats", "abcor", "sep_clean", "sep_clean_bounded", "sextractor_clean",
-           "zone_pairs", "in_zone", "light_objects", "profile_value", "final_owner", "CLEAN_ZONE"]
+           "zone_pairs", "in_zone", "profile_value", "final_owner", "CLEAN_ZONE"]
 
 #: sep's CLEAN_ZONE: pairs further apart than CLEAN_ZONE (a1 + a2) are not compared
 CLEAN_ZONE = 10.0
@@ -101,9 +101,6 @@ class CleanObjects:
 
     def __len__(self):
         return int(np.size(self.x))
-
-    def take(self, idx) -> "CleanObjects":
-        return CleanObjects(**{f: np.asarray(getattr(self, f))[idx] for f in _FIELDS})
 
     @staticmethod
     def concat(parts) -> "CleanObjects":
@@ -181,55 +178,6 @@ def abcor(th, thresh2, area2, tnpix, a, b) -> np.ndarray:
     ab = ab.astype(np.float32)
     return np.where(t1t2 > 0.0, np.where(ab > 1.0, np.float32(1.0), ab),
                     np.float32(1.0)).astype(np.float32)
-
-
-def light_objects(cat, lseg, data, filt, thr):
-    """CLEAN inputs that need no pixel order, and bounds of ``mthresh``.
-
-    Parameters
-    ----------
-    cat : structured ndarray
-        sep rows of the objects (label k + 1 = row k).
-    lseg : ndarray of int
-        Cut-out labels (0 elsewhere).
-    data, filt, thr : ndarray of float32
-        Cut-out image, filtered image, threshold [image units].
-
-    Returns
-    -------
-    objects : CleanObjects
-        As :func:`clean_objects` but ``mthresh`` NaN (it depends on the order).
-    lo, hi : ndarray of float32
-        Smallest and largest ``filtered - threshold`` of each object's pixels:
-        ``mthresh`` (one of them, or 0 below DETECT_MINAREA) lies in [min(lo, 0), hi].
-    """
-    n = len(cat)
-    lab = np.asarray(lseg).ravel()
-    pix = np.flatnonzero(lab)
-    li = lab[pix] - 1
-    tpix = (np.asarray(filt, dtype=np.float32).ravel()[pix] - np.asarray(thr, dtype=np.float32).ravel()[pix])
-    tpix = tpix.astype(np.float32)
-    lo = np.full(n, np.inf, dtype=np.float32)
-    hi = np.full(n, -np.inf, dtype=np.float32)
-    np.minimum.at(lo, li, tpix)
-    np.maximum.at(hi, li, tpix)
-    tmin = np.full(n, np.inf, dtype=np.float32)
-    np.minimum.at(tmin, li, np.asarray(thr, dtype=np.float32).ravel()[pix])
-    th = np.asarray(cat["thresh"], dtype=np.float32)
-    peak = np.asarray(cat["peak"], dtype=np.float32)
-    a = np.asarray(cat["a"], dtype=np.float32)
-    b = np.asarray(cat["b"], dtype=np.float32)
-    thresh2 = (th.astype(np.float64) + peak.astype(np.float64)) / 2.0
-    val = np.asarray(data, dtype=np.float32).ravel()[pix].astype(np.float64)
-    area2 = np.bincount(li, weights=(val > thresh2[li]).astype(np.float64), minlength=n)
-    ab = abcor(th, thresh2, area2, cat["tnpix"], a, b)
-    objs = CleanObjects(x=np.asarray(cat["x"], dtype=np.float64), y=np.asarray(cat["y"], dtype=np.float64),
-                        a=a, b=b, cxx=np.asarray(cat["cxx"], dtype=np.float32),
-                        cyy=np.asarray(cat["cyy"], dtype=np.float32), cxy=np.asarray(cat["cxy"], dtype=np.float32),
-                        fdflux=np.asarray(cat["cflux"], dtype=np.float32), thresh=th,
-                        npix=np.asarray(cat["npix"], dtype=np.int64), abcor=ab,
-                        mthresh=np.full(n, np.nan, dtype=np.float32), tmin=tmin)
-    return objs, lo, hi
 
 
 def _profile(o: CleanObjects, i, beta):

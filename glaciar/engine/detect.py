@@ -191,7 +191,7 @@ class DetectionParams:
         Stored as a read-only float64 array; compared by value.
     filter_type : {"conv", "matched"}
         ``conv`` is SExtractor's convolution; ``matched`` is sep's noise-aware
-        matched filter.
+        matched filter (runs full frame in every mode).
     deblend_nthresh : int
         [DEBLEND_NTHRESH]
     deblend_mincont : float
@@ -206,7 +206,8 @@ class DetectionParams:
         list; not what a full-frame program does -- see
         ``benchmarks/sextractor_agreement.py`` for the measured difference).
         The three others run CLEAN on the injected image's whole pre-CLEAN
-        object list (:mod:`glaciar.engine.localclean`), as a full-frame run does.
+        object list, as a full-frame run does: they run full frame in every mode
+        (:func:`glaciar.engine.measure.runs_full_frame`).
         ``"sextractor"``: SExtractor 2.x's -- objects are cleaned as they are
         extracted, an absorbed object's pixels, filtered flux and area go to
         the object that absorbs it (whose FLUX_ISO then includes them), and

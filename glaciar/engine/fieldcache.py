@@ -77,7 +77,8 @@ __all__ = ["save", "load", "exists", "UnreadableCache", "release", "Trimmer", "t
 #: never reads an old one). 2: r(N) measured about local backgrounds where the mesh leaves
 #: residuals (issue 21), so a cache holding the mesh-only r(N) is not reused.  3: the
 #: reference's ObjectBoxes live in glaciar.engine.canvas (issue 22), the name a cache stores.
-FORMAT = 3
+#: 4: the reference holds no segmentation product (task-wide CLEAN runs full frame, issue 22).
+FORMAT = 4
 #: Arrays at least this large [bytes] are memory-mapped; smaller ones (catalogues) are read.
 MMAP_MIN_BYTES = 1 << 20
 #: File-backed resident pages [bytes] a worker lets accumulate before they are dropped: with
@@ -110,8 +111,6 @@ INDEX_NAME = "index.json"
 #: Classes a cache may rebuild (by "module:qualname"); nothing else is instantiated on load.
 _CLASSES = frozenset({
     "glaciar.engine.measure:FieldReference",
-    "glaciar.engine.segmentation:Segmentation",
-    "glaciar.engine.clean:CleanObjects",
     "glaciar.engine.canvas:ObjectBoxes",
     "glaciar.engine.noise:CorrelatedNoise",
 })

@@ -27,15 +27,16 @@ measures injected sources on it, whichever backend made it:
 * ``source-extractor`` (:mod:`glaciar.engine.sextractor_backend`): the
   SExtractor binary's check-image segmentation and catalogue.
 
-The windowed engine never builds the full product of an injected image: it
-reproduces it exactly around each injected source
-(:mod:`glaciar.engine.measure`), using the product of the *original* image
-(:func:`sep_segmentation`, once per field) for the objects injection does not
-touch.
+With the default ``clean_style="region"`` the windowed engine never builds the
+full product of an injected image: it reproduces its segmentation exactly around
+each injected source (:mod:`glaciar.engine.windows`).  The task-wide CLEAN styles
+(the other three) are made here, on the whole injected image
+(:func:`glaciar.engine.measure.runs_full_frame`), and on the original image once
+per field for its reference.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -45,7 +46,7 @@ from glaciar.engine import sepscan
 from glaciar.engine.blocks import row_tiles
 from glaciar.engine.detect import SEP_OBJ_MERGED, DetectionParams, sep_extract, detection_rms, sanitize
 
-__all__ = ["Segmentation", "SegmentedBatch", "sep_segmentation", "isolate_region", "region_objects", "apply_clean",
+__all__ = ["Segmentation", "SegmentedBatch", "sep_segmentation", "isolate_region", "apply_clean",
            "sep_extract_clean", "EMULATED_CLEAN_MIN_OBJECTS"]
 
 _BIG_RMS = np.float32(1e30)
@@ -66,25 +67,13 @@ class Segmentation:
     flux_iso : ndarray of float64 or None, shape (n,)
         The backend's own isophotal flux, when it reports one [image units].
     pre_seg : ndarray of int32 or None
-        Pre-CLEAN labels 1..m, in sep's object order (sep backend only).
+        Pre-CLEAN labels 1..m, in sep's object order (sep backend only): with
+        ``seg``, which pixels belong to objects CLEAN removed.
     cat : structured ndarray or None, shape (m,)
         sep catalogue rows of the pre-CLEAN objects (image coordinates).
-    objects : CleanObjects or None
-        What CLEAN reads of each pre-CLEAN object.
-    key : ndarray of int64, shape (m, 3)
-        sep's order of the objects: (row, column) where the scan closed the
-        object's region, then the child's rank in its region's deblending.
-    obj_box : ndarray of int64, shape (m, 4)
-        Box (y0, y1, x0, x1) of each object's region (all its deblended
-        children share it).
-    comp_box : ndarray of int64, shape (K, 4)
-        Boxes of every connected above-threshold region, those below
-        DETECT_MINAREA included.
     owner : ndarray of int64, shape (m,)
         Pre-CLEAN index of the surviving object each object's pixels went
         to (itself for survivors; -1: removed and left unlabelled).
-    post : ndarray of int64, shape (m,)
-        Post-CLEAN label of each pre-CLEAN object's pixels (0: unlabelled).
     """
 
     seg: np.ndarray
@@ -96,35 +85,10 @@ class Segmentation:
     flux_iso: np.ndarray | None = None
     pre_seg: np.ndarray | None = None
     cat: np.ndarray | None = None
-    objects: cl.CleanObjects | None = None
-    key: np.ndarray | None = None
-    obj_box: np.ndarray | None = None
-    comp_box: np.ndarray | None = None
     owner: np.ndarray | None = None
-    post: np.ndarray | None = None
-    _tree: object = field(default=None, repr=False)
 
     def __len__(self):
         return int(np.size(self.x))
-
-    def first_pixel(self):
-        """Flat index of one pixel (the first in raster order) of each pre-CLEAN object."""
-        if getattr(self, "_first", None) is None:
-            flat = self.pre_seg.ravel()
-            nz = np.flatnonzero(flat)
-            lab, idx = np.unique(flat[nz], return_index=True)
-            first = np.full(len(self.objects), -1, dtype=np.int64)
-            first[lab - 1] = nz[idx]
-            self._first = first
-        return self._first
-
-    def kdtree(self):
-        """k-d tree of the pre-CLEAN barycentres (built once)."""
-        if self._tree is None:
-            from scipy.spatial import cKDTree
-            o = self.objects
-            self._tree = cKDTree(np.c_[o.x, o.y] if len(o) else np.zeros((0, 2)))
-        return self._tree
 
 
 @dataclass(frozen=True, eq=False)
@@ -224,13 +188,14 @@ def isolate_region(data32, err32, nodata, inside, params: DetectionParams, clean
                         np.ascontiguousarray(nodata), params, bool(clean))
 
 
-def region_objects(inside, cat, seg, data32, filt, thr, params: DetectionParams, lutz=None):
-    """CLEAN inputs and sep order of the objects of one region of a cut-out.
+def _region_objects(pix, cat, seg, data32, filt, thr, params: DetectionParams):
+    """CLEAN inputs of the objects of one region of a cut-out.
 
     Parameters
     ----------
-    inside : ndarray of bool
-        The region's pixels in the cut-out (8-connected).
+    pix : ndarray of int
+        The region's pixels (flat indices of the cut-out) in sep's scan order
+        (:func:`~glaciar.engine.sepscan.lutz_regions`).
     cat : structured ndarray
         sep rows of the region's objects (cut-out coordinates): one row, or
         the children of its isolated extraction.
@@ -239,21 +204,13 @@ def region_objects(inside, cat, seg, data32, filt, thr, params: DetectionParams,
     data32, filt, thr : ndarray of float32
         Cut-out image, filtered image and threshold [image units].
     params : DetectionParams
-    lutz : (pixels, row, column), optional
-        The region's :func:`~glaciar.engine.sepscan.lutz_regions` entry in the
-        cut-out's flat indices, if already known.
 
     Returns
     -------
-    objects : CleanObjects
+    CleanObjects
         Barycentres as in ``cat``.
-    done : (int, int)
-        (row, column) of the cut-out at which sep's scan closes the region.
     """
-    h, w = inside.shape
-    if lutz is None:
-        lutz = sepscan.lutz_one(inside)
-    pix, yd, xd = lutz
+    w = seg.shape[1]
     n = len(cat)
     sf = np.asarray(seg).ravel()
     if n == 1:
@@ -262,14 +219,13 @@ def region_objects(inside, cat, seg, data32, filt, thr, params: DetectionParams,
         oo = sepscan.child_pixel_orders(pix, w, sf, filt.ravel(), list(range(1, n + 1)),
                                    np.float32(cat["thresh"][0]), params.deblend_nthresh)
         orders = [oo[k] for k in range(1, n + 1)]
-    objs = cl.clean_objects(cat, orders, data32.ravel(), filt.ravel(), thr.ravel(), params.detect_minarea)
-    return objs, (int(yd), int(xd))
+    return cl.clean_objects(cat, orders, data32.ravel(), filt.ravel(), thr.ravel(), params.detect_minarea)
 
 
 # --------------------------------------------------------------------------
 # Full image
 # --------------------------------------------------------------------------
-def apply_clean(objects: cl.CleanObjects, params: DetectionParams, key=None):
+def apply_clean(objects: cl.CleanObjects, params: DetectionParams):
     """CLEAN as configured (``params.clean``, ``params.clean_style``) on objects in sep's order.
 
     Returns
@@ -313,8 +269,7 @@ def sep_segmentation(image_sub, err, params: DetectionParams, mask=None) -> Segm
     -------
     Segmentation
         With canonical deblending and CLEAN as described in the module
-        docstring; ``pre_seg``, ``cat``, ``objects``, ``key``, ``obj_box``,
-        ``comp_box``, ``owner`` and ``post`` filled.
+        docstring; ``pre_seg``, ``cat`` and ``owner`` filled.
 
     Raises
     ------
@@ -330,15 +285,13 @@ def sep_segmentation(image_sub, err, params: DetectionParams, mask=None) -> Segm
     sf = seg0.ravel()
     pad = params.filter_halfwidth + 1
     cats, pre_seg = [], np.zeros((H, W), dtype=np.int32)
-    objs, keys, oboxes = [], [], []
-    comp_box = np.zeros((len(comps), 4), dtype=np.int64)
+    objs = []
     nxt = 1
-    for ci, (pix, yd, xd) in enumerate(comps):
-        ys, xs = np.divmod(pix, W)
-        box = (int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1)
-        comp_box[ci] = box
+    for pix, _, _ in comps:                 # in sep's order (where its scan closes each region)
         if pix.size < params.detect_minarea:
             continue
+        ys, xs = np.divmod(pix, W)
+        box = (int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1)
         labs = sf[pix]
         labs = np.unique(labs[labs > 0])
         if labs.size == 0:
@@ -347,7 +300,7 @@ def sep_segmentation(image_sub, err, params: DetectionParams, mask=None) -> Segm
         x0, x1 = max(box[2] - pad, 0), min(box[3] + pad, W)
         inside = np.zeros((y1 - y0, x1 - x0), dtype=bool)
         inside[ys - y0, xs - x0] = True
-        local = ((ys - y0) * (x1 - x0) + (xs - x0), yd - y0, xd - x0)
+        local = (ys - y0) * (x1 - x0) + (xs - x0)
         if labs.size == 1:
             c = cat0[labs - 1]
             lseg = inside.astype(np.int32)
@@ -355,30 +308,23 @@ def sep_segmentation(image_sub, err, params: DetectionParams, mask=None) -> Segm
             c, lseg = isolate_region(data[y0:y1, x0:x1], e[y0:y1, x0:x1], nodata[y0:y1, x0:x1], inside, params)
             lseg = np.where(inside, lseg, 0)
             c = _shift(c, y0, x0)
-        o, _ = region_objects(inside, c, lseg, data[y0:y1, x0:x1], filt[y0:y1, x0:x1],
-                              thr[y0:y1, x0:x1], params, lutz=local)
-        k = len(c)
-        objs.append(o)
+        objs.append(_region_objects(local, c, lseg, data[y0:y1, x0:x1], filt[y0:y1, x0:x1],
+                                    thr[y0:y1, x0:x1], params))
         cats.append(c)
-        keys.append(np.c_[np.full(k, yd), np.full(k, xd), np.arange(k)])
-        oboxes.append(np.tile(box, (k, 1)))
         sub = pre_seg[y0:y1, x0:x1]
         sub[lseg > 0] = lseg[lseg > 0] + (nxt - 1)
-        nxt += k
+        nxt += len(c)
     if objs:
-        objects = cl.CleanObjects.concat(objs)
-        cat = np.concatenate(cats)
-        key = np.concatenate(keys).astype(np.int64)
-        obj_box = np.concatenate(oboxes).astype(np.int64)
+        objects, cat = cl.CleanObjects.concat(objs), np.concatenate(cats)
     else:
         objects, cat = cl.CleanObjects.empty(), cat0[:0]
-        key, obj_box = np.zeros((0, 3), dtype=np.int64), np.zeros((0, 4), dtype=np.int64)
     owner, surv = apply_clean(objects, params)
-    return _post_clean(pre_seg, cat, objects, key, obj_box, comp_box, owner, surv)
+    return _post_clean(pre_seg, cat, owner, surv)
 
 
-def _post_clean(pre_seg, cat, objects, key, obj_box, comp_box, owner, surv):
-    m = len(objects)
+def _post_clean(pre_seg, cat, owner, surv):
+    """The post-CLEAN product: survivors relabelled 1..n in order, pixels to their owners."""
+    m = len(cat)
     post_label = np.zeros(m + 1, dtype=np.int64)
     keep = np.flatnonzero(surv)
     post_label[keep + 1] = np.arange(1, keep.size + 1)
@@ -391,8 +337,7 @@ def _post_clean(pre_seg, cat, objects, key, obj_box, comp_box, owner, surv):
                         y=np.asarray(cat["y"], dtype=np.float64)[keep], a=a,
                         b=np.asarray(cat["b"], dtype=np.float64)[keep],
                         theta=np.asarray(cat["theta"], dtype=np.float64)[keep], pre_seg=pre_seg, cat=cat,
-                        objects=objects, key=key, obj_box=obj_box, comp_box=comp_box,
-                        owner=np.asarray(owner, dtype=np.int64), post=post)
+                        owner=np.asarray(owner, dtype=np.int64))
 
 
 def _shift(cat, dy, dx):
@@ -516,7 +461,7 @@ def _tile_as_sep(data, err, nodata, ya, yb, params: DetectionParams):
 
 
 def _tiled_light_objects(data, err, nodata, seg, cat, params: DetectionParams):
-    """:func:`glaciar.engine.clean.light_objects` of a full image's objects, by row tiles.
+    """CLEAN inputs that need no pixel order of a full image's objects, by row tiles.
 
     Returns
     -------

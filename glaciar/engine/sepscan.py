@@ -104,7 +104,7 @@ def threshold_map(err, nodata, params, y0=None) -> np.ndarray:
 
     The one definition of the threshold: every path that decides "above threshold"
     (:func:`detection_mask`, hence the windowed canvases, the reference's region
-    boxes and the task-wide CLEAN; the emulated full-frame CLEAN's ``filtered -
+    boxes and the full-frame segmentation product; the emulated full-frame CLEAN's ``filtered -
     threshold`` in :mod:`glaciar.engine.segmentation`; the first-window guess of
     :func:`glaciar.engine.windows.stamp_half_sizes`) takes it from here, so they
     agree with sep, and each other, bit for bit.

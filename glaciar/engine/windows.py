@@ -18,10 +18,7 @@ the image edge excepted, where the full frame has the same edge):
 * regions with a pixel in the search box;
 * regions touching the bounding boxes of the Kron-radius ellipse (6 a, 6 b),
   the AUTO ellipse and the largest circular aperture (they decide which pixels
-  are masked as neighbours);
-* with a task-wide CLEAN (``clean_style`` other than ``"region"``), the
-  regions of every object whose pixels CLEAN hands to an object in the search
-  box (below).
+  are masked as neighbours).
 
 "Regions" are the 8-connected components of sep's above-threshold mask,
 recomputed exactly (:func:`glaciar.engine.sepscan.detection_mask`), *all* of
@@ -38,23 +35,21 @@ are made window-independent, identically in ``mode="full"``:
    split region to its children by drawing random numbers from one stream per
    ``sep.extract`` call, so a deblended footprint depends on every region
    processed before it anywhere in the image.  Every split region glaciar
-   uses (in a search box, or holding objects CLEAN relabels) is therefore
-   re-extracted *alone* (same pixels; the RMS set to infinity outside the
-   region), which makes its deblending a function of its own pixels
-   (:func:`glaciar.engine.segmentation.isolate_region`).
+   uses (in a search box) is therefore re-extracted *alone* (same pixels; the
+   RMS set to infinity outside the region), which makes its deblending a
+   function of its own pixels (:func:`glaciar.engine.segmentation.isolate_region`).
 2. *CLEAN.*  ``clean_style="region"`` (default): sep's CLEAN runs inside each
    re-extracted region, i.e. between the deblended children of one region,
    never between separate regions (a single-segment region is unaffected:
-   sep's CLEAN only removes objects).  Otherwise CLEAN runs through the whole
-   image's object list, as in a full-frame program: glaciar applies it itself
-   (:mod:`glaciar.engine.clean`, SExtractor's or sep's, bit for bit) once per
-   task on the injected image's complete pre-CLEAN object list, made of the
-   original image's objects that no stamp comes near and one extraction of
-   the stamps' influence boxes (:mod:`glaciar.engine.localclean`), and each
-   window relabels the objects of its search box with the outcome.
+   sep's CLEAN only removes objects).
 
-With ``filter_type="matched"`` the noise enters the filter and the detection
-mask is recomputed only approximately.
+The other CLEAN styles (CLEAN through the whole image's object list) and the
+matched filter (noise-aware: its detection mask is recomputed only up to
+rounding) never come here windowed: :func:`glaciar.engine.measure.runs_full_frame`
+sends them to the full frame.  The full-frame mode (:func:`segment_full`) runs this
+module's code on one canvas, the whole image, with the checks off (with a
+whole-image CLEAN, the full frame is instead the image's segmentation product,
+:func:`glaciar.engine.segmentation.sep_segmentation`).
 
 Speed without changing answers
 ------------------------------
@@ -69,8 +64,6 @@ Each shortcut below only decides *how much* is computed, never a result
   sides just enough;
 * canvases are built by :meth:`Scene.paste_windows` (one overlap search per
   canvas, stamps added where windows read them);
-* a task-wide CLEAN's outcome is computed once per task and read by every
-  window;
 * a re-extracted (deblended) region is cached by its image position and
   pixels for the whole call, so a later round or an overlapping window reuses
   it (the extraction depends on nothing else);
@@ -81,7 +74,7 @@ Each shortcut below only decides *how much* is computed, never a result
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import numpy as np
 from scipy import ndimage
@@ -163,8 +156,8 @@ def undetectable(ctx: MeasureContext):
     image.  The test needs only the search box widened by the filter's reach
     (the exact-zone margin): one canvas of those small windows, filtered and
     thresholded exactly as a detection canvas (:meth:`Canvas.detection`).
-    With ``filter_type="matched"`` that mask is exact only up to rounding, so
-    no source is skipped.
+    (Exact for the filters of the windowed mode; the matched filter, recomputed
+    only up to rounding, runs full frame: :func:`glaciar.engine.measure.runs_full_frame`.)
 
     Returns
     -------
@@ -181,8 +174,6 @@ def undetectable(ctx: MeasureContext):
     boxes = np.stack([np.clip(iy - r, 0, ny), np.clip(iy + r + 1, 0, ny),
                       np.clip(ix - r, 0, nx), np.clip(ix + r + 1, 0, nx)], axis=1)
     skip = np.zeros(n, dtype=bool)
-    if params.filter_kernel is not None and params.filter_type == "matched":
-        return skip, boxes
     inside = (boxes[:, 1] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 2])
     ii = np.flatnonzero(inside)
     if ii.size == 0:
@@ -393,7 +384,7 @@ def _run_canvas(ctx, src, rects, src_win, full, all_rects, finish):
 
 
 def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
-    """Exactness checks, canonical re-extraction and CLEAN on one extracted canvas.
+    """Exactness checks and canonical re-extraction on one extracted canvas.
 
     Returns the sources whose window must grow and the batch of the others
     (:class:`~glaciar.engine.segmentation.SegmentedBatch`)."""
@@ -528,13 +519,6 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
             except DetectionError:
                 done_comps[c] = None
                 sep_failed[i] = True
-    # ---- CLEAN: glaciar's (sep's test and order, exact in any window; see localclean)
-    if ctx.tclean is not None:
-        zone = np.stack([lo_y, hi_y, lo_x, hi_x], axis=1)
-        pseg, next_label = _clean_stage(ctx, cv, _CanvasRegions(comp, cb, seg2comp, segs_per_comp, cat, tab),
-                                        _SourceWindows(rect, wy0, wx0, bounds, zone, icx, icy), pseg,
-                                        next_label, grow, sep_failed, fail, need_l)
-    tab.pop("iso")
     tab = {f: np.concatenate(v) for f, v in tab.items()}
 
     # ---- choose the detection
@@ -634,131 +618,13 @@ def _analyse(ctx, cv, cat, seg, src, src_win, all_rects):
     return np.array(regrow, dtype=np.int64), batch
 
 
-class _CanvasRegions(NamedTuple):
-    """An extracted canvas's regions and segments, as :func:`_analyse` builds them."""
-
-    comp: np.ndarray            #: region label of every canvas pixel (8-connected, every region)
-    boxes: np.ndarray           #: (ncomp + 1, 4) box of each region (row 0: background)
-    seg2comp: np.ndarray        #: region of each sep segment (index = segment label)
-    segs_per_comp: np.ndarray   #: number of sep segments in each region
-    cat: np.ndarray             #: sep's catalogue of the canvas
-    tab: dict                   #: segment table (:func:`_segment_table`), grown by :func:`_isolate`
-
-
-class _SourceWindows(NamedTuple):
-    """Per source of a canvas (arrays of length B), its window (see :func:`_analyse`)."""
-
-    rect: np.ndarray            #: (B, 4) window y0, y1, x0, x1 [image pixels]
-    wy0: np.ndarray             #: window corner on the canvas [canvas pixels]
-    wx0: np.ndarray
-    bounds: np.ndarray          #: (B, 4) the window on the canvas
-    zone: np.ndarray            #: (B, 4) its exact zone on the canvas (lo_y, hi_y, lo_x, hi_x)
-    icx: np.ndarray             #: input pixel on the canvas [canvas pixels]
-    icy: np.ndarray
-
-
-def _clean_stage(ctx, cv, regions: _CanvasRegions, wins: _SourceWindows, pseg, next_label, grow, sep_failed,
-                 fail, need_l):
-    """Relabel what each source's search box shows as the full frame's CLEAN leaves it.
-
-    Every object with a pixel in a source's search box takes the label of the
-    object that owns it after CLEAN (:class:`glaciar.engine.localclean.TaskClean`:
-    itself, its absorber when the clean style hands removed pixels over, or
-    none), and every object absorbed by such an owner takes it too, so the
-    owner's segment is complete.
-    The window must hold the regions of all of them (exact, canonically
-    deblended); otherwise the source must grow (``fail``; ``need_l`` updated).
-
-    Returns the relabelled ``pseg`` and the next free label.
-    """
-    comp, cb, seg2comp, segs_per_comp, cat, tab = regions
-    rect, wy0, wx0, bounds, zone, icx, icy = wins
-    tc = ctx.tclean
-    ny, nx = ctx.shape
-    ncomp = cb.shape[0] - 1
-    comp_seg = np.zeros(ncomp + 1, dtype=np.int64)           # region -> its first segment label
-    comp_seg[seg2comp[1:][::-1]] = np.arange(len(cat), 0, -1)
-    h = ctx.cls.search_box // 2
-    relabel = {}
-    state = {"next": next_label}
-
-    for i in np.flatnonzero(~grow & ~sep_failed).tolist():
-        oy, ox = int(rect[i, 0] - wy0[i]), int(rect[i, 2] - wx0[i])      # canvas -> image
-        wb = bounds[i].tolist()
-        lo_y, hi_y, lo_x, hi_x = zone[i].tolist()
-
-        def canvas_label(ident):
-            """Canvas label of an object, or None when its region is not exact in this window."""
-            b = tc.region_box(ident)
-            bcv = (b[0] - oy, b[1] - oy, b[2] - ox, b[3] - ox)
-            if not (bcv[0] >= max(lo_y, wb[0]) and bcv[1] <= min(hi_y, wb[1])
-                    and bcv[2] >= max(lo_x, wb[2]) and bcv[3] <= min(hi_x, wb[3])):
-                return None
-            y, x = tc.pixel_of(ident, ctx.shape)
-            cy, cx = y - oy, x - ox
-            c = int(comp[cy, cx])
-            if segs_per_comp[c] >= 2 and c not in tab["iso"]:
-                state["next"] = _isolate(cv, comp, c, cb[c], bounds[i], pseg, tab, state["next"], ctx, (oy, ox))
-            return int(pseg[cy, cx])
-
-        by0, by1 = max(int(icy[i]) - h, wb[0]), min(int(icy[i]) + h + 1, wb[1])
-        bx0, bx1 = max(int(icx[i]) - h, wb[2]), min(int(icx[i]) + h + 1, wb[3])
-        box = pseg[by0:by1, bx0:bx1]
-        need = []
-        moves = {}
-        for lab in np.unique(box[box > 0]).tolist():
-            yy, xx = np.nonzero(box == lab)
-            y, x = int(yy[0]) + by0 + oy, int(xx[0]) + bx0 + ox
-            ident = tc.at_pixel(y * nx + x)
-            if ident is None and tc.ref is not None:
-                r = int(tc.ref.pre_seg[y, x]) - 1
-                ident = r if r >= 0 else None
-            if ident is None:          # no CLEAN information (hand-made reference)
-                continue
-            w = tc.owner(ident)
-            if w is None:
-                moves[lab] = 0
-                continue
-            lw = canvas_label(w)
-            group = tc.absorbed(w)
-            labels = [canvas_label(m) for m in group]
-            miss = [m for m, lm in zip(group + [w], labels + [lw]) if lm is None]
-            if miss:
-                need.extend(tc.region_box(m) for m in miss)
-                continue
-            for lm in labels:
-                moves[lm] = lw
-        if need:
-            fail(i)
-            _need_union(need_l[i], need, oy, ox)
-            if grow[i]:
-                continue
-        relabel.update(moves)
-    lut = np.arange(max(state["next"], int(pseg.max(initial=0)) + 1), dtype=np.int64)
-    for lm, lw in relabel.items():
-        lut[lm] = lw
-    return lut[pseg], state["next"]
-
-
-def _need_union(nd, boxes, oy, ox):
-    """Grow a source's required canvas box ``nd`` to hold image boxes ``boxes``."""
-    for b in boxes:
-        nd[0], nd[1] = min(nd[0], b[0] - oy), max(nd[1], b[1] - oy)
-        nd[2], nd[3] = min(nd[2], b[2] - ox), max(nd[3], b[3] - ox)
-
-
 def _segment_table(cat):
-    """Label-indexed geometry (index 0 = no detection), as lists of arrays to concatenate;
-    ``"iso"``: region -> (first label, count, sep rows) of its isolated extraction."""
-    tab = {}
-    for f in ("x", "y", "a", "b", "theta"):
-        tab[f] = [np.array([np.nan]), np.asarray(cat[f], dtype=np.float64)]
-    tab["iso"] = {}
-    return tab
+    """Label-indexed geometry (index 0 = no detection), as lists of arrays to concatenate."""
+    return {f: [np.array([np.nan]), np.asarray(cat[f], dtype=np.float64)] for f in ("x", "y", "a", "b", "theta")}
 
 
 def _isolate(cv, comp, c, box, win, pseg, tab, next_label, ctx, offset):
-    """Re-extract region ``c`` alone (fresh deblending RNG; CLEAN is applied later, by glaciar).
+    """Re-extract region ``c`` alone (fresh deblending RNG; sep's CLEAN inside it, if on).
 
     The cut-out is the region's box plus the filter half-width + 1, clipped to
     the window ``win`` (y0, y1, x0, x1), so it is the same array in a window
@@ -766,8 +632,7 @@ def _isolate(cv, comp, c, box, win, pseg, tab, next_label, ctx, offset):
     coordinates: the same region (same image position, same pixels) met again
     in another window or a later round reuses the first result, which is
     exact because the extraction depends only on the cut-out.  The region's
-    children get labels ``next_label ...``; ``tab["iso"][c]`` records
-    (first label, count, their sep rows in canvas coordinates).
+    children get labels ``next_label ...``; their geometry is appended to ``tab``.
     """
     params = ctx.params
     pad = params.filter_halfwidth + 1
@@ -781,7 +646,7 @@ def _isolate(cv, comp, c, box, win, pseg, tab, next_label, ctx, offset):
     if hit is False:
         try:
             cat, seg = isolate_region(cv.det32[y0:y1, x0:x1], cv.derr[y0:y1, x0:x1], cv.nodata[y0:y1, x0:x1],
-                                      inside, params, clean=params.clean and params.clean_style == "region")
+                                      inside, params, clean=params.clean)
         except DetectionError:
             ctx.isolated[key] = None
             raise
@@ -799,7 +664,6 @@ def _isolate(cv, comp, c, box, win, pseg, tab, next_label, ctx, offset):
     tab["y"].append(rows["y"].astype(np.float64))
     for f in ("a", "b", "theta"):
         tab[f].append(np.asarray(cat[f], dtype=np.float64))
-    tab["iso"][c] = (next_label, k, rows)
     return next_label + k
 
 

@@ -35,7 +35,6 @@ def _tree():
     cat["x"] = [1.5, 2.5, np.inf]
     ref = FieldReference(segmap=rng.integers(0, 5, (600, 700)).astype(np.int32),
                          flux=np.array([1.0, np.nan]), mag=np.array([25.0, np.nan]), catalog=cat,
-                         product=None,
                          objects=ObjectBoxes.build(np.array([[0, 5, 0, 5], [10, 20, 30, 40]]),
                                                    np.array([[0, 6, 0, 6], [9, 21, 29, 41]]),
                                                    (600, 700)))

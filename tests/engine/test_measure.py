@@ -169,8 +169,15 @@ def _compare(field, params, seed):
     cls = ClassificationParams(min_sn=MIN_SN)
     setup = MeasureSetup(band_rms={"h": rms}, reference=ref, params=params, classification=cls,
                          zeropoints={"h": 25.0}, gains={"h": None}, detection_band="h")
-    out = measure_injected(setup, scene, rms, {"h": scene}, x, y, flux, 25 - 2.5 * np.log10(flux),
-                           mode="windowed")
+    args = (setup, scene, rms, {"h": scene}, x, y, flux, 25 - 2.5 * np.log10(flux))
+    diag = {}
+    out = measure_injected(*args, mode="windowed", diagnostics=diag)
+    if params.clean and params.clean_style != "region":
+        # a task-wide CLEAN runs full frame in windowed mode: mode="full"'s rows, whole-image windows
+        full = measure_injected(*args, mode="full")
+        for c in out:
+            np.testing.assert_array_equal(out[c], full[c], err_msg=c)
+        assert (diag["window"] == [0, N, 0, N]).all() and diag["rounds"] == 1
     st_g = np.where(out["status"] >= -1, 0, out["status"])
     cat, seg = _plain_sep(injected, rms, params, params.clean)
     st_s, f_s, _ = _reference_status(injected, rms, seg, x, y)

@@ -356,3 +356,35 @@ def test_initial_windows_hold_the_predicted_half_size():
     assert tuple(win[0]) == (100 - r, 101 + r, 100 - r, 101 + r)
     assert tuple(win[1]) == (150 - 35, 186, 100 - 35, 136)
     assert tuple(win[2]) == (0, 39, 0, 39)         # clipped to the image
+
+
+def test_matched_filter_objects_without_a_positive_moment_matrix_are_measured():
+    """sep's catalogue gives b = NaN (and a = NaN) for objects whose second-moment matrix is
+    not positive, which its matched filter (noise-aware) detects in noise of varying RMS;
+    the engine passed them to sep's aperture calls, which refused ("invalid aperture
+    parameters").  They are measured as degenerate ellipses in both modes, which are one
+    path (the matched filter runs full frame)."""
+    from glaciar.engine.detect import sep_extract
+
+    rng = np.random.default_rng(0)
+    n = 64
+    rms = np.exp(0.5 * rng.normal(size=(n, n))).astype(np.float32)
+    img = rng.normal(size=(n, n)) * rms
+    params = DetectionParams(filter_type="matched")
+    cat, _ = sep_extract(img.astype(np.float32), rms, np.zeros((n, n), dtype=bool), params, False)
+    nan = ~np.isfinite(cat["b"])
+    assert nan.sum() >= 2                      # the case exists on this image
+    xs, ys = np.asarray(cat["x"][nan], dtype=np.float64), np.asarray(cat["y"][nan], dtype=np.float64)
+    ref = reference_extraction(img, rms, params, 25.0)
+    det = Scene(img, [])
+    setup = MeasureSetup(band_rms={"h": rms}, reference=ref, params=params, classification=ClassificationParams(),
+                         zeropoints={"h": 25.0}, gains={"h": None}, detection_band="h")
+    flux = np.ones(xs.size)
+    kw = dict(input_templates=[None] * xs.size)
+    w = measure_injected(setup, det, rms, {"h": det}, xs, ys, flux, 25.0 + 0 * flux, mode="windowed", **kw)
+    f = measure_injected(setup, det, rms, {"h": det}, xs, ys, flux, 25.0 + 0 * flux, mode="full", **kw)
+    det_ = w["detection_id"] > 0
+    assert det_.sum() >= 3
+    assert np.all(np.isfinite(w["flux_auto_h"][det_])) and np.all(np.isfinite(w["flux_aper0_h"][det_]))
+    for c in w:
+        np.testing.assert_array_equal(w[c], f[c], err_msg=c)
