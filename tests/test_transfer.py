@@ -89,8 +89,9 @@ def test_file_round_trip_is_exact(tmp_path):
     z, m_in, m_obs, rec, sel = _synthetic(n=50)
     tm = transfer_matrix(z, m_in, m_obs, rec, sel, n_draws=20, seed=2)
     mdl = SurfaceModel.for_data(np.array([7.0, 8.0]), np.array([25.0, 27.0]))
-    sf = SelectionFunction(mdl, mdl.sample_prior(3, np.random.default_rng(0)), transfer_matrix=tm,
+    sf = SelectionFunction(mdl, mdl.sample_prior(3, np.random.default_rng(0)),
                            meta={"area_arcmin2": 2.0})
+    sf.transfer_matrix = tm
     path = tmp_path / "sf.fits"
     sf.write(path)
     back = SelectionFunction.read(path).transfer_matrix

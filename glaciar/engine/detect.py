@@ -535,8 +535,12 @@ def background_model(data, nodata, params: DetectionParams):
     params : DetectionParams
         Uses ``back_size`` and ``back_filtersize``.
     """
+    # A mesh larger than the image is one mesh of the whole image, which sep computes the
+    # same when the mesh is cut to the image; uncut, sep allocates a buffer of BACK_SIZE^2
+    # pixels first (BACK_SIZE: 1e9 -> MemoryError with no message).
+    bh, bw = (min(int(params.back_size), int(n)) for n in data.shape)
     try:
-        return sep.Background(data, mask=nodata, bw=params.back_size, bh=params.back_size,
+        return sep.Background(data, mask=nodata, bw=bw, bh=bh,
                               fw=params.back_filtersize, fh=params.back_filtersize)
     except Exception as exc:  # sep raises plain Exception subclasses
         raise DetectionError(f"sep background estimation failed: {exc}") from exc

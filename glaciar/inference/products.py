@@ -214,13 +214,15 @@ def kcorrection(z, beta, detection_filter, *, igm: str = "inoue14", cosmology=No
     # Nodes on multiples of dz (covering [lo, hi]): they lie on the z lattice of
     # glaciar.galaxy.sed, whose tables are exact and cached there (another z costs
     # the five lattice tables around it).
-    k = np.arange(np.floor(lo / dz), np.ceil(hi / dz) + 1) if dz else np.zeros(z.size + 1)
-    n_nodes = k.size
-    if n_nodes >= z.size or n_nodes < 4:
+    # (The tolerance: 8.2 / 0.05 is 163.99999..., whose floor would add a node 8.15 that
+    # the clip below moves onto the next one, 8.2: a spline needs distinct nodes.)
+    k = (np.arange(np.floor(lo / dz + 1e-9), np.ceil(hi / dz - 1e-9) + 1) if dz
+         else np.zeros(z.size + 1))
+    if k.size >= z.size or k.size < 4:
         col = np.array([band_colour(zi, b, detection_filter, igm, cosmology) for zi in z])
         return dist[:, None] + col.reshape(len(z), len(b))
-    zn = np.round(k * dz, 10)
-    zn[0] = max(zn[0], lo)           # never below the lowest z asked (z = 0 has no distance)
+    # Never below the lowest z asked (z = 0 has no distance).
+    zn = np.unique(np.maximum(np.round(k * dz, 10), lo))
     cn = np.array([band_colour(zi, b, detection_filter, igm, cosmology) for zi in zn])
     fin = np.isfinite(cn).all(axis=1)
     # No flux happens above a redshift (the IGM eats the band): the finite nodes are a prefix.

@@ -164,8 +164,15 @@ def autocorr_time(chain) -> np.ndarray:
     Returns
     -------
     ndarray (n_params,)
+        Where no estimate exists -- a parameter no walker has moved yet (0/0 in the
+        normalised autocorrelation), as in a chain of a few steps -- the chain's length:
+        the largest time such a chain can show, so the caller's 50-tau rule calls it
+        unconverged and burn-in and thinning stay finite.
     """
-    return emcee.autocorr.integrated_time(np.asarray(chain, float), c=SOKAL_C, tol=0, quiet=True)
+    chain = np.asarray(chain, float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tau = emcee.autocorr.integrated_time(chain, c=SOKAL_C, tol=0, quiet=True)
+    return np.where(np.isfinite(tau), tau, float(chain.shape[0]))
 
 
 def split_rhat(chain) -> np.ndarray:

@@ -83,15 +83,21 @@ class SelectionFunction:
     sed : InjectionSED, optional
         The injections' spectra (maps M_UV to the detection band for
         :meth:`effective_volume_muv`).
-    veff_muv : VeffTable, optional
-        V_eff(M_UV) tabulated by ``glaciar fit`` (file extension ``VEFF_MUV``).
-    transfer_matrix : glaciar.tables.TransferMatrix, optional
-        The photometric transfer function of this fit's sources (``TRANSFER``).
+
+    Attributes
+    ----------
+    veff_muv : VeffTable or None
+        V_eff(M_UV) tabulated by ``glaciar fit`` (file extension ``VEFF_MUV``); set by
+        :func:`glaciar.pipeline.selection_file.add_lf_products` and by :meth:`read`.
+    transfer_matrix : glaciar.tables.TransferMatrix or None
+        The photometric transfer function of this fit's sources (``TRANSFER``); set
+        likewise.  Both are products of a run's rows, not of the fitted surface, so they
+        are attached after construction rather than passed in.
     """
 
-    def __init__(self, model: SurfaceModel, draws, z_grid=None, m_grid=None, meta=None,
+    def __init__(self, model: SurfaceModel, draws, z_grid=None, m_grid=None, *, meta=None,
                  field: str = "all", ppc=None, fit_info=None, depth_area=None, domain=None,
-                 diagnostics=None, sed=None, veff_muv=None, transfer_matrix=None):
+                 diagnostics=None, sed=None):
         self.model = model
         self.draws = np.atleast_2d(np.asarray(draws, float))
         if self.draws.shape[1] != model.n_params:
@@ -108,8 +114,8 @@ class SelectionFunction:
         self.domain = {k: (float(v[0]), float(v[1])) for k, v in (domain or {}).items()}
         self.diagnostics = dict(diagnostics or {})
         self.sed = sed
-        self.veff_muv = veff_muv
-        self.transfer_matrix = transfer_matrix
+        self.veff_muv = None
+        self.transfer_matrix = None
 
     @property
     def n_draws(self) -> int:
@@ -353,7 +359,7 @@ class SelectionFunction:
         rng = np.random.default_rng(seed)
         idx = rng.choice(self.n_draws, size=int(n), replace=int(n) > self.n_draws)
         return [SelectionFunction(self.model, self.draws[i:i + 1], self.z_grid, self.m_grid,
-                                  self.meta, self.field, depth_area=self.depth_area,
+                                  meta=self.meta, field=self.field, depth_area=self.depth_area,
                                   domain=self.domain, sed=self.sed) for i in idx]
 
     def magnitude_at(self, completeness: float, z, *, field: str | None = None,
@@ -835,7 +841,12 @@ class SelectionFunction:
             Not a selection-function file of format
             :data:`glaciar.inference.selection_format.FILE_FORMAT`.
         """
-        return {field: cls(**kw) for field, kw in selection_format.decode(data, source).items()}
+        out = {}
+        for field, kw in selection_format.decode(data, source).items():
+            tables = {k: kw.pop(k) for k in ("veff_muv", "transfer_matrix")}
+            out[field] = sf = cls(**kw)
+            sf.veff_muv, sf.transfer_matrix = tables["veff_muv"], tables["transfer_matrix"]
+        return out
 
     def write(self, path) -> None:
         """This fit alone, to ``path`` (written atomically: temp file + rename)."""

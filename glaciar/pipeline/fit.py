@@ -431,7 +431,7 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, sampler, volume, mag_
                     "taumax": float(np.max(res.tau)), "essmin": float(np.min(res.ess)),
                     "rhatmax": float(np.nanmax(res.split_rhat)),
                     "adequate": verdict["adequate"], "ppcext": verdict["fraction_extreme"]}
-        sf = SelectionFunction(mdl, draws, zg, mg, fmeta, name, ppc=ppc, fit_info=fit_info,
+        sf = SelectionFunction(mdl, draws, zg, mg, meta=fmeta, field=name, ppc=ppc, fit_info=fit_info,
                                depth_area=own_depth, domain=domain,
                                diagnostics={"tau": res.tau, "ess": res.ess, "rhat": res.split_rhat})
         if not write:
