@@ -179,8 +179,9 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
         pool = cf.ProcessPoolExecutor(max_workers=workers, initializer=worker_init,
                                       initargs=(os.getpid(),))
     try:
-        _, lock = open_run(cfg, run_dir, seed, parallel=_setup_parallelism(executor),
-                           warm=workers, shard=shard, measure_on=_measuring(executor) or pool)
+        setup = _setup_executor(executor) or pool
+        _, lock = open_run(cfg, run_dir, seed, parallel=setup, warm=workers, shard=shard,
+                           measure_on=setup)
         try:
             stats = _simulate_locked(cfg, run_dir, seed, workers, executor or pool, progress,
                                      mode, max_tasks, tqdm, t0, lock, own=pool is not None)
@@ -201,21 +202,10 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
     return stats
 
 
-def _setup_parallelism(executor: cf.Executor | None) -> cf.Executor | None:
-    """The executor :func:`glaciar.manifest.open_run` gives its set-up jobs to, if any.
-
-    Another executor (Dask) itself; None without one, and for a caller's process pool
-    (submitting to it now would fork its workers before the field context exists,
-    which they then inherit no longer) or thread pool (threads share one interpreter).
-    """
-    if isinstance(executor, (cf.ProcessPoolExecutor, cf.ThreadPoolExecutor)):
-        return None
-    return executor
-
-
-def _measuring(executor: cf.Executor | None) -> cf.Executor | None:
-    """The caller's executor whose workers measure the run's fields (not a thread pool:
-    the measurements would share this process's memory and interpreter)."""
+def _setup_executor(executor: cf.Executor | None) -> cf.Executor | None:
+    """The caller's executor whose workers do the run's set-up jobs (the fields' measurement,
+    the detection z limit: :func:`glaciar.manifest.open_run`), if any: not a thread pool
+    (the jobs would share this process's memory and interpreter)."""
     if isinstance(executor, cf.ThreadPoolExecutor):
         return None
     return executor

@@ -33,7 +33,7 @@ from .rundir import (RunLock, StoreMismatchError, atomic_write_text, check_shard
                      write_shard_record)
 from .shards import shard_task_names
 from .paths import check_run_tree, disk_full
-from .survey import Survey
+from .survey import Survey, clear_cache as clear_survey_cache
 
 
 def _load_fingerprint_cache(run_dir: Path) -> dict:
@@ -299,10 +299,10 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
     byte-identical and creates no new one.  Returns the manifest and the held
     lock (the caller releases it).
 
-    ``parallel``: None, or an executor (not a process pool: its workers would start
-    before the field's context exists) that computes the detection z limit while
-    this process checks the inputs and measures the field, and of which ``warm``
-    workers are asked to import glaciar and warm their caches meanwhile (:class:`_SetupJobs`).
+    ``parallel``: None, or an executor that computes the detection z limit (and, when it
+    is the process pool that measures the fields, the placement preflight) while this
+    process checks the inputs, and of which ``warm`` workers are asked to import glaciar
+    and warm their caches meanwhile (:class:`_SetupJobs`).
 
     ``shard``: ``(k, n)`` for shard k of n (:mod:`glaciar.shards`).  Its lock
     (:class:`glaciar.rundir.RunLock`) is taken once the inputs are checked, then the
@@ -338,9 +338,11 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
     cache = _load_fingerprint_cache(run_dir) if run_dir.is_dir() else {}
     cache_before = json.dumps(cache, sort_keys=True)
     survey = Survey.from_config(cfg)
-    jobs = _SetupJobs(cfg, parallel, warm)
+    jobs = _SetupJobs(cfg, parallel, warm,
+                      preflight=isinstance(measure_on, cf.ProcessPoolExecutor)
+                      and parallel is measure_on)
     inputs = check_inputs(cfg, survey, cache)
-    _preflight(cfg, survey)        # before the field is measured: a field nothing fits fails fast
+    _preflight(cfg, survey, jobs)  # before the field is measured: a field nothing fits fails fast
     if shard is not None:
         # A shard locks before it measures: a sibling's set-up is waited for, its field
         # caches then mapped (never measured twice at once); what it wrote is read afresh.
@@ -538,10 +540,21 @@ def _prewarm(cfg_dict: dict, base_dir: str) -> None:
                                 detection_index=settings["detection_index"], igm=igm)
 
 
-def _preflight(cfg: Config, survey: Survey) -> None:
+def _preflight_job(cfg_dict: dict, base_dir: str) -> tuple[list[str], list]:
+    """:func:`glaciar.plan.placement_preflight` on a pool's worker: ``(messages, warnings)``."""
+    cfg = config_from_dict(cfg_dict, base_dir)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        messages = placement_preflight(cfg, Survey.from_config(cfg))
+    clear_survey_cache()        # the footprints' images: the worker measures one field next
+    return messages, [(str(w.message), w.category) for w in caught]
+
+
+def _preflight(cfg: Config, survey: Survey, jobs: "_SetupJobs | None" = None) -> None:
     """Raise :func:`glaciar.plan.placement_preflight`'s error (no source fits a field) or warn
-    its messages."""
-    for message in placement_preflight(cfg, survey):
+    its messages (computed by ``jobs``' worker, if it has the job)."""
+    later = None if jobs is None else jobs.preflight
+    for message in (placement_preflight(cfg, survey) if later is None else later.result()):
         if "no source fits" in message:
             raise ValueError(message)
         warnings.warn(message, UserWarning)
@@ -553,19 +566,26 @@ class _SetupJobs:
     With an executor (e.g. Dask's): :func:`glaciar.plan.detection_z_limit` (a
     bisection over the SED, a pure function of the configuration) on one of its
     workers, which then also imports glaciar before its first task, and ``warm - 1``
-    jobs that set up what a first task needs (:func:`_prewarm`) for other workers.
-    Without one, the z limit is computed here when the manifest asks for it.  (The
+    jobs that set up what a first task needs (:func:`_prewarm`) for other workers; with
+    ``preflight`` (a process pool whose workers measure the fields next, issue 24) also
+    :func:`glaciar.plan.placement_preflight` on one of them.  Without one, the z limit is computed here when the manifest asks for it.  (The
     input check and the preflight ran in a forked helper beside the field's
     measurement until issue 22; ``benchmarks/setup_helper.py`` of commit faa86f5
     measured no gain: 0.90x on the demo, 1 and 2 workers.)
     """
 
-    def __init__(self, cfg: Config, where: cf.Executor | None, warm: int = 1):
-        self.z_limit = None
+    def __init__(self, cfg: Config, where: cf.Executor | None, warm: int = 1,
+                 preflight: bool = False):
+        self.z_limit = self.preflight = None
         if where is None:
             return
         args = (config_to_dict(cfg), str(cfg.base_dir))
         job = where.submit(_z_limit_job, *args)
+        if preflight:
+            # A process pool whose workers measure the fields next: the preflight (each
+            # field's footprint and a random fill, ~0.35 s per 1000^2 field) runs on one
+            # of them while this process checks the inputs.
+            self.preflight = _Later(self._result, where.submit(_preflight_job, *args))
         # Spawned workers import glaciar and set up a field's settings and colour tables
         # when their first task arrives (~2 s each): jobs that only do that let up to
         # ``warm`` workers do it now, beside the set-up.
