@@ -2,7 +2,10 @@
 
 :func:`open_run` checks everything (inputs, store identity, lock) before it creates
 or modifies the run directory; with an executor, the detection z limit is
-computed on one of its workers meanwhile (:class:`_SetupJobs`).
+computed on one of its workers meanwhile (:class:`_SetupJobs`).  With workers (a
+process pool or another executor) the fields are measured there, one job per field
+(:func:`glaciar.contexts.measure_field`); this process writes the manifest from the
+records they return and holds no field's context.
 """
 from __future__ import annotations
 
