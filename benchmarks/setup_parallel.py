@@ -11,7 +11,8 @@ fields, one job per field, then run the tasks; :func:`glaciar.contexts.measure_f
 Printed per worker count: the wall time of the whole ``simulate`` call [s] and of the
 child (imports included), of which the set-up (inputs checked, fields measured,
 manifest written: ``setup_seconds``) and its share of the call, the task phase
-(``task_seconds``), and CPU seconds by stage: the set-up (a second child runs the
+(``task_seconds``), peak RSS of the main process and of the largest pool worker,
+and CPU seconds by stage: the set-up (a second child runs the
 set-up alone, ``max_tasks=0``, its pool reaped: main process + workers), inside the
 tasks (``cpu_seconds``) and the whole call (``process_cpu_seconds``).  Then the
 speed-ups 1 -> 2 workers of the call's wall time (acceptance: >= 1.8x), of the set-up
@@ -70,6 +71,8 @@ def _survey(opt) -> Path:
 def _child(opt) -> dict:
     """One ``simulate`` call (this child's imports timed too); its stats as JSON."""
     t_start = time.perf_counter()
+    import resource
+
     from glaciar.config import load_config
     from glaciar.execute import simulate
     from glaciar.workers import process_cpu_seconds
@@ -80,7 +83,10 @@ def _child(opt) -> dict:
     c0 = process_cpu_seconds()
     stats = simulate(cfg, opt.out, workers=opt.workers, progress=False,
                      max_tasks=0 if opt.setup_only else None)
-    return {"wall_s": stats["wall_seconds"], "setup_s": stats["setup_seconds"],
+    # Peak resident sets [MB]: this process's, and the largest of its reaped pool workers'.
+    own, kids = (resource.getrusage(who).ru_maxrss / 1024.0
+                 for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+    return {"main_rss_mb": own, "worker_rss_mb": kids,"wall_s": stats["wall_seconds"], "setup_s": stats["setup_seconds"],
             "task_s": stats["task_seconds"], "task_cpu_s": stats["cpu_seconds"],
             "cpu_s": process_cpu_seconds() - c0, "n_run": stats["n_run"],
             "n_sources": stats["n_sources"], "import_s": t_imported - t_start,
@@ -105,7 +111,8 @@ def main(argv=None):
     ap.add_argument("--tasks", type=int, default=120, help="tasks of the run (default 120)")
     ap.add_argument("--n", type=int, default=50, help="sources per task (default 50)")
     ap.add_argument("--dir", default=None, help="survey directory (kept; default a temporary one)")
-    ap.add_argument("--repeat", type=int, default=1, help="runs per worker count (best kept)")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="runs per worker count, interleaved (the fastest kept)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--config", help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
@@ -128,12 +135,14 @@ def main(argv=None):
         print(f"glaciar setup_parallel: {opt.fields} demo fields of {opt.size}^2 (4 bands), "
               f"{opt.tasks} tasks x {opt.n} sources; {os.cpu_count()} CPUs; load average "
               f"{os.getloadavg()[0]:.2f}")
+        runs = {(w, alone): [] for w in (1, 2) for alone in (False, True)}
+        for _ in range(opt.repeat):     # interleaved: a change of the load hits both counts
+            for w in (1, 2):
+                for alone in (False, True):
+                    runs[w, alone].append(_run(opt, config, w, alone, scratch))
         res = {}
         for w in (1, 2):
-            full = min((_run(opt, config, w, False, scratch) for _ in range(opt.repeat)),
-                       key=lambda r: r["wall_s"])
-            setup = min((_run(opt, config, w, True, scratch) for _ in range(opt.repeat)),
-                        key=lambda r: r["wall_s"])
+            full, setup = (min(runs[w, alone], key=lambda r: r["wall_s"]) for alone in (False, True))
             res[w] = full, setup
             assert full["n_run"] == opt.tasks, full
             print(f"workers={w}: simulate {full['wall_s']:.1f} s wall (child {full['child_wall_s']:.1f} s, "
@@ -141,8 +150,9 @@ def main(argv=None):
                   f"({100 * full['setup_s'] / full['wall_s']:.0f} %) + tasks {full['task_s']:.1f} s "
                   f"+ rest {full['wall_s'] - full['setup_s'] - full['task_s']:.1f} s; CPU: set-up "
                   f"{setup['cpu_s']:.1f} s (alone: {setup['wall_s']:.1f} s wall), inside tasks "
-                  f"{full['task_cpu_s']:.1f} s, whole call {full['cpu_s']:.1f} s; load "
-                  f"{full['load'][0]:.2f} -> {full['load'][1]:.2f}")
+                  f"{full['task_cpu_s']:.1f} s, whole call {full['cpu_s']:.1f} s; peak RSS main "
+                  f"{full['main_rss_mb']:.0f} MB, largest worker {full['worker_rss_mb']:.0f} MB; "
+                  f"load {full['load'][0]:.2f} -> {full['load'][1]:.2f}")
         (f1, s1), (f2, s2) = res[1], res[2]
         loads = [x for f, s in res.values() for x in (*f["load"], *s["load"])]
         print(f"speed-up 1 -> 2 workers: whole call {f1['wall_s'] / f2['wall_s']:.2f}x "
