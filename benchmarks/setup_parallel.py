@@ -16,7 +16,9 @@ and CPU seconds by stage: the set-up (a second child runs the
 set-up alone, ``max_tasks=0``, its pool reaped: main process + workers), inside the
 tasks (``cpu_seconds``) and the whole call (``process_cpu_seconds``).  Then the
 speed-ups 1 -> 2 workers of the call's wall time (acceptance: >= 1.8x), of the set-up
-and of the task phase.  The load average before and after each run is printed; over
+and of the task phase, and the same from CPU seconds alone: the main process's plus
+its busiest pool worker's (each worker's own CPU, written as it exits), i.e. the
+critical path on two free cores -- the figure to read on a loaded machine.  The load average before and after each run is printed; over
 1.5 (the machine shared with other work) the wall times and speed-ups are marked as
 measured under load: the CPU seconds are the figures to trust then.
 
@@ -79,19 +81,55 @@ def _child(opt) -> dict:
 
     t_imported = time.perf_counter()
     cfg = load_config(opt.config)
+    log = Path(opt.out).with_suffix(".workers")
+    _account_workers(log)
     load0 = os.getloadavg()[0]
-    c0 = process_cpu_seconds()
+    c0, m0 = process_cpu_seconds(), process_cpu_seconds(children=False)
     stats = simulate(cfg, opt.out, workers=opt.workers, progress=False,
                      max_tasks=0 if opt.setup_only else None)
     # Peak resident sets [MB]: this process's, and the largest of its reaped pool workers'.
     own, kids = (resource.getrusage(who).ru_maxrss / 1024.0
                  for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
-    return {"main_rss_mb": own, "worker_rss_mb": kids,"wall_s": stats["wall_seconds"], "setup_s": stats["setup_seconds"],
+    workers = [float(line.split()[1]) for line in log.read_text().splitlines()] \
+        if log.exists() else []
+    log.unlink(missing_ok=True)
+    return {"main_rss_mb": own, "worker_rss_mb": kids, "worker_cpu_s": workers,
+            "main_cpu_s": process_cpu_seconds(children=False) - m0,"wall_s": stats["wall_seconds"], "setup_s": stats["setup_seconds"],
             "task_s": stats["task_seconds"], "task_cpu_s": stats["cpu_seconds"],
             "cpu_s": process_cpu_seconds() - c0, "n_run": stats["n_run"],
             "n_sources": stats["n_sources"], "import_s": t_imported - t_start,
             "child_wall_s": time.perf_counter() - t_start,
             "load": [load0, os.getloadavg()[0]]}
+
+
+def _account_workers(log: Path) -> None:
+    """Have each pool worker of :func:`glaciar.execute.simulate` append its own CPU seconds
+    to ``log`` when it exits (forked workers inherit the patched initializer)."""
+    import multiprocessing.util
+
+    import glaciar.execute as execute
+
+    init = execute.worker_init
+
+    def init_and_account(parent_pid):
+        init(parent_pid)
+
+        def write():
+            t = os.times()
+            with open(log, "a") as fh:
+                fh.write(f"{os.getpid()} {t.user + t.system}\n")
+
+        # Run by multiprocessing when the worker process ends normally (pool shut down).
+        multiprocessing.util.Finalize(None, write, exitpriority=100)
+
+    execute.worker_init = init_and_account
+
+
+def _critical_cpu(r: dict) -> float:
+    """CPU seconds on the run's critical path if each process had a core of its own: the main
+    process's, plus its busiest worker's (an upper bound: part of the main process's CPU
+    overlaps the workers')."""
+    return r["main_cpu_s"] + max(r["worker_cpu_s"], default=0.0)
 
 
 def _run(opt, config: Path, workers: int, setup_only: bool, scratch: Path) -> dict:
@@ -159,6 +197,11 @@ def main(argv=None):
               f"(>= 1.8x aimed for), child incl. imports {f1['child_wall_s'] / f2['child_wall_s']:.2f}x, "
               f"set-up alone {s1['wall_s'] / s2['wall_s']:.2f}x, task phase "
               f"{f1['task_s'] / f2['task_s']:.2f}x")
+        print(f"CPU on the critical path (main process + its busiest worker; load-independent): "
+              f"1 worker {_critical_cpu(f1):.1f} s, 2 workers {_critical_cpu(f2):.1f} s "
+              f"(workers {', '.join(f'{c:.1f}' for c in f2['worker_cpu_s'])} s), i.e. "
+              f"{_critical_cpu(f1) / _critical_cpu(f2):.2f}x on two free cores; set-up alone "
+              f"{_critical_cpu(s1) / _critical_cpu(s2):.2f}x")
         if max(loads) > LOADED:
             print(f"MEASURED UNDER LOAD: load average up to {max(loads):.2f} (> {LOADED}) on "
                   f"{os.cpu_count()} CPUs during the runs; the wall times and speed-ups above "
