@@ -173,7 +173,8 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
     c0, t0 = process_cpu_seconds(), time.perf_counter()
     # With workers, the pool exists from the start: its workers measure the fields (one job
     # per field, glaciar.contexts.measure_field), then run the tasks, mapping the caches.
-    # (Forked at its first job: after the input checks, none of which it needs.)
+    # (Forked at its first job, the z limit, submitted before the input checks: the workers
+    # inherit no image; those checks are this process's serial share of the set-up.)
     pool = None
     if executor is None and workers > 1:
         pool = cf.ProcessPoolExecutor(max_workers=workers, initializer=worker_init,

@@ -321,8 +321,9 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
     process pool, Dask's) whose workers measure them, one job per field
     (:func:`glaciar.contexts.measure_field`: each writes its field's cache and keeps the
     context for its tasks; this process holds none).  The run's lock is then taken
-    before the fields are measured; a measurement that fails leaves the run directory
-    as it was but for its (empty) lock file.
+    before the fields are measured (so it is for a run of several fields, whose caches
+    are written as each field is measured); a measurement that fails leaves the run
+    directory as it was but for its (empty) lock file.
     """
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
