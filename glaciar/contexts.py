@@ -5,6 +5,10 @@ A field's :class:`~glaciar.engine.context.FieldContext` is measured once
 (:func:`save_field_context`, keyed by :func:`context_dir`) and memory-mapped by
 every process that runs its tasks (:func:`open_field_context`); each process keeps
 one field's context at a time (:func:`worker_context`, :func:`main_context`).
+
+A run with workers measures its fields there (:func:`measure_field`, one field per
+job): the worker writes the field's cache and returns the small records the run's
+manifest keeps (:func:`field_records`); the main process never holds a context.
 """
 from __future__ import annotations
 
@@ -13,6 +17,7 @@ import hashlib
 import json
 import os
 import shutil
+import threading
 import warnings
 from pathlib import Path
 
@@ -23,7 +28,8 @@ from . import constants as C
 from .config import Config, config_from_dict, config_hash
 from .engine import fieldcache
 from .engine.context import FieldContext
-from .fieldprep import build_field_context, field_settings
+from .fieldprep import (build_field_context, field_depth_area, field_noise_record,
+                        field_settings)
 from .paths import run_subdir
 from .store import StoreWarning
 from .rundir import read_manifest
@@ -204,4 +210,56 @@ def main_context(cfg: Config, survey: Survey, field: str, cached: Path | None = 
             if save and cached is not None:
                 ctx = save_field_context(ctx, cached)
         _CONTEXTS[key] = ctx
+    return ctx
+
+
+def field_records(cfg: Config, survey: Survey, field: str, ctx: FieldContext) -> dict:
+    """What the run's manifest keeps of a measured field: its pixel scale [arcsec], footprint
+    area [arcmin^2], area by local depth (:func:`glaciar.fieldprep.field_depth_area`) and
+    noise record (:func:`glaciar.fieldprep.field_noise_record`), as plain data."""
+    ps = survey.pixel_scale_arcsec(field)
+    return {"pixel_scale_arcsec": ps,
+            "area_arcmin2": float(ctx.footprint_count) * ps ** 2 / 3600.0,
+            "depth_area": field_depth_area(cfg, survey, field, ctx),
+            "noise": field_noise_record(cfg, survey, field, ctx)}
+
+
+#: One field measured at a time per process: an executor whose workers run several threads
+#: (or that runs its jobs in threads of the run's own process) shares one ``_CONTEXTS``,
+#: one survey cache and one warnings state between them.
+_MEASURING = threading.Lock()
+
+
+def measure_field(cfg_dict: dict, base_dir: str, cfg_hash: str, field: str, cache_dir: str,
+                  submitter_pid: int) -> tuple[dict, list]:
+    """A worker's job of a run's set-up: the field's context measured (or mapped from a
+    complete cache at ``cache_dir``), written to ``cache_dir`` and kept for this process's
+    tasks (:func:`worker_context` finds it); returns ``(field_records(...), warnings)``.
+
+    ``warnings``: those raised while measuring, as ``(message, category, filename,
+    lineno)`` for the submitting process to raise (once per run, however many fields
+    repeat them).  A job run by a thread of the submitting process (``submitter_pid``)
+    leaves its warnings to that process's own record (a list, empty here).
+    """
+    cfg = config_from_dict(cfg_dict, base_dir)
+    survey = Survey.from_config(cfg)
+    in_submitter = os.getpid() == submitter_pid
+    with _MEASURING:
+        if in_submitter:
+            ctx = _measured(cfg, survey, cfg_hash, field, Path(cache_dir))
+            return field_records(cfg, survey, field, ctx), []
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            ctx = _measured(cfg, survey, cfg_hash, field, Path(cache_dir))
+            records = field_records(cfg, survey, field, ctx)
+        # The images and masks the build read: this process's tasks map the field's cache.
+        clear_survey_cache()
+    return records, [(str(w.message), w.category, w.filename, w.lineno) for w in caught]
+
+
+def _measured(cfg: Config, survey: Survey, cfg_hash: str, field: str, cache_dir: Path):
+    """:func:`main_context`, written to ``cache_dir``, under :func:`worker_context`'s key."""
+    ctx = main_context(cfg, survey, field, cache_dir, save=True)
+    _CONTEXTS.clear()
+    _CONTEXTS[(cfg_hash, str(cfg.base_dir), field)] = ctx
     return ctx

@@ -171,13 +171,30 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
     if shard is not None:
         shard = check_shard(shard)
     c0, t0 = process_cpu_seconds(), time.perf_counter()
-    _, lock = open_run(cfg, run_dir, seed, parallel=_setup_parallelism(executor), warm=workers,
-                       shard=shard)
+    # With workers, the pool exists from the start: its workers measure the fields (one job
+    # per field, glaciar.contexts.measure_field), then run the tasks, mapping the caches.
+    # (Forked at its first job, the z limit, submitted before the input checks: the workers
+    # inherit no image; those checks are this process's serial share of the set-up.)
+    pool = None
+    if executor is None and workers > 1:
+        pool = cf.ProcessPoolExecutor(max_workers=workers, initializer=worker_init,
+                                      initargs=(os.getpid(),))
     try:
-        stats = _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode,
-                                 max_tasks, tqdm, t0, lock)
+        setup = _setup_executor(executor) or pool
+        _, lock = open_run(cfg, run_dir, seed, parallel=setup, warm=workers, shard=shard,
+                           measure_on=setup)
+        try:
+            stats = _simulate_locked(cfg, run_dir, seed, workers, executor or pool, progress,
+                                     mode, max_tasks, tqdm, t0, lock, own=pool is not None)
+        finally:
+            lock.release()
+    except KeyboardInterrupt:
+        if pool is not None:
+            terminate_workers(pool)
+        raise
     finally:
-        lock.release()
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
     # Whole-process CPU: this process (checks, manifest, scheduling) and its pool workers
     # (reaped at the pool's shutdown, field set-up included); with another executor its
     # workers' CPU inside the chunks (tasks and field set-up; not their imports).
@@ -186,20 +203,17 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
     return stats
 
 
-def _setup_parallelism(executor: cf.Executor | None) -> cf.Executor | None:
-    """The executor :func:`glaciar.manifest.open_run` gives its set-up jobs to, if any.
-
-    Another executor (Dask) itself; None without one, and for a caller's process pool
-    (submitting to it now would fork its workers before the field context exists,
-    which they then inherit no longer) or thread pool (threads share one interpreter).
-    """
-    if isinstance(executor, (cf.ProcessPoolExecutor, cf.ThreadPoolExecutor)):
+def _setup_executor(executor: cf.Executor | None) -> cf.Executor | None:
+    """The caller's executor whose workers do the run's set-up jobs (the fields' measurement,
+    the detection z limit: :func:`glaciar.manifest.open_run`), if any: not a thread pool
+    (the jobs would share this process's memory and interpreter)."""
+    if isinstance(executor, cf.ThreadPoolExecutor):
         return None
     return executor
 
 
 def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_tasks, tqdm,
-                     t_start, lock):
+                     t_start, lock, own=False):
     # ---- sharded runs (glaciar.shards): this process's part of the plan, its own files ----
     plan = plan_tasks(cfg)
     specs, own_files = shard_scope(plan, lock.shard)
@@ -239,15 +253,12 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
             for ch in chunks:
                 account(_run_chunk(cfg_dict, base_dir, cfg_hash, str(run_dir), seed, ch, mode))
         elif chunks:
-            own = executor is None
-            ex = executor or cf.ProcessPoolExecutor(max_workers=n_workers, initializer=worker_init,
-                                                    initargs=(os.getpid(),))
+            ex = executor
             try:
                 futs = [ex.submit(_run_chunk_measured, cfg_dict, base_dir, cfg_hash, str(run_dir),
                                   seed, ch, mode) for ch in chunks]
-                # The workers exist now (a forked pool starts them all at the first
-                # submission, with this process's field context): this process runs no
-                # task, so it lets its copy go.
+                # A context measured here (a thread pool's run) is in the workers' hands
+                # now: this process runs no task, so it lets its copy go.
                 clear_contexts()
                 for fut in cf.as_completed(futs):
                     done, pid, cpu = fut.result()
@@ -261,7 +272,7 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
                     terminate_workers(ex)
                 raise
             finally:
-                if own:
+                if own:     # the workers' CPU is reaped into this process's before it is read
                     ex.shutdown(wait=True, cancel_futures=True)
     finally:
         bar.close()

@@ -2,13 +2,18 @@
 
 :func:`open_run` checks everything (inputs, store identity, lock) before it creates
 or modifies the run directory; with an executor, the detection z limit is
-computed on one of its workers meanwhile (:class:`_SetupJobs`).
+computed on one of its workers meanwhile (:class:`_SetupJobs`).  With workers (a
+process pool or another executor) the fields are measured there, one job per field
+(:func:`glaciar.contexts.measure_field`); this process writes the manifest from the
+records they return and holds no field's context.
 """
 from __future__ import annotations
 
 import concurrent.futures as cf
 import hashlib
 import json
+import os
+import shutil
 import warnings
 from pathlib import Path
 
@@ -20,8 +25,9 @@ from . import constants as C
 from .config import Config, config_from_dict, config_hash, config_to_dict
 from .config.models import SECTIONS
 from .config.user_selection import selection_description
-from .contexts import context_dir, main_context, prepare_context_cache
-from .fieldprep import field_depth_area, field_noise_record, field_settings
+from .contexts import (context_dir, field_records, main_context, measure_field,
+                       prepare_context_cache)
+from .fieldprep import field_settings
 from .galaxy import sed
 from .inputs import InputFile, check_inputs, file_or_none, input_files
 from .plan import detection_z_limit, manifest_cells, placement_preflight, plan_tasks
@@ -31,7 +37,7 @@ from .rundir import (RunLock, StoreMismatchError, atomic_write_text, check_shard
                      write_shard_record)
 from .shards import shard_task_names
 from .paths import check_run_tree, disk_full
-from .survey import Survey
+from .survey import Survey, clear_cache as clear_survey_cache
 
 
 def _load_fingerprint_cache(run_dir: Path) -> dict:
@@ -141,29 +147,10 @@ def _summary(diffs: list[str], limit: int = 3) -> str:
     return "; ".join(diffs[:limit]) + more
 
 
-def _manifest(cfg: Config, survey: Survey, seed: int, z_limit=None, cached: dict | None = None,
-              save: bool = False) -> dict:
-    """The run's manifest.
-
-    ``z_limit``: a future of :func:`glaciar.plan.detection_z_limit` (None: computed here);
-    ``cached``: field -> its context's cache directory in the run, and ``save``: write
-    a measured context there (:func:`glaciar.contexts.main_context`).
-    """
-    area = {}
-    pixscale = {}
+def _manifest(cfg: Config, seed: int) -> dict:
+    """The run's manifest but its measured fields' records and detection z limit (added by
+    :func:`_measure_fields`): what identifies the store."""
     settings = store_settings(cfg)
-    depth_area, noise = {}, {}
-    for f in cfg.survey.fields:
-        # The field's context is built here once, in this process (or mapped from an
-        # interrupted run's cache): the area, depth and noise records read it, a serial
-        # run's tasks use it (glaciar.contexts.worker_context), and forked pool workers inherit it
-        # instead of measuring the field again.
-        ctx = main_context(cfg, survey, f, (cached or {}).get(f), save=save)
-        ps = survey.pixel_scale_arcsec(f)
-        pixscale[f] = ps
-        area[f] = float(ctx.footprint_count) * ps ** 2 / 3600.0
-        depth_area[f] = field_depth_area(cfg, survey, f, ctx)
-        noise[f] = field_noise_record(cfg, survey, f, ctx)
     return {
         "store_format": C.STORE_FORMAT,
         "glaciar_version": __version__,
@@ -185,13 +172,84 @@ def _manifest(cfg: Config, survey: Survey, seed: int, z_limit=None, cached: dict
         **({} if cfg.grid.box is None else
            {"box": {"z": list(cfg.grid.box.z), "mag": list(cfg.grid.box.mag),
                     "n_points": cfg.grid.box.n_points}}),
-        "pixel_scale_arcsec": pixscale,
-        "area_arcmin2": area,
-        "area_arcmin2_total": float(sum(area.values())),
-        "depth_area": depth_area,
-        "noise": noise,
-        "detection_z_limit": detection_z_limit(cfg) if z_limit is None else z_limit.result(),
     }
+
+
+def _measure_fields(cfg: Config, survey: Survey, manifest: dict, z_limit=None,
+                    cached: dict | None = None, save: bool = False,
+                    measure_on: cf.Executor | None = None) -> None:
+    """Add the fields' records (area, depth, noise) and the detection z limit to ``manifest``.
+
+    ``z_limit``: a future of :func:`glaciar.plan.detection_z_limit` (None: computed here);
+    ``cached``: field -> its context's cache directory in the run, and ``save``: write
+    a measured context there (:func:`glaciar.contexts.main_context`).  If a field cannot
+    be measured, the caches this call wrote are removed before the error is raised.
+    ``measure_on``: an executor whose workers measure the fields, one job per field
+    (:func:`glaciar.contexts.measure_field`, each writing its field's cache: ``cached``
+    holds every field), while this process computes the z limit; None: measured here, in
+    turn.  Warnings are raised in this process either way.
+    """
+    before = {f for f, path in (cached or {}).items() if path.exists()}
+    try:
+        if measure_on is None:
+            records = {}
+            for f in cfg.survey.fields:
+                # The field's context is built here once, in this process (or mapped from an
+                # interrupted run's cache): the records read it, a serial run's tasks use it
+                # (glaciar.contexts.worker_context) or, with ``save``, map its cache.
+                ctx = main_context(cfg, survey, f, (cached or {}).get(f), save=save)
+                records[f] = field_records(cfg, survey, f, ctx)
+            limit = detection_z_limit(cfg) if z_limit is None else z_limit.result()
+        else:
+            records, limit = _measured_on(cfg, measure_on, cached, z_limit)
+    except Exception:
+        # A field that cannot be measured: the caches written meanwhile go (the run
+        # directory stays as it was, its lock file aside).  (An interrupt goes at once: an
+        # unfinished cache is a temporary that the next run removes, a finished one its
+        # resume maps.)
+        for f, path in (cached or {}).items():
+            if f not in before:
+                shutil.rmtree(path, ignore_errors=True)
+        raise
+    fields = cfg.survey.fields
+    manifest["pixel_scale_arcsec"] = {f: records[f]["pixel_scale_arcsec"] for f in fields}
+    manifest["area_arcmin2"] = {f: records[f]["area_arcmin2"] for f in fields}
+    manifest["area_arcmin2_total"] = float(sum(manifest["area_arcmin2"].values()))
+    manifest["depth_area"] = {f: records[f]["depth_area"] for f in fields}
+    manifest["noise"] = {f: records[f]["noise"] for f in fields}
+    manifest["detection_z_limit"] = limit
+
+
+def _measured_on(cfg: Config, where: cf.Executor, cached: dict, z_limit) -> tuple[dict, object]:
+    """The fields measured by ``where``'s workers (their warnings raised here, in the serial
+    run's order: the fields', then the z limit's), and the detection z limit.
+
+    If a field's measurement fails, the other jobs are cancelled or waited for before the
+    error is raised.
+    """
+    cfg_dict, base_dir, chash = config_to_dict(cfg), str(cfg.base_dir), config_hash(cfg)
+    jobs = {f: where.submit(measure_field, cfg_dict, base_dir, chash, f, str(cached[f]),
+                            os.getpid()) for f in cfg.survey.fields}
+    try:
+        # This process is idle until the fields are measured: it computes the z limit
+        # (a bisection over the SED), unless an executor's worker already does.
+        with warnings.catch_warnings(record=True) as later:
+            warnings.simplefilter("always")
+            limit = detection_z_limit(cfg) if z_limit is None else z_limit.result()
+        records = {}
+        for f, job in jobs.items():
+            records[f], caught = job.result()
+            for message, category, filename, lineno in caught:
+                warnings.warn_explicit(message, category, filename, lineno)
+    except Exception:
+        # The other fields' jobs are cancelled or finish (their caches are then removed).
+        for job in jobs.values():
+            job.cancel()
+        cf.wait(list(jobs.values()))
+        raise
+    for w in later:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return records, limit
 
 
 def _check_same_store(run_dir: Path, old: dict, manifest: dict, items: list[InputFile],
@@ -239,7 +297,8 @@ def _check_old(run_dir: Path, old: dict | None, finished: set[str]) -> None:
 
 
 def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None = None,
-             warm: int = 1, shard: tuple[int, int] | None = None) -> tuple[dict, RunLock]:
+             warm: int = 1, shard: tuple[int, int] | None = None,
+             measure_on: cf.Executor | None = None) -> tuple[dict, RunLock]:
     """Validate everything, then create or update the run directory under its lock.
 
     Every check (inputs, store identity, lock) runs before anything is
@@ -247,10 +306,10 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
     byte-identical and creates no new one.  Returns the manifest and the held
     lock (the caller releases it).
 
-    ``parallel``: None, or an executor (not a process pool: its workers would start
-    before the field's context exists) that computes the detection z limit while
-    this process checks the inputs and measures the field, and of which ``warm``
-    workers are asked to import glaciar and warm their caches meanwhile (:class:`_SetupJobs`).
+    ``parallel``: None, or an executor that computes the detection z limit (and, when it
+    is the process pool that measures the fields, the placement preflight) while this
+    process checks the inputs, and of which ``warm`` workers are asked to import glaciar
+    and warm their caches meanwhile (:class:`_SetupJobs`).
 
     ``shard``: ``(k, n)`` for shard k of n (:mod:`glaciar.shards`).  Its lock
     (:class:`glaciar.rundir.RunLock`) is taken once the inputs are checked, then the
@@ -261,6 +320,14 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
     not written again; the field caches are prepared
     (:func:`glaciar.contexts.prepare_context_cache`) before the set-up lock is released.
     A refused shard may leave its (empty) lock file.
+
+    ``measure_on``: None (the fields are measured here, in turn), or an executor (a
+    process pool, Dask's) whose workers measure them, one job per field
+    (:func:`glaciar.contexts.measure_field`: each writes its field's cache and keeps the
+    context for its tasks; this process holds none).  The run's lock is then taken
+    before the fields are measured (so it is for a run of several fields, whose caches
+    are written as each field is measured); a measurement that fails leaves the run
+    directory as it was but for its (empty) lock file.
     """
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
@@ -279,16 +346,15 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
     cache = _load_fingerprint_cache(run_dir) if run_dir.is_dir() else {}
     cache_before = json.dumps(cache, sort_keys=True)
     survey = Survey.from_config(cfg)
-    jobs = _SetupJobs(cfg, parallel, warm)
+    jobs = _SetupJobs(cfg, parallel, warm,
+                      preflight=isinstance(measure_on, cf.ProcessPoolExecutor)
+                      and parallel is measure_on)
     inputs = check_inputs(cfg, survey, cache)
-    _preflight(cfg, survey)        # before the field is measured: a field nothing fits fails fast
+    _preflight(cfg, survey, jobs)  # before the field is measured: a field nothing fits fails fast
     if shard is not None:
         # A shard locks before it measures: a sibling's set-up is waited for, its field
         # caches then mapped (never measured twice at once); what it wrote is read afresh.
-        try:
-            run_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise (disk_full(run_dir, exc) or exc) from None
+        _create(run_dir)
         lock.acquire()
         try:
             lock.begin_setup()
@@ -298,18 +364,24 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
         except BaseException:
             lock.release()
             raise
+    # Workers that measure the fields write their caches into the run, and so does a run
+    # of several fields (each field's context goes before the next is measured: its tasks
+    # map the cache instead of measuring the field again): an unsharded run takes its lock
+    # first (every check but the measurement itself passed).
+    lock_first = shard is None and (measure_on is not None or len(cfg.survey.fields) > 1)
     try:
-        manifest, config_text = _new_manifest(cfg, run_dir, survey, seed, old, finished, inputs,
-                                              jobs, shard)
+        manifest = _identity(cfg, run_dir, seed, old, finished, inputs)
+        if lock_first:
+            _create(run_dir)
+            lock.acquire()
+        manifest, config_text = _new_manifest(cfg, run_dir, survey, manifest, old, finished,
+                                              jobs, measure_on, save=lock_first or shard is not None)
     except BaseException:
         lock.release()
         raise
     # ---- everything is checked: from here on the directory is created or modified ----
-    if shard is None:
-        try:
-            run_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise (disk_full(run_dir, exc) or exc) from None
+    if shard is None and not lock_first:
+        _create(run_dir)
         lock.acquire()
     try:
         if shard is None and (read_manifest(run_dir) != old
@@ -353,27 +425,44 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
     return manifest, lock
 
 
-def _new_manifest(cfg, run_dir, survey, seed, old, finished, inputs, jobs, shard):
-    """The run's manifest (fields measured, store identity checked) and stored config text."""
+def _identity(cfg, run_dir, seed, old, finished, inputs) -> dict:
+    """The run's manifest without its measured records, checked against the store's: a store
+    made with other settings, seed or inputs is refused before any field is measured."""
+    manifest = _manifest(cfg, seed)
+    manifest["inputs"] = _recorded_inputs(old, finished, inputs)
+    if old is not None and finished:
+        _check_same_store(run_dir, old, manifest, input_files(cfg), finished)
+    return manifest
+
+
+def _create(run_dir: Path) -> None:
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise (disk_full(run_dir, exc) or exc) from None
+
+
+def _new_manifest(cfg, run_dir, survey, manifest, old, finished, jobs, measure_on=None,
+                  save=False):
+    """The run's manifest (:func:`_identity`'s, with the fields measured) and stored config text."""
     # An interrupted run left its fields' contexts on disk: with the inputs checked first
     # (the cache's key holds their fingerprints), the resume maps them, not measuring again.
-    # A shard maps a sibling's, and writes those it measures at once (set-up lock held).
+    # ``save`` (the run's lock held: a shard's, which maps a sibling's caches, or a run of
+    # several fields) writes each measured field's cache at once; so do workers that
+    # measure the fields (measure_on).
     resuming = old is not None and (run_dir / C.CONTEXT_DIRNAME).is_dir()
     cached = None
-    if resuming or shard is not None:
-        recorded, chash = _recorded_inputs(old, finished, inputs), config_hash(cfg)
-        cached = {f: context_dir(run_dir, chash, f, recorded) for f in cfg.survey.fields}
+    if resuming or save or measure_on is not None:
+        chash = config_hash(cfg)
+        cached = {f: context_dir(run_dir, chash, f, manifest["inputs"]) for f in cfg.survey.fields}
     # Each warning of measuring the fields is said once (not per field or band that repeats it).
     with warnings.catch_warnings(record=True) as measured:
         warnings.simplefilter("always")
-        manifest = _manifest(cfg, survey, seed, z_limit=jobs.z_limit, cached=cached,
-                             save=shard is not None)
+        _measure_fields(cfg, survey, manifest, z_limit=jobs.z_limit, cached=cached, save=save,
+                        measure_on=measure_on)
     for w in {(str(w.message), w.category): w for w in measured}.values():
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    items = input_files(cfg)
-    manifest["inputs"] = _recorded_inputs(old, finished, inputs)
     if old is not None and finished:
-        _check_same_store(run_dir, old, manifest, items, finished)
         versions = old.get("glaciar_versions") or [old.get("glaciar_version", "?")]
         if __version__ not in versions:
             warnings.warn(f"{run_dir}: started with glaciar {', '.join(map(str, versions))}; "
@@ -459,10 +548,21 @@ def _prewarm(cfg_dict: dict, base_dir: str) -> None:
                                 detection_index=settings["detection_index"], igm=igm)
 
 
-def _preflight(cfg: Config, survey: Survey) -> None:
+def _preflight_job(cfg_dict: dict, base_dir: str) -> tuple[list[str], list]:
+    """:func:`glaciar.plan.placement_preflight` on a pool's worker: ``(messages, warnings)``."""
+    cfg = config_from_dict(cfg_dict, base_dir)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        messages = placement_preflight(cfg, Survey.from_config(cfg))
+    clear_survey_cache()        # the footprints' images: the worker measures one field next
+    return messages, [(str(w.message), w.category) for w in caught]
+
+
+def _preflight(cfg: Config, survey: Survey, jobs: "_SetupJobs | None" = None) -> None:
     """Raise :func:`glaciar.plan.placement_preflight`'s error (no source fits a field) or warn
-    its messages."""
-    for message in placement_preflight(cfg, survey):
+    its messages (computed by ``jobs``' worker, if it has the job)."""
+    later = None if jobs is None else jobs.preflight
+    for message in (placement_preflight(cfg, survey) if later is None else later.result()):
         if "no source fits" in message:
             raise ValueError(message)
         warnings.warn(message, UserWarning)
@@ -474,19 +574,26 @@ class _SetupJobs:
     With an executor (e.g. Dask's): :func:`glaciar.plan.detection_z_limit` (a
     bisection over the SED, a pure function of the configuration) on one of its
     workers, which then also imports glaciar before its first task, and ``warm - 1``
-    jobs that set up what a first task needs (:func:`_prewarm`) for other workers.
-    Without one, the z limit is computed here when the manifest asks for it.  (The
+    jobs that set up what a first task needs (:func:`_prewarm`) for other workers; with
+    ``preflight`` (a process pool whose workers measure the fields next, issue 24) also
+    :func:`glaciar.plan.placement_preflight` on one of them.  Without one, the z limit is computed here when the manifest asks for it.  (The
     input check and the preflight ran in a forked helper beside the field's
     measurement until issue 22; ``benchmarks/setup_helper.py`` of commit faa86f5
     measured no gain: 0.90x on the demo, 1 and 2 workers.)
     """
 
-    def __init__(self, cfg: Config, where: cf.Executor | None, warm: int = 1):
-        self.z_limit = None
+    def __init__(self, cfg: Config, where: cf.Executor | None, warm: int = 1,
+                 preflight: bool = False):
+        self.z_limit = self.preflight = None
         if where is None:
             return
         args = (config_to_dict(cfg), str(cfg.base_dir))
         job = where.submit(_z_limit_job, *args)
+        if preflight:
+            # A process pool whose workers measure the fields next: the preflight (each
+            # field's footprint and a random fill, ~0.35 s per 1000^2 field) runs on one
+            # of them while this process checks the inputs.
+            self.preflight = _Later(self._result, where.submit(_preflight_job, *args))
         # Spawned workers import glaciar and set up a field's settings and colour tables
         # when their first task arrives (~2 s each): jobs that only do that let up to
         # ``warm`` workers do it now, beside the set-up.
