@@ -534,7 +534,17 @@ class _Later:
 def _prewarm(cfg_dict: dict, base_dir: str) -> None:
     """In a spawned worker, during the run's set-up: what its first task would do before its
     sources -- imports, the first field's settings (PSFs, filters, cosmology) and the SED
-    colour tables of the run's redshifts (each cached per process, ~0.7 s for the demo)."""
+    colour tables of the run's redshifts (each cached per process, ~0.7 s for the demo).
+
+    Its warnings are dropped: whatever it reads, the run's own checks read and report (a
+    forked worker would print them with the CLI's inherited warning format, before the
+    input check's one-line error about the same file)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _warm(cfg_dict, base_dir)
+
+
+def _warm(cfg_dict: dict, base_dir: str) -> None:
     cfg = config_from_dict(cfg_dict, base_dir)
     survey = Survey.from_config(cfg)
     settings, _ = field_settings(cfg, survey, cfg.survey.fields[0])
