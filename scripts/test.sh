@@ -10,8 +10,9 @@ PY=${PYTHON:-python3}
 set +e
 # Two test processes (pytest-xdist; GLACIAR_TEST_PROCESSES overrides, 0 = in this process):
 # the suite is mostly single-threaded, so on the 2-core CI machine this halves its wall time.
-# Work-stealing balances the long end-to-end tests (notebooks, fits) across the two.
-.venv-test/bin/python -m pytest -q -n "${GLACIAR_TEST_PROCESSES:-2}" --dist worksteal "$@"
+# By file: a module's fixtures are built once; the session's run fixtures are built once for
+# both processes (tests/conftest.py: _built_once).
+.venv-test/bin/python -m pytest -q -n "${GLACIAR_TEST_PROCESSES:-2}" --dist loadfile "$@"
 rc=$?
 set -e
 if [ "$rc" -eq 5 ]; then echo "no tests collected: failing" >&2; exit 1; fi

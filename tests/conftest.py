@@ -31,9 +31,41 @@ files share: ``toy_images`` (synthetic images, the crowded field, FITS surveys),
 ``config_dicts``, ``noise_fields``, ``analytic_sf``, ``figure_cases``, ``renderer_box``
 (the property tests' parameter box).  pytest imports test files in importlib mode with
 ``tests/`` on ``sys.path`` (pyproject.toml), so no test file imports another.
+
+The suite runs on two processes (pytest-xdist, ``scripts/test.sh``): the session fixtures
+that build files are built once for the whole session, by whichever process asks first,
+and read by the others (:func:`_built_once`).
 """
+import fcntl
+import json
+import os
+import shutil
+from pathlib import Path
+
 import numpy as np
 import pytest
+
+
+def _built_once(tmp_path_factory, name, build):
+    """``build(directory)``'s JSON result, computed once per test session.
+
+    Under pytest-xdist every worker process has its own session: a fixture built in
+    each would cost its set-up (simulations of up to ~25 s) twice.  The directory sits
+    in the temporary root the workers share, and an exclusive ``flock`` lets the first
+    worker build it while the others wait, then read what it recorded.  A build that
+    fails leaves no record: the next worker tries again (and fails the same way).
+    """
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent
+    path, record = root / f"shared-{name}", root / f"shared-{name}.json"
+    with open(root / f"shared-{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not record.exists():
+            shutil.rmtree(path, ignore_errors=True)
+            path.mkdir()
+            record.write_text(json.dumps(build(path)))
+    return json.loads(record.read_text())
 
 def _assert_same_outputs(got, want, what):
     """Every ``measure_injected`` output column equal (floats to 1e-9 relative, NaN where
@@ -66,9 +98,11 @@ def small_survey(tmp_path_factory):
     """A 320x320 4-band demo field with a tiny grid; returns the config path."""
     from glaciar.demo import build_demo_survey
 
-    out = tmp_path_factory.mktemp("survey")
-    return build_demo_survey(out, shape=(320, 320), seed=11, n_galaxies=12, n_iterations=2,
-                             z_values=(8.0, 10.4), mag_values=(24.0, 27.5))
+    def build(out):
+        return str(build_demo_survey(out, shape=(320, 320), seed=11, n_galaxies=12,
+                                     n_iterations=2, z_values=(8.0, 10.4), mag_values=(24.0, 27.5)))
+
+    return Path(_built_once(tmp_path_factory, "survey", build))
 
 
 def _write_config(demo_config, path, *, fields, z_values, mag_values, n_galaxies, n_iterations, seed):
@@ -101,15 +135,17 @@ def two_depth_survey(tmp_path_factory):
     """
     from glaciar.demo import build_demo_survey
 
-    out = tmp_path_factory.mktemp("two_depth")
-    build_demo_survey(out, shape=(300, 300), seed=21, field="shallow", noise_scale=2.5)
-    demo = build_demo_survey(out, shape=(600, 600), seed=22, field="deep")
-    # z inside the J125-dropout window, so that V_eff's z integral can be checked against
-    # the binned fractions (trapezoid over these z).
-    return _write_config(demo, out / "two_depth.yaml", fields=("shallow", "deep"),
-                         z_values=(9.5, 10.0, 10.5, 11.0, 11.5),
-                         mag_values=np.arange(23.0, 27.5 + 1e-9, 0.5),
-                         n_galaxies=30, n_iterations=3, seed=5)
+    def build(out):
+        build_demo_survey(out, shape=(300, 300), seed=21, field="shallow", noise_scale=2.5)
+        demo = build_demo_survey(out, shape=(600, 600), seed=22, field="deep")
+        # z inside the J125-dropout window, so that V_eff's z integral can be checked
+        # against the binned fractions (trapezoid over these z).
+        return str(_write_config(demo, out / "two_depth.yaml", fields=("shallow", "deep"),
+                                 z_values=(9.5, 10.0, 10.5, 11.0, 11.5),
+                                 mag_values=np.arange(23.0, 27.5 + 1e-9, 0.5),
+                                 n_galaxies=30, n_iterations=3, seed=5))
+
+    return Path(_built_once(tmp_path_factory, "two_depth", build))
 
 
 @pytest.fixture(scope="session")
@@ -117,14 +153,17 @@ def deep_corner_survey(tmp_path_factory):
     """One 400^2 field, noise x0.3 over ``DEEP_CORNER_QUADRANT``; returns the config path."""
     from glaciar.demo import build_demo_survey
 
-    out = tmp_path_factory.mktemp("deep_corner")
-    scale = np.ones(DEEP_CORNER_SHAPE)
-    scale[DEEP_CORNER_QUADRANT] = DEEP_CORNER_NOISE_SCALE
-    demo = build_demo_survey(out, shape=DEEP_CORNER_SHAPE, seed=31, field="corner",
-                             noise_scale=scale)
-    return _write_config(demo, out / "deep_corner.yaml", fields=("corner",),
-                         z_values=(8.0, 10.0), mag_values=np.arange(23.5, 28.5 + 1e-9, 0.5),
-                         n_galaxies=40, n_iterations=5, seed=6)
+    def build(out):
+        scale = np.ones(DEEP_CORNER_SHAPE)
+        scale[DEEP_CORNER_QUADRANT] = DEEP_CORNER_NOISE_SCALE
+        demo = build_demo_survey(out, shape=DEEP_CORNER_SHAPE, seed=31, field="corner",
+                                 noise_scale=scale)
+        return str(_write_config(demo, out / "deep_corner.yaml", fields=("corner",),
+                                 z_values=(8.0, 10.0),
+                                 mag_values=np.arange(23.5, 28.5 + 1e-9, 0.5),
+                                 n_galaxies=40, n_iterations=5, seed=6))
+
+    return Path(_built_once(tmp_path_factory, "deep_corner", build))
 
 
 @pytest.fixture(scope="session")
@@ -133,13 +172,18 @@ def deep_corner_quadrant():
     return DEEP_CORNER_QUADRANT, DEEP_CORNER_NOISE_SCALE
 
 
-def _simulated(config_path, run_dir):
+def _simulated(config_path, tmp_path_factory, name, workers=2):
+    """``config_path`` simulated once per session: (Config, run directory)."""
     from glaciar.config import load_config
     from glaciar.execute import simulate
 
     cfg = load_config(config_path)
-    simulate(cfg, run_dir, workers=2, progress=False)
-    return cfg, run_dir
+
+    def build(out):
+        simulate(cfg, out, workers=workers, progress=False)
+        return str(out)
+
+    return cfg, Path(_built_once(tmp_path_factory, name, build))
 
 
 @pytest.fixture(scope="session")
@@ -149,25 +193,19 @@ def small_run(small_survey, tmp_path_factory):
     Shared by the session: read it, or write into a copy
     (``shutil.copytree(run, dst, ignore=shutil.ignore_patterns(C.LOCK_NAME))``).
     """
-    from glaciar.config import load_config
-    from glaciar.execute import simulate
-
-    cfg = load_config(small_survey)
-    out = tmp_path_factory.mktemp("small_run")
-    simulate(cfg, out, workers=1, progress=False)
-    return cfg, out
+    return _simulated(small_survey, tmp_path_factory, "small_run", workers=1)
 
 
 @pytest.fixture(scope="session")
 def two_depth_run(two_depth_survey, tmp_path_factory):
     """``two_depth_survey`` simulated once (2 workers): (Config, run directory)."""
-    return _simulated(two_depth_survey, tmp_path_factory.mktemp("two_depth_run"))
+    return _simulated(two_depth_survey, tmp_path_factory, "two_depth_run")
 
 
 @pytest.fixture(scope="session")
 def deep_corner_run(deep_corner_survey, tmp_path_factory):
     """``deep_corner_survey`` simulated once (2 workers): (Config, run directory)."""
-    return _simulated(deep_corner_survey, tmp_path_factory.mktemp("deep_corner_run"))
+    return _simulated(deep_corner_survey, tmp_path_factory, "deep_corner_run")
 
 
 @pytest.fixture
@@ -207,10 +245,12 @@ def one_task_run(small_survey_dict, tmp_path_factory):
     from tiny_runs import load_dict, tiny_config
 
     d = tiny_config(small_survey_dict)
-    tmp = tmp_path_factory.mktemp("one_task")
-    cfg = load_dict(d, tmp / "c.yaml")
-    simulate(cfg, tmp / "run", workers=1, progress=False)
-    return d, tmp / "run"
+
+    def build(tmp):
+        simulate(load_dict(d, tmp / "c.yaml"), tmp / "run", workers=1, progress=False)
+        return str(tmp / "run")
+
+    return d, Path(_built_once(tmp_path_factory, "one_task", build))
 
 
 @pytest.fixture
@@ -232,10 +272,13 @@ def two_task_run(small_survey_dict, tmp_path_factory):
     from glaciar.execute import simulate
     from tiny_runs import tiny_config, write_yaml
 
-    root = tmp_path_factory.mktemp("two_task")
-    cfg_path = write_yaml(tiny_config(small_survey_dict, mag=(24.0, 27.5)), root / "c.yaml")
-    simulate(load_config(cfg_path), root / "run", workers=1, progress=False)
-    return cfg_path, root / "run"
+    def build(root):
+        cfg_path = write_yaml(tiny_config(small_survey_dict, mag=(24.0, 27.5)), root / "c.yaml")
+        simulate(load_config(cfg_path), root / "run", workers=1, progress=False)
+        return [str(cfg_path), str(root / "run")]
+
+    cfg_path, run = _built_once(tmp_path_factory, "two_task", build)
+    return Path(cfg_path), Path(run)
 
 
 @pytest.fixture
