@@ -294,3 +294,22 @@ def store_run(two_task_run, tmp_path):
     (tmp_path / "outside").mkdir()
     (tmp_path / "outside" / "keep.txt").write_text("not glaciar's\n")
     return dst
+
+
+#: Test files that take the longest (end-to-end notebooks and fits), scheduled first: the
+#: two processes split the suite by file in collection order, and a long file collected
+#: last (test_notebooks.py sorts late) would leave one process working alone at the end.
+LONGEST_FIRST = ("test_notebooks.py", "pipeline/test_fit.py", "inference/test_fit_sbc.py",
+                 "pipeline/test_adaptive.py", "test_cli.py", "engine/test_noise.py",
+                 "test_report.py", "inference/test_fit.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+
+    def key(item):
+        path = item.path.as_posix()
+        return min((i for name, i in rank.items() if path.endswith("tests/" + name)),
+                   default=len(rank))
+
+    items.sort(key=key)          # stable: the order within a file and among the rest is kept
