@@ -523,21 +523,32 @@ class SurfaceModel:
         z = np.asarray(z, float).ravel()
         m = np.asarray(m, float).ravel()
         lcm, m50, inv_w = self._c_terms(th, z)                                   # (D, n_z)
-        u = (m[None, None, :] - m50[:, :, None]) * inv_w[:, :, None]
+        # The (D, n_z, n_m) arrays are computed in place: the same operations in the same
+        # order (so the same bits) without a temporary per step; V_eff integrals call this
+        # for thousands of draws, where the temporaries' memory traffic was most of its time.
+        u = np.subtract(m[None, None, :], m50[:, :, None])
+        u *= inv_w[:, :, None]
         if self.shape == "sas":
             u = _sas_transform(u, th[:, s["sas_eps"]][:, :, None],
                                th[:, s["sas_log_delta"]][:, :, None])
-        f = expit(-u) if self.shape == "logistic" else step_function(u, self.shape)
-        c = expit(lcm)[:, :, None] * f
+        if self.shape == "logistic":
+            c = expit(np.negative(u, out=u), out=u)
+        else:
+            c = step_function(u, self.shape)
+        c *= expit(lcm)[:, :, None]
         if not self.selection:                       # detection only: S = 1 exactly
             sel = np.ones_like(c)
             return (c[0], sel[0]) if np.ndim(theta) == 1 else (c, sel)
         mp = _poly(m, self.m_ref, self.m_scale, self.edge_degree)                 # (n_m, k)
         edge = {k: th[:, s[k]] @ mp.T for k in ("eta_lo", "log_dz_lo", "eta_hi", "log_dz_hi")}
         zmin, zmax = self.z_range
-        a = edge["eta_lo"][:, None, :] + (z - zmin)[None, :, None] * np.exp(-edge["log_dz_lo"])[:, None, :]
-        b = edge["eta_hi"][:, None, :] + (zmax - z)[None, :, None] * np.exp(-edge["log_dz_hi"])[:, None, :]
-        sel = expit(th[:, s["logit_s_max"]])[:, :, None] * expit(a) * expit(b)
+        a = np.multiply((z - zmin)[None, :, None], np.exp(-edge["log_dz_lo"])[:, None, :])
+        a += edge["eta_lo"][:, None, :]
+        b = np.multiply((zmax - z)[None, :, None], np.exp(-edge["log_dz_hi"])[:, None, :])
+        b += edge["eta_hi"][:, None, :]
+        sel = expit(a, out=a)
+        sel *= expit(th[:, s["logit_s_max"]])[:, :, None]
+        sel *= expit(b, out=b)
         if np.ndim(theta) == 1:
             return c[0], sel[0]
         return c, sel
