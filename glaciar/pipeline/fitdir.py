@@ -116,7 +116,7 @@ def hold_run(run_dir, command: str):
         Another process is writing the run.
     """
     from ..paths import check_run_tree
-    from ..rundir import RunLock, RunLockedError
+    from ..rundir import RunLock, RunLockedError, running_shards
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -131,13 +131,21 @@ def hold_run(run_dir, command: str):
             raise
         read_only = True
     except RunLockedError:
-        try:
-            pid = (run_dir / C.LOCK_NAME).read_text().strip() or "unknown"
-        except OSError:
-            pid = "unknown"
+        # Shards hold the run's lock shared and their own exclusively: they are named by
+        # their own locks (the pid in RUN/.lock may be an earlier process's).
+        shards = running_shards(run_dir)
+        if shards:
+            who = ", ".join(f"shard {k} (pid {pid})" for k, pid in shards.items())
+            who = f"`glaciar simulate --shard`: {who}"
+        else:
+            try:
+                pid = (run_dir / C.LOCK_NAME).read_text().strip() or "unknown"
+            except OSError:
+                pid = "unknown"
+            who = f"pid {pid}: `glaciar simulate`, or a fit"
         raise RunLockedError(f"{run_dir}: this run is being written by another glaciar process "
-                             f"(pid {pid}: `glaciar simulate`, or a fit); `glaciar {command}` "
-                             "reads it once that has finished — run it again then") from None
+                             f"({who}); `glaciar {command}` reads it once that has finished "
+                             "— run it again then") from None
     if read_only:
         # A read-only run (an archive): nobody can write it, so reading is consistent; a
         # lock someone else holds is still refused (and nothing can be cleaned).
