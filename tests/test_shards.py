@@ -273,7 +273,7 @@ def test_same_shard_twice_and_unsharded_runs_are_refused(small_survey, two_shard
         assert len(err.splitlines()) == 1 and f"pid {os.getpid()}" in err and "shard" in err
         assert main(["report", str(run)]) == 2           # as today: the run is being written
         err = capsys.readouterr().err.strip()            # ... by shard 2, named as such
-        assert len(err.splitlines()) == 1 and f"shard 2 (pid {os.getpid()})" in err
+        assert len(err.splitlines()) == 1 and f"shard 2/2 (pid {os.getpid()})" in err
     finally:
         lock.release()
     assert _snapshot(run) == before

@@ -130,22 +130,18 @@ def hold_run(run_dir, command: str):
         if exc.errno not in (errno.EACCES, errno.EPERM, errno.EROFS):
             raise
         read_only = True
-    except RunLockedError:
-        # Shards hold the run's lock shared and their own exclusively: they are named by
-        # their own locks (the pid in RUN/.lock may be an earlier process's).
-        shards = running_shards(run_dir)
-        if shards:
-            who = ", ".join(f"shard {k} (pid {pid})" for k, pid in shards.items())
-            who = f"`glaciar simulate --shard`: {who}"
-        else:
-            try:
-                pid = (run_dir / C.LOCK_NAME).read_text().strip() or "unknown"
-            except OSError:
-                pid = "unknown"
-            who = f"pid {pid}: `glaciar simulate`, or a fit"
+    except RunLockedError as exc:
+        if running_shards(run_dir):
+            # The lock's own refusal names the shards and their pids (from their own
+            # locks: the pid in RUN/.lock may be an earlier process's).
+            raise RunLockedError(f"{exc}; `glaciar {command}` reads the run then") from None
+        try:
+            pid = (run_dir / C.LOCK_NAME).read_text().strip() or "unknown"
+        except OSError:
+            pid = "unknown"
         raise RunLockedError(f"{run_dir}: this run is being written by another glaciar process "
-                             f"({who}); `glaciar {command}` reads it once that has finished "
-                             "— run it again then") from None
+                             f"(pid {pid}: `glaciar simulate`, or a fit); `glaciar {command}` "
+                             "reads it once that has finished — run it again then") from None
     if read_only:
         # A read-only run (an archive): nobody can write it, so reading is consistent; a
         # lock someone else holds is still refused (and nothing can be cleaned).
