@@ -32,9 +32,9 @@ from .galaxy import sed
 from .inputs import InputFile, check_inputs, file_or_none, input_files
 from .plan import detection_z_limit, manifest_cells, placement_preflight, plan_tasks
 from .store import StoreWarning, field_file_prefix, finished_task_names
-from .rundir import (RunLock, StoreMismatchError, atomic_write_text, check_shard_count,
-                     manifest_text, read_manifest, running_shards, store_format, write_manifest,
-                     write_shard_record)
+from .rundir import (RunLock, StoreMismatchError, atomic_temporary_target, atomic_write_text,
+                     check_shard_count, manifest_text, read_manifest, running_shards,
+                     store_format, write_manifest, write_shard_record)
 from .shards import shard_task_names
 from .paths import check_run_tree, disk_full
 from .survey import Survey, clear_cache as clear_survey_cache
@@ -410,9 +410,7 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
             # A shard's own only: its siblings' temporaries may be in flight.
             own = shard_task_names(cfg, shard)
             for tmp in (run_dir / C.RESULTS_DIRNAME).glob(".task_*.tmp"):
-                # ".<task file name>.<random>.tmp" (glaciar.rundir.atomic_write_bytes)
-                name = tmp.name[1:].partition(".parquet.")[0] + ".parquet"
-                if name in own:
+                if atomic_temporary_target(tmp) in own:
                     tmp.unlink(missing_ok=True)
             # The field caches (each written once its field was measured, above): those of
             # other configurations go; then the sibling shards may start.

@@ -22,8 +22,8 @@ from pathlib import Path
 from .constants import LOCK_NAME, MANIFEST_NAME, SHARDS_DIRNAME
 from .paths import UnsafePathError, allocate, disk_full, run_subdir
 
-__all__ = ["process_umask", "atomic_write_bytes", "atomic_write_text", "StoreMismatchError",
-           "RunLockedError", "read_manifest", "manifest_text", "write_manifest", "store_format",
+__all__ = ["process_umask", "atomic_write_bytes", "atomic_temporary_target", "atomic_write_text",
+           "StoreMismatchError", "RunLockedError", "read_manifest", "manifest_text", "write_manifest", "store_format",
            "file_fingerprint", "RunLock", "read_shard_counts", "check_shard_count",
            "write_shard_record", "shard_holder", "run_holder", "running_shards"]
 
@@ -84,6 +84,16 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
         if full is not None:
             raise full from None
         raise
+
+
+def atomic_temporary_target(tmp: str | os.PathLike) -> str:
+    """The file name :func:`atomic_write_bytes` was writing when it left temporary ``tmp``
+    (``.<name>.<random>.tmp``) behind, e.g. a killed run's; "" for another file."""
+    name = Path(tmp).name
+    if not (name.startswith(".") and name.endswith(".tmp")):
+        return ""
+    target, dot, _ = name[1:-len(".tmp")].rpartition(".")
+    return target if dot else ""
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:

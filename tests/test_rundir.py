@@ -9,8 +9,8 @@ import pytest
 from glaciar import constants as C
 from glaciar.cli import main
 from glaciar.execute import simulate
-from glaciar.rundir import (RunLock, RunLockedError, StoreMismatchError, atomic_write_text,
-                            file_fingerprint)
+from glaciar.rundir import (RunLock, RunLockedError, StoreMismatchError, atomic_temporary_target,
+                            atomic_write_text, file_fingerprint)
 
 from tiny_runs import file_snapshot, load_dict
 
@@ -71,6 +71,18 @@ def test_lock_is_released_after_a_run_and_after_a_failure(run_copy, tmp_path):
         simulate(load_dict(bad, tmp_path / "bad.yaml"), run, workers=1, progress=False)
     with RunLock(run):
         pass
+
+
+def test_a_temporary_names_the_file_it_was_written_for(tmp_path):
+    """A killed atomic write's temporary names its target (a shard removes only its own)."""
+    import tempfile
+
+    for name in ("task_f_z+008.0000_m+024.0000_i0000_0123456789abcdef.parquet", "manifest.json"):
+        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=tmp_path)
+        os.close(fd)
+        assert atomic_temporary_target(tmp) == name
+    for other in ("task_a.parquet", ".part-s1.tmp", "x.tmp", ".lock"):
+        assert atomic_temporary_target(tmp_path / other) == ""
 
 
 # --------------------------------------------------------------------------
