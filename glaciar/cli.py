@@ -8,6 +8,7 @@ run cleanly (one line, exit 130 / 143); the same command resumes it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import signal
@@ -145,13 +146,9 @@ def _simulate_adaptive(args, cfg, out: Path, workers: int, executor) -> int:
     round_size = args.round_size if args.round_size is not None else max(
         cfg.simulation.n_galaxies * len(cfg.survey.fields), design // 10)
     settings = AdaptiveSettings(args.target_sd, budget, round_size, max_steps=args.max_steps)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            rounds = run_adaptive(cfg, out, settings, workers=workers, seed=args.seed,
-                                  executor=executor, progress=not args.quiet, mode=args.mode)
-        finally:
-            _print_warnings(caught)
+    with _warnings_as_lines():
+        rounds = run_adaptive(cfg, out, settings, workers=workers, seed=args.seed,
+                              executor=executor, progress=not args.quiet, mode=args.mode)
     last = rounds[-1]
     print(f"adaptive: {len(rounds)} round(s), {last['n_sources']} sources, max sd of C·S "
           f"{last['max_sd']:.4f}; {last.get('stop', '')}")
@@ -163,12 +160,8 @@ def _simulate_adaptive(args, cfg, out: Path, workers: int, executor) -> int:
 def _report(run_dir: Path, regions: bool = False) -> list[Path]:
     from .report import write_summary_files
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            return write_summary_files(run_dir, regions=regions)
-        finally:
-            _print_warnings(caught)
+    with _warnings_as_lines():
+        return write_summary_files(run_dir, regions=regions)
 
 
 def _cmd_report(args) -> int:
@@ -179,6 +172,25 @@ def _cmd_report(args) -> int:
     for p in paths:
         print(p)
     return 0
+
+
+#: Warnings for developers, which Python itself hides by default: an unclosed file
+#: found by the garbage collector (possibly another library's) is not news for the user.
+_DEVELOPER_WARNINGS = (ResourceWarning, DeprecationWarning, PendingDeprecationWarning,
+                       ImportWarning)
+
+
+@contextlib.contextmanager
+def _warnings_as_lines():
+    """Every user-facing warning raised inside, each once, as one line on stderr."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for category in _DEVELOPER_WARNINGS:
+            warnings.simplefilter("ignore", category)
+        try:
+            yield
+        finally:
+            _print_warnings(caught)
 
 
 def _print_warnings(caught) -> None:
@@ -196,12 +208,8 @@ def _fit(run_dir, **kwargs) -> Path:
 
     from .pipeline import format_summary, run_fit
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            path = run_fit(run_dir, **kwargs)
-        finally:
-            _print_warnings(caught)
+    with _warnings_as_lines():
+        path = run_fit(run_dir, **kwargs)
     summary = json.loads((Path(run_dir) / "fit" / "summary.json").read_text())
     print(format_summary(summary), end="")
     return path
@@ -544,6 +552,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
     """Warnings as one line each (``warning: ...``), without the source line."""
+    if issubclass(category, _DEVELOPER_WARNINGS):
+        return
     print(f"warning: {message}", file=file or sys.stderr)
 
 

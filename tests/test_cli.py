@@ -138,3 +138,35 @@ def test_out_pointing_to_a_file_is_refused(one_task_run, tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.splitlines() == [f"glaciar simulate: error: --out {f}: exists and is not a directory"]
     assert f.read_text() == "keep me"
+
+
+def test_user_warnings_are_one_line_each_and_developer_warnings_are_not_shown(
+        small_run, tmp_path, capsys, monkeypatch):
+    """A garbage-collected open file (ResourceWarning) met during a command is not the
+    user's news; the command's own warnings are, once each, as ``warning: ...``."""
+    import warnings
+
+    import glaciar.report
+
+    run = tmp_path / "run"
+    shutil.copytree(small_run[1], run, ignore=shutil.ignore_patterns(C.LOCK_NAME))
+    real = glaciar.report.write_summary_files
+
+    def noisy(*args, **kwargs):
+        warnings.warn("unclosed file <_io.TextIOWrapper name=19>", ResourceWarning)
+        warnings.warn("a deprecated thing", DeprecationWarning)
+        for _ in range(2):
+            warnings.warn("the run's own caveat")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(glaciar.report, "write_summary_files", noisy)
+    capsys.readouterr()
+    assert main(["report", str(run)]) == 0
+    assert capsys.readouterr().err.splitlines() == ["warning: the run's own caveat"]
+    # Warnings shown by Python's own machinery (outside the recorded blocks) alike.
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        from glaciar.cli import _show_warning
+        _show_warning(ResourceWarning("unclosed"), ResourceWarning, "f.py", 1)
+        _show_warning(UserWarning("shown"), UserWarning, "f.py", 1)
+    assert capsys.readouterr().err.splitlines() == ["warning: shown"]

@@ -56,6 +56,7 @@ def test_second_writer_is_refused_and_live_temp_files_survive(run_copy, tmp_path
     finally:
         holder.stdin.close()
         holder.wait(timeout=30)
+        holder.stdout.close()
     # Once the holder is gone the lock is free, and the stale temp file is cleaned up.
     assert simulate(cfg, run, workers=1, progress=False)["n_run"] == 0
     assert not tmp_file.exists()

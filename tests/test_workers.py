@@ -78,7 +78,7 @@ def test_workers_die_with_a_killed_parent(small_survey_dict, tmp_path):
     proc, workers, _, run = _start_cli_run(small_survey_dict, tmp_path)
     try:
         os.kill(proc.pid, signal.SIGKILL)
-        proc.wait(timeout=30)
+        proc.communicate(timeout=30)          # reaps it and closes its pipes
         assert _gone(workers, timeout=5), [p.pid for p in workers]
     finally:
         _kill_all(workers)
