@@ -35,7 +35,16 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["jacobian", "magnification", "distance_ratio", "convergence_shear_from_deflection",
-           "lensed_shape", "LensedShape", "SISLens", "source_plane_area"]
+           "lensed_shape", "LensedShape", "SISLens", "source_plane_area",
+           "lens_area_nodes", "node_inverse_magnification",
+           "LENS_SHIFT_BIN_MAG", "NODE_KEYS"]
+
+#: Bin width of the magnification shift 2.5 log10|mu| when pixels are grouped into area nodes [mag].
+LENS_SHIFT_BIN_MAG = 0.05
+#: |2.5 log10 mu| beyond this (|mu| > 10^4, on a critical curve) falls in the last bin [mag].
+MAX_SHIFT_MAG = 10.0
+#: The columns of a field's lens area nodes (:func:`lens_area_nodes`).
+NODE_KEYS = ("depth", "kappa", "gamma", "kappa2_minus_gamma2", "area_arcmin2")
 
 
 def jacobian(kappa, gamma1, gamma2) -> np.ndarray:
@@ -217,6 +226,90 @@ def source_plane_area(magnification, pixel_area: float) -> float:
     with np.errstate(divide="ignore"):
         inv = np.where(np.isfinite(mu) & (mu != 0), 1.0 / np.abs(mu), 0.0)
     return float(pixel_area * inv.sum())
+
+
+def lens_area_nodes(depth, kappa, gamma1, gamma2, area_per_sample, *, depth_bin_mag: float,
+                    ratio_range=(1.0, 1.0), shift_bin_mag: float = LENS_SHIFT_BIN_MAG) -> dict:
+    """Group a field's pixels into (local depth, magnification) nodes for V_eff.
+
+    V_eff behind a lens is a sum over image-plane area of ``A / |mu(z)|`` times the
+    selection probability at the depth and the magnified magnitude ``m - 2.5 log10 |mu|``
+    there; ``mu`` at a source redshift follows from kappa and |gamma| of the normalised
+    model alone: ``det A = 1 / mu = 1 - 2 r kappa + r^2 (kappa^2 - |gamma|^2)`` with
+    ``r = D_ls / D_s``.  Pixels are grouped by depth bin (the edges of
+    :func:`glaciar.engine.depth.depth_area_histogram`), by image parity at both ends of
+    ``ratio_range`` and by bins of ``2.5 log10 |mu|`` of width ``shift_bin_mag`` at both
+    ends; each node carries its area and the area-weighted means of depth, kappa, |gamma|
+    and ``kappa^2 - |gamma|^2``.
+
+    Accuracy: ``det A`` is linear in kappa and ``kappa^2 - |gamma|^2``, so a node's mean
+    ``1/mu`` at any r is exact (:func:`node_inverse_magnification`), and a node whose
+    pixels keep one parity over the range gives the exact source-plane area there; only
+    pixels that cross a critical curve inside the range are approximated (0.06 % of the
+    area for an SIS with external shear, r = 0.6-0.9: tests/galaxy/test_lensing.py).  A
+    node's magnification shift is within ~``shift_bin_mag`` / 2 of each of its pixels' at
+    the range's ends.
+
+    Parameters
+    ----------
+    depth : array_like
+        Local depth per sample [AB mag], NaN outside the footprint (skipped).
+    kappa, gamma1, gamma2 : array_like
+        The normalised lens model (D_ls/D_s = 1) at the same samples.
+    area_per_sample : float or array_like
+        Image-plane area of each sample [arcmin^2].
+    depth_bin_mag : float
+        Depth bin width [mag] (edges at its integer multiples).
+    ratio_range : (float, float)
+        D_ls/D_s at the lowest and highest source redshift V_eff will integrate over.
+    shift_bin_mag : float
+        Bin width of ``2.5 log10 |mu|`` [mag].
+
+    Returns
+    -------
+    dict
+        Keys :data:`NODE_KEYS`: lists of floats (JSON-ready), one entry per non-empty node.
+    """
+    d, k, g1, g2 = (np.ravel(np.asarray(v, dtype=float)) for v in (depth, kappa, gamma1, gamma2))
+    w = np.broadcast_to(np.asarray(area_per_sample, dtype=float), np.shape(depth)).ravel()
+    if not (d.size == k.size == g1.size == g2.size):
+        raise ValueError("lens_area_nodes: depth and the lens maps must have one size, got "
+                         f"{d.size}, {k.size}, {g1.size}, {g2.size}")
+    ok = np.isfinite(d)
+    if np.any(~np.isfinite(k[ok] + g1[ok] + g2[ok])):
+        raise ValueError("lens_area_nodes: the lens model is not finite everywhere in the footprint")
+    d, k, g, w = d[ok], k[ok], np.hypot(g1[ok], g2[ok]), w[ok]
+    if d.size == 0:
+        return {key: [] for key in NODE_KEYS}
+    s2 = k * k - g * g
+    key = np.floor(d / depth_bin_mag).astype(np.int64)
+    key -= key.min()
+    for r in (float(v) for v in ratio_range):
+        det = 1.0 - 2.0 * r * k + r * r * s2
+        with np.errstate(divide="ignore"):
+            shift = np.clip(-2.5 * np.log10(np.abs(det)), -MAX_SHIFT_MAG, MAX_SHIFT_MAG)
+        cell = np.floor(shift / shift_bin_mag).astype(np.int64)
+        n_cells = int(2 * MAX_SHIFT_MAG / shift_bin_mag) + 2
+        key = (key * 2 + (det > 0)) * n_cells + (cell - cell.min())
+    uniq, inv = np.unique(key, return_inverse=True)
+    area = np.bincount(inv, weights=w)
+
+    def mean(v):
+        return np.bincount(inv, weights=w * v) / area
+    return {"depth": mean(d).tolist(), "kappa": mean(k).tolist(), "gamma": mean(g).tolist(),
+            "kappa2_minus_gamma2": mean(s2).tolist(), "area_arcmin2": area.tolist()}
+
+
+def node_inverse_magnification(nodes: dict, ratio) -> np.ndarray:
+    """Area-weighted mean ``1 / mu`` of each node (:func:`lens_area_nodes`) for sources at
+    ``D_ls / D_s = ratio`` (array_like, broadcast as ``ratio[..., None]`` over the nodes).
+
+    Signed; ``abs`` of it is the source-plane area per unit image-plane area.
+    """
+    r = np.asarray(ratio, dtype=float)[..., None]
+    k = np.asarray(nodes["kappa"], dtype=float)
+    s2 = np.asarray(nodes["kappa2_minus_gamma2"], dtype=float)
+    return 1.0 - 2.0 * r * k + r * r * s2
 
 
 @dataclass(frozen=True)
