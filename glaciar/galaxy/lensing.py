@@ -98,10 +98,16 @@ def distance_ratio(z_lens: float, z_source, cosmology="Planck18") -> np.ndarray:
     out = np.zeros(zs.shape)
     behind = zs > z_lens
     if behind.any():
-        d_ls = cosmo.angular_diameter_distance_z1z2(z_lens, zs[behind]).value
-        d_s = cosmo.angular_diameter_distance(zs[behind]).value
-        out[behind] = d_ls / d_s
+        out[behind] = _ratio(cosmo, z_lens, zs[behind])
     return out.reshape(np.shape(z_source))
+
+
+def _ratio(cosmo, z_lens: float, zs: np.ndarray) -> np.ndarray:
+    try:                        # astropy >= 7: angular_diameter_distance(z1, z2)
+        d_ls = cosmo.angular_diameter_distance(z_lens, zs)
+    except TypeError:
+        d_ls = cosmo.angular_diameter_distance_z1z2(z_lens, zs)
+    return (d_ls / cosmo.angular_diameter_distance(zs)).to_value("")
 
 
 def convergence_shear_from_deflection(alpha_x, alpha_y, pixel_scale: float = 1.0):

@@ -7,7 +7,8 @@ a primary header (format, version, model, magnitude type, area, fields), a
 (posterior draws; model and simulated box in the header), ``PARAMS``
 (quantiles and chain diagnostics per parameter), the ``C_GRID``, ``SR_GRID``
 and ``P_GRID`` cubes (posterior quantiles :data:`GRID_QUANTILES` on the z x m
-grid, survey averages over depth), ``PPC`` and ``DEPTH`` (area by depth), and
+grid, survey averages over depth), ``PPC`` and ``DEPTH`` (area by depth), ``LENS`` (lensed
+fields: area nodes by depth and lens model, :mod:`glaciar.inference.lensed`), and
 for luminosity-function codes ``VEFF_MUV`` / ``VEFF_MUV_DRAWS`` (V_eff as a function
 of M_UV) and ``TRANSFER`` / ``TR_COUNTS`` / ``TR_DRAWS`` / ``TR_BINS`` (the photometric
 transfer function p(m_obs | m_in, z)); one ``DETFILT`` table holds the detection
@@ -29,6 +30,8 @@ import numpy as np
 
 from ..galaxy.filters import Filter
 from ..version import __version__
+from ..galaxy.lensing import NODE_KEYS
+from .lensed import LensNodes
 from .models import SurfaceModel
 from .products import GRID_QUANTILES, EffectiveVolume, InjectionSED, VeffTable
 
@@ -101,6 +104,8 @@ def _hdus(sf, extver: int) -> list:
         hdus += _veff_hdus(sf.veff_muv, sf.field, extver)
     if sf.transfer_matrix is not None:
         hdus += _transfer_hdus(sf.transfer_matrix, sf.field, extver)
+    if sf.lens_nodes:
+        hdus.append(_lens_hdu(sf.lens_nodes, sf.field, extver))
     if sf.depth_area:
         rows = [(f, lo, hi, a) for f, (e, aa) in sorted(sf.depth_area.items())
                 for lo, hi, a in zip(e[:-1], e[1:], aa)]
@@ -110,6 +115,40 @@ def _hdus(sf, extver: int) -> list:
         h.header["FIELD"] = sf.field
         hdus.append(h)
     return hdus
+
+
+def _lens_hdu(lens_nodes: dict, field: str, extver: int):
+    """``LENS``: every lensed field's area nodes per lens model (one row per node)."""
+    from astropy.io import fits
+    from astropy.table import Table
+
+    rows = {k: [] for k in ("field", "model", "z_lens") + NODE_KEYS}
+    for f, per in sorted(lens_nodes.items()):
+        for name, nodes in per.items():
+            n = len(nodes.area_arcmin2)
+            rows["field"] += [f] * n
+            rows["model"] += [name] * n
+            rows["z_lens"] += [nodes.z_lens] * n
+            for k in NODE_KEYS:
+                rows[k] += list(np.asarray(getattr(nodes, k), float))
+    h = fits.table_to_hdu(Table(rows))
+    h.name, h.ver = "LENS", extver
+    h.header["FIELD"] = field
+    h.header["COMMENT"] = ("lens area nodes: image-plane area by local depth and lens (kappa, "
+                           "gamma normalised to D_ls/D_s = 1); see docs/selection-function-file.md")
+    return h
+
+
+def _read_lens(hdul, v):
+    if ("LENS", v) not in hdul:
+        return None
+    t = _native(hdul["LENS", v].data)
+    out = {}
+    for f, name in dict.fromkeys(zip(t["field"], t["model"])):
+        r = t[(t["field"] == f) & (t["model"] == name)]
+        out.setdefault(str(f), {})[str(name)] = LensNodes.from_dict(
+            str(f), str(name), float(r["z_lens"][0]), {k: r[k] for k in NODE_KEYS})
+    return out
 
 
 def _veff_hdus(vt: VeffTable, field: str, extver: int) -> list:
@@ -308,7 +347,8 @@ def decode(data: bytes, source: str = "<bytes>") -> dict[str, dict]:
             out[field] = dict(model=model, draws=draws, z_grid=zg, m_grid=mg, meta=meta,
                               field=field, ppc=ppc, depth_area=depth_area, domain=domain,
                               diagnostics=diag, sed=sed, veff_muv=_read_veff(hdul, v),
-                              transfer_matrix=_read_transfer(hdul, v))
+                              transfer_matrix=_read_transfer(hdul, v),
+                              lens_nodes=_read_lens(hdul, v))
     return out
 
 

@@ -34,12 +34,13 @@ import numpy as np
 from ..rundir import atomic_write_bytes
 from . import selection_format
 from .counts import SurveyVolume, count_kernel, expected_counts
+from .lensed import LensedSelection, lensed_muv_volume_draws, lensed_volume_draws
 from .models import SurfaceModel
-from .products import (GRID_QUANTILES, EffectiveVolume, MagnitudeAt, TransferSlice, band_colour,
+from .products import (GRID_QUANTILES, EffectiveVolume, MagnitudeAt, TransferSlice,
                        beta_nodes, kcorrection)
 from .transfer import transfer_function
 from .volume import (merge_depth_nodes, muv_magnitudes, muv_volume_draws, summarise_volume,
-                     volume_draws)
+                     volume_draws, warn_if_cut, detection_z_limit)
 
 __all__ = ["SelectionFunction", "MAX_DEPTH_NODES", "EXTRAPOLATION_TOLERANCE"]
 
@@ -53,7 +54,7 @@ MAX_DEPTH_NODES = 12
 EXTRAPOLATION_TOLERANCE = 1e-3
 
 
-class SelectionFunction:
+class SelectionFunction(LensedSelection):
     """Posterior draws of C and S, evaluable anywhere inside the simulated box.
 
     Parameters
@@ -156,29 +157,8 @@ class SelectionFunction:
                 return v
         if self.sed is None:
             return None
-        from ..galaxy.population import get_cosmology
-        sed, cosmo = self.sed, get_cosmology(self.sed.cosmology)
-
-        def flux(z):
-            return bool(np.isfinite(band_colour(z, np.array([sed.beta_mean]), sed.detection_filter,
-                                            sed.igm, cosmo)).all())
-
-        lo_z = max(self.domain.get("z", self._z_range())[0], 0.01)
-        hi_z = self.domain.get("z", self._z_range())[1]
-        if flux(hi_z):
-            lo, hi = hi_z, hi_z + 0.25
-            while flux(hi):
-                lo, hi = hi, hi + 0.25
-                if hi > 30.0:
-                    return None
-        elif not flux(lo_z):
-            return float(lo_z)
-        else:
-            lo, hi = lo_z, hi_z
-        while hi - lo > 0.005:
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if flux(mid) else (lo, mid)
-        return round(hi, 3)
+        zr = self.domain.get("z", self._z_range())
+        return detection_z_limit(self.sed, max(zr[0], 0.01), zr[1])
 
     def z_edge_is_physical(self, z_top: float, within: float = 0.1) -> bool:
         """Whether a redshift range ending at ``z_top`` reaches the detection band's flux limit.
@@ -426,9 +406,13 @@ class SelectionFunction:
         return MagnitudeAt(median=q[0], lower=q[1], upper=q[2], draws=out)
 
     def effective_volume(self, m, area=None, cosmology=None, *, field: str | None = None,
-                         z_min=None, z_max=None, n_z: int = 2001,
-                         interval: float = 0.68) -> EffectiveVolume:
+                         z_min=None, z_max=None, n_z: int = 2001, interval: float = 0.68,
+                         lens_model: str = "average") -> EffectiveVolume:
         """V_eff(m) = Σ_fields Σ_depth A(d) ∫ C(m, z | d) S(z, m | d) dV/dz/dΩ dz.
+
+        Lensed fields (:mod:`glaciar.inference.lensed`) sum their source-plane area
+        instead, ``m`` being the intrinsic magnitude; ``lens_model`` names one lens model,
+        or "average" (their mean; :meth:`lens_model_volumes` gives each and the spread).
 
         Parameters
         ----------
@@ -474,23 +458,17 @@ class SelectionFunction:
         dvdz = cosmology.differential_comoving_volume(zz).to_value(u.Mpc ** 3 / u.sr)
         m = np.asarray(m, float)
         mm = m.reshape(-1)
-        out, ends = volume_draws(self.model, self.draws, nodes, node_sr, zz, dvdz, mm)
-        # V_eff counts only the simulated z range: say so when C*S is not ~0 at its ends --
-        # except at a top that reaches the z where the detection band receives no flux
-        # (nothing is selected beyond it, whatever the surface extrapolates).
-        if (z_min, z_max) == tuple(zr):
-            top = ends[1]
-            if self.z_edge_is_physical(zr[1]):
-                top = np.zeros_like(top)
-            worst = np.maximum(ends[0], top)
-            cut = (ends[2] > 0) & (worst > 0.05 * ends[2])
-            if cut.any():
-                import warnings
-                warnings.warn(f"effective_volume: C*S is still "
-                              f"{np.max(worst[cut] / ends[2][cut]):.0%} of its peak at an end "
-                              f"of the simulated z range {zr[0]:g}-{zr[1]:g} "
-                              f"(m = {mm[cut][0]:g}...): V_eff misses the volume beyond it",
-                              stacklevel=2)
+        if self.lens_nodes and area is None:
+            out = self.lensed_draws(
+                lambda nl: lensed_volume_draws(self.model, self.draws, nl, zz, dvdz, mm, cosmology),
+                lambda f: volume_draws(self.model, self.draws, *self._area_nodes(None, f, "V_eff"),
+                                       zz, dvdz, mm)[0], lens_model, field)
+        else:
+            out, ends = volume_draws(self.model, self.draws, nodes, node_sr, zz, dvdz, mm)
+            # V_eff counts only the simulated z range: say so when C*S is not ~0 at its ends
+            # (but not at a top where the detection band receives no flux).
+            if (z_min, z_max) == tuple(zr):
+                warn_if_cut(ends, zr, self.z_edge_is_physical(zr[1]), mm)
         if "mag" in self.domain:
             out[:, self._mask(mm, np.full(mm.shape, zz[0]), None)] = np.nan
         return summarise_volume(out.reshape((self.n_draws,) + m.shape), interval)
@@ -523,8 +501,8 @@ class SelectionFunction:
 
     def effective_volume_muv(self, M_uv, area=None, cosmology=None, *, sed=None, beta=None,
                              field: str | None = None, z_min=None, z_max=None, n_z: int = 201,
-                             n_beta: int = 7, interval: float = 0.68,
-                             outside: str = "nan") -> EffectiveVolume:
+                             n_beta: int = 7, interval: float = 0.68, outside: str = "nan",
+                             lens_model: str = "average") -> EffectiveVolume:
         """V_eff as a function of absolute UV magnitude, per posterior draw.
 
         V_eff(M) = Σ_fields Σ_depth Ω(d) ∫ dz dV/dz/dΩ <P̄(z, M + K(z, beta) | d)>_beta,
@@ -569,7 +547,9 @@ class SelectionFunction:
             "nan": NaN for an M_UV that draws more than
             ``EXTRAPOLATION_TOLERANCE`` of its (median) V_eff from magnitudes
             outside the simulated range (at the central beta); "extrapolate"
-            keeps the parametric surface's extrapolation.
+            keeps the parametric surface's extrapolation (always, behind a lens).
+        lens_model : str
+            As :meth:`effective_volume` (lensed fields).
 
         Returns
         -------
@@ -594,7 +574,8 @@ class SelectionFunction:
         cosmology = get_cosmology(cosmology)
         if self.magnitude_type == "absolute":
             return self.effective_volume(M_uv, area, cosmology, field=field, z_min=z_min,
-                                         z_max=z_max, n_z=max(int(n_z), 2001), interval=interval)
+                                         z_max=z_max, n_z=max(int(n_z), 2001), interval=interval,
+                                         lens_model=lens_model)
         if sed is None:
             raise ValueError("effective_volume_muv: this fit records no injection SED (detection "
                              "filter, beta, IGM); pass sed=InjectionSED(...)")
@@ -617,8 +598,15 @@ class SelectionFunction:
         M = np.asarray(M_uv, float)
         MM = M.reshape(-1)
         m, flux, ext = muv_magnitudes(MM, K, k0, self.domain["mag"] if "mag" in self.domain else None)
-        out = muv_volume_draws(self.model, self.draws, nodes, node_sr, zz, dvdz, m, flux, bw, ext,
-                               EXTRAPOLATION_TOLERANCE if outside == "nan" else None)
+        tol = EXTRAPOLATION_TOLERANCE if outside == "nan" else None
+        if self.lens_nodes and area is None:
+            out = self.lensed_draws(lambda nl: lensed_muv_volume_draws(
+                self.model, self.draws, nl, zz, dvdz, m, flux, bw, cosmology), lambda f: muv_volume_draws(
+                self.model, self.draws, *self._area_nodes(None, f, "V_eff"), zz, dvdz, m, flux, bw,
+                ext, tol), lens_model, field)
+        else:
+            out = muv_volume_draws(self.model, self.draws, nodes, node_sr, zz, dvdz, m, flux, bw,
+                                   ext, tol)
         return summarise_volume(out.reshape((self.n_draws,) + M.shape), interval)
 
     def muv_grid(self, step: float = 0.1, sed=None, cosmology=None):
@@ -843,9 +831,10 @@ class SelectionFunction:
         """
         out = {}
         for field, kw in selection_format.decode(data, source).items():
-            tables = {k: kw.pop(k) for k in ("veff_muv", "transfer_matrix")}
+            tables = {k: kw.pop(k) for k in ("veff_muv", "transfer_matrix", "lens_nodes")}
             out[field] = sf = cls(**kw)
             sf.veff_muv, sf.transfer_matrix = tables["veff_muv"], tables["transfer_matrix"]
+            sf.lens_nodes = tables["lens_nodes"]
         return out
 
     def write(self, path) -> None:

@@ -13,7 +13,7 @@ import numpy as np
 from .products import EffectiveVolume
 
 __all__ = ["merge_depth_nodes", "volume_draws", "muv_magnitudes", "muv_volume_draws",
-           "summarise_volume"]
+           "summarise_volume", "warn_if_cut", "detection_z_limit"]
 
 #: Posterior draws evaluated at a time in V_eff(m) (memory: draws x n_z x n_m floats).
 M_BATCH = 64
@@ -172,3 +172,51 @@ def summarise_volume(out, interval: float) -> EffectiveVolume:
     unit = u.Mpc ** 3
     return EffectiveVolume(median=q[0] * unit, lower=q[1] * unit, upper=q[2] * unit,
                            draws=out * unit)
+
+
+def warn_if_cut(ends, z_range, top_is_physical: bool, mm) -> None:
+    """Warn that V_eff misses volume where C*S is not ~0 at an end of the simulated z range.
+
+    ``ends`` as :func:`volume_draws` returns it; a top that reaches the z where the
+    detection band receives no flux (``top_is_physical``) selects nothing beyond it,
+    whatever the surface extrapolates.
+    """
+    top = np.zeros_like(ends[1]) if top_is_physical else ends[1]
+    worst = np.maximum(ends[0], top)
+    cut = (ends[2] > 0) & (worst > 0.05 * ends[2])
+    if cut.any():
+        import warnings
+        warnings.warn(f"effective_volume: C*S is still {np.max(worst[cut] / ends[2][cut]):.0%} "
+                      f"of its peak at an end of the simulated z range {z_range[0]:g}-"
+                      f"{z_range[1]:g} (m = {mm[cut][0]:g}...): V_eff misses the volume beyond it",
+                      stacklevel=3)
+
+
+def detection_z_limit(sed, lo_z: float, hi_z: float, z_stop: float = 30.0):
+    """Lowest redshift [to 0.005] at which the detection band receives no flux from a source
+    of the central beta of ``sed`` (an InjectionSED), searched from the range [lo_z, hi_z]
+    upward to ``z_stop``; None when it receives flux up to there.  ``lo_z`` itself when the
+    band already receives none there."""
+    from ..galaxy.population import get_cosmology
+    from .products import band_colour
+
+    cosmo = get_cosmology(sed.cosmology)
+
+    def flux(z):
+        return bool(np.isfinite(band_colour(z, np.array([sed.beta_mean]), sed.detection_filter,
+                                            sed.igm, cosmo)).all())
+
+    if flux(hi_z):
+        lo, hi = hi_z, hi_z + 0.25
+        while flux(hi):
+            lo, hi = hi, hi + 0.25
+            if hi > z_stop:
+                return None
+    elif not flux(lo_z):
+        return float(lo_z)
+    else:
+        lo, hi = lo_z, hi_z
+    while hi - lo > 0.005:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if flux(mid) else (lo, mid)
+    return round(hi, 3)

@@ -15,6 +15,7 @@ import numpy as np
 from .. import constants as C
 from ..galaxy.filters import get_filter
 from ..galaxy.population import get_cosmology
+from ..inference.lensed import LensNodes
 from ..inference.products import InjectionSED, VeffTable
 from ..inference.selection_function import SelectionFunction
 from ..counting import COUNT_K_REC, COUNT_K_SEL, COUNT_N, HIST_MIN_KEY, HIST_MOBS_BIN
@@ -22,7 +23,7 @@ from ..store import read_current_histograms
 from ..tables import transfer_from_histograms, transfer_matrix
 from .inputs import read_columns
 
-__all__ = ["add_lf_products", "injection_sed"]
+__all__ = ["add_lf_products", "injection_sed", "lens_nodes_from_manifest"]
 
 #: V_eff(M_UV) in the file: M_UV step [mag], posterior draws, Simpson nodes in z and
 #: Gauss-Hermite nodes in beta (within 6.5e-4 of 401 z and 9 beta nodes, every draw and M_UV
@@ -61,6 +62,17 @@ def injection_sed(run_dir, manifest: dict) -> InjectionSED | None:
                         str(src["igm"]), str(src.get("cosmology", "Planck18")))
 
 
+def lens_nodes_from_manifest(manifest: dict) -> dict:
+    """``{field: {model: LensNodes}}`` of a run's lensed fields (manifest ``lens`` and
+    ``lens_nodes``, written at set-up); empty for an unlensed run."""
+    lens = manifest.get("lens") or {}
+    out = {}
+    for field, per in sorted((manifest.get("lens_nodes") or {}).items()):
+        out[field] = {name: LensNodes.from_dict(field, name, lens["z_lens"], nodes)
+                      for name, nodes in per.items()}
+    return out
+
+
 def add_lf_products(run_dir, manifest: dict, fits_list: list[SelectionFunction], *,
                     cosmology=None, seed=0) -> None:
     """Attach the injections' SED, V_eff(M_UV) and the transfer matrices to each fit.
@@ -93,8 +105,10 @@ def add_lf_products(run_dir, manifest: dict, fits_list: list[SelectionFunction],
     obs_col = C.band_column(C.OBS_MAG_QUANTITY, det) if det else None
     transfer = _transfer_source(run_dir, obs_col)
     listed = [str(f) for f in (manifest.get("fields") or [])]
+    lens = lens_nodes_from_manifest(manifest)
     for i, sf in enumerate(fits_list):
         sf.sed = sed
+        sf.lens_nodes = {f: per for f, per in lens.items() if sf.field in ("all", f)} or None
         cosmo = get_cosmology(cosmology if cosmology is not None else
                               (sed.cosmology if sed is not None else None))
         if sed is not None or sf.magnitude_type == "absolute":
@@ -105,6 +119,7 @@ def add_lf_products(run_dir, manifest: dict, fits_list: list[SelectionFunction],
                 few = SelectionFunction(sf.model, sf.draws[:VEFF_MUV_DRAWS], meta=sf.meta,
                                         field=sf.field, depth_area=sf.depth_area,
                                         domain=sf.domain, sed=sed)
+                few.lens_nodes = sf.lens_nodes
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")     # the fit already warns about z edges
                     vol = few.effective_volume_muv(grid, cosmology=cosmo,
