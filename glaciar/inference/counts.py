@@ -49,6 +49,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .lensed import lensed_count_tables
 from .products import beta_nodes, kcorrection
 from .transfer import transfer_function
 
@@ -306,6 +307,10 @@ def count_kernel(sf, m_obs_edges, M_edges=None, *, volume: SurveyVolume = Survey
                          "pass transfer=False to count input magnitudes")
     cosmology = get_cosmology(sed.cosmology if cosmology is None else cosmology)
     nodes, node_sr = sf._area_nodes(area, field, who)
+    lens_fields, plain_fields = sf._lensed_fields(field) if sf.lens_nodes and area is None \
+        else ([], None)
+    if lens_fields and sf.magnitude_type == "absolute":
+        raise ValueError(f"{who}: lensed fields need a fit in apparent (observed) magnitude")
     z_lo, z_hi = sf._z_limits(z_min, z_max, who)
     zz = np.linspace(z_lo, z_hi, int(n_z) | 1)
     n_z = len(zz)
@@ -364,27 +369,52 @@ def count_kernel(sf, m_obs_edges, M_edges=None, *, volume: SurveyVolume = Survey
         si2 = np.minimum(si + 1, len(tf.z_nodes) - 1)
         cache = {}
 
+        def q_on(grid, a):
+            """q(k | grid, z) [(n_z, len(grid), n_k)] of the transfer draw paired with draw a."""
+            dt = 0 if point else a % n_t
+            key = (dt, len(grid), float(grid[0]))
+            if key not in cache:
+                cache.clear()
+                tab = tf.slice_table(grid, E, draws=[dt])[0]                   # (n_s, n_grid, n_k)
+                cache[key] = (1 - ss)[:, None, None] * tab[si] + ss[:, None, None] * tab[si2]
+            return cache[key]
+
         def q_table(a):
             """q(k | m_tab, z) [(n_z n_tab, n_k)] of the transfer draw paired with draw a."""
-            dt = 0 if point else a % n_t
-            if dt not in cache:
-                cache.clear()
-                tab = tf.slice_table(m_tab, E, draws=[dt])[0]                  # (n_s, n_tab, n_k)
-                q = (1 - ss)[:, None, None] * tab[si] + ss[:, None, None] * tab[si2]
-                cache[dt] = q.reshape(n_z * n_tab, n_k)
-            return cache[dt]
+            return q_on(m_tab, a).reshape(n_z * n_tab, n_k)
+
+    elif lens_fields:
+        # Behind a lens "measured = input" means the magnified input magnitude, so the
+        # counts go through the lensed tables with q = the bin holding that magnitude.
+        def q_on(grid, a):
+            k = np.searchsorted(E, grid, side="right") - 1
+            one = (k[:, None] == np.arange(n_k)[None, :]).astype(float)
+            return np.broadcast_to(one[None], (n_z,) + one.shape)
+
+        def q_table(a):
+            return q_on(m_tab, a).reshape(n_z * n_tab, n_k)
 
     # Draws that share a transfer draw one after the other: each table is made once.
     order = sorted(range(len(idx)), key=lambda a: a % n_t) if transfer else range(len(idx))
     values = np.zeros((len(idx), n_M, n_k))
     extrap = np.zeros((n_M, n_k))
     if not absolute:
-        P_tab = _selection_table(sf, idx, zz, m_tab, nodes, node_sr)           # (n_d, n_z, n_tab)
-        if transfer:
+        if lens_fields:
+            # Lensed fields through their source-plane tables, the others by depth nodes.
+            P_tab = sum(_selection_table(sf, idx, zz, m_tab, *sf._area_nodes(None, f, who))
+                        for f in plain_fields) if plain_fields else np.zeros((len(idx), n_z, n_tab))
+        else:
+            P_tab = _selection_table(sf, idx, zz, m_tab, nodes, node_sr)       # (n_d, n_z, n_tab)
+        if transfer or lens_fields:
             A = spread(ji, n_M, w_pt)
             A_ext = spread(ji, n_M, np.where(ext_pt, w_pt, 0.0)) if ext_pt.any() else None
+            lensed_h = (lensed_count_tables(sf, idx, zz, m_tab, field, cosmology, q_on, order=order)
+                        if lens_fields else None)
             for a in order:
                 H = P_tab[a].reshape(-1, 1) * q_table(a)
+                if lensed_h is not None:
+                    _, h_l = next(lensed_h)
+                    H = H + h_l.reshape(n_z * n_tab, n_k)
                 values[a] = A @ H
                 if A_ext is not None:
                     extrap += A_ext @ H

@@ -307,20 +307,23 @@ class LensedSelection:
         others = sorted(set(self.depth_area or {}) - lensed)
         return sorted(lensed), others
 
-    def _models(self, lens_model):
-        if lens_model == "average":
-            return self.lens_models
-        if lens_model not in self.lens_models:
-            raise ValueError(f"no lens model {lens_model!r} (have {self.lens_models})")
-        return [lens_model]
+    def for_lens_model(self, name: str):
+        """This selection function with only lens model ``name`` kept (a shallow copy)."""
+        import copy
 
-    def lensed_draws(self, per_nodes, per_field, lens_model, field):
+        if name not in self.lens_models:
+            raise ValueError(f"no lens model {name!r} (have {self.lens_models})")
+        out = copy.copy(self)
+        out.lens_nodes = {f: {name: per[name]} for f, per in self.lens_nodes.items() if name in per}
+        return out
+
+    def lensed_draws(self, per_nodes, per_field, field):
         """V_eff draws summed over fields: ``per_nodes(nodes_list)`` for the lensed fields
-        (averaged over ``lens_model``'s models) plus ``per_field(f)`` for the others."""
+        (averaged over the lens models) plus ``per_field(f)`` for the others."""
         lensed, others = self._lensed_fields(field)
         out = 0.0
         if lensed:
-            models = self._models(lens_model)
+            models = self.lens_models
             out = sum(per_nodes([self.lens_nodes[f][mname] for f in lensed
                                  if mname in self.lens_nodes[f]]) for mname in models) / len(models)
         for f in others:
@@ -347,9 +350,111 @@ class LensedSelection:
 
         if not self.lens_nodes:
             raise ValueError("lens_model_volumes: this selection function has no lensed field")
-        fn = self.effective_volume_muv if absolute else self.effective_volume
-        per = {name: fn(m, lens_model=name, interval=interval, **kw) for name in self.lens_models}
+        fn = "effective_volume_muv" if absolute else "effective_volume"
+        per = {name: getattr(self.for_lens_model(name), fn)(m, interval=interval, **kw)
+               for name in self.lens_models}
         draws = np.mean([v.draws.to_value(u.Mpc ** 3) for v in per.values()], axis=0)
         medians = np.array([v.median.to_value(u.Mpc ** 3) for v in per.values()])
         return LensModelVolumes(per_model=per, average=summarise_volume(draws, interval),
                                 spread=medians.std(axis=0) * u.Mpc ** 3)
+
+
+def _kernel_sets(sf, field, zz, cosmology, h, n_classes):
+    """Lens-shift kernels of the lensed fields, per depth class, averaged over the lens models.
+
+    Returns (k0, kernels (n_c, n_z, n_k) [sr], class offsets (n_c,) [mag of the model's
+    magnitude covariate]).  A depth-aware model's nodes are merged into at most
+    ``n_classes`` classes of their depth offset, each at its area-weighted mean offset (the
+    approximation unlensed fields make with their depth nodes); the lens shift of every
+    node is kept on the lattice.
+    """
+    import astropy.units as u
+
+    lensed, _ = sf._lensed_fields(field)
+    models = sf.lens_models
+    parts = []
+    for name in models:
+        for f in lensed:
+            nodes = sf.lens_nodes[f].get(name)
+            if nodes is None:
+                continue
+            det = nodes.inverse_magnification(zz, cosmology)
+            with np.errstate(divide="ignore"):
+                shift = np.clip(2.5 * np.log10(np.abs(det)), -MAX_LENS_SHIFT_MAG, MAX_LENS_SHIFT_MAG)
+            sr = (nodes.area_arcmin2 * u.arcmin ** 2).to_value(u.sr)
+            off = (sf.model.relative_magnitude(0.0, nodes.depth) if sf.model.depth_aware
+                   else np.zeros(len(sr)))
+            parts.append((shift / h, np.abs(det) * sr[None, :] / len(models), off, sr))
+    pos = np.concatenate([p[0] for p in parts], axis=1)
+    w = np.concatenate([p[1] for p in parts], axis=1)
+    off = np.concatenate([p[2] for p in parts])
+    sr = np.concatenate([p[3] for p in parts])
+    lo, hi = float(off.min()), float(off.max())
+    n_c = 1 if hi <= lo else n_classes
+    cls = np.zeros(len(off), np.int64) if n_c == 1 else np.minimum(
+        ((off - lo) / (hi - lo) * n_c).astype(np.int64), n_c - 1)
+    used, cls = np.unique(cls, return_inverse=True)
+    offsets = np.bincount(cls, weights=sr * off) / np.bincount(cls, weights=sr)
+    i0 = np.floor(pos).astype(np.int64)
+    f = pos - i0
+    k0 = int(i0.min())
+    n_k = int(i0.max()) - k0 + 2
+    kernels = np.zeros((len(used), len(zz), n_k))
+    zi = np.broadcast_to(np.arange(len(zz))[:, None], i0.shape)
+    ci = np.broadcast_to(cls[None, :], i0.shape)
+    np.add.at(kernels, (ci, zi, i0 - k0), w * (1 - f))
+    np.add.at(kernels, (ci, zi, i0 - k0 + 1), w * f)
+    return k0, kernels, offsets
+
+
+def lensed_count_tables(sf, idx, zz, m_tab, field, cosmology, q_on=None, n_classes: int = 12,
+                        order=None):
+    """The lensed fields' part of a count kernel's table on ``zz x m_tab`` (evenly spaced).
+
+    Parameters
+    ----------
+    sf : SelectionFunction
+        With ``lens_nodes``.
+    idx : ndarray of int
+        Draw indices (``[-1]``: the pointwise posterior median of the surface).
+    zz, m_tab : ndarray
+        Redshift nodes and the intrinsic-magnitude table (step h, evenly spaced).
+    field : str or None
+    cosmology : astropy Cosmology
+    q_on : callable, optional
+        ``q_on(grid, a) -> (n_z, len(grid), n_k)``: the transfer function q(k | m_in, z) of
+        the transfer draw paired with draw ``a`` at *observed* injected magnitudes ``grid``.
+        Given, the tables hold ``sum_n Omega_n |det A_n| P(z, m + l_n | d_n) q(k | m + l_n, z)``
+        (the measured magnitude of a lensed source follows its magnified magnitude).
+    n_classes : int
+        Depth classes of a depth-aware model (see :func:`_kernel_sets`).
+    order : iterable of int, optional
+        The positions in ``idx`` in the order to yield them (default 0, 1, ...).
+
+    Yields
+    ------
+    (a, table)
+        ``a`` the position in ``idx`` and ``table`` of shape (n_z, n_tab) [sr] or, with
+        ``q_on``, (n_z, n_tab, n_k).
+    """
+    from scipy.signal import fftconvolve
+
+    h = float(m_tab[1] - m_tab[0])
+    k0, kernels, offsets = _kernel_sets(sf, field, zz, cosmology, h, n_classes)
+    n_k = kernels.shape[2]
+    grid = m_tab[0] + h * np.arange(k0, len(m_tab) + k0 + n_k - 1)        # observed magnitudes
+    flipped = kernels[:, :, ::-1]
+    mdl = sf.model
+    for a in (range(len(idx)) if order is None else order):
+        d = idx[a]
+        th = sf.draws if d < 0 else sf.draws[d:d + 1]
+        out = 0.0
+        for c, oc in enumerate(offsets):
+            cc, ss = mdl.surfaces_on_grid(th, zz, grid + oc)
+            p = np.median(cc * ss, axis=0) if d < 0 else (cc * ss)[0]        # (n_z, G)
+            if q_on is None:
+                out = out + fftconvolve(p, flipped[c], mode="valid", axes=1)
+            else:
+                out = out + fftconvolve(p[:, :, None] * q_on(grid, a), flipped[c][:, :, None],
+                                        mode="valid", axes=1)
+        yield a, out

@@ -406,13 +406,13 @@ class SelectionFunction(LensedSelection):
         return MagnitudeAt(median=q[0], lower=q[1], upper=q[2], draws=out)
 
     def effective_volume(self, m, area=None, cosmology=None, *, field: str | None = None,
-                         z_min=None, z_max=None, n_z: int = 2001, interval: float = 0.68,
-                         lens_model: str = "average") -> EffectiveVolume:
+                         z_min=None, z_max=None, n_z: int = 2001,
+                         interval: float = 0.68) -> EffectiveVolume:
         """V_eff(m) = Σ_fields Σ_depth A(d) ∫ C(m, z | d) S(z, m | d) dV/dz/dΩ dz.
 
         Lensed fields (:mod:`glaciar.inference.lensed`) sum their source-plane area
-        instead, ``m`` being the intrinsic magnitude; ``lens_model`` names one lens model,
-        or "average" (their mean; :meth:`lens_model_volumes` gives each and the spread).
+        instead, ``m`` being the intrinsic magnitude, averaged over the lens models
+        (:meth:`for_lens_model` picks one; :meth:`lens_model_volumes` gives each and the spread).
 
         Parameters
         ----------
@@ -462,7 +462,7 @@ class SelectionFunction(LensedSelection):
             out = self.lensed_draws(
                 lambda nl: lensed_volume_draws(self.model, self.draws, nl, zz, dvdz, mm, cosmology),
                 lambda f: volume_draws(self.model, self.draws, *self._area_nodes(None, f, "V_eff"),
-                                       zz, dvdz, mm)[0], lens_model, field)
+                                       zz, dvdz, mm)[0], field)
         else:
             out, ends = volume_draws(self.model, self.draws, nodes, node_sr, zz, dvdz, mm)
             # V_eff counts only the simulated z range: say so when C*S is not ~0 at its ends
@@ -501,8 +501,8 @@ class SelectionFunction(LensedSelection):
 
     def effective_volume_muv(self, M_uv, area=None, cosmology=None, *, sed=None, beta=None,
                              field: str | None = None, z_min=None, z_max=None, n_z: int = 201,
-                             n_beta: int = 7, interval: float = 0.68, outside: str = "nan",
-                             lens_model: str = "average") -> EffectiveVolume:
+                             n_beta: int = 7, interval: float = 0.68,
+                             outside: str = "nan") -> EffectiveVolume:
         """V_eff as a function of absolute UV magnitude, per posterior draw.
 
         V_eff(M) = Σ_fields Σ_depth Ω(d) ∫ dz dV/dz/dΩ <P̄(z, M + K(z, beta) | d)>_beta,
@@ -548,8 +548,6 @@ class SelectionFunction(LensedSelection):
             ``EXTRAPOLATION_TOLERANCE`` of its (median) V_eff from magnitudes
             outside the simulated range (at the central beta); "extrapolate"
             keeps the parametric surface's extrapolation (always, behind a lens).
-        lens_model : str
-            As :meth:`effective_volume` (lensed fields).
 
         Returns
         -------
@@ -574,8 +572,7 @@ class SelectionFunction(LensedSelection):
         cosmology = get_cosmology(cosmology)
         if self.magnitude_type == "absolute":
             return self.effective_volume(M_uv, area, cosmology, field=field, z_min=z_min,
-                                         z_max=z_max, n_z=max(int(n_z), 2001), interval=interval,
-                                         lens_model=lens_model)
+                                         z_max=z_max, n_z=max(int(n_z), 2001), interval=interval)
         if sed is None:
             raise ValueError("effective_volume_muv: this fit records no injection SED (detection "
                              "filter, beta, IGM); pass sed=InjectionSED(...)")
@@ -603,7 +600,7 @@ class SelectionFunction(LensedSelection):
             out = self.lensed_draws(lambda nl: lensed_muv_volume_draws(
                 self.model, self.draws, nl, zz, dvdz, m, flux, bw, cosmology), lambda f: muv_volume_draws(
                 self.model, self.draws, *self._area_nodes(None, f, "V_eff"), zz, dvdz, m, flux, bw,
-                ext, tol), lens_model, field)
+                ext, tol), field)
         else:
             out = muv_volume_draws(self.model, self.draws, nodes, node_sr, zz, dvdz, m, flux, bw,
                                    ext, tol)
