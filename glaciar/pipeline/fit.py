@@ -45,7 +45,7 @@ from .chains import chains_key, file_tag, load_chains, save_chains
 from .fitdir import FitStage, hold_run
 from .inputs import depth_area as _depth_area
 from .inputs import fit_inputs, manifest_areas
-from .selection_file import add_lf_products
+from .selection_file import add_lf_products, lens_nodes_from_manifest
 from .summary import (cmax_summary, format_summary, json_default, m50_summary, param_summary,
                       param_table, veff_summary)
 
@@ -313,6 +313,7 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, sampler, volume, mag_
                          "(simulate it again into a new directory)")
     field_area = manifest_areas(manifest, run_dir)
     depth_area = _depth_area(manifest, fields)
+    lens_nodes = {f: per for f, per in lens_nodes_from_manifest(manifest).items() if f in fields}
 
     # Depth-aware?
     has_depth = bool(np.isfinite(data.depth).all())
@@ -410,6 +411,7 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, sampler, volume, mag_
         # Posterior-predictive check on a subset of draws.
         sub = SelectionFunction(mdl, res.draws(_DIAG_DRAWS), meta=fmeta, field=name,
                                 depth_area=own_depth, domain=domain)
+        sub.lens_nodes = {f: per for f, per in lens_nodes.items() if name in ("all", f)} or None
         zz, mm, mnom = d.z, d.mag, d.mag_nominal
         dd = d.depth if depth_aware else None
 

@@ -88,14 +88,22 @@ def veff_summary(sf: SelectionFunction, mg, zg, cosmology) -> dict:
         # the z-edge warning of the fit already covers V_eff's truncation
         warnings.filterwarnings("ignore", message="effective_volume: C\\*S is still")
         # the full magnitude grid with 200 draws (its median to ~1/15 of the 68 % width)
-        ve = SelectionFunction(sf.model, sf.draws[:200], meta=sf.meta, field=sf.field,
-                               depth_area=sf.depth_area, domain=sf.domain
-                               ).effective_volume(mg, cosmology=cosmology, n_z=201)
+        few = SelectionFunction(sf.model, sf.draws[:200], meta=sf.meta, field=sf.field,
+                                depth_area=sf.depth_area, domain=sf.domain)
+        few.lens_nodes = sf.lens_nodes
+        ve = few.effective_volume(mg, cosmology=cosmology, n_z=201)
         lev = sf.magnitude_at(0.5, [np.median(zg)])
         quote = ([float(x) for x in np.round(lev.median[0] + np.array([-1.0, 0.0, 0.5]), 2)]
                  if np.isfinite(lev.median[0]) else [float(x) for x in mg[[0, len(mg) // 2, -1]]])
         vq = sf.effective_volume(quote, cosmology=cosmology, n_z=401)
+        lens = None
+        if sf.lens_nodes:
+            # Behind a lens: the intrinsic magnitude; V_eff per lens model and their spread.
+            lv = sf.lens_model_volumes(quote, cosmology=cosmology, n_z=401)
+            lens = {"models": sf.lens_models, "spread_mpc3": lv.spread.value.tolist(),
+                    "median_mpc3": {k: v.median.value.tolist() for k, v in lv.per_model.items()}}
     return {"area_arcmin2": sf.area_arcmin2(), "z_range": list(sf.domain["z"]),
+            "lens": lens,
             "cosmology": getattr(cosmology, "name", None) or "Planck18",
             "mag": mg.tolist(), "median_mpc3": ve.median.value.tolist(),
             "lower_mpc3": ve.lower.value.tolist(), "upper_mpc3": ve.upper.value.tolist(),
@@ -148,6 +156,13 @@ def format_summary(summary: dict) -> str:
                          f"{ve['z_range'][1]:g}): " + "; ".join(
                              f"{mlabel} {m:.2f}: {v:.3g} [{lo:.3g}, {hi:.3g}] Mpc³" for m, v, lo, hi in
                              zip(q["mag"], q["median_mpc3"], q["lower_mpc3"], q["upper_mpc3"])))
+            if ve.get("lens"):
+                lz = ve["lens"]
+                lines.append("  behind the lens (intrinsic magnitude; mean of the models above): "
+                             + "; ".join(f"{name}: " + ", ".join(f"{v:.3g}" for v in med)
+                                         for name, med in lz["median_mpc3"].items())
+                             + " Mpc³; spread across models " + ", ".join(
+                                 f"{v:.2g}" for v in lz["spread_mpc3"]) + " Mpc³")
         elif e.get("effective_volume_note"):
             lines.append(f"  V_eff: not computed ({e['effective_volume_note']})")
     return "\n".join(lines) + "\n"
