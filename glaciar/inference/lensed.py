@@ -262,6 +262,13 @@ def lensed_muv_volume_draws(model, draws, nodes_list, zz, dvdz, m, flux, bw, cos
     return out
 
 
+def _magnified(m, magnification):
+    mu = np.abs(np.asarray(magnification, dtype=float))
+    if np.any(~(mu > 0)):
+        raise ValueError("magnification must be non-zero")
+    return np.asarray(m, dtype=float) - 2.5 * np.log10(mu)
+
+
 @dataclass(frozen=True)
 class LensModelVolumes:
     """V_eff behind the lens per lens model, their average and spread.
@@ -306,6 +313,16 @@ class LensedSelection:
             return ([field], []) if field in lensed else ([], [field])
         others = sorted(set(self.depth_area or {}) - lensed)
         return sorted(lensed), others
+
+    def completeness_lensed(self, m_intrinsic, z, magnification, depth=None, **kw):
+        """C of a source of intrinsic magnitude ``m_intrinsic`` seen through ``magnification``
+        (signed mu; |mu| is used): :meth:`completeness` at ``m - 2.5 log10 |mu|``."""
+        return self.completeness(_magnified(m_intrinsic, magnification), z, depth, **kw)
+
+    def selection_probability_lensed(self, z, m_intrinsic, magnification, depth=None, **kw):
+        """P = C S of a source of intrinsic magnitude ``m_intrinsic`` seen through
+        ``magnification``: :meth:`selection_probability` at ``m - 2.5 log10 |mu|``."""
+        return self.selection_probability(z, _magnified(m_intrinsic, magnification), depth, **kw)
 
     def for_lens_model(self, name: str):
         """This selection function with only lens model ``name`` kept (a shallow copy)."""

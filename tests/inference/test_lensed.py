@@ -191,3 +191,14 @@ def test_expected_counts_behind_a_mass_sheet_are_the_unlensed_ones_magnified():
     raw_shifted = lf_sf(n_draws=3).expected_counts(
         lambda M, z: phi(M + 2.5 * np.log10(mu), z), edges, transfer=False, **kw).draws / mu
     np.testing.assert_allclose(raw.sum(axis=-1), raw_shifted.sum(axis=-1), rtol=2e-3)
+
+
+def test_completeness_of_a_magnified_source_is_read_at_its_observed_magnitude():
+    sf = _sf(SMOOTH)
+    m = np.array([27.0, 28.5, 30.0])
+    np.testing.assert_array_equal(sf.completeness_lensed(m, 7.0, [10.0, -10.0, 1.0]),
+                                  sf.completeness(m - 2.5 * np.log10([10.0, 10.0, 1.0]), 7.0))
+    np.testing.assert_array_equal(sf.selection_probability_lensed(7.0, m, 2.0),
+                                  sf.selection_probability(7.0, m - 2.5 * np.log10(2.0)))
+    with pytest.raises(ValueError, match="non-zero"):
+        sf.completeness_lensed(m, 7.0, 0.0)
