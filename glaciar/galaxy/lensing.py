@@ -98,7 +98,7 @@ def distance_ratio(z_lens: float, z_source, cosmology="Planck18") -> np.ndarray:
     out = np.zeros(zs.shape)
     behind = zs > z_lens
     if behind.any():
-        d_ls = cosmo.angular_diameter_distance_z1z2(z_lens, zs[behind]).value
+        d_ls = cosmo.angular_diameter_distance(z_lens, zs[behind]).value
         d_s = cosmo.angular_diameter_distance(zs[behind]).value
         out[behind] = d_ls / d_s
     return out.reshape(np.shape(z_source))
