@@ -39,6 +39,8 @@ __all__ = ["FieldLens", "field_lens", "lens_map_paths", "check_field_lens", "fie
 NODE_SAMPLES = 1 << 21
 #: Lens-grid pixels kept beyond the field's extent on each side (bilinear needs 1).
 CROP_MARGIN = 3
+#: The analytic SIS is read at no less than this distance from its centre [image pixels].
+SIS_CORE_PIX = 0.5
 #: Rows of image positions transformed at once.
 ROW_BLOCK = 256
 
@@ -132,7 +134,15 @@ class FieldLens:
         falls outside the map or the map is not finite there."""
         x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
         if self.analytic is not None:
-            return self.analytic.convergence_shear(x, y)
+            # The SIS is singular at its centre: positions within SIS_CORE_PIX of it are read
+            # at that radius (the same direction), so a footprint pixel there stays finite.
+            a = self.analytic
+            dx, dy = x - a.x0, y - a.y0
+            r = np.hypot(dx, dy)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                f = np.where(r < SIS_CORE_PIX, SIS_CORE_PIX / np.where(r > 0, r, 1.0), 1.0)
+            dx = np.where(r > 0, dx * f, SIS_CORE_PIX)
+            return a.convergence_shear(a.x0 + dx, a.y0 + dy * f)
         from scipy.ndimage import map_coordinates
 
         u, v = self.to_grid(x.ravel(), y.ravel())
