@@ -85,9 +85,7 @@ def store_settings(cfg: Config) -> dict:
             b["psf"] = _FILE
         if file_or_none(b.get("filter"), cfg.base_dir) is not None:
             b["filter"] = _FILE
-    if sv.get("lens") is None:
-        sv.pop("lens", None)        # unlensed stores keep the identity they had before lensing
-    else:
+    if sv.get("lens") is not None:      # lens maps are identified by content too
         for m in sv["lens"].get("models") or ():
             for key in ("kappa", "gamma1", "gamma2", "alpha_x", "alpha_y"):
                 if m.get(key) is not None:
