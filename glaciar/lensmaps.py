@@ -76,8 +76,8 @@ def _image_wcs(survey, field: str):
     return w
 
 
-def _read_map(path: Path):
-    """A 2-D lens map and its celestial WCS (LensMapError naming the file)."""
+def _open_map(path: Path):
+    """The header (its 2-D image's) and shape of a lens map, and its celestial WCS."""
     import warnings
 
     from astropy.io import fits
@@ -86,13 +86,12 @@ def _read_map(path: Path):
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            with fits.open(path, memmap=False) as hdul:
-                hdu = next((h for h in hdul if getattr(h, "data", None) is not None
-                            and np.ndim(h.data) == 2), None)
+            with fits.open(path, memmap=True) as hdul:
+                hdu = next((h for h in hdul if h.is_image and h.header.get("NAXIS") == 2), None)
                 if hdu is None:
                     raise LensMapError(f"{path}: no 2-D image in the file")
-                data = np.asarray(hdu.data, dtype=np.float64)
-                w = WCS(hdu.header)
+                header = hdu.header.copy()
+                w = WCS(header)
     except LensMapError:
         raise
     except (OSError, ValueError, TypeError, KeyError, IndexError) as exc:
@@ -100,7 +99,25 @@ def _read_map(path: Path):
     if not w.has_celestial or w.celestial.naxis != 2:
         raise LensMapError(f"{path}: the lens map has no celestial WCS (CTYPE1/2 RA---/DEC--, "
                            "CRVAL, CRPIX, CD or CDELT); it cannot be placed on the images")
-    return data, w.celestial
+    return (int(header["NAXIS2"]), int(header["NAXIS1"])), w.celestial
+
+
+def _read_crop(path: Path, crop) -> np.ndarray:
+    """Rows and columns ``crop`` of a lens map's 2-D image, as float64 (only those are read
+    into memory: a map may be as large as a mosaic)."""
+    import warnings
+
+    from astropy.io import fits
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with fits.open(path, memmap=True) as hdul:
+                hdu = next(h for h in hdul if h.is_image and h.header.get("NAXIS") == 2)
+                return np.array(hdu.section[crop] if hasattr(hdu, "section") else hdu.data[crop],
+                                dtype=np.float64)
+    except (OSError, ValueError, TypeError, KeyError, IndexError) as exc:
+        raise LensMapError(f"{path}: unreadable lens map ({str(exc).splitlines()[0]})") from None
 
 
 class FieldLens:
@@ -188,15 +205,14 @@ def _orthogonal(m: np.ndarray) -> np.ndarray:
 def _fits(cfg, survey, field: str, model) -> FieldLens:
     paths = lens_map_paths(cfg, field)[model.name]
     label = ", ".join(str(p) for p in paths.values())
-    maps, grid = {}, None
+    grid = None
     for key, p in paths.items():
-        data, w = _read_map(p)
+        shape, w = _open_map(p)
         if grid is None:
-            grid = (data.shape, w, p)
-        elif data.shape != grid[0] or not _same_grid(w, grid[1], data.shape):
+            grid = (shape, w, p)
+        elif shape != grid[0] or not _same_grid(w, grid[1], shape):
             raise LensMapError(f"{p}: not on the grid of {grid[2]} (model {model.name!r}: every "
                                "map of a model must share one grid and WCS)")
-        maps[key] = data
     shape, lw, _ = grid
     iw = _image_wcs(survey, field)
     ny, nx = survey.shape(field)
@@ -205,7 +221,7 @@ def _fits(cfg, survey, field: str, model) -> FieldLens:
         ra, dec = iw.all_pix2world(x, y, 0)
         return lw.all_world2pix(ra, dec, 0)
 
-    # Keep only the lens grid over the image (+ margin): memory ~ the field's area.
+    # Only the lens grid over the image (+ margin) is read: memory ~ the field's area.
     bx = np.concatenate([np.linspace(0, nx - 1, 65), np.full(65, nx - 1.0),
                          np.linspace(0, nx - 1, 65), np.zeros(65)])
     by = np.concatenate([np.zeros(65), np.linspace(0, ny - 1, 65), np.full(65, ny - 1.0),
@@ -215,17 +231,17 @@ def _fits(cfg, survey, field: str, model) -> FieldLens:
     v0 = int(max(0, math.floor(np.nanmin(v)) - CROP_MARGIN))
     u1 = int(min(shape[1], math.ceil(np.nanmax(u)) + CROP_MARGIN + 1))
     v1 = int(min(shape[0], math.ceil(np.nanmax(v)) + CROP_MARGIN + 1))
-    if u1 <= u0 or v1 <= v0:
+    if u1 - u0 < 3 or v1 - v0 < 3:
         raise LensMapError(f"{label}: does not cover field {field!r} (no overlap with its image)")
+    crop = (slice(v0, v1), slice(u0, u1))
+    maps = {key: _read_crop(p, crop) for key, p in paths.items()}
     if model.kind == "kappa":
         k, g1, g2 = (maps[key] for key in ("kappa", "gamma1", "gamma2"))
     else:
-        # Derivatives on the whole map (not the crop) so its edges are central differences.
+        # Central differences inside the crop; its margin keeps one-sided ones off the field.
         h = 1.0 if model.deflection_unit == "pixel" else \
             float(np.sqrt(abs(np.linalg.det(lw.pixel_scale_matrix)))) * 3600.0
         k, g1, g2 = convergence_shear_from_deflection(maps["alpha_x"], maps["alpha_y"], h)
-    crop = (slice(v0, v1), slice(u0, u1))
-    k, g1, g2 = (np.ascontiguousarray(a[crop]) for a in (k, g1, g2))
 
     def cropped(x, y):
         uu, vv = to_grid(x, y)
