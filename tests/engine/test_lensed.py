@@ -178,3 +178,24 @@ def test_run_with_two_workers_gives_the_serial_rows_and_the_lens_nodes(lensed):
     nodes = manifest["lens_nodes"][field]["analytic"]
     assert sum(nodes["area_arcmin2"]) == pytest.approx(manifest["area_arcmin2"][field], rel=1e-9)
     assert manifest["store_settings"]["survey"]["lens"]["z_lens"] == Z_LENS
+
+
+def test_lensed_isolation_boxes_never_intersect(lensed):
+    """Each source's box, from its image shape at its own position (the light holding
+    isolation_fraction, plus the PSF margin), meets no other source's box."""
+    from glaciar.galaxy.sersic import stamp_shape
+
+    rows, ctx = lensed["rows"], lensed["ctx"]
+    half = []
+    for _, row in rows.iterrows():
+        ny, nx = stamp_shape(row[C.COL_SERSIC_N], row[C.COL_R_EFF_PIX], row[C.COL_AXIS_RATIO],
+                             row[C.COL_PA], enclosed_fraction=ctx.isolation_fraction)
+        half.append(((ny - 1) // 2 + ctx.isolation_margin_pix, (nx - 1) // 2 + ctx.isolation_margin_pix))
+    iy = np.floor(rows[C.COL_Y].to_numpy() + 0.5).astype(int)
+    ix = np.floor(rows[C.COL_X].to_numpy() + 0.5).astype(int)
+    for i in range(len(rows)):
+        for j in range(i):
+            apart = (abs(iy[i] - iy[j]) > half[i][0] + half[j][0]
+                     or abs(ix[i] - ix[j]) > half[i][1] + half[j][1])
+            assert apart, (i, j)
+    assert ctx.footprint[iy, ix].all()
