@@ -275,6 +275,10 @@ def _cmd_demo(args) -> int:
     out = _check_out_dir(Path(args.out))
     t0 = time.perf_counter()
     cfg_path = build_demo_survey(out / "survey", seed=args.seed)
+    if args.lensed:
+        from .demo.lensed import write_lensed_demo_config
+
+        cfg_path = write_lensed_demo_config(cfg_path)
     print(f"demo survey written: {cfg_path} ({time.perf_counter() - t0:.1f} s)")
     cfg = _load(cfg_path)
     run_dir = out / "run"
@@ -418,6 +422,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "configuration's simulation.seed (an integer >= 0)")
     s.add_argument("--no-fit", action="store_true",
                    help="stop after simulate and report (no selection function)")
+    s.add_argument("--lensed", action="store_true",
+                   help="the survey behind an analytic cluster lens (SIS + external shear; "
+                        "configs/demo_lensed.yaml, docs/lensing.md)")
     s.add_argument("--quiet", action="store_true", help=_HELP_QUIET)
     s.set_defaults(func=_cmd_demo)
 

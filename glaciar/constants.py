@@ -34,6 +34,9 @@ FLAG_NO_DATA = 8               #: some band has no data under the input position
 #: the detection has a pixel at or above SATUR_LEVEL in the detection band (SExtractor's FLAGS
 #: value 4, OBJ_SATUR; glaciar's value 4 was already FLAG_STAMP_CLIPPED, so the bit differs)
 FLAG_SATURATED = 16
+#: behind a lens: |magnification| > LENS_MAX_MAGNIFICATION or the image's axis ratio below the
+#: renderer's Q_MIN; injected with the shape clipped (glaciar.engine.lensed, docs/lensing.md)
+FLAG_LENS_EXTREME = 64
 
 # --------------------------------------------------------------------------
 # Physical constants
@@ -66,6 +69,21 @@ COL_R_EFF_PIX = "r_eff_pix"
 COL_BETA = "beta"
 COL_M_UV = "M_uv"
 COL_STATUS = "status"
+# Lensed fields only (survey.lens; docs/lensing.md).  The r_eff_*, axis_ratio and
+# position_angle_deg columns hold the image's (observed) values there, mag_input and
+# mag_in_* the observed magnitudes, M_uv the one the observed magnitude gives unmagnified.
+COL_MAGNIFICATION = "magnification"        #: signed mu at the source's z
+COL_KAPPA = "kappa"                        #: convergence at the source's z
+COL_GAMMA = "gamma"                        #: |shear| at the source's z
+COL_MAG_INTRINSIC = "mag_intrinsic"        #: detection-band magnitude without the lens
+COL_M_UV_INTRINSIC = "M_uv_intrinsic"
+COL_R_EFF_ARCSEC_INTRINSIC = "r_eff_arcsec_intrinsic"
+COL_R_EFF_KPC_INTRINSIC = "r_eff_kpc_intrinsic"
+COL_AXIS_RATIO_INTRINSIC = "axis_ratio_intrinsic"
+COL_PA_INTRINSIC = "position_angle_deg_intrinsic"
+#: |mu| above which a lensed source is flagged FLAG_LENS_EXTREME (near a critical curve the
+#: lens is not linear across a stamp) and its image's major axis clipped to this x intrinsic
+LENS_MAX_MAGNIFICATION = 50.0
 COL_RECOVERED = "recovered"
 COL_SELECTED = "selected"
 #: Selection probability a user selection function returned (``selection: {function: ...}``

@@ -30,6 +30,7 @@ from .engine import fieldcache
 from .engine.context import FieldContext
 from .fieldprep import (build_field_context, field_depth_area, field_noise_record,
                         field_settings)
+from .lensmaps import field_lens_nodes
 from .paths import run_subdir
 from .store import StoreWarning
 from .rundir import read_manifest
@@ -218,10 +219,13 @@ def field_records(cfg: Config, survey: Survey, field: str, ctx: FieldContext) ->
     area [arcmin^2], area by local depth (:func:`glaciar.fieldprep.field_depth_area`) and
     noise record (:func:`glaciar.fieldprep.field_noise_record`), as plain data."""
     ps = survey.pixel_scale_arcsec(field)
-    return {"pixel_scale_arcsec": ps,
-            "area_arcmin2": float(ctx.footprint_count) * ps ** 2 / 3600.0,
-            "depth_area": field_depth_area(cfg, survey, field, ctx),
-            "noise": field_noise_record(cfg, survey, field, ctx)}
+    out = {"pixel_scale_arcsec": ps,
+           "area_arcmin2": float(ctx.footprint_count) * ps ** 2 / 3600.0,
+           "depth_area": field_depth_area(cfg, survey, field, ctx),
+           "noise": field_noise_record(cfg, survey, field, ctx)}
+    if cfg.survey.lens is not None:
+        out["lens_nodes"] = field_lens_nodes(cfg, survey, field, ctx.depth, ctx.footprint)
+    return out
 
 
 #: One field measured at a time per process: an executor whose workers run several threads

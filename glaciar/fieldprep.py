@@ -35,6 +35,7 @@ from .galaxy import population
 from .galaxy.filters import get_filter
 from .galaxy.psf import measure_fwhm, prepare_psf
 from .galaxy.templates import TemplateCache
+from .lensmaps import LazyFieldLens
 from .survey import Survey, clear_cache as clear_survey_cache
 
 
@@ -418,6 +419,8 @@ def field_settings(cfg: Config, survey: Survey, field: str) -> tuple[dict, dict]
         selection=engine_selection(cfg),
         enclosed_fraction=model.stamp_flux_fraction,
         isolation_fraction=cfg.simulation.isolation_fraction)
+    if cfg.survey.lens is not None:     # the lens maps are read on a task's first use
+        settings["lens"] = LazyFieldLens(cfg, survey, field)
     return settings, psfs
 
 

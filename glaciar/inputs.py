@@ -11,6 +11,7 @@ from .config import Config, check_files, config_to_dict
 from .engine.noise import map_type_problem
 from .fieldprep import band_psf, detection_params
 from .galaxy.filters import get_filter
+from .lensmaps import LensMapError, check_field_lens, lens_map_paths
 from .rundir import file_fingerprint
 from .survey import Survey, read_array, strided_sample
 
@@ -25,7 +26,7 @@ class InputFile:
 
     key: str                  #: e.g. ``survey.bands.f160w.psf`` or ``survey.science (field 'a', band 'b')``
     path: Path
-    kind: str                 #: science, noise, psf, filter, sex_file or conv
+    kind: str                 #: science, noise, psf, filter, sex_file, conv or lens
     field: str | None = None  #: the field whose tasks read it (None: every task)
     band: str | None = None
 
@@ -62,6 +63,11 @@ def input_files(cfg: Config) -> list[InputFile]:
         fp = file_or_none(b.filter, cfg.base_dir)
         if fp is not None:
             out.append(InputFile(f"survey.bands.{b.name}.filter", fp, "filter", None, b.name))
+    for f in s.fields:
+        for name, maps in lens_map_paths(cfg, f).items():
+            for key, path in maps.items():
+                out.append(InputFile(f"survey.lens.models.{name}.{key} (field {f!r})", path,
+                                     "lens", f))
     det = config_to_dict(cfg).get("detection") or {}
     for key, kind in (("sex_file", "sex_file"), ("FILTER_NAME", "conv")):
         p = file_or_none(det.get(key), cfg.base_dir)
@@ -244,4 +250,20 @@ def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None =
         detection_params(cfg)
     except errors as exc:
         raise InputError(f"detection: {str(exc).splitlines()[0]}") from None
+    _check_lens(cfg, survey)
     return out
+
+
+def _check_lens(cfg: Config, survey: Survey) -> None:
+    """Lens maps readable, with a celestial WCS, on one grid per model, covering each field's
+    footprint and finite there (:func:`glaciar.lensmaps.check_field_lens`)."""
+    if cfg.survey.lens is None:
+        return
+    if cfg.grid.magnitude_type != "apparent":
+        raise InputError("survey.lens: lensed fields need grid.magnitude_type: apparent (the "
+                         "grid is in observed, magnified magnitude; docs/lensing.md)")
+    for f in cfg.survey.fields:
+        try:
+            check_field_lens(cfg, survey, f)
+        except LensMapError as exc:
+            raise InputError(f"survey.lens (field {f!r}): {exc}") from None

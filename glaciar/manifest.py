@@ -30,6 +30,7 @@ from .contexts import (context_dir, field_records, main_context, measure_field,
 from .fieldprep import field_settings
 from .galaxy import sed
 from .inputs import InputFile, check_inputs, file_or_none, input_files
+from .lensmaps import lens_z_range
 from .plan import detection_z_limit, manifest_cells, placement_preflight, plan_tasks
 from .store import StoreWarning, field_file_prefix, finished_task_names
 from .rundir import (RunLock, StoreMismatchError, atomic_temporary_target, atomic_write_text,
@@ -84,6 +85,11 @@ def store_settings(cfg: Config) -> dict:
             b["psf"] = _FILE
         if file_or_none(b.get("filter"), cfg.base_dir) is not None:
             b["filter"] = _FILE
+    if sv.get("lens") is not None:      # lens maps are identified by content too
+        for m in sv["lens"].get("models") or ():
+            for key in ("kappa", "gamma1", "gamma2", "alpha_x", "alpha_y"):
+                if m.get(key) is not None:
+                    m[key] = _FILE
     d["grid"].pop("z", None)
     d["grid"].pop("mag", None)
     d["grid"].pop("cells", None)
@@ -217,6 +223,13 @@ def _measure_fields(cfg: Config, survey: Survey, manifest: dict, z_limit=None,
     manifest["area_arcmin2_total"] = float(sum(manifest["area_arcmin2"].values()))
     manifest["depth_area"] = {f: records[f]["depth_area"] for f in fields}
     manifest["noise"] = {f: records[f]["noise"] for f in fields}
+    if cfg.survey.lens is not None:
+        # Read by V_eff behind the lens (glaciar.lensmaps.field_lens_nodes; docs/lensing.md).
+        manifest["lens"] = {"z_lens": cfg.survey.lens.z_lens,
+                            "models": list(cfg.survey.lens.model_names),
+                            "cosmology": cfg.source.cosmology,
+                            "z_range": list(lens_z_range(cfg))}
+        manifest["lens_nodes"] = {f: records[f]["lens_nodes"] for f in fields}
     manifest["detection_z_limit"] = limit
 
 

@@ -143,7 +143,9 @@ def config_to_dict(cfg: Config, relative_to: str | os.PathLike | None = None) ->
     """
     rel = None if relative_to is None else Path(relative_to).resolve()
     s = cfg.survey
-    survey = s.model_dump(mode="json", exclude={"bands", "fields_file"})
+    # survey.lens only when given: unlensed configurations keep their files and hashes.
+    survey = s.model_dump(mode="json", exclude={"bands", "fields_file"} |
+                          ({"lens"} if s.lens is None else set()))
     survey["bands"] = {b.name: b.model_dump(mode="json", exclude={"name"}) for b in s.bands}
     out = {
         "survey": survey,

@@ -17,6 +17,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 from ..galaxy import psf as _psf
 from ..galaxy.filters import FILE_SUFFIXES as FILTER_FILE_SUFFIXES, get_filter, looks_like_path
 from .common import At, Choice, Float, Int, resolve_path, show, yaml_bool_hint
+from .lens_models import LensConfig
 from .section import (arg_default, context_base_dir, MAX_ABS_MAGNITUDE, MAX_PIXEL_SCALE_ARCSEC,
                       PSF_FWHM_RANGE_ARCSEC, Section, validate_nested)
 
@@ -218,6 +219,9 @@ class SurveyConfig(Section):
                           "of detection_band")
     negative_weights: Choice("error", "mask") = Field(
         "error", description="weight maps with negative pixels: error, or mask those pixels")
+    lens: LensConfig | None = Field(
+        None, description="a foreground lens: {z_lens, models: [{name, kappa, gamma1, gamma2} | "
+        "{name, alpha_x, alpha_y}] or analytic: {sis, shear}} (docs/lensing.md); null = none")
     detection_band: str = Field(description="band in which sources are detected (default: the "
                                             "only band)", json_schema_extra={"example": "f160w"})
     bands: tuple[BandConfig, ...] = Field(

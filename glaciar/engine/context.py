@@ -72,6 +72,9 @@ class FieldContext:
     detection_background: np.ndarray | None = None
     #: number of True pixels of ``footprint`` (counted once: placement needs it per task)
     footprint_count: int | None = None
+    #: survey.lens: callable (x, y) -> (kappa, gamma1, gamma2) at D_ls/D_s = 1 with attribute
+    #: ``z_lens`` (glaciar.lensmaps.LazyFieldLens); None: no lens, today's unlensed path
+    lens: object = None
     _shape_cache: dict = dc_field(default_factory=dict)
     #: glaciar.engine.fieldcache.Trimmer of the memory maps behind the arrays (None: in memory)
     _trimmer: object = None

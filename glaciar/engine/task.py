@@ -19,6 +19,7 @@ import pandas as pd
 from .. import constants as C
 from ..galaxy import population, sed
 from .depth import depth_at
+from .lensed import draw_lensed_sources
 from .measure import MeasureSetup, measure_injected
 from .positions import draw_positions
 from .scene import Scene
@@ -133,18 +134,24 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
     """
     rng, ident = task_rng(seed, spec)
     n = ctx.n_galaxies
-    src = draw_task_sources(rng, n, spec.z, spec.mag, ctx)
+    lensed = None
+    if getattr(ctx, "lens", None) is not None:
+        # Behind a lens: drawn, placed and shaped by glaciar.engine.lensed (docs/lensing.md).
+        lensed = draw_lensed_sources(rng, n, spec.z, spec.mag, ctx)
+        src, x, y = SourceDraws(**lensed.draws), lensed.x, lensed.y
+    else:
+        src = draw_task_sources(rng, n, spec.z, spec.mag, ctx)
 
-    # Isolation boxes (most of the light + 2 PSF FWHM) decide how close two sources may sit.
-    hh, hw = ctx.stamp_half_sizes(src.sersic_n, src.r_eff_pix, src.axis_ratio, src.position_angle_deg)
-    x, y = draw_positions(rng, ctx.footprint, hh, hw,
-                          n_footprint=getattr(ctx, "footprint_count", None))
+        # Isolation boxes (most of the light + 2 PSF FWHM) decide how close two sources may sit.
+        hh, hw = ctx.stamp_half_sizes(src.sersic_n, src.r_eff_pix, src.axis_ratio, src.position_angle_deg)
+        x, y = draw_positions(rng, ctx.footprint, hh, hw,
+                              n_footprint=getattr(ctx, "footprint_count", None))
     m = x.size
     if m < n:
         src = SourceDraws(**{k: v[:m] for k, v in src.__dict__.items()})
 
     bands = ctx.bands
-    flags = np.zeros(m, dtype=np.int64)
+    flags = np.zeros(m, dtype=np.int64) if lensed is None else lensed.flags.copy()
     iy = np.clip(np.floor(y + 0.5).astype(np.int64), 0, ctx.shape[0] - 1)
     ix = np.clip(np.floor(x + 0.5).astype(np.int64), 0, ctx.shape[1] - 1)
     for band in bands:
@@ -195,6 +202,7 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
         C.COL_R_EFF_ARCSEC: src.r_eff_arcsec, C.COL_R_EFF_PIX: src.r_eff_pix,
         C.COL_BETA: src.beta, C.COL_M_UV: src.M_uv,
         C.COL_MAG_INPUT: src.mag_in[:, jd],
+        **({} if lensed is None else lensed.columns),
     }
     for j, band in enumerate(bands):
         cols[C.band_column("mag_in", band)] = src.mag_in[:, j]

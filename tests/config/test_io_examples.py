@@ -21,7 +21,7 @@ from glaciar.engine.selection import DEFAULT_JDROPOUT, compile_selection
 
 REPO = Path(__file__).resolve().parents[2]
 CONFIGS = REPO / "configs"
-SHIPPED = ("demo.yaml", "borg_jdropout.yaml", "jwst_nircam_z10.yaml")
+SHIPPED = ("demo.yaml", "demo_lensed.yaml", "borg_jdropout.yaml", "jwst_nircam_z10.yaml")
 
 DEMO_BANDS = ("f160w", "f098m", "f125w", "f606w")
 BORG_BANDS = ("f160w", "f098m", "f125w", "f606w")
@@ -29,6 +29,10 @@ NIRCAM_BANDS = ("f090w", "f115w", "f150w", "f200w", "f277w", "f356w", "f444w")
 #: Relative input files each config names (relative to the config's own directory).
 EXPECTED_FILES = {
     "demo.yaml": (
+        [f"../glaciar-demo/survey/images/demo01_{b}_{k}.fits" for b in DEMO_BANDS
+         for k in ("drz", "wht")]
+        + [f"../glaciar-demo/survey/psf/psf_{b}.fits" for b in DEMO_BANDS]),
+    "demo_lensed.yaml": (
         [f"../glaciar-demo/survey/images/demo01_{b}_{k}.fits" for b in DEMO_BANDS
          for k in ("drz", "wht")]
         + [f"../glaciar-demo/survey/psf/psf_{b}.fits" for b in DEMO_BANDS]),
