@@ -48,9 +48,9 @@ from .counting import (COUNT_DEPTH_KEY, COUNT_K_REC, COUNT_K_SEL, COUNT_MAG_KEY,
 from .paths import readable, run_subdir
 from .rundir import atomic_write_bytes, read_manifest
 from .taskfile import (DIGEST_SUFFIX, META_COUNTS, META_COUNTS_MAG, META_HIST, META_HIST_OBS,
-                       META_PART_TASKS, META_ROWS, META_SCHEMA, META_TASK, blake2b_digest,
-                       footer_metadata, ipc_bytes, ipc_table, parquet_bytes, schema_digest,
-                       task_file_problem, unit_problem)
+                       META_PART_TASKS, META_ROWS, META_SCHEMA, META_TASK, arrow_table,
+                       blake2b_digest, footer_metadata, ipc_bytes, ipc_table, parquet_bytes,
+                       schema_digest, task_file_problem, unit_problem)
 
 __all__ = ["task_key", "task_filename", "field_file_prefix", "write_task_table",
            "finished_task_names", "verified_task_names", "read_results", "read_current_results",
@@ -124,10 +124,8 @@ def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
     :func:`glaciar.counting.task_histogram` as well (when the table has that column and
     ``mag_input``).
     """
-    import pyarrow as pa
-
     path = Path(run_dir) / RESULTS_DIRNAME / name
-    t = pa.Table.from_pandas(table, preserve_index=False)
+    t = arrow_table(table)
     meta = dict(t.schema.metadata or {})
     meta[META_ROWS] = str(len(table)).encode()
     if key is not None:

@@ -16,11 +16,12 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 __all__ = ["META_TASK", "META_ROWS", "META_COUNTS", "META_COUNTS_MAG", "META_HIST",
            "META_HIST_OBS", "DIGEST_SUFFIX", "META_SCHEMA", "META_PART_TASKS",
-           "parquet_bytes", "ipc_bytes", "ipc_table", "footer_metadata", "task_file_problem",
+           "parquet_bytes", "arrow_table", "ipc_bytes", "ipc_table", "footer_metadata", "task_file_problem",
            "schema_digest", "blake2b_digest", "unit_problem"]
 
 #: Key-value metadata of every task file: the exact task key and the number of rows.
@@ -51,10 +52,32 @@ def parquet_bytes(table) -> bytes:
     Parquet's page checksums cover a page's data, not its header; a digest of every
     byte before the footer (:data:`_META_PAGES`) covers both, and checking it costs one
     hash of the file (:func:`unit_problem`).  The key-value metadata lives only in the
-    footer, so the file is written once to learn the bytes of its pages and once more
-    with their digest added: the pages come out the same (checked; if they ever did not,
-    the file keeps its page checksums only).
+    footer, which a Parquet writer writes last: the table is encoded once, the bytes
+    written so far (magic and pages) are hashed before the writer closes, and the digest
+    is added to the footer's key-value metadata (where :func:`unit_problem` reads it; the
+    Arrow schema stored in the footer keeps the table's own metadata).  Should a writer
+    ever hold back bytes of its pages until it closes (checked after the fact), the file
+    is written the older way: encoded once to learn its pages, then again with their digest.
     """
+    import io
+
+    import pyarrow.parquet as pq
+
+    buf = io.BytesIO()
+    with pq.ParquetWriter(buf, table.schema, write_page_checksum=True) as writer:
+        writer.write_table(table)
+        pages = buf.getvalue()
+        digest = blake2b_digest(pages)
+        writer.add_key_value_metadata({_META_PAGES: digest})
+    data = buf.getvalue()
+    if _pages_end(data) == len(pages) and data.startswith(pages):
+        return data
+    return _parquet_bytes_two_encodes(table)
+
+
+def _parquet_bytes_two_encodes(table) -> bytes:
+    """:func:`parquet_bytes` by two encodes: the pages learnt from a first, the digest put
+    in the second's footer (if its pages ever differed, the first file, page checksums only)."""
     import io
 
     import pyarrow.parquet as pq
@@ -77,13 +100,82 @@ def _pages_end(data: bytes) -> int:
     return len(data) - 8 - int.from_bytes(data[-8:-4], "little")
 
 
-def ipc_bytes(df: pd.DataFrame) -> bytes:
+#: Arrow schemas (pandas metadata included) of the DataFrames :func:`arrow_table` converted,
+#: keyed by their columns' names and dtypes: a run's task tables all share one.
+_PANDAS_SCHEMAS: dict = {}
+#: Schemas kept at most (a run has one or a few task-table layouts).
+_PANDAS_SCHEMAS_MAX = 16
+
+
+def arrow_table(df: pd.DataFrame, pandas_metadata: bool = True):
+    """``df`` as a pyarrow Table: ``pa.Table.from_pandas(df, preserve_index=False)``.
+
+    The same table, column values (NaN as null, as pandas' conversion does), types and
+    schema metadata, built faster where every column is a numpy bool, integer or float
+    column or a pandas string column: each column is converted on its own and the schema,
+    with the pandas metadata that depends only on the columns' names and dtypes, comes
+    from the first DataFrame of that layout converted by pyarrow (pyarrow's own
+    per-column metadata costs ~5 ms on a 120-column task table).  Other DataFrames go
+    through ``from_pandas``.  ``pandas_metadata=False`` drops the schema metadata.
+    """
     import pyarrow as pa
 
-    t = pa.Table.from_pandas(df, preserve_index=False).replace_schema_metadata(None)
+    if not _fast_convertible(df):
+        t = pa.Table.from_pandas(df, preserve_index=False)
+        return t if pandas_metadata else t.replace_schema_metadata(None)
+    arrays = [_arrow_column(s) for _, s in df.items()]
+    if not pandas_metadata:
+        return pa.Table.from_arrays(arrays, names=[str(c) for c in df.columns])
+    layout = (tuple(df.columns), tuple(str(d) for d in df.dtypes), df.columns.name,
+              str(df.columns.dtype))
+    schema = _PANDAS_SCHEMAS.get(layout)
+    if schema is None:
+        t = pa.Table.from_pandas(df, preserve_index=False)
+        if len(_PANDAS_SCHEMAS) >= _PANDAS_SCHEMAS_MAX:
+            _PANDAS_SCHEMAS.clear()
+        _PANDAS_SCHEMAS[layout] = t.schema
+        return t
+    return pa.Table.from_arrays(arrays, schema=schema)
+
+
+def _fast_convertible(df: pd.DataFrame) -> bool:
+    """Whether :func:`arrow_table` may convert ``df`` column by column (unique string
+    column names, a plain column index, no ``attrs``, numpy bool/int/float or string dtypes)."""
+    if df.attrs or not df.columns.is_unique or isinstance(df.columns, pd.MultiIndex):
+        return False
+    if not all(isinstance(c, str) for c in df.columns):
+        return False
+    return all((isinstance(d, np.dtype) and d.kind in "biuf") or isinstance(d, pd.StringDtype)
+               for d in df.dtypes)
+
+
+def _arrow_column(s: pd.Series):
+    import pyarrow as pa
+
+    if isinstance(s.dtype, np.dtype):
+        return pa.array(s.to_numpy(), from_pandas=True)     # NaN -> null, as from_pandas
+    return pa.array(s.array, from_pandas=True)
+
+
+#: Rows from which a footer table is compressed (:func:`ipc_bytes`).
+_IPC_ZSTD_MIN_ROWS = 64
+
+
+def ipc_bytes(df: pd.DataFrame) -> bytes:
+    """``df`` as an Arrow IPC stream (no schema metadata), zstd-compressed when it is long.
+
+    zstd: a compacted part's counts repeat their keys and are mostly small integers
+    (~10x smaller footers).  A task's few rows are not compressed: Arrow compresses
+    each column's buffers on their own, which costs ~1 ms for a task's 3-row counts and
+    makes them larger (3192 against 2832 bytes); readers decode either
+    (:func:`ipc_table`).
+    """
+    import pyarrow as pa
+
+    t = arrow_table(df, pandas_metadata=False)
     sink = pa.BufferOutputStream()
-    # zstd: counts repeat their keys and are mostly small integers (~10x smaller footers).
-    opts = pa.ipc.IpcWriteOptions(compression="zstd")
+    opts = pa.ipc.IpcWriteOptions(
+        compression="zstd" if t.num_rows >= _IPC_ZSTD_MIN_ROWS else None)
     with pa.ipc.new_stream(sink, t.schema, options=opts) as w:
         w.write_table(t)
     return sink.getvalue().to_pybytes()

@@ -165,7 +165,7 @@ def _aperture_sum(values: np.ndarray, w: np.ndarray) -> np.ndarray:
         from scipy.ndimage import correlate
 
         return correlate(values, w, mode="constant", cval=0.0)
-    from scipy.signal import fftconvolve
+    from ..fftconv import fftconvolve     # scipy.signal's, without importing it
 
     # The disk is symmetric: convolution = correlation.
     return fftconvolve(values, w, mode="same")

@@ -39,8 +39,8 @@ from typing import NamedTuple
 import numpy as np
 
 from scipy import fft as sp_fft
-from scipy.signal import fftconvolve
 
+from ..fftconv import fftconvolve   # scipy.signal's, without importing it (~0.4 s, 18 MB)
 from .psf import normalize_psf, shift_psf
 from .sersic import sersic_stamp, stamp_shape
 
