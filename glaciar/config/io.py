@@ -162,6 +162,9 @@ def config_to_dict(cfg: Config, relative_to: str | os.PathLike | None = None) ->
         "noise": cfg.noise.model_dump(mode="json"),
         "selection": selection_data(cfg.selection),
         "output": cfg.output.model_dump(mode="json"),
+        # Only when given: configurations without interlopers keep their hashes.
+        **({"interlopers": cfg.interlopers.model_dump(mode="json")}
+           if cfg.interlopers is not None else {}),
     }
     out = copy.deepcopy(_plain(out))
     if rel is not None:
