@@ -132,9 +132,10 @@ def template_yaml() -> str:
             out += _model_lines(model, 2, skip=("bands",) + _TEMPLATE_SKIP.get(section, ()))
             out += _bands_lines(2)
         elif info.default is None:
-            # An optional section stays off in the template: shown commented out.
-            lines = [_line(0, section, "", info.description)]
-            lines += _model_lines(model, 2, skip=_TEMPLATE_SKIP.get(section, ()))
+            # An optional section stays off in the template (empty: absent), its keys
+            # shown commented out.
+            out.append(_line(0, section, "", info.description))
+            lines = _model_lines(model, 2, skip=_TEMPLATE_SKIP.get(section, ()))
             out += ["# " + ln if ln.strip() else ln for ln in lines]
         else:
             out.append(_line(0, section, "", info.description))
