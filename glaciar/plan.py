@@ -5,6 +5,7 @@ Pure functions of the configuration (the preflight also reads the footprints).
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import math
 from pathlib import Path
@@ -91,6 +92,12 @@ def interloper_tasks(cfg: Config, z_offset: int = 0) -> list[TaskSpec]:
     sec = cfg.interlopers
     if sec is None:
         return []
+    # The population names the settings that make the rows (the section and the source
+    # settings it shares): other settings, other streams and task keys, so that a changed
+    # section's tasks run again while the target population's store stays valid.
+    ident = json.dumps([sec.model_dump(mode="json"), cfg.source.model_dump(mode="json")],
+                       sort_keys=True)
+    pop = f"{POPULATION}-{hashlib.sha256(ident.encode('utf-8')).hexdigest()[:12]}"
     out = []
     for fi, f in enumerate(cfg.survey.fields):
         for i, z in enumerate(sec.z_nodes()):
@@ -98,7 +105,7 @@ def interloper_tasks(cfg: Config, z_offset: int = 0) -> list[TaskSpec]:
                 for it in range(int(sec.n_iterations)):
                     out.append(TaskSpec(field=f, field_index=fi, z_index=z_offset + i,
                                         mag_index=j, iteration=it, z=float(z), mag=float(m),
-                                        population=POPULATION))
+                                        population=pop))
     return out
 
 
@@ -164,8 +171,9 @@ def spec_filename(spec: TaskSpec) -> str:
 
 
 def spec_key(spec: TaskSpec) -> str:
-    """Exact identity of a task (:func:`glaciar.store.task_key`)."""
-    return task_key(spec.field, spec.z, spec.mag, spec.iteration)
+    """Exact identity of a task (:func:`glaciar.store.task_key`; with its population, if any)."""
+    key = task_key(spec.field, spec.z, spec.mag, spec.iteration)
+    return key if not spec.population else key[:-1] + "," + json.dumps(spec.population) + "]"
 
 
 def detection_z_limit(cfg: Config, z_max: float = 30.0) -> float | None:

@@ -27,7 +27,7 @@ def interloper_rows(run_dir, cfg):
     """
     import pandas as pd
 
-    from ..engine.interlopers import POPULATION
+    from ..engine.task import task_rng
     from ..plan import INTERLOPER_DIRNAME, interloper_tasks
     from ..store import read_results
 
@@ -39,11 +39,10 @@ def interloper_rows(run_dir, cfg):
     rows = read_results(store)
     if rows.empty:
         return rows
-    planned = {(s.field, s.z, s.mag, s.iteration) for s in interloper_tasks(cfg)
-               if s.population == POPULATION}
-    keys = zip(rows[C.COL_FIELD].astype(str), rows[C.COL_Z].astype(float),
-               rows[C.COL_MAG].astype(float), rows[C.COL_ITERATION].astype(int))
-    keep = np.fromiter((k in planned for k in keys), bool, count=len(rows))
+    # A task's stream id (task_seed) names its population's settings and the run's seed:
+    # rows of tasks made with other interloper settings are not counted.
+    planned = {task_rng(cfg.simulation.seed, s)[1] for s in interloper_tasks(cfg)}
+    keep = np.isin(np.asarray(rows[C.COL_TASK_SEED], np.int64), np.fromiter(planned, np.int64))
     return rows[keep].reset_index(drop=True)
 
 
