@@ -24,10 +24,10 @@ formula (Calzetti et al. 2000, eq. 4) inside 0.12-2.2 micron, k(V) = 4.05 within
 k(B) - k(V) = 1 within 2 % (the definition of E(B-V)); beyond the formula's range it is
 continued linearly in 1/lambda with the slope at the edge (a common choice; the UV end
 matters for z > 5 interlopers in blue bands only).  The D4000 measured on the template
-equals the configured value to < 1e-6 relative.  Band magnitudes: trapezoid rule on the
-filter's samples refined to d ln lambda = 2e-4 with nodes either side of every IGM edge
-(as :mod:`glaciar.galaxy.sed`); against :func:`glaciar.galaxy.filters.ab_magnitude` on a
-fine grid < 2e-3 mag.
+equals the configured value to < 1e-5 relative.  Band magnitudes: trapezoid rule on a
+grid of step d ln lambda = 2e-3 over the filter, with nodes either side of every jump (IGM
+edges, the Lyman limit, the break); against :func:`glaciar.galaxy.filters.ab_magnitude` on
+a fine grid < 5e-4 mag (measured: 3e-4 at z = 1-5.5 in HST and NIRCam bands).
 """
 from __future__ import annotations
 
@@ -60,7 +60,9 @@ FAMILIES = ("dusty", "balmer")
 _CAL_UV = (0.12, 0.63)
 _CAL_IR = (0.63, 2.20)
 _LN10_OVER_2P5 = np.log(10.0) / 2.5
-_DLNLAM = 2e-4
+# Quadrature step in ln(lambda): the spectra are smooth between the nodes added at every
+# jump (IGM edges, the Lyman limit, the break), so 2e-3 is < 1e-3 mag (tested).
+_DLNLAM = 2e-3
 
 
 def _k_formula(lam_um):
@@ -110,7 +112,14 @@ def _window_mean_fnu(wave, flam, window):
     return np.trapezoid(flam[..., sel] * w ** 2, w, axis=-1) / (hi - lo)
 
 
-_D_GRID = np.linspace(D4000_BLUE[0], D4000_RED[1], 5001)
+# Gauss-Legendre nodes (24 per window) for the step: the windows' integrands are smooth
+# (the break lies between them), so this is exact to ~1e-12.
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(24)
+
+
+def _gl(window):
+    lo, hi = window
+    return 0.5 * (hi - lo) * _GL_X + 0.5 * (hi + lo), 0.5 * (hi - lo) * _GL_W
 
 
 def d4000(wave_rest_angstrom, flambda) -> np.ndarray:
@@ -140,13 +149,17 @@ def _dust(wave_rest, a_v):
 def balmer_step(d4000_value, beta_blue, beta_red, a_v=0.0) -> np.ndarray:
     """The step s of the ``balmer`` template that gives the break strength ``d4000_value``.
 
-    D4000 is linear in 1/s, so s = D(s = 1) / D4000 (D(s = 1) measured on a 5001-point
-    grid over both windows, the same rule as :func:`d4000`).
+    D4000 is linear in 1/s, so s = D(s = 1) / D4000 (the window means of D(s = 1) by
+    24-point Gauss-Legendre quadrature: the integrands are smooth inside each window).
     """
     d, bb, br, av = np.broadcast_arrays(*(np.asarray(v, float) for v in
                                           (d4000_value, beta_blue, beta_red, a_v)))
-    flam = _two_slopes(_D_GRID, bb, br, np.ones_like(d)) * _dust(_D_GRID, av)
-    return d4000(_D_GRID, flam) / d
+    means = []
+    for window in (D4000_RED, D4000_BLUE):
+        lam, w = _gl(window)
+        flam = _two_slopes(lam, bb, br, np.ones_like(d)) * _dust(lam, av)
+        means.append((flam * lam ** 2) @ w)
+    return means[0] / means[1] / d
 
 
 def _two_slopes(wave_rest, beta_blue, beta_red, step):
@@ -211,13 +224,12 @@ class _Quadrature:
 def _quadrature(z: float, filt: Filter, igm: str) -> _Quadrature:
     fw, ft = filt.wave_angstrom, filt.throughput
     nz = np.flatnonzero(ft > 0)
-    support = fw[max(nz[0] - 1, 0): nz[-1] + 2]
-    d = np.diff(support)
-    n = np.maximum(1, np.ceil(d / (support[:-1] * _DLNLAM)).astype(int))
-    pieces = [support[i] + d[i] * np.arange(n[i]) / n[i] for i in range(d.size)]
-    grid = np.append(np.concatenate(pieces), support[-1])
+    lo, hi = fw[max(nz[0] - 1, 0)], fw[min(nz[-1] + 1, fw.size - 1)]
+    # A grid uniform in ln(lambda) (the filters' own samples are ~10x finer than needed).
+    n = max(2, int(np.ceil(np.log(hi / lo) / _DLNLAM)) + 1)
+    grid = np.exp(np.linspace(np.log(lo), np.log(hi), n))
     edges = igm_discontinuities(z, igm)
-    edges = np.concatenate([edges, [LYMAN_LIMIT_ANGSTROM * (1 + z)]])
+    edges = np.concatenate([edges, [LYMAN_LIMIT_ANGSTROM * (1 + z), BREAK_ANGSTROM * (1 + z)]])
     edges = edges[(edges > grid[0]) & (edges < grid[-1])]
     grid = np.unique(np.concatenate([grid, edges * (1 - 1e-9), edges * (1 + 1e-9)]))
     thr = np.interp(grid, fw, ft)
