@@ -117,7 +117,9 @@ class InterloperConfig(Section):
                                             "[proper kpc] ...")
     size_evolution: Float = Field(-1.0, description="... times ((1+z)/7)^size_evolution")
     r_eff_scatter_dex: Float = Field(0.2, ge=0, le=2, description="log-normal scatter of r_e "
-                                                                  "[dex]")
+                                                                  "[dex] ...")
+    size_bins: Int = Field(5, ge=1, le=100, description="... drawn from this many equal-"
+                           "probability nodes with its variance (sources share templates)")
     sersic_indices: float_list(ge=0.2, le=10.0) = Field((1.0, 4.0), description="Sersic "
                                                         "indices n ...")
     sersic_fractions: float_list(ge=0.0, le=1.0) = Field((0.7, 0.3), description="... and "

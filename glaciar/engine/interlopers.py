@@ -5,7 +5,8 @@ section (:class:`glaciar.config.interlopers.InterloperConfig`): ``n_per_task`` s
 the node's redshift, each with a detection-band magnitude uniform in the cell, a family
 drawn with the configured weights, its spectral parameters uniform in their ranges
 (:mod:`glaciar.galaxy.interloper_seds`) and sizes from the ``source:`` size law with the
-section's own parameters.  Its random stream is keyed by the same values as a high-z
+section's own parameters, its log-normal scatter drawn from ``size_bins`` equal-probability
+nodes scaled to the scatter's variance (shared templates: see :func:`draw_interlopers`).  Its random stream is keyed by the same values as a high-z
 task's plus the population (:meth:`glaciar.engine.task.TaskSpec.spawn_key`), so the
 high-z tasks' streams and rows are those of a run without interlopers.
 
@@ -57,7 +58,9 @@ class InterloperModel:
     balmer_beta_red: float
     balmer_a_v: tuple
     counts: tuple           #: (a, b, m0) of log10 dN/dm = a + b (m - m0) [arcmin^-2 mag^-1]
-    size: population.SourceModel
+    size: population.SourceModel    #: the r_e law without its scatter, the shapes' settings
+    size_scatter_dex: float = 0.0
+    size_bins: int = 1
 
     @classmethod
     def from_config(cls, section, source_model: population.SourceModel) -> "InterloperModel":
@@ -70,7 +73,7 @@ class InterloperModel:
         size = dataclasses.replace(
             source_model, r_eff_kpc_z6=float(section.r_eff_kpc_z6),
             size_evolution=float(section.size_evolution),
-            r_eff_scatter_dex=float(section.r_eff_scatter_dex), size_luminosity_slope=0.0,
+            r_eff_scatter_dex=0.0, size_luminosity_slope=0.0,
             sersic_indices=tuple(section.sersic_indices),
             sersic_fractions=tuple(section.sersic_fractions))
         c = section.counts
@@ -81,7 +84,20 @@ class InterloperModel:
                    balmer_d4000=tuple(section.balmer.d4000),
                    balmer_beta_blue=float(section.balmer.beta_blue),
                    balmer_beta_red=float(section.balmer.beta_red),
-                   balmer_a_v=tuple(section.balmer.a_v), counts=(c.a, c.b, c.m0), size=size)
+                   balmer_a_v=tuple(section.balmer.a_v), counts=(c.a, c.b, c.m0), size=size,
+                   size_scatter_dex=float(section.r_eff_scatter_dex),
+                   size_bins=int(section.size_bins))
+
+    def size_nodes(self) -> np.ndarray:
+        """log10 r_e offsets [dex] of the size bins: equal-probability nodes of N(0, 1)
+        (quantiles (j + 1/2) / K), scaled so that their variance is the scatter's."""
+        from scipy.stats import norm
+
+        k = self.size_bins
+        q = norm.ppf((np.arange(k) + 0.5) / k)
+        if k > 1:
+            q = q / np.sqrt(np.mean(q ** 2))
+        return self.size_scatter_dex * q
 
     def density(self, m) -> np.ndarray:
         """Number counts dN/dm [arcmin^-2 mag^-1] at detection-band magnitude(s) ``m``."""
@@ -141,7 +157,11 @@ def draw_interlopers(rng: np.random.Generator, model: InterloperModel, z: float,
     mag_in = interloper_band_magnitudes(z, params, filters, mag_det, detection_index,
                                         igm=model.size.igm)
     shapes = population.draw_shapes(rng, n, model.size)
-    r_kpc = population.r_eff_kpc(np.full(n, float(z)), model.size, rng=rng)
+    # The scatter on a few nodes, not continuous: sources of one node share their
+    # templates (a continuous scatter makes every stamp a new render: ~3x the CPU).
+    nodes = model.size_nodes()
+    r_kpc = population.r_eff_kpc(np.full(n, float(z)), model.size) * 10.0 ** nodes[
+        rng.integers(0, len(nodes), n)]
     r_arcsec = population.kpc_to_arcsec(r_kpc, z, cosmology)
     r_pix, r_arcsec = quantise(r_arcsec)
     return {"beta": beta, "mag_in": mag_in, "M_uv": np.full(n, np.nan),
