@@ -112,13 +112,14 @@ class InterloperConfig(Section):
     counts: NumberCountsConfig = Field(default_factory=NumberCountsConfig,
                                        description="number counts the passing fraction is "
                                                    "weighted to (per arcmin^2 per mag)")
-    r_eff_kpc_z6: Float = Field(1.0, gt=0, le=MAX_R_EFF_KPC,
+    r_eff_kpc_z6: Float = Field(0.8, gt=0, le=MAX_R_EFF_KPC,
                                 description="half-light radius law as in source: r_e at z = 6 "
-                                            "[proper kpc] ...")
-    size_evolution: Float = Field(-1.0, description="... times ((1+z)/7)^size_evolution")
-    r_eff_scatter_dex: Float = Field(0.2, ge=0, le=2, description="log-normal scatter of r_e "
+                                            "[proper kpc] ... (default: late-type galaxies of "
+                                            "~1e9 Msun, van der Wel et al. 2014)")
+    size_evolution: Float = Field(-0.75, description="... times ((1+z)/7)^size_evolution")
+    r_eff_scatter_dex: Float = Field(0.0, ge=0, le=2, description="log-normal scatter of r_e "
                                                                   "[dex] ...")
-    size_bins: Int = Field(5, ge=1, le=100, description="... drawn from this many equal-"
+    size_bins: Int = Field(3, ge=1, le=100, description="... drawn from this many equal-"
                            "probability nodes with its variance (sources share templates)")
     sersic_indices: float_list(ge=0.2, le=10.0) = Field((1.0, 4.0), description="Sersic "
                                                         "indices n ...")
