@@ -21,7 +21,8 @@ F606W; built in a temporary directory and measured once):
 Usage::
 
     python benchmarks/interlopers.py [--table cost|borg|both] [--size 600] [--n 60]
-        [--rounds 2] [--iterations 3] [--borg-n 100] [--workers 2]
+        [--rounds 2] [--iterations 3] [--scatter DEX] [--size-bins K] [--borg-n 100]
+        [--workers 2]
 """
 from __future__ import annotations
 
@@ -51,14 +52,16 @@ def _demo(tmp: Path, size: int, n: int) -> Path:
                              z_values=(9.0,), mag_values=(26.0,))
 
 
-def cost_table(size: int, n: int, rounds: int, iterations: int) -> None:
+def cost_table(size: int, n: int, rounds: int, iterations: int, scatter=None, size_bins=None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         cfg = load_config(_demo(Path(tmp), size, n))
         survey = Survey.from_config(cfg)
         field = cfg.survey.fields[0]
         ctx = build_field_context(cfg, survey, field)
         borg = yaml.safe_load(BORG.read_text())["interlopers"]
-        model = InterloperModel.from_config({**borg, "n_per_task": n},
+        sizes = {k: v for k, v in (("r_eff_scatter_dex", scatter), ("size_bins", size_bins))
+                 if v is not None}
+        model = InterloperModel.from_config({**borg, "n_per_task": n, **sizes},
                                             SourceModel(**cfg.source.model_dump()))
         hz, il = "high-z (z 9, 10)", "interlopers (z 1.5, 3, 4.5)"
         # As a run orders its tasks: one z after the other, its magnitudes and iterations
@@ -86,7 +89,8 @@ def cost_table(size: int, n: int, rounds: int, iterations: int) -> None:
     base = cpu[hz] / n_src[hz] * 1e3
     print(f"cost: demo field {size}^2 px, {rounds} round(s) of z blocks of {iterations} "
           f"iteration(s) x 3 magnitudes (25, 26, 27), {n} sources per task, template cache "
-          "cleared per z block; CPU per injected source")
+          f"cleared per z block; interloper sizes: scatter {model.size_scatter_dex:g} dex on "
+          f"{model.size_bins} node(s); CPU per injected source")
     print(f"{'population':<30}{'sources':>9}{'CPU [ms/source]':>17}{'vs high-z':>11}")
     for kind in (hz, il):
         ms = cpu[kind] / n_src[kind] * 1e3
@@ -152,11 +156,13 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=2, help="timed rounds (cost table)")
     ap.add_argument("--iterations", type=int, default=3,
                     help="iterations per (z, magnitude) in a z block (cost table)")
+    ap.add_argument("--scatter", type=float, help="interlopers' r_eff_scatter_dex (cost table)")
+    ap.add_argument("--size-bins", type=int, help="interlopers' size_bins (cost table)")
     ap.add_argument("--borg-n", type=int, default=100, help="interlopers per task (borg table)")
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args(argv)
     if args.table in ("cost", "both"):
-        cost_table(args.size, args.n, args.rounds, args.iterations)
+        cost_table(args.size, args.n, args.rounds, args.iterations, args.scatter, args.size_bins)
     if args.table in ("borg", "both"):
         borg_table(args.size, args.borg_n, args.workers)
     return 0

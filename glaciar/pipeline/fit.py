@@ -476,6 +476,12 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, sampler, volume, mag_
     add_lf_products(run_dir, manifest, [sf for *_, sf in outputs], cosmology=cosmology, seed=seed)
     # And the interlopers' passing fraction, when the run injected them (CONTAM).
     add_contamination(run_dir, manifest, [sf for *_, sf in outputs], seed=seed)
+    if outputs and outputs[0][-1].interlopers is not None:
+        c = outputs[0][-1].interlopers
+        summary["interlopers"] = {"m_obs_edges": c.m_edges.tolist(), "fraction": c.fraction.tolist(),
+                                  "lo68": c.lower.tolist(), "hi68": c.upper.tolist(),
+                                  "n_injected": c.n_injected.tolist(),
+                                  "n_selected": c.n_selected.tolist()}
 
     # Everything sampled and checked: now write, into a stage swapped in as one unit.
     from astropy.table import Table
