@@ -39,8 +39,8 @@ def _ordered(model, *names):
 class DustyFamilyConfig(Section):
     """Dusty star-forming interlopers: a power law behind the Calzetti et al. (2000) law."""
 
-    weight: Float = Field(0.5, ge=0, description="share of the interlopers (weights are "
-                                                 "normalised over the families)")
+    weight: Float = Field(0.10, ge=0, le=1, description="fraction of the galaxies of counts: "
+                          "that this family stands for (illustrative default)")
     beta: float_list(min_length=2, max_length=2, ge=-5.0, le=5.0) = Field(
         (-2.2, -1.6), description="intrinsic UV slope beta, uniform in [low, high] "
                                   "(f_lambda ∝ lambda^beta)")
@@ -57,7 +57,8 @@ class DustyFamilyConfig(Section):
 class BalmerFamilyConfig(Section):
     """Quiescent / Balmer-break interlopers: a two-slope continuum with a 4000 A break."""
 
-    weight: Float = Field(0.5, ge=0, description="share of the interlopers")
+    weight: Float = Field(0.05, ge=0, le=1, description="fraction of the galaxies of counts: "
+                          "that this family stands for (illustrative default)")
     d4000: float_list(min_length=2, max_length=2, ge=1.0, le=5.0) = Field(
         (1.4, 2.2), description="break strength D4000 (Bruzual 1983), uniform in [low, high]")
     beta_blue: Float = Field(2.0, ge=-5.0, le=10.0, description="f_lambda slope blueward of "
@@ -129,9 +130,10 @@ class InterloperConfig(Section):
     @model_validator(mode="after")
     def _check(self):
         _ordered(self, "z_range", "mag_range")
-        if self.dusty.weight + self.balmer.weight <= 0:
-            raise At("the family weights (dusty.weight, balmer.weight) must not both be 0",
-                     "dusty", "weight")
+        total = self.dusty.weight + self.balmer.weight
+        if not 0 < total <= 1:
+            raise At(f"dusty.weight + balmer.weight must be in (0, 1] (fractions of the "
+                     f"galaxies in counts:), got {total:g}", "dusty", "weight")
         if len(self.sersic_fractions) != len(self.sersic_indices):
             raise At(f"has {len(self.sersic_fractions)} value(s) but sersic_indices has "
                      f"{len(self.sersic_indices)}", "sersic_fractions")

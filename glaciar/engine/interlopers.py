@@ -11,7 +11,8 @@ task's plus the population (:meth:`glaciar.engine.task.TaskSpec.spawn_key`), so 
 high-z tasks' streams and rows are those of a run without interlopers.
 
 Weights (:func:`count_weights`): each source stands for ``n(m) Δm / N_cell`` interlopers
-per arcmin^2, n(m) the configured number counts, Δm the cell width, N_cell the sources
+per arcmin^2, n(m) the configured number counts times the families' share of them
+(``dusty.weight + balmer.weight``), Δm the cell width, N_cell the sources
 injected in its cell (over fields, z nodes and iterations): the weighted sums over a cell
 are the counts' integral over it, with the z nodes equally weighted (a flat z
 distribution) and the families in the configured proportions.
@@ -50,7 +51,8 @@ class InterloperModel:
     mag_step: float
     n_per_task: int
     n_iterations: int
-    weights: tuple          #: (dusty, balmer), normalised
+    weights: tuple          #: (dusty, balmer), normalised: the families' mix
+    share: float            #: dusty.weight + balmer.weight: their fraction of the counts
     dusty_beta: tuple
     dusty_a_v: tuple
     balmer_d4000: tuple
@@ -80,6 +82,7 @@ class InterloperModel:
         return cls(z_nodes=tuple(section.z_nodes()), mag_cells=tuple(section.mag_cells()),
                    mag_step=float(section.mag_step), n_per_task=int(section.n_per_task),
                    n_iterations=int(section.n_iterations), weights=tuple(w / w.sum()),
+                   share=float(w.sum()),
                    dusty_beta=tuple(section.dusty.beta), dusty_a_v=tuple(section.dusty.a_v),
                    balmer_d4000=tuple(section.balmer.d4000),
                    balmer_beta_blue=float(section.balmer.beta_blue),
@@ -99,14 +102,21 @@ class InterloperModel:
             q = q / np.sqrt(np.mean(q ** 2))
         return self.size_scatter_dex * q
 
-    def density(self, m) -> np.ndarray:
-        """Number counts dN/dm [arcmin^-2 mag^-1] at detection-band magnitude(s) ``m``."""
+    @property
+    def family_counts(self) -> tuple:
+        """(a, b, m0) of the injected families' own counts: the configured counts times
+        ``share`` (a + log10 share)."""
         a, b, m0 = self.counts
+        return (float(a + np.log10(self.share)), float(b), float(m0))
+
+    def density(self, m) -> np.ndarray:
+        """The families' number counts dN/dm [arcmin^-2 mag^-1] at magnitude(s) ``m``."""
+        a, b, m0 = self.family_counts
         return 10.0 ** (a + b * (np.asarray(m, float) - m0))
 
     def integral(self, lo, hi) -> np.ndarray:
-        """∫ dN/dm dm over [lo, hi] [arcmin^-2] (exact for the power law)."""
-        a, b, m0 = self.counts
+        """∫ dN/dm dm of the families over [lo, hi] [arcmin^-2] (exact for the power law)."""
+        a, b, m0 = self.family_counts
         lo, hi = np.asarray(lo, float), np.asarray(hi, float)
         if b == 0:
             return 10.0 ** a * (hi - lo)

@@ -19,8 +19,8 @@ posterior of the passing fraction; unequal weights inflate it by the design effe
 Why bins and not a smooth curve: the passing fraction of interlopers rises where
 photometric scatter lets their colours pass and falls where they stop being detected;
 no two- or three-parameter curve holds that shape for every selection, and the
-injected cells already set the resolution.  Bins with no selected interloper get an
-upper limit (the 84th percentile of Beta(1/2, n_eff + 1/2)), not a zero.
+injected cells already set the resolution.  Bins with no selected interloper get the
+one-sided interval [0, 68th percentile of Beta(1/2, n_eff + 1/2)]: an upper limit, not a zero.
 :meth:`Contamination.fraction` is the step function of the bins (0 outside them:
 no interloper was injected there).
 
@@ -180,6 +180,10 @@ def fit_contamination(rows, weights, m_edges, *, obs_column: str, counts, z_rang
     # scale the Beta by the estimate's excess over 1 then.
     draws = _beta_draws(k_eff, n_eff, int(n_draws), rng) * np.maximum(est, 1.0)
     q = np.quantile(draws, [0.5, 0.16, 0.84], axis=0)
+    # No selected interloper: the one-sided 68 % interval [0, 68th percentile].
+    none = S == 0
+    q[1, none] = 0.0
+    q[2, none] = np.quantile(draws[:, none], 0.68, axis=0)
     fam = {}
     if family_column is not None and family_column in rows:
         names = np.asarray(rows[family_column]).astype(str)

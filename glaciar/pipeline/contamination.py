@@ -63,7 +63,7 @@ def run_contamination(run_dir, cfg, detection_band: str, seed: int = 0):
     half = 0.5 * model.mag_step
     edges = np.append(np.asarray(model.mag_cells) - half, model.mag_cells[-1] + half)
     obs = C.band_column(C.OBS_MAG_QUANTITY, detection_band)
-    return fit_contamination(rows, w, edges, obs_column=obs, counts=model.counts,
+    return fit_contamination(rows, w, edges, obs_column=obs, counts=model.family_counts,
                              z_range=(model.z_nodes[0], model.z_nodes[-1]),
                              family_column=COL_FAMILY, seed=seed)
 

@@ -38,6 +38,7 @@ def test_section_defaults_and_round_trip(tmp_path):
     ({"balmer": {"d4000": [0.5, 1.5]}}, "interlopers.balmer.d4000"),
     ({"counts": {"slope": 0.3}}, "interlopers.counts.slope"),
     ({"dusty": {"weight": 0}, "balmer": {"weight": 0}}, "interlopers.dusty.weight"),
+    ({"dusty": {"weight": 0.6}, "balmer": {"weight": 0.6}}, "interlopers.dusty.weight"),
     ({"sersic_fractions": [0.5, 0.2]}, "interlopers.sersic_fractions"),
     ({"families": {}}, "interlopers.families"),
 ])

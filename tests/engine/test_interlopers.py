@@ -11,8 +11,8 @@ from glaciar.galaxy.population import SourceModel, get_cosmology
 BANDS = [get_filter(b) for b in ("wfc3_uvis_f606w", "wfc3_ir_f098m", "wfc3_ir_f125w",
                                  "wfc3_ir_f160w")]
 SECTION = {"z_range": [1.0, 3.0], "z_step": 1.0, "mag_range": [25.0, 27.0], "mag_step": 0.5,
-           "n_per_task": 2000, "dusty": {"weight": 1.0, "beta": [-2.0, -1.0], "a_v": [1.0, 3.0]},
-           "balmer": {"weight": 3.0, "d4000": [1.5, 2.0]},
+           "n_per_task": 2000, "dusty": {"weight": 0.1, "beta": [-2.0, -1.0], "a_v": [1.0, 3.0]},
+           "balmer": {"weight": 0.3, "d4000": [1.5, 2.0]},
            "counts": {"a": 1.5, "b": 0.3, "m0": 26.0},
            "r_eff_kpc_z6": 1.2, "size_evolution": -1.0, "r_eff_scatter_dex": 0.25}
 
@@ -32,7 +32,7 @@ def test_draws_follow_the_configured_population():
     x = d["extra"]
     n = 2000
     dusty = x["interloper_family"] == "dusty"
-    # family weights 1 : 3 -> 25 % dusty (binomial sd 0.7 %)
+    # family weights 0.1 : 0.3 -> 25 % dusty (binomial sd 1 %)
     assert abs(dusty.mean() - 0.25) < 4 * np.sqrt(0.25 * 0.75 / n)
     m = d["mag_in"][:, 3]
     assert m.min() >= 25.5 and m.max() < 26.0                     # uniform in the cell
@@ -56,7 +56,7 @@ def test_count_weights_integrate_the_number_counts():
     cells = np.repeat(np.asarray(mdl.mag_cells), 5000)
     m_in = cells + (rng.random(cells.size) - 0.5) * 0.5
     w = count_weights(m_in, cells, mdl)
-    a, b, m0 = 1.5, 0.3, 26.0
+    a, b, m0 = 1.5 + np.log10(0.4), 0.3, 26.0        # the families: 40 % of the counts
     k = b * np.log(10)
     for c in mdl.mag_cells:
         lo, hi = c - 0.25, c + 0.25
