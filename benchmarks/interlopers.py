@@ -143,6 +143,19 @@ def borg_table(size: int, n: int, workers: int) -> None:
             print(f"{E[k]:5.2f}-{E[k + 1]:5.2f}  {c.n_injected[k]:>9d}{c.n_selected[k]:>9d}"
                   f"{c.fraction[k]:>12.4f}   [{c.lower[k]:.4f}, {c.upper[k]:.4f}]"
                   f"{per[0]:>9.4f}{per[1]:>9.4f}{dens[k]:>11.4f}")
+        zs = rows["z"].to_numpy()
+        print("passing fraction by family and z (all magnitudes, weighted to the counts); "
+              "median A_V or D4000 of the passing ones")
+        print(f"{'family':<8}" + "".join(f"{z:>7g}" for z in model.z_nodes))
+        for f, col in (("dusty", "a_v"), ("balmer", "d4000")):
+            vals, par = [], []
+            for z in model.z_nodes:
+                mine = (fam == f) & np.isclose(zs, z)
+                vals.append(w[mine & sel].sum() / w[mine].sum() if w[mine].sum() > 0 else np.nan)
+                p = rows[col].to_numpy()[mine & sel]
+                par.append(np.median(p) if p.size else np.nan)
+            print(f"{f:<8}" + "".join(f"{v:>7.3f}" for v in vals))
+            print(f"{'  ' + col:<8}" + "".join(f"{v:>7.2f}" for v in par))
         print(f"expected interlopers among J-dropouts, {E[0]:g}-{E[-1]:g} mag: "
               f"{dens.sum():.3f} per arcmin^2 (counts log10 dN/dm = {model.counts[0]:g} + "
               f"{model.counts[1]:g} (m - {model.counts[2]:g}))")
