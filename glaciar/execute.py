@@ -47,7 +47,8 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
             mag_column = (C.COL_M_UV if ctx.magnitude_type == "absolute" and not spec.population
                           else C.COL_MAG_INPUT)
             # And the histograms of the measured detection-band magnitude (transfer matrices).
-            write_task_table(spec_store(run_dir, spec), name, table, key=spec_key(spec), mag_column=mag_column,
+            write_task_table(spec_store(run_dir, spec), name, table, key=spec_key(spec),
+                             mag_column=mag_column,
                              obs_column=C.band_column(C.OBS_MAG_QUANTITY, ctx.detection_band))
             done.append((name, len(table), time.process_time() - t0))
     finally:

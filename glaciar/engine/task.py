@@ -39,7 +39,8 @@ class TaskSpec:
     iteration: int
     z: float
     mag: float
-    #: "" for the target population; "interloper" for interloper tasks (glaciar.engine.interlopers).
+    #: "" for the target population; "interloper-<settings hash>" for interloper tasks
+    #: (glaciar.plan.interloper_tasks, glaciar.engine.interlopers).
     population: str = ""
 
     def spawn_key(self) -> tuple[int, ...]:
