@@ -321,6 +321,9 @@ def _cmd_lf(args) -> int:
     print(f"{summary['model']}: {summary['n_candidates']} candidates")
     for name, p in summary["parameters"].items():
         print(f"  {name:>14s} = {p['median']:.3f}  [{p['lo68']:.3f}, {p['hi68']:.3f}] (68 %)")
+    if summary.get("interlopers", {}).get("added"):
+        print(f"  interlopers added: {summary['interlopers']['expected_total']:.2f} expected "
+              "among the candidates (counts.ecsv: n_interlopers)")
     print(f"wrote {out}")
     return 0
 

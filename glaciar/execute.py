@@ -21,10 +21,10 @@ from .contexts import clear_contexts, finish_context_cache, prepare_context_cach
 from .engine import fieldcache
 from .engine.task import TaskSpec, run_task
 from .manifest import open_run
-from .plan import plan_tasks, spec_filename, spec_key
+from .plan import (INTERLOPER_DIRNAME, finished_specs, interloper_model, plan_tasks,
+                   spec_filename, spec_key, spec_store)
 from .shards import check_shard, shard_scope
-from .store import (COMPACT_EVERY, compact, finished_task_names, verified_task_names,
-                    write_task_table)
+from .store import COMPACT_EVERY, compact, write_task_table
 from .workers import process_cpu_seconds, terminate_workers, worker_init
 
 
@@ -33,18 +33,22 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
     """Run a chunk of tasks of one field and write each task's file; return (name, rows, seconds)."""
     done = []
     ctx = None
+    interlopers = interloper_model(cfg_dict)     # None without an interlopers: section
     try:
         for spec in specs:
             t0 = time.process_time()
             ctx = worker_context(cfg_dict, base_dir, cfg_hash, spec.field, run_dir)
             # Image pages the tasks touch stay resident while mapped: dropped past a budget.
             fieldcache.trim(ctx, watch=True)
-            table = run_task(ctx, spec, seed, mode=mode)
+            table = run_task(ctx, spec, seed, mode=mode, interlopers=interlopers)
             name = spec_filename(spec)
             # The task's counts go in its file's footer, keyed on the fit's magnitude covariate.
-            mag_column = C.COL_M_UV if ctx.magnitude_type == "absolute" else C.COL_MAG_INPUT
+            # (Interlopers have no M_UV: their counts are per apparent magnitude.)
+            mag_column = (C.COL_M_UV if ctx.magnitude_type == "absolute" and not spec.population
+                          else C.COL_MAG_INPUT)
             # And the histograms of the measured detection-band magnitude (transfer matrices).
-            write_task_table(run_dir, name, table, key=spec_key(spec), mag_column=mag_column,
+            write_task_table(spec_store(run_dir, spec), name, table, key=spec_key(spec),
+                             mag_column=mag_column,
                              obs_column=C.band_column(C.OBS_MAG_QUANTITY, ctx.detection_band))
             done.append((name, len(table), time.process_time() - t0))
     finally:
@@ -218,9 +222,9 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
     plan = plan_tasks(cfg)
     specs, own_files = shard_scope(plan, lock.shard)
     # ----
-    wanted = {spec_filename(s): spec_key(s) for s in specs}
-    finished = verified_task_names(run_dir, wanted, quarantine=True)
-    pending = [s for s in specs if spec_filename(s) not in finished]
+    # Each population's tasks in its own store (glaciar.plan.spec_store).
+    finished = finished_specs(run_dir, specs, quarantine=True)
+    pending = [s for s in specs if s not in finished]
     n_done_before = len(specs) - len(pending)
     if max_tasks is not None:
         pending = pending[:max_tasks]
@@ -244,8 +248,11 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
         # Bound the number of loose task files of a long run (glaciar.store: Compaction).
         if stats["n_run"] // COMPACT_EVERY > account.compactions:
             account.compactions = stats["n_run"] // COMPACT_EVERY
-            compact(run_dir, min_tasks=COMPACT_EVERY, **own_files)
+            for store in stores:
+                compact(store, min_tasks=COMPACT_EVERY, **own_files)
     account.compactions = 0
+    stores = [run_dir] + ([run_dir / INTERLOPER_DIRNAME] if any(s.population for s in specs)
+                          else [])
 
     t0 = time.perf_counter()
     try:
@@ -278,12 +285,14 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
         bar.close()
     stats["setup_seconds"] = t0 - t_start
     stats["task_seconds"] = time.perf_counter() - t0
-    compact(run_dir, min_tasks=COMPACT_EVERY, **own_files)
+    for store in stores:
+        if store.is_dir():
+            compact(store, min_tasks=COMPACT_EVERY, **own_files)
     if lock.shard is None:
         finish_context_cache(run_dir, n_done_before + stats["n_run"] == len(specs))
     else:
         # The field caches go once the whole plan is done, whichever shard sees it last.
         with lock.setup():
-            done = finished_task_names(run_dir)
-            finish_context_cache(run_dir, all(spec_filename(s) in done for s in plan))
+            finish_context_cache(run_dir, len(finished_specs(run_dir, plan, verify=False))
+                                 == len(plan))
     return stats

@@ -68,6 +68,9 @@ def store_settings(cfg: Config) -> dict:
     """
     d = config_to_dict(cfg)
     d.pop("output", None)
+    # Interloper tasks carry their settings in their own keys (glaciar.plan.interloper_tasks):
+    # adding or changing them leaves the target population's store as it is.
+    d.pop("interlopers", None)
     # Definitions that change rows without a config key: a store made under another
     # definition is another store.
     d["classification"]["flux_test"] = "auto_vs_template"

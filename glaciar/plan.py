@@ -4,12 +4,17 @@ Pure functions of the configuration (the preflight also reads the footprints).
 """
 from __future__ import annotations
 
+import functools
+import hashlib
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 
 from .config import Config
 from .engine.context import FieldContext
+from .engine.interlopers import POPULATION, InterloperModel
 from .engine.positions import placement_capacity
 from .engine.task import TaskSpec, draw_task_sources
 from .fieldprep import band_psf, resolve_filter
@@ -70,7 +75,82 @@ def plan_tasks(cfg: Config) -> list[TaskSpec]:
         for it in range(n):
             out.append(TaskSpec(field=f, field_index=field_index[f], z_index=zi[z],
                                 mag_index=mi[m], iteration=it, z=z, mag=m))
+    return out + interloper_tasks(cfg, z_offset=len(zs))
+
+
+#: Sub-directory of a run holding the interloper tasks' store (its own ``results/``).
+INTERLOPER_DIRNAME = "interlopers"
+
+
+def interloper_tasks(cfg: Config, z_offset: int = 0) -> list[TaskSpec]:
+    """The interloper tasks of ``cfg.interlopers`` (none without the section).
+
+    Ordered field -> z node -> magnitude cell -> iteration; their ``z_index`` starts at
+    ``z_offset`` so that a (field, z_index) group never mixes the two populations
+    (:func:`glaciar.execute` chunks by it).
+    """
+    sec = cfg.interlopers
+    if sec is None:
+        return []
+    # The population names the settings that make the rows (the section and the source
+    # settings it shares): other settings, other streams and task keys, so that a changed
+    # section's tasks run again while the target population's store stays valid.
+    ident = json.dumps([sec.model_dump(mode="json"), cfg.source.model_dump(mode="json")],
+                       sort_keys=True)
+    pop = f"{POPULATION}-{hashlib.sha256(ident.encode('utf-8')).hexdigest()[:12]}"
+    out = []
+    for fi, f in enumerate(cfg.survey.fields):
+        for i, z in enumerate(sec.z_nodes()):
+            for j, m in enumerate(sec.mag_cells()):
+                for it in range(int(sec.n_iterations)):
+                    out.append(TaskSpec(field=f, field_index=fi, z_index=z_offset + i,
+                                        mag_index=j, iteration=it, z=float(z), mag=float(m),
+                                        population=pop))
     return out
+
+
+@functools.lru_cache(maxsize=8)
+def _model_of(section_json: str, source_json: str) -> InterloperModel:
+    return InterloperModel.from_config(json.loads(section_json),
+                                       population.SourceModel(**json.loads(source_json)))
+
+
+def interloper_model(cfg_dict: dict) -> InterloperModel | None:
+    """The run's :class:`~glaciar.engine.interlopers.InterloperModel` from its plain config dict."""
+    sec = cfg_dict.get("interlopers")
+    if sec is None:
+        return None
+    src = dict(cfg_dict["source"])
+    src["sersic_indices"] = tuple(src["sersic_indices"])
+    src["sersic_fractions"] = tuple(src["sersic_fractions"])
+    return _model_of(json.dumps(sec, sort_keys=True), json.dumps(src, sort_keys=True))
+
+
+def spec_store(run_dir, spec: TaskSpec) -> Path:
+    """The store a task's file goes to: the run's, or ``RUN/interlopers`` for interlopers."""
+    return Path(run_dir) / INTERLOPER_DIRNAME if spec.population else Path(run_dir)
+
+
+def finished_specs(run_dir, specs, quarantine: bool = False,
+                   verify: bool = True) -> set[TaskSpec]:
+    """The tasks among ``specs`` stored completely, each looked for in its own store:
+    :func:`glaciar.store.verified_task_names` (``verify``), else the names the store lists
+    (:func:`glaciar.store.finished_task_names`)."""
+    from .store import finished_task_names, verified_task_names
+
+    done = set()
+    for pop in sorted({s.population for s in specs}):
+        group = [s for s in specs if s.population == pop]
+        store = spec_store(run_dir, group[0])
+        if pop and not store.is_dir():
+            continue
+        if verify:
+            names = verified_task_names(store, {spec_filename(s): spec_key(s) for s in group},
+                                        quarantine=quarantine)
+        else:
+            names = finished_task_names(store)
+        done.update(s for s in group if spec_filename(s) in names)
+    return done
 
 
 def manifest_cells(cfg: Config) -> list[dict]:
@@ -91,8 +171,9 @@ def spec_filename(spec: TaskSpec) -> str:
 
 
 def spec_key(spec: TaskSpec) -> str:
-    """Exact identity of a task (:func:`glaciar.store.task_key`)."""
-    return task_key(spec.field, spec.z, spec.mag, spec.iteration)
+    """Exact identity of a task (:func:`glaciar.store.task_key`; with its population, if any)."""
+    key = task_key(spec.field, spec.z, spec.mag, spec.iteration)
+    return key if not spec.population else key[:-1] + "," + json.dumps(spec.population) + "]"
 
 
 def detection_z_limit(cfg: Config, z_max: float = 30.0) -> float | None:

@@ -177,9 +177,8 @@ def run_status(run_dir) -> list[dict]:
         "pid": holder's pid text or None}``, shards in order.
     """
     from .config import load_config
-    from .plan import plan_tasks, spec_filename
+    from .plan import finished_specs, plan_tasks
     from .rundir import read_shard_counts, run_holder, shard_holder
-    from .store import finished_task_names
 
     run_dir = Path(run_dir)
     cpath = run_dir / C.RUN_CONFIG_NAME
@@ -187,14 +186,14 @@ def run_status(run_dir) -> list[dict]:
         raise FileNotFoundError(f"{cpath}: no stored configuration (expected the --out of "
                                 "`glaciar simulate`)")
     specs = plan_tasks(load_config(cpath))
-    finished = finished_task_names(run_dir)
+    finished = finished_specs(run_dir, specs, verify=False)   # each population in its store
     counts = set(read_shard_counts(run_dir).values())
     if len(counts) > 1:
         raise ValueError(f"{run_dir / C.SHARDS_DIRNAME}: shard records disagree on the shard "
                          f"count ({', '.join(map(str, sorted(counts)))})")
 
     def row(k, n, tasks, pid):
-        done = sum(spec_filename(s) in finished for s in tasks)
+        done = sum(s in finished for s in tasks)
         rest = len(tasks) - done
         return {"shard": k, "of": n, "tasks": len(tasks), "done": done,
                 "running": rest if pid else 0, "missing": 0 if pid else rest, "pid": pid}

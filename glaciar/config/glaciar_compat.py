@@ -36,7 +36,7 @@ __all__ = ["is_glaciar_parameters", "glaciar_to_schema", "GLACIAR_TO_SCHEMA", "T
 
 #: Sections of a glaciar configuration (a GLACiAR file has none of them).
 TOP_KEYS = ("survey", "grid", "simulation", "source", "detection", "classification",
-            "noise", "selection", "output")
+            "noise", "selection", "output", "interlopers")
 
 
 class _Ctx:

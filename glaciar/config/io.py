@@ -164,6 +164,9 @@ def config_to_dict(cfg: Config, relative_to: str | os.PathLike | None = None) ->
         "noise": cfg.noise.model_dump(mode="json"),
         "selection": selection_data(cfg.selection),
         "output": cfg.output.model_dump(mode="json"),
+        # Only when given: configurations without interlopers keep their hashes.
+        **({"interlopers": cfg.interlopers.model_dump(mode="json")}
+           if cfg.interlopers is not None else {}),
     }
     out = copy.deepcopy(_plain(out))
     if rel is not None:
@@ -210,6 +213,7 @@ def store_hash(cfg: Config) -> str:
     """
     d = config_to_dict(cfg, relative_to=cfg.base_dir)
     d.pop("output", None)
+    d.pop("interlopers", None)      # in the interloper tasks' own keys (glaciar.plan)
     d["survey"].pop("fields", None)
     d["grid"].pop("z", None)
     d["grid"].pop("mag", None)

@@ -38,6 +38,7 @@ from .sextractor import detection_keys_from_sex
 from .section import (Bool, context_base_dir, engine_default, float_list, MAX_ABS_MAGNITUDE,
                       MAX_APERTURE_PIX, MAX_BOX_POINTS, MAX_DETECT_THRESH, MAX_GRID_VALUES,
                       MAX_R_EFF_KPC, MAX_REDSHIFT, MAX_TASKS, Section, validate_nested)
+from .interlopers import InterloperConfig
 from .survey_models import SurveyConfig
 from .user_selection import SelectionFunctionConfig
 
@@ -610,6 +611,8 @@ class Config(Section):
                           "[] = selected means recovered), or {function: "
                           "'package.module:callable'} (docs/configuration.md)")
     output: OutputConfig = Field(default_factory=OutputConfig, description="optional outputs")
+    interlopers: InterloperConfig | None = Field(None, description="a low-z interloper "
+                                                 "population for contamination (absent: none)")
     path: Path | None = None
     base_dir: Path = Path(".")
     warnings: tuple[str, ...] = ()

@@ -131,6 +131,12 @@ def template_yaml() -> str:
             out.append(_line(0, section, "", info.description))
             out += _model_lines(model, 2, skip=("bands",) + _TEMPLATE_SKIP.get(section, ()))
             out += _bands_lines(2)
+        elif info.default is None:
+            # An optional section stays off in the template (empty: absent), its keys
+            # shown commented out.
+            out.append(_line(0, section, "", info.description))
+            lines = _model_lines(model, 2, skip=_TEMPLATE_SKIP.get(section, ()))
+            out += ["# " + ln if ln.strip() else ln for ln in lines]
         else:
             out.append(_line(0, section, "", info.description))
             out += _model_lines(model, 2, skip=_TEMPLATE_SKIP.get(section, ()))
@@ -141,6 +147,10 @@ def template_yaml() -> str:
 def _section_model(annotation):
     if isinstance(annotation, type) and issubclass(annotation, Section):
         return annotation
+    # An optional section (`interlopers: ... | None`): its model.
+    args = [a for a in typing.get_args(annotation) if a is not type(None)]
+    if len(args) == 1 and isinstance(args[0], type) and issubclass(args[0], Section):
+        return args[0]
     return None
 
 

@@ -19,6 +19,7 @@ import pandas as pd
 from .. import constants as C
 from ..galaxy import population, sed
 from .depth import depth_at
+from .interlopers import draw_interlopers
 from .lensed import draw_lensed_sources
 from .measure import MeasureSetup, measure_injected
 from .positions import draw_positions
@@ -39,9 +40,14 @@ class TaskSpec:
     iteration: int
     z: float
     mag: float
+    #: "" for the target population; "interloper-<settings hash>" for interloper tasks
+    #: (glaciar.plan.interloper_tasks, glaciar.engine.interlopers).
+    population: str = ""
 
-    def spawn_key(self) -> tuple[int, int, int, int]:
-        return (field_key(self.field), grid_key(self.z), grid_key(self.mag), self.iteration)
+    def spawn_key(self) -> tuple[int, ...]:
+        key = (field_key(self.field), grid_key(self.z), grid_key(self.mag), self.iteration)
+        # Another population, another stream; the target's keys are unchanged.
+        return key + (field_key(self.population),) if self.population else key
 
 
 def field_key(field: str) -> int:
@@ -111,8 +117,23 @@ def draw_task_sources(rng: np.random.Generator, n: int, z: float, mag: float, ct
                        r_eff_pix=np.asarray(r_pix, float) * np.ones(n))
 
 
+def _interloper_sources(rng, spec: TaskSpec, ctx, interlopers) -> tuple[SourceDraws, dict]:
+    """The draws of an interloper task (:func:`glaciar.engine.interlopers.draw_interlopers`)."""
+    if interlopers is None:
+        raise ValueError(f"task of population {spec.population!r} needs the run's interloper "
+                         "model (config section interlopers:)")
+
+    def quantise(r_arcsec):
+        r_pix = ctx.quantise_r_eff(r_arcsec / ctx.pixel_scale_arcsec)
+        return r_pix, r_pix * ctx.pixel_scale_arcsec
+    d = draw_interlopers(rng, interlopers, spec.z, spec.mag, ctx.filters, ctx.detection_index,
+                         ctx.cosmology, quantise)
+    extra = d.pop("extra")
+    return SourceDraws(**d), extra
+
+
 def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
-             skip_faint_bands: bool = True) -> pd.DataFrame:
+             skip_faint_bands: bool = True, interlopers=None) -> pd.DataFrame:
     """Run one task on a prepared field context and return its per-source rows.
 
     Parameters
@@ -131,17 +152,25 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
         than FAINT_MAG_LIMIT (blueward of the break).  The skip is exact: with
         it off, those bands receive stamps of zero or < 1e-9 counts, and the
         rows are the same (tests/engine/test_task.py).
+    interlopers : glaciar.engine.interlopers.InterloperModel, optional
+        The run's interloper population: needed by tasks whose ``spec.population`` is set.
     """
     rng, ident = task_rng(seed, spec)
-    n = ctx.n_galaxies
+    extra = {}
     lensed = None
-    if getattr(ctx, "lens", None) is not None:
+    if spec.population:
+        # Interlopers are injected unlensed, even in a lensed field (docs/lensing.md).
+        src, extra = _interloper_sources(rng, spec, ctx, interlopers)
+        n = src.beta.size
+    else:
+        n = ctx.n_galaxies
+    if not spec.population and getattr(ctx, "lens", None) is not None:
         # Behind a lens: drawn, placed and shaped by glaciar.engine.lensed (docs/lensing.md).
         lensed = draw_lensed_sources(rng, n, spec.z, spec.mag, ctx)
         src, x, y = SourceDraws(**lensed.draws), lensed.x, lensed.y
     else:
-        src = draw_task_sources(rng, n, spec.z, spec.mag, ctx)
-
+        if not spec.population:
+            src = draw_task_sources(rng, n, spec.z, spec.mag, ctx)
         # Isolation boxes (most of the light + 2 PSF FWHM) decide how close two sources may sit.
         hh, hw = ctx.stamp_half_sizes(src.sersic_n, src.r_eff_pix, src.axis_ratio, src.position_angle_deg)
         x, y = draw_positions(rng, ctx.footprint, hh, hw,
@@ -149,6 +178,7 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
     m = x.size
     if m < n:
         src = SourceDraws(**{k: v[:m] for k, v in src.__dict__.items()})
+        extra = {k: v[:m] for k, v in extra.items()}
 
     bands = ctx.bands
     flags = np.zeros(m, dtype=np.int64) if lensed is None else lensed.flags.copy()
@@ -214,6 +244,7 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
         else:
             cols[key] = np.asarray(val)
     cols[C.COL_FLAGS] = flags
+    cols.update(extra)
     status = np.asarray(cols[C.COL_STATUS])
     recovered = np.isin(status, C.RECOVERED_STATUSES)
     cols[C.COL_RECOVERED] = recovered

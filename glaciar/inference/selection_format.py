@@ -11,7 +11,8 @@ grid, survey averages over depth), ``PPC`` and ``DEPTH`` (area by depth), ``LENS
 fields: area nodes by depth and lens model, :mod:`glaciar.inference.lensed`), and
 for luminosity-function codes ``VEFF_MUV`` / ``VEFF_MUV_DRAWS`` (V_eff as a function
 of M_UV) and ``TRANSFER`` / ``TR_COUNTS`` / ``TR_DRAWS`` / ``TR_BINS`` (the photometric
-transfer function p(m_obs | m_in, z)); one ``DETFILT`` table holds the detection
+transfer function p(m_obs | m_in, z)); one ``CONTAM`` table when the run injected
+interlopers (:mod:`glaciar.inference.contamination`); one ``DETFILT`` table holds the detection
 filter and the injections' beta distribution and IGM (:class:`InjectionSED`).
 
 This module is the only place the layout is written or read.  It is a codec on bytes
@@ -31,6 +32,7 @@ import numpy as np
 from ..galaxy.filters import Filter
 from ..version import __version__
 from ..galaxy.lensing import NODE_KEYS
+from .contamination import contamination_hdu, read_contamination
 from .lensed import LensNodes
 from .models import SurfaceModel
 from .products import GRID_QUANTILES, EffectiveVolume, InjectionSED, VeffTable
@@ -269,6 +271,11 @@ def encode(fits_list: list, meta: dict | None = None) -> bytes:
         hdus.append(_sed_hdu(sed))
     for i, sf in enumerate(fits_list):
         hdus += _hdus(sf, i + 1)
+    # The interlopers' passing fraction (one per file: pooled over fields), when fitted.
+    contam = next((sf.interlopers for sf in fits_list
+                   if getattr(sf, "interlopers", None) is not None), None)
+    if contam is not None:
+        hdus.append(contamination_hdu(contam))
     buf = io.BytesIO()
     fits.HDUList(hdus).writeto(buf)
     return buf.getvalue()
@@ -311,6 +318,7 @@ def decode(data: bytes, source: str = "<bytes>") -> dict[str, dict]:
                                       np.asarray(ft["throughput"], float)),
                                float(fh.header["BETAMEAN"]), float(fh.header["BETASD"]),
                                str(fh.header["IGM"]), str(fh.header["COSMO"]))
+        contam = read_contamination(hdul)       # None in files without CONTAM
         nfits = int(hdul[0].header["NFITS"])
         for v in range(1, nfits + 1):
             dh = hdul["DRAWS", v]
@@ -347,7 +355,7 @@ def decode(data: bytes, source: str = "<bytes>") -> dict[str, dict]:
             out[field] = dict(model=model, draws=draws, z_grid=zg, m_grid=mg, meta=meta,
                               field=field, ppc=ppc, depth_area=depth_area, domain=domain,
                               diagnostics=diag, sed=sed, veff_muv=_read_veff(hdul, v),
-                              transfer_matrix=_read_transfer(hdul, v),
+                              transfer_matrix=_read_transfer(hdul, v), interlopers=contam,
                               lens_nodes=_read_lens(hdul, v))
     return out
 

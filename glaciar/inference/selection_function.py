@@ -33,6 +33,7 @@ import numpy as np
 
 from ..rundir import atomic_write_bytes
 from . import selection_format
+from .contamination import ContaminationMixin
 from .counts import SurveyVolume, count_kernel, expected_counts
 from .lensed import LensedSelection, lensed_muv_volume_draws, lensed_volume_draws
 from .models import SurfaceModel
@@ -54,7 +55,7 @@ MAX_DEPTH_NODES = 12
 EXTRAPOLATION_TOLERANCE = 1e-3
 
 
-class SelectionFunction(LensedSelection):
+class SelectionFunction(ContaminationMixin, LensedSelection):
     """Posterior draws of C and S, evaluable anywhere inside the simulated box.
 
     Parameters
@@ -730,14 +731,19 @@ class SelectionFunction(LensedSelection):
             an int: that many; False: one evaluation at the pointwise median of P.
         transfer : bool
             False: the measured magnitude is taken to be the input magnitude.
+        interlopers : bool, optional (keyword)
+            Add the expected interlopers (:meth:`with_interlopers`); default: when the file
+            holds a contamination (docs/contamination.md).
 
         Returns
         -------
         glaciar.inference.counts.ExpectedCounts
         """
         volume = SurveyVolume(z_min=z_min, z_max=z_max, area=area, cosmology=cosmology)
-        return expected_counts(self, phi, m_obs_edges, volume=volume, M_uv_range=M_uv_range,
-                               draws=draws, transfer=transfer, **kw)
+        add = kw.pop("interlopers", None)
+        return self.with_interlopers(expected_counts(
+            self, phi, m_obs_edges, volume=volume, M_uv_range=M_uv_range, draws=draws,
+            transfer=transfer, **kw), add, area, kw.get("interval", 0.68))
 
     def _z_range(self):
         if self.z_grid is not None:
@@ -805,15 +811,7 @@ class SelectionFunction(LensedSelection):
     # ``glaciar.SelectionFunction.read(path)`` is how a luminosity-function code reads it.
     @staticmethod
     def to_bytes(fits_list: list["SelectionFunction"], meta: dict | None = None) -> bytes:
-        """One or more fits (e.g. one per field) as the bytes of one FITS file.
-
-        Parameters
-        ----------
-        fits_list : list of SelectionFunction
-            EXTVER 1, 2, ... in this order; all share one model shape.
-        meta : dict, optional
-            Run metadata for the primary header and ``META`` (default: the first fit's).
-        """
+        """One or more fits as the bytes of one FITS file (:func:`selection_format.encode`)."""
         return selection_format.encode(fits_list, meta)
 
     @classmethod
@@ -828,10 +826,11 @@ class SelectionFunction(LensedSelection):
         """
         out = {}
         for field, kw in selection_format.decode(data, source).items():
-            tables = {k: kw.pop(k) for k in ("veff_muv", "transfer_matrix", "lens_nodes")}
+            tables = {k: kw.pop(k) for k in ("veff_muv", "transfer_matrix", "interlopers",
+                                             "lens_nodes")}
             out[field] = sf = cls(**kw)
             sf.veff_muv, sf.transfer_matrix = tables["veff_muv"], tables["transfer_matrix"]
-            sf.lens_nodes = tables["lens_nodes"]
+            sf.interlopers, sf.lens_nodes = tables["interlopers"], tables["lens_nodes"]
         return out
 
     def write(self, path) -> None:

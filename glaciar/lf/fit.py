@@ -73,6 +73,7 @@ from ..inference.counts import (COUNTS_EXTRAPOLATION_TOLERANCE, M_STEP, SurveyVo
                                 default_M_edges)
 from ..inference.sampling import SamplerSettings
 from .models import LFModel, get_model
+from .predict import expected_counts, interloper_background
 
 __all__ = ["LFResult", "LFPosterior", "fit_lf", "expected_counts", "default_window", "step_width",
            "gehrels_limits",
@@ -212,11 +213,15 @@ class LFPosterior:
         Cell centres [AB mag] (parametric models).
     """
 
-    def __init__(self, model: LFModel, basis, n_obs, fixed, M=None, offsets=None):
+    def __init__(self, model: LFModel, basis, n_obs, fixed, M=None, offsets=None, background=None):
         self.model = model
         self.M = None if M is None else np.asarray(M, float)
         self.n_obs = np.asarray(n_obs, float)
+        # Counts phi does not set (interlopers, (n_d, n_k)): one more basis row, its phi 1.
+        self.background, self._n_bg = background, int(background is not None)
         b = np.asarray(basis, float)
+        if background is not None:
+            b = np.concatenate([b, np.broadcast_to(background, b.shape[1:])[None]])
         self.n_d = b.shape[1]
         nz = self.n_obs > 0
         self._nz = self.n_obs[nz]
@@ -243,9 +248,8 @@ class LFPosterior:
     def basis_phi(self, theta) -> np.ndarray:
         """phi on the basis (W, n_basis): at the cell centres, or 10^step."""
         th = np.atleast_2d(theta)
-        if self.model.name == "stepwise":
-            return 10.0 ** th
-        return self.model.phi(self.M, th)
+        f = 10.0 ** th if self.model.name == "stepwise" else self.model.phi(self.M, th)
+        return np.concatenate([f, np.ones((len(f), self._n_bg))], axis=1) if self._n_bg else f
 
     def grad_log_like(self, theta) -> np.ndarray:
         """d ln L / d (free parameters) at one full parameter vector ``theta``, (n_free,).
@@ -303,7 +307,9 @@ class LFPosterior:
 
     def draw(self, d: int) -> "LFPosterior":
         """The posterior given selection-function draw ``d`` alone."""
-        return LFPosterior(self.model, self.basis[:, d:d + 1], self.n_obs, self.fixed, self.M)
+        bg = None if self.background is None else self.background[d:d + 1]
+        return LFPosterior(self.model, self.basis[:len(self.basis) - self._n_bg, d:d + 1],
+                           self.n_obs, self.fixed, self.M, background=bg)
 
     def __call__(self, x) -> np.ndarray:
         th = self.full(x)
@@ -638,7 +644,7 @@ def _sample(post: LFPosterior, x_map, bounds, n_walkers, n_steps, seed, marginal
 def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None,
            volume: SurveyVolume = SurveyVolume(), m_obs_edges=None, transfer: bool = True,
            bins=None, sampler: SamplerSettings = SamplerSettings(),
-           marginalisation: Marginalisation = Marginalisation()) -> LFResult:
+           marginalisation: Marginalisation = Marginalisation(), interlopers=None) -> LFResult:
     """Fit a luminosity function phi(M_UV) to the measured magnitudes of observed candidates.
 
     Method, likelihood, priors and sampling: module docstring.
@@ -673,6 +679,9 @@ def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None,
         progress bar.
     marginalisation : Marginalisation
         How the selection function's draws enter, and how many are used.
+    interlopers : bool, optional
+        Add the expected interlopers to lambda (:func:`glaciar.lf.predict.interloper_background`;
+        default: when the file holds a contamination); ``counts["n_interlopers"]`` then.
 
     Returns
     -------
@@ -774,12 +783,13 @@ def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None,
     n_cells = per * max(1, int(np.ceil((hi - lo) / per / M_STEP - 1e-9)))
     Me, vals, ext = kernel(lo, hi, n_cells)
     Mc = 0.5 * (Me[:-1] + Me[1:])
+    bg = interloper_background(sfs, E, len(vals), area, interlopers)
     if mdl.name == "stepwise":
         cell_bin = np.clip(np.searchsorted(edges, Mc, side="right") - 1, 0, per - 1)
         basis = np.stack([vals[:, cell_bin == j].sum(axis=1) for j in range(per)])
-        post = LFPosterior(mdl, basis, n_obs, fixed)
+        post = LFPosterior(mdl, basis, n_obs, fixed, background=bg)
     else:
-        post = LFPosterior(mdl, np.moveaxis(vals, 1, 0), n_obs, fixed, M=Mc)
+        post = LFPosterior(mdl, np.moveaxis(vals, 1, 0), n_obs, fixed, M=Mc, background=bg)
 
     free_b = mdl.bounds[post.free]
     x0 = _start(post, n_obs.sum())
@@ -806,7 +816,8 @@ def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None,
     lam = post.expected(pick)[np.arange(len(pick)), d_pick]                  # (S, n_k)
     lq = np.quantile(lam, [0.5, 0.16, 0.84], axis=0)
     counts = {"m_lo": E[:-1].copy(), "m_hi": E[1:].copy(), "n_obs": n_obs.astype(np.int64),
-              "n_exp": lq[0], "n_exp_lo68": lq[1], "n_exp_hi68": lq[2]}
+              "n_exp": lq[0], "n_exp_lo68": lq[1], "n_exp_hi68": lq[2],
+              **({} if bg is None else {"n_interlopers": np.median(bg, axis=0)})}
     # Draws that carry the posterior: 1 / Σ w^2 of the draws' mean weights over the samples.
     wbar = (np.bincount(d_pick, minlength=post.n_d) / len(d_pick) if draw_of is not None
             else w.mean(axis=0))
@@ -864,35 +875,3 @@ def fit_lf(sf, m_obs, *, model: str = "schechter", fix=None, muv_range=None,
                     n_outside=n_out, counts=counts, binned_phi=binned,
                     muv_range=(float(lo), float(hi)), z_range=(float(zr[0]), float(zr[1])),
                     transfer=bool(transfer), convergence=conv)
-
-
-def expected_counts(sf, phi, m_obs_edges, *, params=None, **kw):
-    """Expected counts per measured-magnitude bin for a luminosity function.
-
-    Parameters
-    ----------
-    sf : SelectionFunction
-    phi : callable or str
-        ``phi(M, z)`` [Mpc^-3 mag^-1], or a model name ("schechter", "double_power_law")
-        evaluated at ``params``.
-    m_obs_edges : array_like
-        Measured-magnitude bins [AB mag].
-    params : dict, optional
-        The model's parameters, by name (with a model name).
-    **kw
-        :meth:`glaciar.inference.SelectionFunction.expected_counts`'s keywords.
-
-    Returns
-    -------
-    glaciar.inference.counts.ExpectedCounts
-    """
-    if isinstance(phi, str):
-        mdl = get_model(phi)
-        missing = [n for n in mdl.param_names if n not in (params or {})]
-        if missing:
-            raise ValueError(f"expected_counts: model {mdl.name!r} needs {', '.join(missing)}")
-        th = np.array([float(params[n]) for n in mdl.param_names])
-
-        def phi(M, z, th=th, mdl=mdl):
-            return mdl.phi(np.asarray(M, float) + 0 * np.asarray(z, float), th)
-    return sf.expected_counts(phi, m_obs_edges, **kw)

@@ -45,6 +45,7 @@ from .chains import chains_key, file_tag, load_chains, save_chains
 from .fitdir import FitStage, hold_run
 from .inputs import depth_area as _depth_area
 from .inputs import fit_inputs, manifest_areas
+from .contamination import add_contamination
 from .selection_file import add_lf_products, lens_nodes_from_manifest
 from .summary import (cmax_summary, format_summary, json_default, m50_summary, param_summary,
                       param_table, veff_summary)
@@ -475,6 +476,14 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, sampler, volume, mag_
         return [sf for *_, sf in outputs]
     # V_eff(M_UV) and the transfer matrices (issue 8.4), also before anything is written.
     add_lf_products(run_dir, manifest, [sf for *_, sf in outputs], cosmology=cosmology, seed=seed)
+    # And the interlopers' passing fraction, when the run injected them (CONTAM).
+    add_contamination(run_dir, manifest, [sf for *_, sf in outputs], seed=seed)
+    if outputs and outputs[0][-1].interlopers is not None:
+        c = outputs[0][-1].interlopers
+        summary["interlopers"] = {"m_obs_edges": c.m_edges.tolist(), "fraction": c.fraction.tolist(),
+                                  "lo68": c.lower.tolist(), "hi68": c.upper.tolist(),
+                                  "n_injected": c.n_injected.tolist(),
+                                  "n_selected": c.n_selected.tolist()}
 
     # Everything sampled and checked: now write, into a stage swapped in as one unit.
     from astropy.table import Table

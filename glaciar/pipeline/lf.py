@@ -58,6 +58,9 @@ _COUNT_COLUMNS = {
     "n_exp_lo68": ("", "16th percentile of the expected candidates"),
     "n_exp_hi68": ("", "84th percentile of the expected candidates"),
 }
+#: With a contamination in the selection function (docs/contamination.md).
+_INTERLOPER_COLUMN = {"n_interlopers": ("", "expected interlopers in the bin (included in n_exp): "
+                                            "area x number counts x passing fraction")}
 
 
 def _meta_value(meta: dict, key: str):
@@ -174,6 +177,18 @@ def _read_selection_function(run_dir: Path):
     return list(fits_.values()), path
 
 
+def _interlopers_summary(sfs, res) -> dict:
+    """What ``summary.json`` says about interlopers: whether and how many were added."""
+    if "n_interlopers" not in res.counts:
+        return {"added": False, "why": "the selection function holds no contamination (no "
+                                       "interlopers: section in the run)"}
+    c = sfs[0].interlopers
+    return {"added": True, "expected_total": float(np.sum(res.counts["n_interlopers"])),
+            "z_range": list(c.z_range), "number_counts": dict(zip(("a", "b", "m0"), c.counts)),
+            "note": "expected interlopers per m_obs bin are in counts.ecsv (n_interlopers), "
+                    "included in n_exp and in the likelihood"}
+
+
 def _ecsv(columns: dict, data: dict, meta: dict) -> str:
     from astropy.table import Table
 
@@ -283,6 +298,7 @@ def run_lf(run_dir, catalog=None, *, model: str = "schechter", fix: dict | None 
         "m_obs_range": [float(res.counts["m_lo"][0]), float(res.counts["m_hi"][-1])],
         "muv_range": list(res.muv_range), "z_range": list(res.z_range),
         "transfer": res.transfer, "seed": int(seed), "convergence": res.convergence,
+        "interlopers": _interlopers_summary(sfs, res),
         "catalog": str(catalog), "catalog_identity": info["identity"],
         "selection_function": str(sf_path),
         "fields": [s.field for s in sfs], "config_hash": manifest.get("config_hash"),
@@ -293,7 +309,8 @@ def run_lf(run_dir, catalog=None, *, model: str = "schechter", fix: dict | None 
     meta = {"model": res.model, "config_hash": manifest.get("config_hash"),
             "catalog": str(catalog), "z_range": list(res.z_range)}
     atomic_write_text(out / "binned_phi.ecsv", _ecsv(_PHI_COLUMNS, res.binned_phi, meta))
-    atomic_write_text(out / "counts.ecsv", _ecsv(_COUNT_COLUMNS, res.counts, meta))
+    columns = {**_COUNT_COLUMNS, **(_INTERLOPER_COLUMN if "n_interlopers" in res.counts else {})}
+    atomic_write_text(out / "counts.ecsv", _ecsv(columns, res.counts, meta))
     save_png(lf_figure(res), out / "lf.png", dpi=FIGURE_DPI)
     # The summary last: its presence says the rest was written.
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
