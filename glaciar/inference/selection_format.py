@@ -29,6 +29,7 @@ import numpy as np
 
 from ..galaxy.filters import Filter
 from ..version import __version__
+from .covariates import covariate_hdus, read_covariates
 from .models import SurfaceModel
 from .products import GRID_QUANTILES, EffectiveVolume, InjectionSED, VeffTable
 
@@ -101,6 +102,7 @@ def _hdus(sf, extver: int) -> list:
         hdus += _veff_hdus(sf.veff_muv, sf.field, extver)
     if sf.transfer_matrix is not None:
         hdus += _transfer_hdus(sf.transfer_matrix, sf.field, extver)
+    hdus += covariate_hdus(sf, extver)          # size/beta covariates (CV_*), when fitted
     if sf.depth_area:
         rows = [(f, lo, hi, a) for f, (e, aa) in sorted(sf.depth_area.items())
                 for lo, hi, a in zip(e[:-1], e[1:], aa)]
@@ -308,7 +310,8 @@ def decode(data: bytes, source: str = "<bytes>") -> dict[str, dict]:
             out[field] = dict(model=model, draws=draws, z_grid=zg, m_grid=mg, meta=meta,
                               field=field, ppc=ppc, depth_area=depth_area, domain=domain,
                               diagnostics=diag, sed=sed, veff_muv=_read_veff(hdul, v),
-                              transfer_matrix=_read_transfer(hdul, v))
+                              transfer_matrix=_read_transfer(hdul, v),
+                              covariates=read_covariates(hdul, v))
     return out
 
 
