@@ -530,10 +530,10 @@ def covariate_hdus(sf, extver: int) -> list:
         hh = h.header
         sp = cov.spec
         hh["FIELD"] = sf.field
-        hh["COVNAME"] = (name, "covariate (glaciar.inference.covariates)")
+        hh["COVNAME"] = (name, "covariate")
         hh["COVCOL"] = (sp.column, "per-source column of the covariate")
         hh["COVXFORM"] = ("log10" if sp.log else "none", "x = log10(value) or x = value")
-        hh["COVBLOCK"] = (sp.block, "c: completeness parameters; s: selection parameters")
+        hh["COVBLOCK"] = (sp.block, "c: C parameters; s: S parameters")
         lo, hi = cov.covered
         hh["COVMIN"] = (lo, "injected range of x, lower end")
         hh["COVMAX"] = (hi, "injected range of x, upper end")
