@@ -1,4 +1,4 @@
-"""The ``glaciar`` command: demo, init, simulate, status, report, fit, next, catalog, lf.
+"""The ``glaciar`` command: demo, init, simulate, status, report, fit, next, catalog, lf, export.
 
 Every sub-command turns expected failures (bad config, missing file, mismatched
 store, bad option value) into a one-line message on stderr and exit status 2
@@ -523,9 +523,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="astropy realisation for V_eff, e.g. WMAP9 (default: Planck18)")
     s.add_argument("--covariates", default=None, metavar="NAMES",
                    help="also fit C per size bin and S per UV-slope bin: r_eff, beta or r_eff,beta "
-                        "(sf.completeness(m, z, r_eff_arcsec=), docs/selection-function-file.md)")
+                        "(sf.completeness(m, z, r_eff_arcsec=), docs/selection-function-file.md; default: none)")
     s.add_argument("--covariate-bins", type=_positive_int, default=None,
-                   help="quantile bins per covariate (default 4)")
+                   help="quantile bins per covariate (default: 4)")
     s.add_argument("--quiet", action="store_true", help=_HELP_QUIET)
     s.set_defaults(func=_cmd_fit)
 
@@ -534,8 +534,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("source", help="a fitted run directory or a selection_function.fits")
     s.add_argument("--format", default="jollof", choices=["jollof"],
                    help="jollof: detection_completeness.fits and selection_completeness.fits")
-    s.add_argument("--out", required=True, help="directory to write into")
-    s.add_argument("--field", default=None, help="which fit of a per-field file")
+    s.add_argument("--out", required=True, help="directory to write into (required; no default)")
+    s.add_argument("--field", default=None,
+                   help="which fit of a per-field file (default: the file's only fit)")
     s.set_defaults(func=_cmd_export)
 
     s = sub.add_parser("next", help="(z, m) cells where the fitted selection is least certain")
