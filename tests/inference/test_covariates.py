@@ -25,7 +25,7 @@ WIDE = SizeRelation(r_eff_kpc_z6=0.8, size_evolution=-1.0, size_luminosity_slope
                     r_eff_scatter_dex=0.3)
 NARROW = SizeRelation(r_eff_kpc_z6=0.8, size_evolution=-1.0, size_luminosity_slope=0.25,
                       r_eff_scatter_dex=0.1)
-STEPS = 500
+STEPS = 400
 
 
 def truth_c(M, z, logr):
@@ -93,13 +93,18 @@ def test_completeness_given_size_matches_binned_fractions_per_size_bin(fits):
     assert sf.covariates["r_eff"].adequate.all()
 
 
-def test_completeness_at_bin_centres_follows_the_truth(fits):
+def test_completeness_at_the_nodes_follows_the_truth(fits):
     _, sf, _ = fits
     nodes = sf.covariates["r_eff"]
-    for x in nodes.centres[1:-1]:                   # inner bins (narrow in log r_e)
-        M = np.array([-19.5, -19.0, -18.5]) - 1.5 * (x - np.log10(0.12))
-        got = sf.completeness(M, 8.0, r_eff_arcsec=10 ** x)
-        np.testing.assert_allclose(got, truth_c(M, 8.0, x), atol=0.08)
+    inside = []
+    for x in nodes.centres:
+        M = -19.0 - 1.5 * (x - np.log10(0.12))                # the true m50 at this size
+        c = sf.completeness(M, 8.0, r_eff_arcsec=10 ** x, draws=True)
+        lo, hi = np.quantile(c, [0.005, 0.995])
+        inside.append(lo <= truth_c(M, 8.0, x) <= hi)
+    # each node's C is that of its mean size (not of the bin's mixture of sizes); one of
+    # four 99 % intervals may miss by chance (the bins have ~640 sources over 17 magnitudes)
+    assert sum(inside) >= 3, inside
 
 
 def test_size_aware_c_averaged_over_the_injected_sizes_gives_the_binned_fraction(fits):
@@ -115,20 +120,21 @@ def test_size_aware_c_averaged_over_the_injected_sizes_gives_the_binned_fraction
 
 def test_reweighted_veff_matches_a_run_injected_with_the_narrower_law(fits):
     _, sf, narrow = fits
-    M = np.array([-19.5, -19.0, -18.5])
+    M = np.array([-19.5, -19.0, -18.5, -18.0, -17.75])
     rw = sf.effective_volume(M, size_relation=NARROW)
     ref = narrow.effective_volume(M)
     plain = sf.effective_volume(M)
     half = 0.5 * (ref.upper - ref.lower)
     assert np.all(np.abs(rw.median - ref.median) <= half + 0.5 * (rw.upper - rw.lower)), \
         (rw.median, ref.median, half)
-    # the re-weighting matters here: the injected law's V_eff differs from the narrow run's
-    assert np.any(np.abs(plain.median - ref.median) > half)
+    # the re-weighting matters: at the faint end the injected (wider) law's V_eff is
+    # several times the narrow run's, far outside its interval
+    assert plain.median[-1] > ref.upper[-1] + 2 * half[-1], (plain.median, ref.median, half)
 
 
 def test_reweighting_outside_the_injected_sizes_warns(fits):
     _, sf, _ = fits
-    far = SizeRelation(r_eff_kpc_z6=8.0, r_eff_scatter_dex=0.1, size_luminosity_slope=0.25)
+    far = SizeRelation(r_eff_kpc_z6=40.0, r_eff_scatter_dex=0.1, size_luminosity_slope=0.25)
     with pytest.warns(UserWarning, match="outside the injected range"):
         sf.effective_volume([-19.0], size_relation=far, n_z=101)
 
