@@ -92,11 +92,12 @@ def main(argv=None):
         m = np.array([25.5, 26.0, 26.25, 26.5, 26.75, 27.0])
         a, b, c = (sw.effective_volume(m), sw.effective_volume(m, size_relation=law),
                    sn.effective_volume(m))
-        print("   m   V_eff wide   wide->narrow law   narrow run [68 %]            inside")
+        print("   m   V_eff wide [Mpc3]   wide -> narrow law [68 %]   narrow run [68 %]      inside")
         for i, mi in enumerate(m):
             inside = c.lower[i] <= b.median[i] <= c.upper[i]
-            print(f"{mi:5.2f}  {a.median[i].value:10.1f}  {b.median[i].value:12.1f}       "
-                  f"{c.median[i].value:8.1f} [{c.lower[i].value:.1f}, {c.upper[i].value:.1f}]"
+            print(f"{mi:5.2f}  {a.median[i].value:9.1f}         {b.median[i].value:7.1f} "
+                  f"[{b.lower[i].value:.1f}, {b.upper[i].value:.1f}]     "
+                  f"{c.median[i].value:7.1f} [{c.lower[i].value:.1f}, {c.upper[i].value:.1f}]"
                   f"   {inside}")
     print(f"total {time.perf_counter() - t0:.0f} s")
 
