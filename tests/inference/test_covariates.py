@@ -170,6 +170,14 @@ def test_file_round_trip_keeps_the_covariates(fits, tmp_path):
     assert SelectionFunction.read(tmp_path / "plain.fits").covariates == {}
 
 
+def test_a_run_of_one_size_is_refused():
+    df = injections(WIDE, 2, 5)
+    df["r_eff_arcsec"] = 0.1
+    mdl = SurfaceModel.for_data(df["z"], df["M_uv"])
+    with pytest.raises(ValueError, match="span no range of r_eff_arcsec.*r_eff_scatter_dex"):
+        fit_covariate_nodes(df, "r_eff", mdl, mag_col="M_uv")
+
+
 def test_hat_weights_integrate_piecewise_linear_functions_exactly():
     nodes = np.linspace(-1.5, -0.5, 9)
     f = np.sin(3 * nodes)                      # the piecewise-linear interpolant of these values
