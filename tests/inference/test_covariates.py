@@ -193,3 +193,38 @@ def test_hat_weights_integrate_piecewise_linear_functions_exactly():
         assert w @ f == pytest.approx(ref, abs=1e-6)
         from scipy.special import ndtr
         assert out == pytest.approx(ndtr((nodes[0] - mu) / sd) + ndtr((mu - nodes[-1]) / sd))
+
+
+def test_size_moves_c_and_beta_moves_s_by_linear_interpolation_of_the_draws():
+    from analytic_sf import lf_sf
+    from glaciar.inference.covariates import CovariateNodes
+
+    sf = lf_sf(n_draws=4)
+    names = sf.model.param_names
+
+    def nodes(name, x, col, step):
+        d = np.stack([sf.draws.copy() for _ in x])
+        d[:, :, names.index(col)] += (step * np.arange(len(x)))[:, None]
+        return CovariateNodes(name=name, centres=np.asarray(x, float),
+                              edges=np.linspace(x[0] - 0.2, x[-1] + 0.2, len(x) + 1), draws=d,
+                              n_sources=np.ones(len(x), int), n_cells=np.ones(len(x), int),
+                              n_extreme=np.zeros(len(x), int), adequate=np.ones(len(x), bool))
+
+    sf.covariates = {"r_eff": nodes("r_eff", [-1.4, -1.0, -0.6], "m50_0", -0.6),
+                     "beta": nodes("beta", [-2.6, -2.0, -1.4], "eta_lo_0", 1.0)}
+    th_c = sf.draws.copy()
+    th_c[:, names.index("m50_0")] += -0.6 * 0.25          # x = -1.3: a quarter of the way to node 2
+    th_s = sf.draws.copy()
+    th_s[:, names.index("eta_lo_0")] += 1.0 * 1.5         # beta = -1.7: halfway from node 2 to 3
+    m, z = np.array([27.0, 27.6, 28.0]), np.array([6.4, 7.0, 7.6])
+    c = sf.completeness(m, z, r_eff_arcsec=10 ** -1.3, draws=True)
+    s = sf.selection_given_recovered(z, m, beta=-1.7, draws=True)
+    np.testing.assert_allclose(c, sf.model.completeness(th_c, m, z), rtol=1e-12)
+    np.testing.assert_allclose(s, sf.model.selection_given_recovered(th_s, z, m), rtol=1e-12)
+    # the size leaves S alone, beta leaves C alone; P = C(r_e) S(beta)
+    np.testing.assert_allclose(sf.selection_given_recovered(z, m, draws=True),
+                               sf.model.selection_given_recovered(sf.draws, z, m), rtol=1e-12)
+    np.testing.assert_allclose(sf.selection_probability(z, m, r_eff_arcsec=10 ** -1.3, beta=-1.7,
+                                                        draws=True), c * s, rtol=1e-12)
+    with pytest.warns(UserWarning, match="beta law lies outside"):
+        sf.effective_volume([27.0], beta_distribution=BetaDistribution(0.0, 0.2), n_z=51)
