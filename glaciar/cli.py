@@ -1,4 +1,4 @@
-"""The ``glaciar`` command: demo, init, simulate, status, report, fit, next, catalog, lf.
+"""The ``glaciar`` command: demo, init, simulate, status, report, fit, next, catalog, lf, export.
 
 Every sub-command turns expected failures (bad config, missing file, mismatched
 store, bad option value) into a one-line message on stderr and exit status 2
@@ -223,8 +223,21 @@ def _cmd_fit(args) -> int:
     from .inference.sampling import SamplerSettings
 
     sampler = SamplerSettings(max_steps=args.max_steps, seed=args.seed, progress=not args.quiet)
+    if args.covariates:                          # checked before the long pooled fit
+        from .inference.covariates import parse_covariates
+        parse_covariates(args.covariates)
     path = _fit(args.run_dir, model=args.model, per_field=args.per_field, sampler=sampler,
                 cosmology=cosmology, area_arcmin2=args.area_arcmin2, depth=args.depth)
+    if args.covariates:
+        from .pipeline.covariate_fit import add_covariates
+        with _warnings_as_lines():
+            got = add_covariates(args.run_dir, args.covariates, n_bins=args.covariate_bins,
+                                 sampler=sampler)
+        for field, covs in got.items():
+            for name, c in covs.items():
+                print(f"covariate {name} ({field}): {len(c['nodes'])} bins over {c['x']} "
+                      f"{c['covered'][0]:.3g}..{c['covered'][1]:.3g}; PPC adequate per bin: "
+                      f"{c['adequate']}")
     print(f"wrote {path}")
     return 0
 
@@ -305,6 +318,14 @@ def _cmd_catalog(args) -> int:
     print(f"{len(table)} detections, {n_sel} selected; wrote {out}")
     if args.regions:
         print(f"wrote {Path(out).with_suffix('.reg')}")
+    return 0
+
+
+def _cmd_export(args) -> int:
+    from .pipeline.export import export
+
+    for p in export(args.source, args.out, fmt=args.format, field=args.field):
+        print(f"wrote {p}")
     return 0
 
 
@@ -510,8 +531,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="survey area for V_eff (default: the footprint area in the run manifest)")
     s.add_argument("--cosmology", default=None,
                    help="astropy realisation for V_eff, e.g. WMAP9 (default: Planck18)")
+    s.add_argument("--covariates", default=None, metavar="NAMES",
+                   help="also fit C per size bin and S per UV-slope bin: r_eff, beta or r_eff,beta "
+                        "(sf.completeness(m, z, r_eff_arcsec=), docs/selection-function-file.md; default: none)")
+    s.add_argument("--covariate-bins", type=_positive_int, default=None,
+                   help="quantile bins per covariate (default: 4)")
     s.add_argument("--quiet", action="store_true", help=_HELP_QUIET)
     s.set_defaults(func=_cmd_fit)
+
+    s = sub.add_parser("export", help="write the selection function in another code's layout "
+                                      "(jollof: DET_COMP and SEL_COMP FITS images)")
+    s.add_argument("source", help="a fitted run directory or a selection_function.fits")
+    s.add_argument("--format", default="jollof", choices=["jollof"],
+                   help="jollof: detection_completeness.fits and selection_completeness.fits")
+    s.add_argument("--out", required=True, help="directory to write into (required; no default)")
+    s.add_argument("--field", default=None,
+                   help="which fit of a per-field file (default: the file's only fit)")
+    s.set_defaults(func=_cmd_export)
 
     s = sub.add_parser("next", help="(z, m) cells where the fitted selection is least certain")
     s.add_argument("run_dir", help="a run directory fitted by `glaciar fit`")

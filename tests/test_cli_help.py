@@ -38,7 +38,7 @@ def _label(action):
 def test_every_command_is_walked():
     # The walk reaches every sub-command the package documents (cli.py's docstring).
     assert set(COMMANDS) == {"demo", "init", "simulate", "status", "report", "fit", "next",
-                             "catalog", "lf"}
+                             "catalog", "lf", "export"}
     assert len(OPTIONS) > 40
 
 

@@ -17,6 +17,7 @@ figures are :mod:`glaciar.pipeline`'s job (``glaciar fit`` is
 - :mod:`~glaciar.inference.products` -- value types of its products and the k-correction;
 - :mod:`~glaciar.inference.transfer` -- the transfer function p(m_obs | m_in, z) anywhere;
 - :mod:`~glaciar.inference.counts` -- expected counts per measured-magnitude bin of an LF;
+- :mod:`~glaciar.inference.covariates` -- C given the size, S given beta; re-weighted V_eff;
 - :mod:`~glaciar.inference.adaptive` -- where to simulate next, how many, when to stop.
 """
 from .adaptive import (allocate_sources, allocate_variance_reduction, candidate_grid,
@@ -25,6 +26,7 @@ from .fit import (ConvergenceWarning, FitResult, aggregate_cells, find_map, fit_
                   fit_surfaces, laplace_covariance)
 from .models import COMPLETENESS_SHAPES, Cells, SurfaceModel
 from .counts import CountKernel, ExpectedCounts, count_kernel, expected_counts
+from .covariates import BetaDistribution, SizeRelation
 from .products import EffectiveVolume
 from .selection_function import SelectionFunction
 from .transfer import TransferFunction, transfer_function
@@ -33,5 +35,6 @@ __all__ = ["propose_cells", "allocate_sources", "allocate_variance_reduction", "
            "max_posterior_sd", "plan_round", "run_design", "ConvergenceWarning", "FitResult", "aggregate_cells", "find_map",
            "fit_and_choose", "fit_surfaces", "laplace_covariance", "COMPLETENESS_SHAPES",
            "Cells", "SurfaceModel", "EffectiveVolume", "SelectionFunction", "TransferFunction",
-           "transfer_function", "CountKernel", "ExpectedCounts", "count_kernel", "expected_counts"]
+           "transfer_function", "CountKernel", "ExpectedCounts", "count_kernel", "expected_counts",
+           "SizeRelation", "BetaDistribution"]
 

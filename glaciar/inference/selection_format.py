@@ -33,6 +33,7 @@ from ..galaxy.filters import Filter
 from ..version import __version__
 from ..galaxy.lensing import NODE_KEYS
 from .contamination import contamination_hdu, read_contamination
+from .covariates import covariate_hdus, read_covariates
 from .lensed import LensNodes
 from .models import SurfaceModel
 from .products import GRID_QUANTILES, EffectiveVolume, InjectionSED, VeffTable
@@ -108,6 +109,7 @@ def _hdus(sf, extver: int) -> list:
         hdus += _transfer_hdus(sf.transfer_matrix, sf.field, extver)
     if sf.lens_nodes:
         hdus.append(_lens_hdu(sf.lens_nodes, sf.field, extver))
+    hdus += covariate_hdus(sf, extver)          # size/beta covariates (CV_*), when fitted
     if sf.depth_area:
         rows = [(f, lo, hi, a) for f, (e, aa) in sorted(sf.depth_area.items())
                 for lo, hi, a in zip(e[:-1], e[1:], aa)]
@@ -356,7 +358,8 @@ def decode(data: bytes, source: str = "<bytes>") -> dict[str, dict]:
                               field=field, ppc=ppc, depth_area=depth_area, domain=domain,
                               diagnostics=diag, sed=sed, veff_muv=_read_veff(hdul, v),
                               transfer_matrix=_read_transfer(hdul, v), interlopers=contam,
-                              lens_nodes=_read_lens(hdul, v))
+                              lens_nodes=_read_lens(hdul, v),
+                              covariates=read_covariates(hdul, v))
     return out
 
 

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ..rundir import atomic_write_bytes
-from . import selection_format
+from . import covariates, selection_format
 from .contamination import ContaminationMixin
 from .counts import SurveyVolume, count_kernel, expected_counts
 from .lensed import LensedSelection, lensed_muv_volume_draws, lensed_volume_draws
@@ -118,6 +118,7 @@ class SelectionFunction(ContaminationMixin, LensedSelection):
         self.sed = sed
         self.veff_muv = None
         self.transfer_matrix = None
+        self.covariates = {}    # {name: CovariateNodes}: size/beta covariates (glaciar.inference.covariates)
 
     @property
     def n_draws(self) -> int:
@@ -247,7 +248,9 @@ class SelectionFunction(ContaminationMixin, LensedSelection):
                 bad = bad | (np.asarray(v) < lo - tol) | (np.asarray(v) > hi + tol)
         return bad
 
-    def _evaluate(self, which, m, z, depth, field, draws, outside):
+    def _evaluate(self, which, m, z, depth, field, draws, outside, **cov):
+        if any(v is not None for v in cov.values()):     # at given r_e / beta: covariates.py
+            return covariates.evaluate(self, which, m, z, depth, field, draws, outside, **cov)
         if outside not in ("nan", "extrapolate"):
             raise ValueError(f"outside must be 'nan' or 'extrapolate', not {outside!r}")
         m = np.asarray(m, float)
@@ -288,7 +291,7 @@ class SelectionFunction(ContaminationMixin, LensedSelection):
 
     # ---------------------------------------------------------------- evaluate
     def completeness(self, m, z, depth=None, *, field: str | None = None, draws: bool = False,
-                     outside: str = "nan") -> np.ndarray:
+                     outside: str = "nan", r_eff_arcsec=None) -> np.ndarray:
         """Completeness C = P(recovered | m, z).
 
         Parameters
@@ -309,26 +312,30 @@ class SelectionFunction(ContaminationMixin, LensedSelection):
         outside : {"nan", "extrapolate"}
             Outside the simulated (z, m[, depth]) box the value is NaN, unless
             "extrapolate" asks for the parametric form's extrapolation.
+        r_eff_arcsec : array_like, optional
+            C at this half-light radius [arcsec] (a fit with ``--covariates r_eff``); without
+            it C is marginalised over the injected sizes (the pooled fit, as without covariates).
         """
-        return self._evaluate("C", m, z, depth, field, draws, outside)
+        return self._evaluate("C", m, z, depth, field, draws, outside, r_eff_arcsec=r_eff_arcsec)
 
     def selection_given_recovered(self, z, m, depth=None, *, field: str | None = None,
-                                  draws: bool = False, outside: str = "nan") -> np.ndarray:
+                                  draws: bool = False, outside: str = "nan", beta=None) -> np.ndarray:
         """S = P(selected | recovered, z, m): the colour/S-N selection of a recovered source.
 
         Survey averages are P̄ / C̄, so ``completeness * selection_given_recovered``
         equals :meth:`selection_probability` draw by draw.  Arguments as
-        :meth:`completeness`.
+        :meth:`completeness`; ``beta``: S at this UV slope (a fit with ``--covariates beta``).
         """
-        return self._evaluate("S", m, z, depth, field, draws, outside)
+        return self._evaluate("S", m, z, depth, field, draws, outside, beta=beta)
 
-    def selection_probability(self, z, m, depth=None, *, field: str | None = None,
-                              draws: bool = False, outside: str = "nan") -> np.ndarray:
+    def selection_probability(self, z, m, depth=None, *, field: str | None = None, draws: bool = False,
+                              outside: str = "nan", r_eff_arcsec=None, beta=None) -> np.ndarray:
         """P = P(recovered and selected | z, m) = C S: what an LF code multiplies by.
 
-        Arguments as :meth:`completeness`.
+        Arguments as :meth:`completeness` and :meth:`selection_given_recovered`.
         """
-        return self._evaluate("P", m, z, depth, field, draws, outside)
+        return self._evaluate("P", m, z, depth, field, draws, outside, r_eff_arcsec=r_eff_arcsec,
+                              beta=beta)
 
     def sample(self, n: int, seed=None) -> list["SelectionFunction"]:
         """``n`` posterior draws, each a one-draw SelectionFunction.
@@ -407,8 +414,8 @@ class SelectionFunction(ContaminationMixin, LensedSelection):
         return MagnitudeAt(median=q[0], lower=q[1], upper=q[2], draws=out)
 
     def effective_volume(self, m, area=None, cosmology=None, *, field: str | None = None,
-                         z_min=None, z_max=None, n_z: int = 2001,
-                         interval: float = 0.68) -> EffectiveVolume:
+                         z_min=None, z_max=None, n_z: int = 2001, interval: float = 0.68,
+                         size_relation=None, beta_distribution=None) -> EffectiveVolume:
         """V_eff(m) = Σ_fields Σ_depth A(d) ∫ C(m, z | d) S(z, m | d) dV/dz/dΩ dz.
 
         Lensed fields (:mod:`glaciar.inference.lensed`) sum their source-plane area
@@ -436,6 +443,9 @@ class SelectionFunction(ContaminationMixin, LensedSelection):
             scipy.integrate.quad to 1e-3).
         interval : float
             Credible-interval probability (central).
+        size_relation, beta_distribution : optional
+            :class:`~glaciar.inference.covariates.SizeRelation` / ``BetaDistribution``: C
+            (S) averaged over that law instead of the injected one (fits with covariates).
 
         Returns
         -------
@@ -466,13 +476,16 @@ class SelectionFunction(ContaminationMixin, LensedSelection):
                                        zz, dvdz, mm)[0], field)
         else:
             out, ends = volume_draws(self.model, self.draws, nodes, node_sr, zz, dvdz, mm)
+            if size_relation is not None or beta_distribution is not None:
+                out = covariates.reweighted_volume_draws(self, nodes, node_sr, zz, dvdz, mm,
+                                                         size_relation, beta_distribution)
             # V_eff counts only the simulated z range: say so when C*S is not ~0 at its ends
             # (but not at a top where the detection band receives no flux).
             if (z_min, z_max) == tuple(zr):
                 warn_if_cut(ends, zr, self.z_edge_is_physical(zr[1]), mm)
         if "mag" in self.domain:
             out[:, self._mask(mm, np.full(mm.shape, zz[0]), None)] = np.nan
-        return summarise_volume(out.reshape((self.n_draws,) + m.shape), interval)
+        return summarise_volume(out.reshape((len(out),) + m.shape), interval)
 
     def _area_nodes(self, area, field, who):
         """(depth nodes, their solid angles [sr]) for a V_eff integral."""
@@ -816,21 +829,16 @@ class SelectionFunction(ContaminationMixin, LensedSelection):
 
     @classmethod
     def from_bytes(cls, data: bytes, source: str = "<bytes>") -> dict[str, "SelectionFunction"]:
-        """All fits in the bytes of a file, keyed by field (``source`` names it in errors).
-
-        Raises
-        ------
-        ValueError
-            Not a selection-function file of format
-            :data:`glaciar.inference.selection_format.FILE_FORMAT`.
-        """
+        """All fits in the bytes of a file, keyed by field (``source`` names it in errors);
+        ValueError if not a file of :data:`glaciar.inference.selection_format.FILE_FORMAT`."""
         out = {}
         for field, kw in selection_format.decode(data, source).items():
             tables = {k: kw.pop(k) for k in ("veff_muv", "transfer_matrix", "interlopers",
-                                             "lens_nodes")}
+                                             "lens_nodes", "covariates")}
             out[field] = sf = cls(**kw)
             sf.veff_muv, sf.transfer_matrix = tables["veff_muv"], tables["transfer_matrix"]
             sf.interlopers, sf.lens_nodes = tables["interlopers"], tables["lens_nodes"]
+            sf.covariates = tables["covariates"]
         return out
 
     def write(self, path) -> None:
@@ -839,12 +847,7 @@ class SelectionFunction(ContaminationMixin, LensedSelection):
 
     @classmethod
     def read_all(cls, path) -> dict[str, "SelectionFunction"]:
-        """All fits in the file at ``path``, keyed by field name.
-
-        Raises
-        ------
-        FileNotFoundError, ValueError
-        """
+        """All fits in the file at ``path``, keyed by field name (FileNotFoundError, ValueError)."""
         return cls.from_bytes(Path(path).read_bytes(), str(path))
 
     @classmethod

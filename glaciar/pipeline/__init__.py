@@ -10,7 +10,9 @@ touches a file for the fit is here:
   file for LF codes (the injections' SED, V_eff(M_UV), transfer matrices; the file's
   layout is :mod:`glaciar.inference.selection_format`);
 - :mod:`~glaciar.pipeline.figures` -- C and S with credible bands (Figures);
-- :mod:`~glaciar.pipeline.summary` -- the summary and the lines ``glaciar fit`` prints.
+- :mod:`~glaciar.pipeline.summary` -- the summary and the lines ``glaciar fit`` prints;
+- :mod:`~glaciar.pipeline.covariate_fit` -- ``glaciar fit --covariates``: size / beta bins added;
+- :mod:`~glaciar.pipeline.export` -- ``glaciar export``: other codes' layouts (jollof).
 
 The names below are imported on first use: ``glaciar simulate`` and ``glaciar report``
 take the run's lock from :mod:`~glaciar.pipeline.fitdir`, which must not cost them the
