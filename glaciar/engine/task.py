@@ -22,6 +22,7 @@ from .depth import depth_at
 from .measure import MeasureSetup, measure_injected
 from .positions import draw_positions
 from .scene import Scene
+from .shotnoise import add_shot_noise, shot_noise_gains, shot_noise_rng
 from .user_selection import apply_selection
 
 __all__ = ["TaskSpec", "task_rng", "field_key", "grid_key", "run_task", "SourceDraws", "draw_task_sources"]
@@ -154,12 +155,11 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
     mag_stamp = np.empty((m, len(bands)))
     stamps = {b: [] for b in bands}
     templates = [None] * m      # each source's own detection-band stamp (status-2 flux test)
+    shot_gains = shot_noise_gains(ctx.source_model.shot_noise, ctx.gains)
     for j, band in enumerate(bands):
         flux = sed.mag_to_flux(src.mag_in[:, j], ctx.zeropoints[band])
-        if skip_faint_bands:
-            skip = sed.bands_to_skip(src.mag_in[:, j:j + 1])[:, 0]
-        else:
-            skip = np.zeros(m, dtype=bool)
+        faint = sed.bands_to_skip(src.mag_in[:, j:j + 1])[:, 0]
+        skip = faint if skip_faint_bands else np.zeros(m, dtype=bool)
         flux_in[:, j] = np.where(skip, 0.0, flux)
         frac = np.zeros(m)
         for i in np.flatnonzero(~skip):
@@ -174,6 +174,12 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
                     or ps.x0 + ps.data.shape[1] > ctx.shape[1]):
                 flags[i] |= C.FLAG_STAMP_CLIPPED
         mag_stamp[:, j] = sed.flux_to_mag(flux_in[:, j] * frac, ctx.zeropoints[band])
+        if band in shot_gains:
+            # Noise fixed once per stamp, from the band's own child stream: the task's
+            # stream (above) and the noiseless templates of the status-2 test are untouched.
+            stamps[band] = add_shot_noise(stamps[band], shot_gains[band],
+                                          shot_noise_rng(seed, spec.spawn_key(), field_key(band)),
+                                          noisy=~faint[~skip])
 
     scenes = {b: Scene(ctx.bases[b], stamps[b]) for b in bands}
     jd = ctx.detection_index
