@@ -147,62 +147,66 @@ def test_noise_leaves_the_task_draws_alone(white):
 
 
 def test_scene_pixels_do_not_depend_on_the_window(white):
-    """Overlapping noisy stamps: every window, the tiled windows and the full image carry the
-    same pixels, equal to an independent placement of noise drawn here from the band's stream."""
+    """Overlapping noisy stamps (one clipped by the border): every window, the tiled windows
+    and the full image carry the same pixels, those of the noisy stamps placed here by hand;
+    the noise comes from the band's child stream of the task's SeedSequence."""
     _, ctx, _ = white
     seed, task_key, band = 11, _spec(0).spawn_key(), "b"
     tpl = ctx.cache.stamp(band, 1.0, 1.0, 0.0, 2.0, 20.3, 20.6)
     ny, nx = tpl.data.shape
-    places = [(3, 4), (6, 9), (10, 5), (-8, 30)]               # overlapping; the last one clipped
-    fluxes = [40.0, 3.0, 0.5, 2e3]                              # up to ~1e5 e- per pixel: both regimes
+    places = [(3, 4), (6, 9), (10, 5), (-8, 30)]
+    fluxes = [40.0, 3.0, 0.5, 2e3]                    # up to ~1e5 e- per pixel
     lazy = [(y0, x0, tpl.data, f) for (y0, x0), f in zip(places, fluxes)]
     noisy = shotnoise.add_shot_noise(lazy, GAIN, shotnoise.shot_noise_rng(seed, task_key, field_key(band)))
-    # Independently: the same child SeedSequence, Poisson below the switch, normal above.
+    # The same draws from a generator built here from the documented key.
     rng = np.random.default_rng(np.random.SeedSequence(
         seed, spawn_key=tuple(task_key) + (shotnoise.SHOT_NOISE_STREAM_KEY, field_key(band))))
+    for (y0, x0, pix), f in zip(noisy, fluxes):
+        np.testing.assert_array_equal(pix, shotnoise.noisy_pixels(tpl.data, f, GAIN, rng))
     base = np.zeros((50, 60))
     pad = 40
     want = np.zeros((base.shape[0] + 2 * pad, base.shape[1] + 2 * pad))
-    n_gauss = 0
-    for (y0, x0), f in zip(places, fluxes):
-        p = tpl.data * f
-        counts = np.maximum(p * GAIN, 0)
-        hi = counts >= shotnoise.GAUSSIAN_ABOVE_COUNTS
-        pix = np.empty_like(p)
-        pix[~hi] = rng.poisson(counts[~hi]) / GAIN
-        pix[hi] = p[hi] + np.sqrt(p[hi] / GAIN) * rng.standard_normal(hi.sum())
-        n_gauss += hi.sum()
+    for y0, x0, pix in noisy:
         want[pad + y0:pad + y0 + ny, pad + x0:pad + x0 + nx] += pix
     want = want[pad:-pad, pad:-pad]
-    assert n_gauss > 0
     scene = Scene(base, noisy)
     np.testing.assert_array_equal(scene.full(), want)
     rects = np.array([[0, 50, 0, 60], [5, 12, 7, 20], [0, 9, 25, 50], [8, 30, 2, 33]])
     for y0, y1, x0, x1 in rects:
         np.testing.assert_array_equal(scene.window(y0, y1, x0, x1), want[y0:y1, x0:x1])
-    np.testing.assert_array_equal(scene.window(5, 12, 7, 20), scene.window(5, 12, 7, 20))
     oy = np.array([0, 51, 60, 70])
     canvas = np.full((95, 60), np.nan)
     scene.paste_windows(canvas, rects, oy, np.zeros(4, dtype=np.int64))
     for (y0, y1, x0, x1), o in zip(rects, oy):
         np.testing.assert_array_equal(canvas[o:o + y1 - y0, :x1 - x0], want[y0:y1, x0:x1])
-    # The shared template is left as it was, and noise really was added.
+    # The shared template is left as it was, and the noise is there: the residual from the
+    # noiseless stamps has the Poisson variance sum(p) / gain over the stamps' pixels.
     assert np.array_equal(tpl.data, ctx.cache.stamp(band, 1.0, 1.0, 0.0, 2.0, 20.3, 20.6).data)
-    assert not np.allclose(want, Scene(base, lazy).full())
+    mean = np.stack([tpl.data * f for f in fluxes])
+    resid = np.stack([pix for _, _, pix in noisy]) - mean
+    assert np.sum(resid ** 2) == pytest.approx(np.sum(np.maximum(mean, 0)) / GAIN, rel=0.1)
 
 
-def test_noisy_pixels_mean_and_variance_in_both_regimes():
-    """Per pixel, mean p and variance p / gain (exact Poisson moments) below and above the
-    Gaussian switch; below it the values are whole electrons."""
+@pytest.mark.parametrize("scale", [5e3, 4e4])
+def test_noisy_pixels_mean_variance_and_independence(scale):
+    """Per pixel, mean p and variance p / gain (Poisson) in the core, in the wings drawn by
+    Poisson splitting (scale 5e3) or pixel by pixel (4e4, with the Gaussian limit in the
+    brightest pixel); wing pixels uncorrelated; whole electrons below the Gaussian limit."""
     rng = np.random.default_rng(1)
     gain = 2.0
-    p = np.array([0.0, 0.2, 3.0, 40.0, 2.0 * shotnoise.GAUSSIAN_ABOVE_COUNTS / gain])
-    draws = np.stack([shotnoise.noisy_pixels(p, 1.0, gain, rng) for _ in range(10000)])
+    data = np.array([[0.0, 2e-5, 8e-5], [5e-4, 0.02, 0.5]])
+    flux = scale / gain                                 # expected electrons = data * scale
+    p = (data * flux).ravel()
+    draws = np.stack([shotnoise.noisy_pixels(data, flux, gain, rng).ravel() for _ in range(8000)])
     assert (np.abs(draws.mean(axis=0) - p) <= 5 * np.sqrt(p / gain / len(draws))).all()
-    np.testing.assert_allclose(draws.var(axis=0)[1:], p[1:] / gain, rtol=0.05)
+    np.testing.assert_allclose(draws.var(axis=0)[1:], p[1:] / gain, rtol=0.07)
     assert (draws[:, 0] == 0).all()
-    low = draws[:, :4] * gain
-    assert np.array_equal(low, np.round(low))
+    assert abs(np.corrcoef(draws[:, 1], draws[:, 2])[0, 1]) < 0.05
+    electrons = draws[:, p * gain < shotnoise.GAUSSIAN_ABOVE_COUNTS] * gain
+    assert np.allclose(electrons, np.round(electrons), atol=1e-9)
+    wings = data.ravel() < shotnoise.CORE_FRACTION
+    per_pixel = p[wings].sum() * gain > shotnoise.DENSE_WINGS_COUNTS * wings.sum()
+    assert per_pixel == (scale > 1e4)                   # both ways of drawing the wings are tested
 
 
 def test_gains_per_band_and_setting():
