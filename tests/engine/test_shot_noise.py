@@ -187,6 +187,17 @@ def test_scene_pixels_do_not_depend_on_the_window(white):
     assert np.sum(resid ** 2) == pytest.approx(np.sum(np.maximum(mean, 0)) / GAIN, rel=0.1)
 
 
+def test_windowed_and_full_detection_agree_with_shot_noise(white, assert_same_outputs):
+    """A task with shot noise gives the same rows whether detected by window or full frame."""
+    _, ctx, _ = white
+    win = run_task(ctx, _spec(2, mag=25.0), seed=9, mode="windowed")
+    full = run_task(ctx, _spec(2, mag=25.0), seed=9, mode="full")
+    measured = [c for c in win.columns if c not in (C.COL_FIELD,) and win[c].dtype.kind in "fib"]
+    assert_same_outputs({c: win[c].to_numpy() for c in measured},
+                        {c: full[c].to_numpy() for c in measured}, "windowed vs full")
+    assert (win[C.COL_STATUS] == C.STATUS_ISOLATED).mean() > 0.5
+
+
 @pytest.mark.parametrize("scale", [5e3, 4e4])
 def test_noisy_pixels_mean_variance_and_independence(scale):
     """Per pixel, mean p and variance p / gain (Poisson) in the core, in the wings drawn by
