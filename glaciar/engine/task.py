@@ -6,7 +6,9 @@ z key, mag key, iteration))``, so a task's rows do not depend on which worker
 ran it, in which order, or whether the run was resumed.  The keys are derived
 from the field's name and the exact z and magnitude values, not from grid
 positions, so adding cells or iterations to a run leaves every finished task's
-stream, and rows, as they were.
+stream, and rows, as they were.  The injected sources' shot noise (bands with a
+gain) comes from child streams of that ``SeedSequence``, one per band
+(:mod:`glaciar.engine.shotnoise`): it leaves the task's own draws as they are.
 """
 from __future__ import annotations
 
@@ -130,7 +132,8 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
         Render no stamp in a band where the source has no flux or is fainter
         than FAINT_MAG_LIMIT (blueward of the break).  The skip is exact: with
         it off, those bands receive stamps of zero or < 1e-9 counts, and the
-        rows are the same (tests/engine/test_task.py).
+        rows are the same (tests/engine/test_task.py).  Shot noise is never drawn
+        for those stamps either, so it holds with shot noise too.
     """
     rng, ident = task_rng(seed, spec)
     n = ctx.n_galaxies
