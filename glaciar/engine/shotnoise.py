@@ -26,14 +26,15 @@ which detection window (or mode) later reads the pixels.
 """
 from __future__ import annotations
 
+import threading
 import weakref
 from collections import OrderedDict
 from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-__all__ = ["GAUSSIAN_ABOVE_COUNTS", "CORE_FRACTION", "DENSE_WINGS_COUNTS", "WINGS_CACHE_BYTES", "SHOT_NOISE_STREAM_KEY", "shot_noise_gains", "shot_noise_rng",
-           "noisy_pixels", "add_shot_noise"]
+__all__ = ["GAUSSIAN_ABOVE_COUNTS", "CORE_FRACTION", "DENSE_WINGS_COUNTS", "WINGS_CACHE_BYTES",
+           "SHOT_NOISE_STREAM_KEY", "shot_noise_gains", "shot_noise_rng", "noisy_pixels", "add_shot_noise"]
 
 #: Pixels expecting at least this many electrons get the Gaussian limit of Poisson noise.
 GAUSSIAN_ABOVE_COUNTS = 1.0e4
@@ -99,22 +100,26 @@ class _Wings(NamedTuple):
 
 _WINGS: "OrderedDict[int, _Wings]" = OrderedDict()
 _WINGS_BYTES = [0]
+#: Reentrant: a template freed while the lock is held (garbage collection) calls _forget.
+_WINGS_LOCK = threading.RLock()
 
 
 def _forget(key: int) -> None:
-    entry = _WINGS.pop(key, None)
-    if entry is not None:
-        _WINGS_BYTES[0] -= entry.nbytes
+    with _WINGS_LOCK:
+        entry = _WINGS.pop(key, None)
+        if entry is not None:
+            _WINGS_BYTES[0] -= entry.nbytes
 
 
 def _wings(data: np.ndarray) -> _Wings:
     """The core/wings split of a template, cached while the template lives (the template cache
     shares one array per shape, position and band) in at most :data:`WINGS_CACHE_BYTES`."""
     key = id(data)
-    entry = _WINGS.get(key)
-    if entry is not None and entry.ref() is data:
-        _WINGS.move_to_end(key)
-        return entry
+    with _WINGS_LOCK:
+        entry = _WINGS.get(key)
+        if entry is not None and entry.ref() is data:
+            _WINGS.move_to_end(key)
+            return entry
     flat = data.ravel()
     core = np.flatnonzero(flat >= CORE_FRACTION)
     wings = np.maximum(flat, 0.0)
@@ -124,12 +129,13 @@ def _wings(data: np.ndarray) -> _Wings:
         ref = weakref.ref(data, lambda _, k=key: _forget(k))
     except TypeError:                       # not weak-referenceable: not cached
         return _Wings(None, core, cum, 0)
-    _forget(key)
     entry = _Wings(ref, core, cum, core.nbytes + cum.nbytes)
-    _WINGS[key] = entry
-    _WINGS_BYTES[0] += entry.nbytes
-    while _WINGS_BYTES[0] > WINGS_CACHE_BYTES and len(_WINGS) > 1:
-        _forget(next(iter(_WINGS)))
+    with _WINGS_LOCK:
+        _forget(key)
+        _WINGS[key] = entry
+        _WINGS_BYTES[0] += entry.nbytes
+        while _WINGS_BYTES[0] > WINGS_CACHE_BYTES and len(_WINGS) > 1:
+            _forget(next(iter(_WINGS)))
     return entry
 
 

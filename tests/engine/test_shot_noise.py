@@ -25,7 +25,7 @@ from glaciar.engine.scene import Scene
 from glaciar.engine.task import TaskSpec, field_key, run_task
 from glaciar.execute import simulate
 from glaciar.fieldprep import build_field_context
-from glaciar.rundir import StoreMismatchError, read_manifest
+from glaciar.rundir import StoreMismatchError, read_manifest, write_manifest
 from glaciar.store import read_results
 from glaciar.survey import Survey
 from tiny_runs import sorted_rows, write_yaml
@@ -256,3 +256,11 @@ def test_changing_shot_noise_refuses_a_resume(two_task_run, tmp_path):
     off = load_config(write_yaml(d, tmp_path / "off.yaml"))
     with pytest.raises(StoreMismatchError, match=r"source\.shot_noise: True -> None"):
         simulate(off, tmp_path / "run", workers=1, progress=False)
+    # A store made before the key (noiseless stamps, gains given) resumes with it off only.
+    manifest = read_manifest(tmp_path / "run")
+    del manifest["store_settings"]["source"]["shot_noise"]
+    manifest["store_hash"] = "made before source.shot_noise"
+    write_manifest(tmp_path / "run", manifest)
+    with pytest.raises(StoreMismatchError, match=r"source\.shot_noise: <unset> -> True"):
+        simulate(load_config(cfg_path), tmp_path / "run", workers=1, progress=False)
+    simulate(off, tmp_path / "run", workers=1, progress=False)
