@@ -28,6 +28,7 @@ from .config.user_selection import selection_description
 from .contexts import (context_dir, field_records, main_context, measure_field,
                        prepare_context_cache)
 from .fieldprep import field_settings
+from .engine.shotnoise import shot_noise_gains
 from .galaxy import sed
 from .inputs import InputFile, check_inputs, file_or_none, input_files
 from .lensmaps import lens_z_range
@@ -74,6 +75,10 @@ def store_settings(cfg: Config) -> dict:
     # Definitions that change rows without a config key: a store made under another
     # definition is another store.
     d["classification"]["flux_test"] = "auto_vs_template"
+    # Shot noise as it acts (on in some band, or not at all): None when off records a store
+    # without it like one made before the key existed (those had noiseless stamps).
+    gains = {b.name: b.gain for b in cfg.survey.bands}
+    d["source"]["shot_noise"] = True if shot_noise_gains(cfg.source.shot_noise, gains) else None
     if isinstance(d.get("selection"), dict):
         # A selection function is identified by the version it declares, not only its name.
         d["selection"]["version"] = cfg.selection.version

@@ -312,6 +312,12 @@ class SourceConfig(Section):
     cosmology: str = Field(_src("cosmology"), description="an astropy.cosmology realisation")
     stamp_flux_fraction: Float = Field(_src("stamp_flux_fraction"), gt=0, lt=1,
                                        description="stamps hold this fraction of the total flux")
+    shot_noise: Bool | None = Field(_src("shot_noise"),
+                                    description="Poisson noise of the injected sources' own "
+                                                "electrons in every band with a gain "
+                                                "(survey.bands.<band>.gain); null = on where "
+                                                "gains are given, true = on (a gain required), "
+                                                "false = noiseless stamps")
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -642,6 +648,9 @@ class Config(Section):
             raise At(f"WEIGHT_GAIN Y (gain proportional to the weight) is not supported with band "
                      f"gains ({', '.join(gains)}): the gain is per band; set WEIGHT_GAIN N",
                      "detection", "WEIGHT_GAIN")
+        if self.source.shot_noise and not gains:
+            raise At("is true but no band has a gain (survey.bands.<band>.gain, electrons per "
+                     "image unit): give the gains, or set it to false", "source", "shot_noise")
         n_ap = len(self.detection.phot_apertures)
         if self.classification.sn_aperture_index >= n_ap:
             raise At(f"is {self.classification.sn_aperture_index} but detection.PHOT_APERTURES "

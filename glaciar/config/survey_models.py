@@ -88,8 +88,11 @@ class BandConfig(Section):
     zeropoint: Float = Field(ge=-MAX_ABS_MAGNITUDE, le=MAX_ABS_MAGNITUDE,
                              description="AB magnitude of one image unit (e.g. 1 e-/s) [mag]",
                              json_schema_extra={"example": 25.946})
-    gain: Float | None = Field(None, gt=0, description="e- per image unit, adds source Poisson "
-                                                       "noise; null = none")
+    gain: Float | None = Field(None, gt=0, description="e- per image unit (e.g. the exposure "
+                                                       "time [s] for e-/s images): flux errors' "
+                                                       "source term and the injected sources' "
+                                                       "shot noise (source.shot_noise); null = "
+                                                       "unknown")
     psf: str | dict = Field(description="a FITS file, or {profile: moffat|gaussian|airy, "
                                         "fwhm_arcsec, beta, wavelength_angstrom, diameter_m, "
                                         "obscuration, size}",

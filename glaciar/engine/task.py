@@ -6,7 +6,9 @@ z key, mag key, iteration))``, so a task's rows do not depend on which worker
 ran it, in which order, or whether the run was resumed.  The keys are derived
 from the field's name and the exact z and magnitude values, not from grid
 positions, so adding cells or iterations to a run leaves every finished task's
-stream, and rows, as they were.
+stream, and rows, as they were.  The injected sources' shot noise (bands with a
+gain) comes from child streams of that ``SeedSequence``, one per band
+(:mod:`glaciar.engine.shotnoise`): it leaves the task's own draws as they are.
 """
 from __future__ import annotations
 
@@ -24,6 +26,7 @@ from .lensed import draw_lensed_sources
 from .measure import MeasureSetup, measure_injected
 from .positions import draw_positions
 from .scene import Scene
+from .shotnoise import add_shot_noise, shot_noise_gains, shot_noise_rng
 from .user_selection import apply_selection
 
 __all__ = ["TaskSpec", "task_rng", "field_key", "grid_key", "run_task", "SourceDraws", "draw_task_sources"]
@@ -151,7 +154,8 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
         Render no stamp in a band where the source has no flux or is fainter
         than FAINT_MAG_LIMIT (blueward of the break).  The skip is exact: with
         it off, those bands receive stamps of zero or < 1e-9 counts, and the
-        rows are the same (tests/engine/test_task.py).
+        rows are the same (tests/engine/test_task.py).  Shot noise is never drawn
+        for those stamps either, so it holds with shot noise too.
     interlopers : glaciar.engine.interlopers.InterloperModel, optional
         The run's interloper population: needed by tasks whose ``spec.population`` is set.
     """
@@ -191,12 +195,11 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
     mag_stamp = np.empty((m, len(bands)))
     stamps = {b: [] for b in bands}
     templates = [None] * m      # each source's own detection-band stamp (status-2 flux test)
+    shot_gains = shot_noise_gains(ctx.source_model.shot_noise, ctx.gains)
     for j, band in enumerate(bands):
         flux = sed.mag_to_flux(src.mag_in[:, j], ctx.zeropoints[band])
-        if skip_faint_bands:
-            skip = sed.bands_to_skip(src.mag_in[:, j:j + 1])[:, 0]
-        else:
-            skip = np.zeros(m, dtype=bool)
+        faint = sed.bands_to_skip(src.mag_in[:, j:j + 1])[:, 0]
+        skip = faint if skip_faint_bands else np.zeros(m, dtype=bool)
         flux_in[:, j] = np.where(skip, 0.0, flux)
         frac = np.zeros(m)
         for i in np.flatnonzero(~skip):
@@ -211,6 +214,12 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
                     or ps.x0 + ps.data.shape[1] > ctx.shape[1]):
                 flags[i] |= C.FLAG_STAMP_CLIPPED
         mag_stamp[:, j] = sed.flux_to_mag(flux_in[:, j] * frac, ctx.zeropoints[band])
+        if band in shot_gains:
+            # Noise fixed once per stamp, from the band's own child stream: the task's
+            # stream (above) and the noiseless templates of the status-2 test are untouched.
+            stamps[band] = add_shot_noise(stamps[band], shot_gains[band],
+                                          shot_noise_rng(seed, spec.spawn_key(), field_key(band)),
+                                          noisy=~faint[~skip])
 
     scenes = {b: Scene(ctx.bases[b], stamps[b]) for b in bands}
     jd = ctx.detection_index

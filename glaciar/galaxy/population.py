@@ -65,6 +65,10 @@ class SourceModel:
         Name of an ``astropy.cosmology`` realisation (e.g. ``"Planck18"``).
     stamp_flux_fraction : float
         Fraction of the total flux a stamp must hold, in (0, 1).
+    shot_noise : bool or None
+        Photon noise on the injected stamps in the bands with a gain
+        (:mod:`glaciar.engine.shotnoise`): None (default) or True = on there,
+        False = off.  Read by the engine, not by the draws here.
     """
 
     r_eff_kpc_z6: float = 1.075
@@ -82,6 +86,7 @@ class SourceModel:
     igm: str = "inoue14"
     cosmology: str = "Planck18"
     stamp_flux_fraction: float = 0.995
+    shot_noise: bool | None = None
 
     def __post_init__(self):
         def err(field: str, msg: str) -> ValueError:
@@ -123,6 +128,10 @@ class SourceModel:
         if not isinstance(self.round_de_vaucouleurs, (bool, np.bool_)):
             raise err("round_de_vaucouleurs", f"expected true or false, got {self.round_de_vaucouleurs!r}")
         object.__setattr__(self, "round_de_vaucouleurs", bool(self.round_de_vaucouleurs))
+        if self.shot_noise is not None:
+            if not isinstance(self.shot_noise, (bool, np.bool_)):
+                raise err("shot_noise", f"expected true, false or null, got {self.shot_noise!r}")
+            object.__setattr__(self, "shot_noise", bool(self.shot_noise))
 
         for field in ("sersic_indices", "sersic_fractions"):
             value = getattr(self, field)

@@ -1,0 +1,236 @@
+"""Photon (shot) noise of the injected sources.
+
+A real galaxy's pixels carry the Poisson noise of its own electrons; a stamp of
+``flux x template`` does not.  Where a band's gain ``g`` (electrons per image
+unit, ``survey.bands.<band>.gain``) is known, each injected stamp's pixels ``p``
+[image units] are replaced once, before any window reads them, by::
+
+    Poisson(max(p g, 0)) / g                       where p g <  GAUSSIAN_ABOVE_COUNTS
+    p + sqrt(p / g) N(0, 1)                        where p g >= GAUSSIAN_ABOVE_COUNTS
+
+Mean and variance are exact (p and p / g) in both regimes.  The Gaussian limit
+drops only the Poisson skewness 1/sqrt(p g) of a pixel (< 0.01 above the switch;
+in a sum over pixels, e.g. an aperture, the skewness of the source's part is at
+most 1/sqrt(its electrons) either way).  The switch guards numpy's Poisson
+sampler against huge counts (it refuses lambda > ~9e18) and costs nothing where
+counts are small.  A stamp's faint wings are drawn by Poisson splitting, exactly
+the same distribution at a cost per electron instead of per pixel
+(:func:`noisy_pixels`).
+
+Randomness: each band's noise comes from its own stream, a child of the task's
+``SeedSequence`` (:func:`shot_noise_rng`), never from the task's stream: the
+task's draws (positions, shapes, ...) are the same with or without shot noise,
+and a run without gains draws nothing.  Sources are drawn in their order, so a
+task's noise does not depend on the worker, the order of tasks, resume, or on
+which detection window (or mode) later reads the pixels.
+"""
+from __future__ import annotations
+
+import threading
+import weakref
+from collections import OrderedDict
+from typing import Mapping, NamedTuple, Sequence
+
+import numpy as np
+
+__all__ = ["GAUSSIAN_ABOVE_COUNTS", "CORE_FRACTION", "DENSE_WINGS_COUNTS", "WINGS_CACHE_BYTES",
+           "SHOT_NOISE_STREAM_KEY", "shot_noise_gains", "shot_noise_rng", "noisy_pixels", "add_shot_noise"]
+
+#: Pixels expecting at least this many electrons get the Gaussian limit of Poisson noise.
+GAUSSIAN_ABOVE_COUNTS = 1.0e4
+
+#: Template pixels holding at least this fraction of the flux (the core) are drawn one by one,
+#: the others (the wings: ~1-10 % of the light in 50-99 % of the pixels) by Poisson splitting.
+CORE_FRACTION = 1.0e-4
+
+#: Wings expecting more electrons than this per pixel on average are drawn pixel by pixel
+#: (Poisson splitting costs ~3 per-pixel draws per electron).
+DENSE_WINGS_COUNTS = 0.25
+
+#: Bytes of the per-template core/wings splits kept (8 bytes per template pixel, the
+#: template's own size; entries also leave with their template).
+WINGS_CACHE_BYTES = 128 * 2**20
+
+#: First extra spawn-key word of the shot-noise streams (an arbitrary fixed 63-bit value, so
+#: that it cannot meet the small indices of ``SeedSequence.spawn`` children).
+SHOT_NOISE_STREAM_KEY = int.from_bytes(b"shotnois", "big") >> 1
+
+
+def shot_noise_gains(setting: bool | None, gains: Mapping[str, float | None]) -> dict[str, float]:
+    """The bands that get shot noise, with their gains.
+
+    Parameters
+    ----------
+    setting : bool or None
+        ``source.shot_noise``: False = none; True or None (the default) = in every
+        band with a gain.
+    gains : mapping band -> float or None
+        ``survey.bands.<band>.gain`` [electrons per image unit]; None = unknown.
+
+    Returns
+    -------
+    dict
+        band -> gain, only the bands with a gain (empty when ``setting`` is False).
+    """
+    if setting is False:
+        return {}
+    return {b: float(g) for b, g in gains.items() if g is not None}
+
+
+def shot_noise_rng(seed: int, task_key: Sequence[int], band_key: int) -> np.random.Generator:
+    """The generator of one band's shot noise in one task.
+
+    A child of the task's ``SeedSequence(seed, spawn_key=task_key)`` (the key of
+    :meth:`glaciar.engine.task.TaskSpec.spawn_key`), keyed by the band
+    (``band_key``, e.g. :func:`glaciar.engine.task.field_key` of its name, so a
+    band's noise does not depend on the band order).
+    """
+    key = tuple(int(k) for k in task_key) + (SHOT_NOISE_STREAM_KEY, int(band_key))
+    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=key))
+
+
+class _Wings(NamedTuple):
+    """A template split for :func:`noisy_pixels`: its core pixels and its wings' cumulative sum."""
+
+    ref: object              #: weak reference to the template (the entry lives as long as it)
+    core: np.ndarray         #: flat indices of the pixels >= CORE_FRACTION
+    cum: np.ndarray          #: cumulative sum of the other pixels (core pixels and negatives as 0)
+    nbytes: int
+
+
+_WINGS: "OrderedDict[int, _Wings]" = OrderedDict()
+_WINGS_BYTES = [0]
+#: Reentrant: a template freed while the lock is held (garbage collection) calls _forget.
+_WINGS_LOCK = threading.RLock()
+
+
+def _forget(key: int) -> None:
+    with _WINGS_LOCK:
+        entry = _WINGS.pop(key, None)
+        if entry is not None:
+            _WINGS_BYTES[0] -= entry.nbytes
+
+
+def _wings(data: np.ndarray) -> _Wings:
+    """The core/wings split of a template, cached while the template lives (the template cache
+    shares one array per shape, position and band) in at most :data:`WINGS_CACHE_BYTES`."""
+    key = id(data)
+    with _WINGS_LOCK:
+        entry = _WINGS.get(key)
+        if entry is not None and entry.ref() is data:
+            _WINGS.move_to_end(key)
+            return entry
+    flat = data.ravel()
+    core = np.flatnonzero(flat >= CORE_FRACTION)
+    wings = np.maximum(flat, 0.0)
+    wings[core] = 0.0
+    cum = np.cumsum(wings)
+    try:
+        ref = weakref.ref(data, lambda _, k=key: _forget(k))
+    except TypeError:                       # not weak-referenceable: not cached
+        return _Wings(None, core, cum, 0)
+    entry = _Wings(ref, core, cum, core.nbytes + cum.nbytes)
+    with _WINGS_LOCK:
+        _forget(key)
+        _WINGS[key] = entry
+        _WINGS_BYTES[0] += entry.nbytes
+        while _WINGS_BYTES[0] > WINGS_CACHE_BYTES and len(_WINGS) > 1:
+            _forget(next(iter(_WINGS)))
+    return entry
+
+
+def _per_pixel(counts: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Electrons drawn pixel by pixel: Poisson, its Gaussian limit from GAUSSIAN_ABOVE_COUNTS."""
+    high = counts >= GAUSSIAN_ABOVE_COUNTS
+    if not high.any():
+        return rng.poisson(counts).astype(np.float64)
+    out = np.empty(counts.size)
+    out[~high] = rng.poisson(counts[~high])
+    out[high] = counts[high] + np.sqrt(counts[high]) * rng.standard_normal(int(high.sum()))
+    return out
+
+
+def noisy_pixels(data: np.ndarray, flux: float, gain: float, rng: np.random.Generator) -> np.ndarray:
+    """``data * flux`` with the photon noise of its electrons (one realisation).
+
+    The core of the template (pixels holding >= :data:`CORE_FRACTION` of the flux)
+    is drawn pixel by pixel (Poisson, or its Gaussian limit from
+    :data:`GAUSSIAN_ABOVE_COUNTS` electrons).  The wings, most of a stamp's pixels
+    but little of its light, are drawn by Poisson splitting: their total
+    N ~ Poisson(sum of their expected counts), each of the N electrons placed in
+    wing pixel i with probability counts_i / sum -- the same distribution as
+    independent Poisson draws, at a cost per electron instead of per pixel.  Wings
+    expecting more than :data:`DENSE_WINGS_COUNTS` electrons per pixel on average
+    (very bright sources) are drawn pixel by pixel too.
+
+    Parameters
+    ----------
+    data : ndarray
+        Unit-flux template (pixels sum to the in-stamp fraction of the light).
+    flux : float
+        Total flux [image units].
+    gain : float
+        Electrons per image unit (> 0).
+    rng : numpy.random.Generator
+        Consumed in this order: the core's Poisson draws, its normal draws, then
+        the wings' total and the placements (or the wings' per-pixel draws).
+
+    Returns
+    -------
+    ndarray, float64
+        New array [image units], shape of ``data``; expected counts below 0
+        (numerical noise of the convolution, ~1e-17) count as 0.
+    """
+    data = np.asarray(data, dtype=np.float64)
+    scale = float(flux) * float(gain)           # electrons per unit of the template
+    w = _wings(data)
+    flat = data.ravel()
+    out = np.zeros(flat.size)
+    # Only the pixels drawn are written (divided by the gain there): the untouched rest of a
+    # large stamp stays in zero pages the system has not allocated.
+    out[w.core] = _per_pixel(np.maximum(flat[w.core], 0.0) * scale, rng) / gain
+    total = float(w.cum[-1]) * scale if w.cum.size else 0.0
+    n_wings = flat.size - w.core.size
+    if total > DENSE_WINGS_COUNTS * n_wings:
+        wings = np.ones(flat.size, dtype=bool)
+        wings[w.core] = False
+        out[wings] = _per_pixel(np.maximum(flat[wings], 0.0) * scale, rng) / gain
+    elif total > 0.0:
+        n = rng.poisson(total)
+        where = np.searchsorted(w.cum, rng.random(n) * w.cum[-1], side="right")
+        np.minimum(where, flat.size - 1, out=where)     # u * cum[-1] rounded up to cum[-1]
+        np.add.at(out, where, 1.0 / gain)
+    return out.reshape(data.shape)
+
+
+def add_shot_noise(stamps: Sequence[tuple], gain: float, rng: np.random.Generator,
+                   noisy: Sequence[bool] | None = None) -> list:
+    """One band's stamps with shot noise, each fixed once (pre-multiplied).
+
+    Parameters
+    ----------
+    stamps : sequence of (y0, x0, data, flux)
+        Lazily scaled stamps as :class:`glaciar.engine.scene.Scene` takes them, in
+        source order.
+    gain : float
+        The band's electrons per image unit.
+    rng : numpy.random.Generator
+        The band's stream (:func:`shot_noise_rng`).
+    noisy : sequence of bool, optional
+        False for stamps left as they are (no draw either): the stamps of sources
+        fainter than ``FAINT_MAG_LIMIT``, whose stamps are skipped by default, so the
+        noise of the others is the same whether such stamps are rendered or not.
+
+    Returns
+    -------
+    list
+        ``(y0, x0, pixels)`` for the noisy stamps (pixels a new array [image
+        units]), the others unchanged.  A shared template is never modified.
+    """
+    out = []
+    for k, (y0, x0, data, flux) in enumerate(stamps):
+        if noisy is not None and not noisy[k]:
+            out.append((y0, x0, data, flux))
+        else:
+            out.append((y0, x0, noisy_pixels(data, flux, gain, rng)))
+    return out
