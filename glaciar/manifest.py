@@ -349,7 +349,8 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
     jobs = _SetupJobs(cfg, parallel, warm,
                       preflight=isinstance(measure_on, cf.ProcessPoolExecutor)
                       and parallel is measure_on)
-    inputs = check_inputs(cfg, survey, cache)
+    # A process pool whose workers measure the fields next also checks each field's files.
+    inputs = check_inputs(cfg, survey, cache, executor=parallel if jobs.preflight is not None else None)
     _preflight(cfg, survey, jobs)  # before the field is measured: a field nothing fits fails fast
     if shard is not None:
         # A shard locks before it measures: a sibling's set-up is waited for, its field
