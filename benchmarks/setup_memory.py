@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/setup_memory.py --size 8000 [--dir DIR] [--clean] [--save]
+    python benchmarks/setup_memory.py --size 8000 [--dir DIR] [--clean] [--save] [--spill]
     python benchmarks/setup_memory.py --config survey.yaml [--field NAME] [--clean] [--save]
 
 ``--size N`` writes the demo survey at N x N pixels into ``DIR`` (default a temporary
@@ -116,6 +116,10 @@ def main(argv=None) -> int:
     ap.add_argument("--field", help="field to measure (default the first)")
     ap.add_argument("--clean", action="store_true", help="keep CLEAN as configured")
     ap.add_argument("--save", action="store_true", help="also write the context's cache")
+    ap.add_argument("--spill", action="store_true",
+                    help="spill finished arrays to disk whatever the field's size (as a field over "
+                         "fieldprep.SPILL_MIN_BYTES is): a small field's bytes per pixel then "
+                         "stand for a large one's")
     opt = ap.parse_args(argv)
 
     from glaciar import fieldprep
@@ -129,6 +133,8 @@ def main(argv=None) -> int:
         field = opt.field or cfg.survey.fields[0]
         ny, nx = survey.shape(field)
         npix = float(ny * nx)
+        if opt.spill:
+            fieldprep.SPILL_MIN_BYTES = 0
         probe = StepProbe()
         fieldprep.SETUP_STEP_HOOKS.append(probe)
         t0 = time.perf_counter()

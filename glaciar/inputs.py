@@ -1,6 +1,7 @@
 """Every input file a run reads, checked and fingerprinted before anything is written."""
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,7 +13,7 @@ from .engine.noise import map_type_problem
 from .fieldprep import band_psf, detection_params
 from .galaxy.filters import get_filter
 from .rundir import file_fingerprint
-from .survey import Survey, read_array, strided_sample
+from .survey import SAMPLE_PIXELS, Survey, read_array, strided_sample
 
 
 class InputError(ValueError):
@@ -102,8 +103,13 @@ def _folded(caught) -> str:
     return f" (warnings while reading it: {text})"
 
 
-def _check_image(item: InputFile) -> None:
-    """A science or noise image: a readable FITS file with a 2-D image holding finite pixels."""
+def _check_image(item: InputFile, samples: dict | None = None) -> None:
+    """A science or noise image: a readable FITS file with a 2-D image holding finite pixels.
+
+    ``samples``: if given, ``samples[path]`` is set to the image's
+    :func:`~glaciar.survey.strided_sample` (the same pixels, taken from the array read
+    here: the noise-map check then reads the file no more).
+    """
     with warnings.catch_warnings():
         # astropy only warns about a file shorter than its header says; that is an error here.
         warnings.filterwarnings("error", message=".*truncated.*")
@@ -112,17 +118,21 @@ def _check_image(item: InputFile) -> None:
         raise ValueError(f"expected a non-empty 2-D image, got shape {arr.shape}")
     if not np.isfinite(arr).any():
         raise ValueError("no finite pixel in the image")
+    if samples is not None:
+        # strided_sample's step; its rows 0, k, 2k, ... and columns 0, k, 2k, ...
+        k = max(1, math.ceil(math.sqrt(arr.size / SAMPLE_PIXELS)))
+        samples[str(item.path)] = arr if k == 1 else np.array(arr[::k, ::k])
 
 
 def _check_noise_maps(cfg: Config, items: list[InputFile], fingerprints: dict, cache: dict,
-                      fail, errors) -> None:
+                      fail, errors, samples: dict | None = None) -> None:
     """Each noise map against its science image's pixel scatter
     (:func:`~glaciar.engine.noise.map_type_problem`).
 
     Not for a relative weight map (WEIGHT_TYPE MAP_WEIGHT: its scale is rescaled to the
     image) nor an unused one (BACKGROUND). A strided sample of <= 2^20 pixels of each
     image; checked once per (noise file version, noise_type, science file version):
-    ``cache`` remembers it.
+    ``cache`` remembers it.  ``samples``: samples already taken (:func:`_check_image`), by path.
     """
     if cfg.detection.weight_type in ("map_weight", "background"):
         return
@@ -137,7 +147,9 @@ def _check_noise_maps(cfg: Config, items: list[InputFile], fingerprints: dict, c
         if entry.get("map_type_checked") == stamp:
             continue
         try:
-            sci_pixels, map_pixels = strided_sample(sci.path), strided_sample(item.path)
+            samples = {} if samples is None else samples
+            sci_pixels, map_pixels = (samples[str(p)] if str(p) in samples else strided_sample(p)
+                                      for p in (sci.path, item.path))
             # Shapes that differ are refused below, naming both (survey.shape).
             problem = None if sci_pixels.shape != map_pixels.shape else \
                 map_type_problem(sci_pixels, map_pixels, ntype)
@@ -197,9 +209,15 @@ def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None =
             paths = {str(it.path.resolve()) for it in items if it.field == f}
             jobs[f] = executor.submit(_field_files_job, *args, f,
                                       {p: cache[p] for p in paths if p in cache})
-    own = [it for it in items if it.field not in jobs]
-    checked = _check_files(own, cache)
-    noise = {None: _noise_map_error(cfg, own, checked, cache)}
+    # This process: the files of no field (PSFs, filters, detection files), then the fields
+    # no job checks; field by field, so that no more than one field's samples are held.
+    checked = _check_files([it for it in items if it.field is None], cache)
+    noise = {}
+    for f in cfg.survey.fields:
+        if f not in jobs:
+            done = check_field_files(cfg, f, cache)
+            checked.update(done.items)
+            noise[f] = done.noise_error
     for f, job in jobs.items():
         done, entries = job.result()
         checked.update(done.items)
@@ -216,8 +234,8 @@ def check_inputs(cfg: Config, survey: Survey | None = None, cache: dict | None =
         for message in result.warnings:
             warnings.warn(f"{item.key}: {item.path}: {message}", stacklevel=2)
         out[item.key] = {"path": str(item.path), **result.fingerprint}
-    for f in (None, *cfg.survey.fields):
-        if noise.get(f) is not None:
+    for f in cfg.survey.fields:
+        if noise[f] is not None:
             raise InputError(noise[f])
     _check_shared(cfg, survey)
     return out
@@ -248,8 +266,9 @@ def _fail(item: InputFile, exc: BaseException, caught=()) -> str:
     return f"{item.key}: {item.path}: {_reason(exc, item.path)}{_folded(caught)}"
 
 
-def _check_files(items: list[InputFile], cache: dict) -> dict:
-    """Each file's own check, in order, up to the first that fails: ``{key: FileCheck}``."""
+def _check_files(items: list[InputFile], cache: dict, samples: dict | None = None) -> dict:
+    """Each file's own check, in order, up to the first that fails: ``{key: FileCheck}``
+    (``samples``: :func:`_check_image`'s)."""
     out = {}
     for item in items:
         try:
@@ -262,7 +281,7 @@ def _check_files(items: list[InputFile], cache: dict) -> dict:
             warnings.simplefilter("always")
             try:
                 if item.kind in ("science", "noise") and not entry.get("checked"):
-                    _check_image(item)
+                    _check_image(item, samples)
                 elif item.kind == "filter":
                     get_filter(str(item.path))
             except _ERRORS as exc:
@@ -275,14 +294,15 @@ def _check_files(items: list[InputFile], cache: dict) -> dict:
     return out
 
 
-def _noise_map_error(cfg: Config, items: list[InputFile], checked: dict, cache: dict) -> str | None:
+def _noise_map_error(cfg: Config, items: list[InputFile], checked: dict, cache: dict,
+                     samples: dict | None = None) -> str | None:
     """:func:`_check_noise_maps` on files that passed their own check: its refusal, or None."""
     if any(checked.get(it.key) is None or checked[it.key].error is not None for it in items):
         return None                     # a file's own check failed first
     fingerprints = {k: c.fingerprint for k, c in checked.items()}
     try:
         _check_noise_maps(cfg, items, fingerprints, cache, lambda item, exc: InputError(_fail(item, exc)),
-                          _ERRORS)
+                          _ERRORS, samples)
     except InputError as exc:
         return str(exc)
     return None
@@ -292,8 +312,9 @@ def check_field_files(cfg: Config, field: str, cache: dict) -> FieldCheck:
     """The checks of :func:`check_inputs` of one field's images and noise maps (its costly
     part: each file read, hashed and sampled); ``cache`` updated in place."""
     items = [it for it in input_files(cfg) if it.field == field]
-    checked = _check_files(items, cache)
-    return FieldCheck(tuple(checked.items()), _noise_map_error(cfg, items, checked, cache))
+    samples: dict = {}
+    checked = _check_files(items, cache, samples)
+    return FieldCheck(tuple(checked.items()), _noise_map_error(cfg, items, checked, cache, samples))
 
 
 def _field_files_job(cfg_dict: dict, base_dir: str, field: str, cache: dict) -> tuple:

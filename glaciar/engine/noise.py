@@ -91,7 +91,8 @@ def robust_sigma(x: np.ndarray) -> float:
     """
     x = np.asarray(x, dtype=np.float64)
     keep = np.ones(x.size, bool)
-    center, sigma = np.median(x), _MAD_TO_SIGMA * np.median(np.abs(x - np.median(x)))
+    center = np.median(x)
+    sigma = _MAD_TO_SIGMA * np.median(np.abs(x - center))     # center: the same median
     for _ in range(10):
         new = np.abs(x - center) <= _CLIP_SIGMA * sigma
         if new.sum() < 3 or np.array_equal(new, keep):
