@@ -346,6 +346,10 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
     cache = _load_fingerprint_cache(run_dir) if run_dir.is_dir() else {}
     cache_before = json.dumps(cache, sort_keys=True)
     survey = Survey.from_config(cfg)
+    if isinstance(parallel, cf.ProcessPoolExecutor):
+        # Imported here anyway (the input check reads FITS headers and PSFs): before the
+        # pool's first job forks its workers, which then inherit it (~0.3 s CPU each).
+        import astropy.io.fits  # noqa: F401
     jobs = _SetupJobs(cfg, parallel, warm,
                       preflight=isinstance(measure_on, cf.ProcessPoolExecutor)
                       and parallel is measure_on)
