@@ -181,6 +181,45 @@ class EmptySky:
         k = self.limits.index(float(limit))
         return self.indices if k == 0 else self.indices[self.level > k]
 
+    def count_beyond(self, limit: float, chunk: int | None = None) -> int:
+        """``beyond(limit).size``, counted by chunks of ``chunk`` candidates (no copy of the
+        indices)."""
+        k = self.limits.index(float(limit))
+        if k == 0:
+            return int(self.indices.size)
+        c = int(chunk or _CHUNK)
+        return sum(int(np.count_nonzero(self.level[i:i + c] > k)) for i in range(0, self.level.size, c))
+
+    def take_beyond(self, limit: float, positions: np.ndarray, chunk: int | None = None) -> np.ndarray:
+        """``beyond(limit)[positions]`` (same order), found chunk by chunk (``chunk``
+        candidates at a time, default 2^22).
+
+        What an aperture draw reads of the candidates: a few thousand of them.  The
+        farther limits' candidates are never gathered into one array (5 bytes per
+        candidate pixel, ~1 GB on a 16000^2 mosaic), only each chunk's positions.
+        """
+        k = self.limits.index(float(limit))
+        c = int(chunk or _CHUNK)
+        positions = np.asarray(positions, dtype=np.int64)
+        if k == 0:
+            return self.indices[positions]
+        out = np.empty(positions.size, dtype=self.indices.dtype)
+        order = np.argsort(positions, kind="stable")
+        sorted_pos = positions[order]
+        start, j = 0, 0                 # candidates before this chunk; next sorted position
+        for i in range(0, self.level.size, c):
+            if j == sorted_pos.size:
+                break
+            hit = np.flatnonzero(self.level[i:i + c] > k)
+            end = start + hit.size
+            stop = j + int(np.searchsorted(sorted_pos[j:], end, side="left"))
+            out[order[j:stop]] = self.indices[i + hit[sorted_pos[j:stop] - start]]
+            start, j = end, stop
+        if j != sorted_pos.size:
+            raise IndexError(f"positions up to {int(sorted_pos[-1])} beyond the "
+                             f"{start} candidates farther than {limit}")
+        return out
+
 
 def empty_sky(usable: np.ndarray, limits, tile_rows: int | None = None) -> EmptySky:
     """The candidate aperture centres of ``usable`` beyond each distance of ``limits``.
@@ -348,23 +387,27 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         candidates = _indices_beyond(flat_dist, min(radii) + 1.0, index_dtype) if radii else \
             np.empty(0, index_dtype)
 
-        def beyond(limit):
-            return _keep_beyond(flat_dist, candidates, limit)
+        def count_and_take(limit):
+            centres = _keep_beyond(flat_dist, candidates, limit)
+            return centres.size, centres.__getitem__
     else:
-        beyond = sky.beyond
+        def count_and_take(limit):
+            # The candidates are counted, and only the drawn ones gathered (EmptySky.take_beyond).
+            return sky.count_beyond(limit), lambda pick: sky.take_beyond(limit, pick)
     out_n, out_r, out_k, out_l = [], [], [], []
     for r in radii:
         k = int(np.ceil(r))
         dy, dx = np.mgrid[-k:k + 1, -k:k + 1]
         inside = dy ** 2 + dx ** 2 < r * r
         dy, dx = dy[inside], dx[inside]
-        centres = beyond(r + 1.0)
-        if centres.size < MIN_EMPTY_APERTURES:
+        n_centres, take = count_and_take(r + 1.0)
+        if n_centres < MIN_EMPTY_APERTURES:
             continue
-        pick = rng.choice(centres.size, size=min(n_per_radius, centres.size), replace=False)
+        pick = rng.choice(n_centres, size=min(n_per_radius, n_centres), replace=False)
+        drawn = take(pick)
         # Centred on pixels, whole pixels: every aperture of a radius holds the same pattern.
-        iy = centres[pick][:, None] // nx + dy[None, :]
-        ix = centres[pick][:, None] % nx + dx[None, :]
+        iy = drawn[:, None] // nx + dy[None, :]
+        ix = drawn[:, None] % nx + dx[None, :]
         # Only the aperture pixels are converted to float64 (no full-frame copies).
         ok = usable[iy, ix]
         flat = iy * nx + ix
@@ -377,7 +420,7 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         out_r.append(robust_sigma(s[good] / np.sqrt(v[good])))
         out_k.append(int(good.sum()))
         if local:
-            out_l.append(_local_ratio(image, rms, usable, centres[pick], r, dy.size, s, v, good))
+            out_l.append(_local_ratio(image, rms, usable, drawn, r, dy.size, s, v, good))
     if local:
         return (np.array(out_n), np.array(out_r), np.array(out_k, dtype=np.int64),
                 np.array(out_l, dtype=np.float64))
