@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import Config, check_files, config_to_dict
+from .config import Config, check_files, config_from_dict, config_to_dict
 from .engine.noise import map_type_problem
 from .fieldprep import band_psf, detection_params
 from .galaxy.filters import get_filter
@@ -319,8 +319,6 @@ def check_field_files(cfg: Config, field: str, cache: dict) -> FieldCheck:
 
 def _field_files_job(cfg_dict: dict, base_dir: str, field: str, cache: dict) -> tuple:
     """:func:`check_field_files` in a pool's worker: ``(FieldCheck, cache entries)``."""
-    from .config import config_from_dict
-
     cfg = config_from_dict(cfg_dict, base_dir)
     return check_field_files(cfg, field, cache), cache
 
