@@ -78,6 +78,26 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
     rms_from_background : bool
         True when ``rms`` is sep's background RMS (no noise map, or BACKGROUND).
     """
+    base, r, from_background, back = band_pixels_with_background(
+        survey, field, band, footprint, params, weight_type)
+    if background is not None:
+        background[band] = back()
+    return base, r, from_background
+
+
+def band_pixels_with_background(survey: Survey, field: str, band: str, footprint: np.ndarray,
+                                params: DetectionParams, weight_type: str | None = None):
+    """:func:`band_pixels`, with the subtracted background map made only when asked for.
+
+    Returns
+    -------
+    base, rms, rms_from_background
+        As :func:`band_pixels`.
+    background : callable
+        Returns the subtracted sep background map (float32, image units); sep's
+        Background keeps its meshes only, so a caller that first puts ``base`` and ``rms``
+        away (a large field spills them) adds one full-frame array to a lower peak.
+    """
     # New arrays read for this call (not the survey's cached ones): worked on in place, so
     # the band costs its image, its noise map and the masks, with no full-frame copies.
     img = survey.science(field, band, cache=False)
@@ -103,24 +123,19 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
     del noise
     r = np.asarray(r).astype(np.float32, copy=False)
     r[nodata] = np.float32(np.inf)          # = np.where(valid, r, inf), in place
-    back = None
-    if background is not None or not in_place:
-        back = bkg.back(dtype=np.float32)
+    back = None if in_place else bkg.back(dtype=np.float32)
     if in_place:
-        # data holds img where valid: the same float32 differences as img - background.
-        if back is None:
-            bkg.subfrom(data)
-        else:
-            np.subtract(data, back, out=data)
+        # data holds img where valid: the same float32 differences as img - background
+        # (sep subtracts its own float32 map, row by row; no full-frame map is made here).
+        bkg.subfrom(data)
         base = data
     else:
         base = np.subtract(img, back)
-    del img, data, bkg
+    del img, data
     base[nodata] = 0.0
     base = base.astype(np.float32, copy=False)
-    if background is not None:
-        background[band] = back
-    return base, r, from_background
+    # sep's Background keeps its meshes only: the map is made when asked for.
+    return base, r, from_background, (lambda: bkg.back(dtype=np.float32)) if back is None else (lambda: back)
 
 
 def noise_rms(noise: np.ndarray | None, weight_type: str | None, background_rms, nodata: np.ndarray
@@ -510,13 +525,14 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
     bases, rms = {}, {}
     backgrounds = {}
     for b in cfg.survey.bands:
-        base, noise, _ = band_pixels(survey, field, b.name, footprint, params,
-                                     cfg.detection.weight_type,
-                                     background=backgrounds if b.name == det else None)
+        base, noise, _, back = band_pixels_with_background(survey, field, b.name, footprint, params,
+                                                           cfg.detection.weight_type)
         bases[b.name], rms[b.name] = keep(base), keep(noise)
         del base, noise
         if b.name == det:
-            backgrounds[det] = keep(backgrounds[det])
+            # Made now, the band's image and RMS put away (on disk for a large field).
+            backgrounds[det] = keep(back())
+        del back
         # The context holds its own background-subtracted copies: the survey's cached
         # images would only double the memory (at this peak and in every task after it).
         survey.release_pixels(field, (b.name,))

@@ -256,7 +256,11 @@ def empty_sky(usable: np.ndarray, limits, tile_rows: int | None = None) -> Empty
         lev[n:n + i.size] = np.searchsorted(table, flat[i], side="left")
         idx[n:n + i.size] = i + y0 * nx
         n += i.size
-    return EmptySky(idx[:n], lev[:n], lim)
+    # Sized for every usable pixel: shrunk in place to the candidates (the unused tail of
+    # a view would stay allocated as long as the EmptySky, across the field's bands).
+    idx.resize(n, refcheck=False)
+    lev.resize(n, refcheck=False)
+    return EmptySky(idx, lev, lim)
 
 
 def source_margin(segmap: np.ndarray, margin: int, tile_rows: int | None = None) -> np.ndarray:
@@ -369,6 +373,9 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
     """
     rng = np.random.default_rng() if rng is None else rng
     usable = np.asarray(usable, dtype=bool)
+    # Memory-mapped images (a large field's spilled arrays) are read by row blocks, their
+    # pages dropped as they go (:func:`_gather`), in the local backgrounds' annuli too.
+    mapped = isinstance(image, np.memmap) or isinstance(rms, np.memmap)
     image, rms = np.asarray(image), np.asarray(rms)
     radii = [float(r) for r in radii_pix]
     nx = usable.shape[1]
@@ -420,7 +427,7 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         out_r.append(robust_sigma(s[good] / np.sqrt(v[good])))
         out_k.append(int(good.sum()))
         if local:
-            out_l.append(_local_ratio(image, rms, usable, drawn, r, dy.size, s, v, good))
+            out_l.append(_local_ratio(image, rms, usable, drawn, r, dy.size, s, v, good, mapped))
     if local:
         return (np.array(out_n), np.array(out_r), np.array(out_k, dtype=np.int64),
                 np.array(out_l, dtype=np.float64))
@@ -448,7 +455,7 @@ def _annulus_offsets(radius: float, npix: int) -> tuple[np.ndarray, np.ndarray]:
     return dy[ring], dx[ring]
 
 
-def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good) -> float:
+def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good, mapped=False) -> float:
     """The empty-aperture ratio of sums taken about each aperture's local background.
 
     The background is a plane fitted (weights 1/rms^2) to the usable pixels of the
@@ -475,7 +482,10 @@ def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good) -> float
     flat = np.clip(iy, 0, ny - 1) * nx + np.clip(ix, 0, nx - 1)
     ok = inside & usable.reshape(-1)[flat]
     # In-memory images are indexed directly; memory maps by row blocks (:func:`_gather`).
-    take = (lambda a: _gather(a, flat)) if isinstance(image, np.memmap) or \
+    # ``mapped``: the caller's arrays were maps (np.asarray made them plain views of the map,
+    # which direct indexing would fault in page by page and keep resident: ~2 GB of file
+    # pages for a 16000^2 field's image and RMS).
+    take = (lambda a: _gather(a, flat)) if mapped or isinstance(image, np.memmap) or \
         isinstance(rms, np.memmap) else (lambda a: np.asarray(a).reshape(-1)[flat])
     b = np.where(ok, take(image).astype(np.float64), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):

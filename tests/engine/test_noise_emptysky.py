@@ -47,3 +47,34 @@ def test_apertures_are_those_of_the_distance_map(usable):
     assert len(a[0]) == 3
     for x, y in zip(a, b):
         assert np.array_equal(x, y, equal_nan=True)
+
+
+def test_empty_sky_holds_only_its_candidates(usable):
+    """The indices and levels own exactly the candidates (not views of buffers sized for every
+    usable pixel)."""
+    sky = empty_sky(usable, LIMITS)
+    n = np.count_nonzero(empty_sky_distance(usable) > LIMITS[0])
+    assert n < np.count_nonzero(usable)
+    for a in (sky.indices, sky.level):
+        assert a.size == n and a.base is None and a.nbytes == n * a.itemsize
+
+
+def test_memory_mapped_images_give_the_same_ratios(usable, tmp_path):
+    """Images given as memory maps (a large field's spilled arrays, read by row blocks in the
+    apertures and their local-background annuli) give the in-memory arrays' ratios."""
+    rng = np.random.default_rng(5)
+    image = rng.normal(size=usable.shape).astype(np.float32)
+    rms = np.full(usable.shape, 1.3, dtype=np.float32)
+    maps = []
+    for name, a in (("img", image), ("rms", rms)):
+        m = np.lib.format.open_memmap(tmp_path / f"{name}.npy", mode="w+", dtype=a.dtype, shape=a.shape)
+        m[:] = a
+        m.flush()
+        maps.append(np.load(tmp_path / f"{name}.npy", mmap_mode="r"))
+    radii = (1.0, 3.0)
+    sky = empty_sky(usable, [r + 1.0 for r in radii])
+    a = empty_aperture_scatter(image, rms, usable, radii, 150, np.random.default_rng(2), sky=sky, local=True)
+    b = empty_aperture_scatter(*maps, usable, radii, 150, np.random.default_rng(2), sky=sky, local=True)
+    assert isinstance(maps[0], np.memmap) and np.isfinite(a[3]).all()
+    for x, y in zip(a, b):
+        assert np.array_equal(x, y, equal_nan=True)
