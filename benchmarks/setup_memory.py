@@ -29,6 +29,12 @@ CPU 54.5 s -> 40.7 s in the same run conditions; 16000^2 (/work/scratch/s16000) 
 3743 MB (15.3 B/px), 174 s wall.  What remains is the full-frame sep extraction of the
 reference (its float32 image, RMS and no-data copies and the segmentation, ~13 B/px,
 the floor) and a band's image, noise map and background (~12 B/px).
+Issue 24 (16000^2, CLEAN off, same field): peak 4565 -> 3791 MB; the empty apertures
++3946 -> +1538 MB above the step's start (annuli read by row blocks, candidates gathered by
+chunks), the depth map +2017 -> +1059 MB, the detection band's pixels +2930 -> +2035 MB
+(its background map made after its image and RMS are spilled); the reference extraction,
++3567 MB (14.6 B/px), is the peak.  ``--spill`` measures a small field as a spilled large
+one (its bytes per pixel still carry the fixed tile buffers, ~150 MB).
 """
 from __future__ import annotations
 
