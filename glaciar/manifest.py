@@ -367,10 +367,15 @@ def open_run(cfg: Config, run_dir: Path, seed: int, parallel: cf.Executor | None
     cache = _load_fingerprint_cache(run_dir) if run_dir.is_dir() else {}
     cache_before = json.dumps(cache, sort_keys=True)
     survey = Survey.from_config(cfg)
+    if isinstance(parallel, cf.ProcessPoolExecutor):
+        # Imported here anyway (the input check reads FITS headers and PSFs): before the
+        # pool's first job forks its workers, which then inherit it (~0.3 s CPU each).
+        import astropy.io.fits  # noqa: F401
     jobs = _SetupJobs(cfg, parallel, warm,
                       preflight=isinstance(measure_on, cf.ProcessPoolExecutor)
                       and parallel is measure_on)
-    inputs = check_inputs(cfg, survey, cache)
+    # A process pool whose workers measure the fields next also checks each field's files.
+    inputs = check_inputs(cfg, survey, cache, executor=parallel if jobs.preflight is not None else None)
     _preflight(cfg, survey, jobs)  # before the field is measured: a field nothing fits fails fast
     if shard is not None:
         # A shard locks before it measures: a sibling's set-up is waited for, its field

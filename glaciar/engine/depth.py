@@ -135,10 +135,15 @@ def local_depth_map(rms, valid, zeropoint: float, aperture_radius_pix: float,
     h = w.shape[0] // 2
     depth = np.full(rms_in.shape, np.nan, dtype=np.float32)
     w_sum, n_bad = w.sum(), 0
+    from .detect import release_mapped
+
     for y0, y1, a, b in row_blocks(rms_in.shape, DEPTH_TILE_PIXELS, h, rows=tile_rows):
         r = np.asarray(rms_in[a:b], dtype=np.float64)
         ok = np.isfinite(r) & (r > 0)
         v = ok if valid_in is None else np.asarray(valid_in[a:b], dtype=bool)
+        # A spilled (memory-mapped) rms or footprint, read once: its pages go as the tiles
+        # pass (they would pile up in the process: 1 GB at 16000^2).
+        release_mapped(rms_in, valid_in)
         inner = slice(y0 - a, y1 - a)
         n_bad += int(np.count_nonzero(v[inner] & ~ok[inner]))
         if n_bad or not v[inner].any():

@@ -91,7 +91,8 @@ def robust_sigma(x: np.ndarray) -> float:
     """
     x = np.asarray(x, dtype=np.float64)
     keep = np.ones(x.size, bool)
-    center, sigma = np.median(x), _MAD_TO_SIGMA * np.median(np.abs(x - np.median(x)))
+    center = np.median(x)
+    sigma = _MAD_TO_SIGMA * np.median(np.abs(x - center))     # center: the same median
     for _ in range(10):
         new = np.abs(x - center) <= _CLIP_SIGMA * sigma
         if new.sum() < 3 or np.array_equal(new, keep):
@@ -180,6 +181,45 @@ class EmptySky:
         k = self.limits.index(float(limit))
         return self.indices if k == 0 else self.indices[self.level > k]
 
+    def count_beyond(self, limit: float, chunk: int | None = None) -> int:
+        """``beyond(limit).size``, counted by chunks of ``chunk`` candidates (no copy of the
+        indices)."""
+        k = self.limits.index(float(limit))
+        if k == 0:
+            return int(self.indices.size)
+        c = int(chunk or _CHUNK)
+        return sum(int(np.count_nonzero(self.level[i:i + c] > k)) for i in range(0, self.level.size, c))
+
+    def take_beyond(self, limit: float, positions: np.ndarray, chunk: int | None = None) -> np.ndarray:
+        """``beyond(limit)[positions]`` (same order), found chunk by chunk (``chunk``
+        candidates at a time, default 2^22).
+
+        What an aperture draw reads of the candidates: a few thousand of them.  The
+        farther limits' candidates are never gathered into one array (5 bytes per
+        candidate pixel, ~1 GB on a 16000^2 mosaic), only each chunk's positions.
+        """
+        k = self.limits.index(float(limit))
+        c = int(chunk or _CHUNK)
+        positions = np.asarray(positions, dtype=np.int64)
+        if k == 0:
+            return self.indices[positions]
+        out = np.empty(positions.size, dtype=self.indices.dtype)
+        order = np.argsort(positions, kind="stable")
+        sorted_pos = positions[order]
+        start, j = 0, 0                 # candidates before this chunk; next sorted position
+        for i in range(0, self.level.size, c):
+            if j == sorted_pos.size:
+                break
+            hit = np.flatnonzero(self.level[i:i + c] > k)
+            end = start + hit.size
+            stop = j + int(np.searchsorted(sorted_pos[j:], end, side="left"))
+            out[order[j:stop]] = self.indices[i + hit[sorted_pos[j:stop] - start]]
+            start, j = end, stop
+        if j != sorted_pos.size:
+            raise IndexError(f"positions up to {int(sorted_pos[-1])} beyond the "
+                             f"{start} candidates farther than {limit}")
+        return out
+
 
 def empty_sky(usable: np.ndarray, limits, tile_rows: int | None = None) -> EmptySky:
     """The candidate aperture centres of ``usable`` beyond each distance of ``limits``.
@@ -216,7 +256,11 @@ def empty_sky(usable: np.ndarray, limits, tile_rows: int | None = None) -> Empty
         lev[n:n + i.size] = np.searchsorted(table, flat[i], side="left")
         idx[n:n + i.size] = i + y0 * nx
         n += i.size
-    return EmptySky(idx[:n], lev[:n], lim)
+    # Sized for every usable pixel: shrunk in place to the candidates (the unused tail of
+    # a view would stay allocated as long as the EmptySky, across the field's bands).
+    idx.resize(n, refcheck=False)
+    lev.resize(n, refcheck=False)
+    return EmptySky(idx, lev, lim)
 
 
 def source_margin(segmap: np.ndarray, margin: int, tile_rows: int | None = None) -> np.ndarray:
@@ -329,6 +373,9 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
     """
     rng = np.random.default_rng() if rng is None else rng
     usable = np.asarray(usable, dtype=bool)
+    # Memory-mapped images (a large field's spilled arrays) are read by row blocks, their
+    # pages dropped as they go (:func:`_gather`), in the local backgrounds' annuli too.
+    mapped = isinstance(image, np.memmap) or isinstance(rms, np.memmap)
     image, rms = np.asarray(image), np.asarray(rms)
     radii = [float(r) for r in radii_pix]
     nx = usable.shape[1]
@@ -347,23 +394,27 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         candidates = _indices_beyond(flat_dist, min(radii) + 1.0, index_dtype) if radii else \
             np.empty(0, index_dtype)
 
-        def beyond(limit):
-            return _keep_beyond(flat_dist, candidates, limit)
+        def count_and_take(limit):
+            centres = _keep_beyond(flat_dist, candidates, limit)
+            return centres.size, centres.__getitem__
     else:
-        beyond = sky.beyond
+        def count_and_take(limit):
+            # The candidates are counted, and only the drawn ones gathered (EmptySky.take_beyond).
+            return sky.count_beyond(limit), lambda pick: sky.take_beyond(limit, pick)
     out_n, out_r, out_k, out_l = [], [], [], []
     for r in radii:
         k = int(np.ceil(r))
         dy, dx = np.mgrid[-k:k + 1, -k:k + 1]
         inside = dy ** 2 + dx ** 2 < r * r
         dy, dx = dy[inside], dx[inside]
-        centres = beyond(r + 1.0)
-        if centres.size < MIN_EMPTY_APERTURES:
+        n_centres, take = count_and_take(r + 1.0)
+        if n_centres < MIN_EMPTY_APERTURES:
             continue
-        pick = rng.choice(centres.size, size=min(n_per_radius, centres.size), replace=False)
+        pick = rng.choice(n_centres, size=min(n_per_radius, n_centres), replace=False)
+        drawn = take(pick)
         # Centred on pixels, whole pixels: every aperture of a radius holds the same pattern.
-        iy = centres[pick][:, None] // nx + dy[None, :]
-        ix = centres[pick][:, None] % nx + dx[None, :]
+        iy = drawn[:, None] // nx + dy[None, :]
+        ix = drawn[:, None] % nx + dx[None, :]
         # Only the aperture pixels are converted to float64 (no full-frame copies).
         ok = usable[iy, ix]
         flat = iy * nx + ix
@@ -376,7 +427,7 @@ def empty_aperture_scatter(image: np.ndarray, rms: np.ndarray, usable: np.ndarra
         out_r.append(robust_sigma(s[good] / np.sqrt(v[good])))
         out_k.append(int(good.sum()))
         if local:
-            out_l.append(_local_ratio(image, rms, usable, centres[pick], r, dy.size, s, v, good))
+            out_l.append(_local_ratio(image, rms, usable, drawn, r, dy.size, s, v, good, mapped))
     if local:
         return (np.array(out_n), np.array(out_r), np.array(out_k, dtype=np.int64),
                 np.array(out_l, dtype=np.float64))
@@ -404,7 +455,7 @@ def _annulus_offsets(radius: float, npix: int) -> tuple[np.ndarray, np.ndarray]:
     return dy[ring], dx[ring]
 
 
-def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good) -> float:
+def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good, mapped=False) -> float:
     """The empty-aperture ratio of sums taken about each aperture's local background.
 
     The background is a plane fitted (weights 1/rms^2) to the usable pixels of the
@@ -431,7 +482,10 @@ def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good) -> float
     flat = np.clip(iy, 0, ny - 1) * nx + np.clip(ix, 0, nx - 1)
     ok = inside & usable.reshape(-1)[flat]
     # In-memory images are indexed directly; memory maps by row blocks (:func:`_gather`).
-    take = (lambda a: _gather(a, flat)) if isinstance(image, np.memmap) or \
+    # ``mapped``: the caller's arrays were maps (np.asarray made them plain views of the map,
+    # which direct indexing would fault in page by page and keep resident: ~2 GB of file
+    # pages for a 16000^2 field's image and RMS).
+    take = (lambda a: _gather(a, flat)) if mapped or isinstance(image, np.memmap) or \
         isinstance(rms, np.memmap) else (lambda a: np.asarray(a).reshape(-1)[flat])
     b = np.where(ok, take(image).astype(np.float64), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
