@@ -292,11 +292,24 @@ def _lattice(m_lo: float, m_hi: float, k0: int, n_k: int, h: float):
     return h * np.arange(j_lo, j_hi + 1), h * np.arange(j_lo + k0, j_hi + k0 + n_k)
 
 
+def _support(kernel):
+    """First and one-past-last lattice column where ``kernel`` (..., n_z, n_k) is non-zero."""
+    cols = np.flatnonzero(kernel.reshape(-1, kernel.shape[-1]).any(axis=0))
+    return (int(cols[0]), int(cols[-1]) + 1) if cols.size else (0, 1)
+
+
 def _terms(draws, kernel):
-    """(draws, kernel (n_z, n_k)) pairs to sum: one, or one per magnification node in use."""
-    if isinstance(draws, NodeDraws):
-        return [(draws.draws[j], kernel[j]) for j in range(len(draws.x)) if kernel[j].any()]
-    return [(draws, kernel)]
+    """(draws, kernel (n_z, n_k_j), first column a_j) triples to sum: one, or one per
+    magnification node in use, each cut to its kernel's support (a node's lens nodes share
+    nearly one |mu|, so its lensing shifts span a narrow part of the lattice)."""
+    if not isinstance(draws, NodeDraws):
+        return [(draws, kernel, 0)]
+    out = []
+    for j in range(len(draws.x)):
+        if kernel[j].any():
+            a, b = _support(kernel[j])
+            out.append((draws.draws[j], kernel[j][:, a:b], a))
+    return out
 
 
 def _lattice_tables(model, draws, zz, kernel, grid, points):
@@ -304,32 +317,27 @@ def _lattice_tables(model, draws, zz, kernel, grid, points):
     (start, table (b, n_z, len(points))).
 
     ``draws``: an array (n_d, n_params) with ``kernel`` (n_z, n_k), or :class:`NodeDraws`
-    with one kernel per node (J, n_z, n_k), summed over the nodes.  Few points: a product
-    with the kernel's Toeplitz slices per z (cost ~ points x lattice); many: one FFT
+    with one kernel per node (J, n_z, n_k), summed over the nodes.  Few points: the kernel
+    times the lattice window of each point (cost ~ points x kernel); many: one FFT
     correlation along the lattice (cost ~ lattice log lattice).
     """
     from scipy.signal import fftconvolve
 
     terms = _terms(draws, kernel)
-    n_k = kernel.shape[-1]
-    n_lat = len(grid) - n_k + 1
+    n_lat = len(grid) - kernel.shape[-1] + 1
     use_fft = len(points) * 4 > n_lat
-    if not use_fft:
-        rows = points[None, :] + np.arange(n_k)[:, None]                  # (n_k, n_pts)
-        cols = np.broadcast_to(np.arange(len(points))[None, :], rows.shape)
     for b in range(0, len(draws), _BATCH):
         out = 0.0
-        for th, ker in terms:
-            c, s = model.surfaces_on_grid(th[b:b + _BATCH], zz, grid)
+        for th, ker, a in terms:
+            n_k = ker.shape[1]
+            c, s = model.surfaces_on_grid(th[b:b + _BATCH], zz, grid[a:a + n_lat + n_k - 1])
             p = c * s
             if use_fft:
                 out = out + fftconvolve(p, ker[None, :, ::-1], mode="valid", axes=2)[:, :, points]
                 continue
             part = np.empty((len(p), len(zz), len(points)))
-            for iz in range(len(zz)):
-                t = np.zeros((len(grid), len(points)))
-                t[rows, cols] = ker[iz][:, None]
-                part[:, iz] = p[:, iz] @ t
+            for i, ip in enumerate(points):           # a window of the lattice per point
+                part[:, :, i] = np.einsum("dzk,zk->dz", p[:, :, ip:ip + n_k], ker)
             out = out + part
         yield b, out
 
@@ -634,18 +642,24 @@ def lensed_count_tables(sf, idx, zz, m_tab, field, cosmology, q_on=None, n_class
     per_class = [theta.draws[j] if isinstance(theta, NodeDraws) else theta for j in node]
     n_k = kernels.shape[2]
     grid = m_tab[0] + h * np.arange(k0, len(m_tab) + k0 + n_k - 1)        # observed magnitudes
-    flipped = kernels[:, :, ::-1]
+    # Each class only reads the part of the grid its kernel covers.
+    cut = [_support(k) for k in kernels]
+    flipped = [kernels[c][:, a:b][:, ::-1] for c, (a, b) in enumerate(cut)]
     mdl = sf.model
+    n_tab = len(m_tab)
     for a in (range(len(idx)) if order is None else order):
         d = idx[a]
+        q = None if q_on is None else q_on(grid, a)
         out = 0.0
         for c, oc in enumerate(offsets):
+            lo, hi = cut[c]
+            g = slice(lo, hi + n_tab - 1)
             th = per_class[c] if d < 0 else per_class[c][d:d + 1]
-            cc, ss = mdl.surfaces_on_grid(th, zz, grid + oc)
-            p = np.median(cc * ss, axis=0) if d < 0 else (cc * ss)[0]        # (n_z, G)
-            if q_on is None:
+            cc, ss = mdl.surfaces_on_grid(th, zz, grid[g] + oc)
+            p = np.median(cc * ss, axis=0) if d < 0 else (cc * ss)[0]        # (n_z, G_c)
+            if q is None:
                 out = out + fftconvolve(p, flipped[c], mode="valid", axes=1)
             else:
-                out = out + fftconvolve(p[:, :, None] * q_on(grid, a), flipped[c][:, :, None],
+                out = out + fftconvolve(p[:, :, None] * q[:, g], flipped[c][:, :, None],
                                         mode="valid", axes=1)
         yield a, out
