@@ -377,7 +377,7 @@ def lensed_table(model, draws, zz, m, nodes_list, cosmology, h: float = LENS_TAB
     """
     m = np.asarray(m, dtype=float).ravel()
     k0, kernel = lens_kernel(model, nodes_list, zz, cosmology, h, _node_draws(draws))
-    lattice, grid = _lattice(m.min(), m.max(), k0, kernel.shape[1], h)
+    lattice, grid = _lattice(m.min(), m.max(), k0, kernel.shape[-1], h)
     i, f = _read(lattice, m, h)
     points, back = np.unique(np.concatenate([i, i + 1]), return_inverse=True)
     lo, hi = back[:len(m)], back[len(m):]
@@ -411,7 +411,7 @@ def lensed_muv_volume_draws(model, draws, nodes_list, zz, dvdz, m, flux, bw, cos
 
     k0, kernel = lens_kernel(model, nodes_list, zz, cosmology, h, _node_draws(draws))
     ok = np.broadcast_to(flux, m.shape)
-    lattice, grid = _lattice(m[ok].min(), m[ok].max(), k0, kernel.shape[1], h)
+    lattice, grid = _lattice(m[ok].min(), m[ok].max(), k0, kernel.shape[-1], h)
     i, f = _read(lattice, np.where(ok, m, lattice[0]), h)                       # (n_z, n_b, n_M)
     wb = np.where(ok, np.asarray(bw, dtype=float)[None, :, None], 0.0)
     iz = np.arange(len(zz))[:, None, None]
