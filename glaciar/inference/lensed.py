@@ -32,13 +32,15 @@ injections average over the field's image-plane |mu| distribution, the source pl
 weights it by 1/|mu|.  A fit with the ``magnification`` covariate
 (:mod:`glaciar.inference.covariates`, x = log10|mu|; ``glaciar fit`` adds it to lensed runs)
 gives theta(x); each lens node then reads P at its own ``x_n(z) = -log10|det A_n(z)|``,
-interpolated linearly between covariate nodes x_j (:func:`magnification_draws`: steps of at
-most :data:`MU_NODE_STEP` over the injected range, plus the bins' centres):
+interpolated linearly between covariate nodes x_j (:func:`magnification_draws`: the bins'
+centres and steps of at most :data:`MU_NODE_STEP` between the outer ones):
 
     P_lens(z, m) = sum_j sum_n Omega_n |det A_n| hat_j(x_n(z)) P(z, m + l_n | d_n, theta(x_j)),
 
-one kernel per covariate node j, each correlated with the surfaces at theta(x_j).  An x_n
-outside the injected range takes the end node's selection (warned about when more than
+one kernel per covariate node j, each correlated with the surfaces at theta(x_j) over the
+part of the lattice its kernel covers (a node's lens nodes share nearly one |mu|, so one
+lensing shift).  An x_n beyond the end nodes takes the end node's selection; outside the
+injected range this is warned about when more than
 :data:`~glaciar.inference.covariates.OUTSIDE_WARN` of the source-plane area at some z lies
 there).  Without the covariate (unlensed fits, older files) the tables are the ones above.
 """
@@ -106,8 +108,11 @@ def magnification_draws(sf, step: float = MU_NODE_STEP):
     if not cov.spec.extrapolate:
         lo, hi = float(cov.centres[0]), float(cov.centres[-1])
     n = max(2, int(np.ceil((hi - lo) / float(step) - 1e-9)) + 1)
-    x = np.unique(np.round(np.concatenate([np.linspace(lo, hi, n),
-                                           np.clip(cov.centres, lo, hi)]), 9))
+    centres = np.clip(cov.centres, lo, hi)
+    even = np.linspace(lo, hi, n)
+    # Equal steps that nearly coincide with a centre add cost, not accuracy.
+    even = even[np.min(np.abs(even[:, None] - centres[None, :]), axis=1) > 0.25 * float(step)]
+    x = np.unique(np.concatenate([even, centres]))
     idx = sf.model.block_indices(cov.spec.block)
     k = np.arange(len(sf.draws)) % cov.draws.shape[1]
     out = np.repeat(np.asarray(sf.draws, float)[None], len(x), axis=0)
