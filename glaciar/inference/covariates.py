@@ -22,6 +22,12 @@ covariate acts on C only (the completeness block of theta), beta on S only (the
 selection block: the Lyman-break colour of a source of given magnitude moves
 with beta); the other block keeps the pooled fit's draws.
 
+Behind a lens the ``magnification`` covariate (x = log10|mu|, on C: a more magnified source
+is more stretched at fixed observed flux) is fitted by ``glaciar fit`` on lensed runs and
+read by the lensed V_eff and count tables (:mod:`glaciar.inference.lensed`).  Its bins have
+the quantile levels :data:`MAGNIFICATION_QUANTILES` (the effect is in the high-|mu| tail),
+theta is held at the outer nodes beyond them, and there is no recentring pass.
+
 Without a covariate value the pooled fit is used: C and S marginalised over the
 injected distribution of r_e and beta at each (z, m), exactly what a fit
 without covariates gives (the pooled fit *is* that fit, bit for bit).

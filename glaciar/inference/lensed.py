@@ -141,7 +141,8 @@ def _warn_outside(x, w, covered):
     share = np.max(np.sum(w * outside, axis=1) / np.maximum(np.sum(w, axis=1), 1e-300))
     if share > OUTSIDE_WARN:
         warnings.warn(f"V_eff behind the lens: up to {share:.0%} of the source-plane area has "
-                      f"|mu| outside the injected range {10 ** lo:.3g}-{10 ** hi:.3g}; it is given the completeness of the nearest "
+                      f"|mu| outside the injected range {10 ** lo:.3g}-{10 ** hi:.3g}; it is "
+                      "given the completeness of the nearest "
                       "end of that range", stacklevel=4)
 
 

@@ -5,7 +5,8 @@ C(m_obs) averages over the image-plane |mu| distribution of the injected positio
 fixed observed magnitude a more magnified source is more stretched (lower surface
 brightness) and less often recovered, and V_eff weights the source plane (1/|mu|), not
 the image plane.  :func:`fit_magnification` fits the pooled model to bins of log10|mu|
-(quantile levels that resolve the high-|mu| tail, :func:`glaciar.inference.covariates.fit_covariate_nodes`, with the per-bin
+(quantile levels that resolve the high-|mu| tail;
+:func:`glaciar.inference.covariates.fit_covariate_nodes`, with the per-bin
 posterior-predictive check) so that V_eff and the count tables behind the lens read C at
 each lens node's own |mu| (:mod:`glaciar.inference.lensed`).  Unlensed runs never get it.
 """
@@ -38,6 +39,8 @@ def fit_magnification(rows, name: str, index: int, model, *, seed, n_walkers, ma
                       max_draws: int, mag_col: str, mag_resolution):
     """The ``magnification`` :class:`~glaciar.inference.covariates.CovariateNodes` of one fit.
 
+    Raises ValueError when the rows span no range of |mu| (``fit_covariate_nodes``).
+
     Parameters
     ----------
     rows : pandas.DataFrame
@@ -59,6 +62,7 @@ def fit_magnification(rows, name: str, index: int, model, *, seed, n_walkers, ma
         return fit_surfaces(cells, mdl, seed=base + list(s[1:]), n_walkers=n_walkers,
                             max_steps=max_steps)
 
-    return fit_covariate_nodes(sub, "magnification", model, quantiles=MAGNIFICATION_QUANTILES, fit=fit,
+    return fit_covariate_nodes(sub, "magnification", model, quantiles=MAGNIFICATION_QUANTILES,
+                               fit=fit,
                                max_draws=max_draws, mag_col=mag_col,
                                mag_resolution=mag_resolution)
