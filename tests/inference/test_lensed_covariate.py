@@ -208,3 +208,35 @@ def test_fitted_magnification_bins_are_adequate_and_c_falls_with_mu_as_the_data(
             np.sum(pooled * (1 - pooled)))))
     (f_lo, p_lo, _), (f_hi, p_hi, pooled_sigma) = frac
     assert f_lo - f_hi > 0.3 and p_lo - p_hi > 0.3 and pooled_sigma > 3
+
+
+def test_volume_over_a_range_of_magnifications_with_few_redshifts():
+    """A convergence gradient (kappa 0-0.6, |mu| 1-5: a lensing-shift range wider than the
+    21 redshift nodes, which once made the lattice too short): V_eff equals the per-node sum
+    of Omega_n |det A_n| P(z, m + 2.5 log10|det A_n| | theta(x_n)) integrated here by
+    Simpson's rule over the same z, to 5e-3."""
+    from scipy.integrate import simpson
+
+    sf, cov = _synthetic()
+    sf.covariates = {"magnification": cov}
+    kap = np.broadcast_to(np.linspace(0.0, 0.6, 30)[None, :], (4, 30))
+    zero = np.zeros_like(kap)
+    nodes = lens_area_nodes(np.full(kap.shape, 27.5), kap, zero, zero, 800.0 / kap.size,
+                            depth_bin_mag=0.05, ratio_range=(0.8, 0.9))
+    ln = LensNodes.from_dict("cl", "grad", Z_LENS, nodes)
+    sf.lens_nodes = {"cl": {"grad": ln}}
+    m = np.array([27.0, 27.8])
+    got = sf.effective_volume(m, cosmology=Planck18, n_z=21).median.to_value(u.Mpc ** 3)
+    zz = np.linspace(6.0, 8.0, 21)
+    sr = (ln.area_arcmin2 * u.arcmin ** 2).to_value(u.sr)
+    dvdz = Planck18.differential_comoving_volume(zz).to_value(u.Mpc ** 3 / u.sr)
+    want = []
+    for mi in m:
+        f = np.zeros(len(zz))
+        for iz, z in enumerate(zz):
+            r = distance_ratio(Z_LENS, z, Planck18)
+            det = np.abs(1 - 2 * r * ln.kappa + r * r * ln.kappa2_minus_gamma2)
+            f[iz] = sum(s * d * _p_at_mu(sf, z, mi + 2.5 * np.log10(d), -np.log10(d))
+                        for s, d in zip(sr, det))
+        want.append(simpson(f * dvdz, x=zz))
+    np.testing.assert_allclose(got, want, rtol=5e-3)
