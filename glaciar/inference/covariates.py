@@ -22,6 +22,12 @@ covariate acts on C only (the completeness block of theta), beta on S only (the
 selection block: the Lyman-break colour of a source of given magnitude moves
 with beta); the other block keeps the pooled fit's draws.
 
+Behind a lens the ``magnification`` covariate (x = log10|mu|, on C: a more magnified source
+is more stretched at fixed observed flux) is fitted by ``glaciar fit`` on lensed runs and
+read by the lensed V_eff and count tables (:mod:`glaciar.inference.lensed`).  Its bins have
+the quantile levels :data:`MAGNIFICATION_QUANTILES` (the effect is in the high-|mu| tail),
+theta is held at the outer nodes beyond them, and there is no recentring pass.
+
 Without a covariate value the pooled fit is used: C and S marginalised over the
 injected distribution of r_e and beta at each (z, m), exactly what a fit
 without covariates gives (the pooled fit *is* that fit, bit for bit).
@@ -58,11 +64,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import ndtr
 
-from ..constants import COL_BETA, COL_R_EFF_ARCSEC
+from ..constants import COL_BETA, COL_MAGNIFICATION, COL_R_EFF_ARCSEC
 
 __all__ = ["COVARIATES", "CovariateSpec", "CovariateNodes", "SizeRelation", "BetaDistribution",
            "parse_covariates", "fit_covariate_nodes", "covariate_theta", "evaluate",
-           "reweighted_volume_draws", "hat_weights", "OUTSIDE_WARN", "DEFAULT_BINS"]
+           "reweighted_volume_draws", "hat_weights", "OUTSIDE_WARN", "DEFAULT_BINS",
+           "MAGNIFICATION_QUANTILES"]
 
 #: Quantile bins per covariate (the nodes of the interpolation).
 DEFAULT_BINS = 4
@@ -70,6 +77,9 @@ DEFAULT_BINS = 4
 OUTSIDE_WARN = 0.05
 #: Equally spaced covariate nodes of the re-weighted V_eff integrals.
 VOLUME_NODES = 17
+#: Quantile levels of the magnification bins' edges (behind a cluster ~90 % of the area has
+#: |mu| < 2, where C hardly depends on it; the last bins hold the tail where it does).
+MAGNIFICATION_QUANTILES = (0.0, 0.4, 0.75, 0.9, 0.97, 1.0)
 
 
 @dataclass(frozen=True)
@@ -81,10 +91,25 @@ class CovariateSpec:
     log: bool
     block: str
     label: str
+    #: Use |value| (the signed magnification: negative for odd-parity images).
+    absolute: bool = False
+    #: theta(x) beyond the outer bins' centres: extrapolated linearly (True) or held at the
+    #: outer node (False: the outer bin's fit, for a skewed x whose tail bin is wide).
+    extrapolate: bool = True
+    #: Second pass moving each source to its bin's mean x along a straight-line m50(x)
+    #: (for a covariate whose effect is close to a magnitude shift linear in x).
+    recentre: bool = True
+
+    @property
+    def transform(self) -> str:
+        """The file's ``COVXFORM``: how x follows from the column."""
+        return ("log10abs" if self.absolute else "log10") if self.log else "none"
 
     def to_x(self, value):
-        """The interpolation coordinate of ``value`` (log10 for the size)."""
+        """The interpolation coordinate of ``value`` (log10 for the size, log10|mu|)."""
         v = np.asarray(value, float)
+        if self.absolute:
+            v = np.abs(v)
         if self.log:
             with np.errstate(divide="ignore", invalid="ignore"):
                 return np.where(v > 0, np.log10(np.where(v > 0, v, 1.0)), np.nan)
@@ -94,6 +119,13 @@ class CovariateSpec:
 COVARIATES = {
     "r_eff": CovariateSpec("r_eff", COL_R_EFF_ARCSEC, True, "c", "log10(r_eff_arcsec / arcsec)"),
     "beta": CovariateSpec("beta", COL_BETA, False, "s", "UV slope beta"),
+    # Behind a lens, at fixed observed magnitude a more magnified source is more stretched
+    # (lower surface brightness): C depends on |mu| (glaciar.inference.lensed).
+    # Its effect is strongly non-linear (C falls at |mu| > 2) and most injections are weakly
+    # magnified: bins by quantile levels that resolve the tail (MAGNIFICATION_QUANTILES),
+    # held at the end nodes rather than extrapolated, without the straight-line recentring.
+    "magnification": CovariateSpec("magnification", COL_MAGNIFICATION, True, "c", "log10|mu|",
+                                   absolute=True, extrapolate=False, recentre=False),
 }
 
 
@@ -149,10 +181,13 @@ class CovariateNodes:
         return float(self.edges[0]), float(self.edges[-1])
 
     def theta_at(self, x: float) -> np.ndarray:
-        """Per-draw parameters at covariate x (linear in x between nodes, beyond them too)."""
+        """Per-draw parameters at covariate x (linear in x between nodes; beyond them
+        too, or held at the outer node for a covariate that does not extrapolate)."""
         c, d = self.centres, self.draws
         if len(c) == 1:
             return d[0].copy()
+        if not self.spec.extrapolate:
+            x = float(np.clip(x, c[0], c[-1]))
         k = int(np.clip(np.searchsorted(c, x) - 1, 0, len(c) - 2))
         t = (float(x) - c[k]) / (c[k + 1] - c[k])
         return (1.0 - t) * d[k] + t * d[k + 1]
@@ -180,7 +215,7 @@ def covariate_theta(sf, values: dict) -> np.ndarray:
 def _check_given(sf, given):
     for name in given:
         if name not in getattr(sf, "covariates", {}):
-            kw = "r_eff_arcsec" if name == "r_eff" else name
+            kw = {"r_eff": "r_eff_arcsec", "magnification": "magnification"}.get(name, name)
             raise ValueError(f"{kw}=: this selection function was fitted without the {name!r} "
                              f"covariate (fit it with `glaciar fit --covariates {name}`)")
         if COVARIATES[name].block == "s" and not sf.model.selection:
@@ -412,7 +447,7 @@ def reweighted_volume_draws(sf, nodes, node_sr, zz, dvdz, mm, size_relation=None
 # ------------------------------------------------------------------------ fitting
 def fit_covariate_nodes(rows, name, model, *, n_bins: int = DEFAULT_BINS, seed=0,
                         max_draws: int = 1000, mag_col: str = "mag_input",
-                        mag_resolution=0.01, fit=None) -> CovariateNodes:
+                        mag_resolution=0.01, fit=None, quantiles=None) -> CovariateNodes:
     """Fit the pooled fit's model to each quantile bin of a covariate, and check the result.
 
     Parameters
@@ -421,7 +456,7 @@ def fit_covariate_nodes(rows, name, model, *, n_bins: int = DEFAULT_BINS, seed=0
         Per-source rows: ``z``, ``mag_col``, ``recovered``, ``selected``, the
         covariate's column (:data:`COVARIATES`), ``depth_local`` for a
         depth-aware model and ``mag`` (the nominal magnitude, for the PPC cells).
-    name : {"r_eff", "beta"}
+    name : {"r_eff", "beta", "magnification"}
     model : SurfaceModel
         The pooled fit's model (every bin uses it: same shape, normalisation, degrees).
     n_bins : int
@@ -432,6 +467,8 @@ def fit_covariate_nodes(rows, name, model, *, n_bins: int = DEFAULT_BINS, seed=0
         Draws kept per bin.
     fit : callable, optional
         ``fit(cells, model, seed) -> FitResult`` (default :func:`fit_surfaces`).
+    quantiles : sequence of float, optional
+        Quantile levels of the bin edges (from 0 to 1), instead of ``n_bins`` equal ones.
 
     Raises
     ------
@@ -449,12 +486,15 @@ def fit_covariate_nodes(rows, name, model, *, n_bins: int = DEFAULT_BINS, seed=0
     good = np.isfinite(x)
     rows, x = rows[good].reset_index(drop=True), x[good]
     if x.size == 0 or np.ptp(x) < 1e-6:
-        hint = ("simulate with source.r_eff_scatter_dex > 0" if name == "r_eff" else "set source.beta_sd > 0 with beta_per: source")
+        hint = {"r_eff": "simulate with source.r_eff_scatter_dex > 0",
+                "beta": "set source.beta_sd > 0 with beta_per: source"}.get(
+                    name, "a lensed run (survey.lens) spans a range of magnification")
         raise ValueError(f"covariate {name!r}: the injections span no range of {spec.column} "
                          f"(all {10 ** x[0] if spec.log and x.size else (x[0] if x.size else 'NaN')}); "
                          f"{hint}")
     n_bins = max(1, int(n_bins))
-    edges = np.quantile(x, np.linspace(0.0, 1.0, n_bins + 1))
+    levels = np.linspace(0.0, 1.0, n_bins + 1) if quantiles is None else np.asarray(quantiles, float)
+    edges = np.quantile(x, levels)
     edges = np.unique(edges)
     k_of = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
     if fit is None:
@@ -464,7 +504,8 @@ def fit_covariate_nodes(rows, name, model, *, n_bins: int = DEFAULT_BINS, seed=0
     centres = np.array([float(np.mean(x[k_of == k])) for k in present])
     nsrc = [int(np.sum(k_of == k)) for k in present]
     shift = np.zeros(len(x))
-    for attempt in range(2 if spec.block == "c" and len(present) > 1 else 1):
+    two = spec.block == "c" and spec.recentre and len(present) > 1
+    for attempt in range(2 if two else 1):
         draws = []
         for j, k in enumerate(present):
             sel = (k_of == k)
@@ -475,7 +516,7 @@ def fit_covariate_nodes(rows, name, model, *, n_bins: int = DEFAULT_BINS, seed=0
             sub[mag_col] = sub[mag_col].to_numpy(float) - shift[sel]
             cells = aggregate_cells(sub, mag_resolution, model.depth_ref, mag_col)
             draws.append(fit(cells, model, [int(seed), 7919 + attempt, k]).draws(max_draws))
-        if attempt == 0 and spec.block == "c" and len(present) > 1:
+        if attempt == 0 and two:
             m50 = np.array([np.median(d[:, model.param_names.index("m50_0")]) for d in draws])
             # One straight-line slope through the nodes: the nodes' first-pass m50 are
             # the biased mixtures this pass removes, too noisy for local differences.
@@ -536,7 +577,8 @@ def covariate_hdus(sf, extver: int) -> list:
 
     Data: float64, numpy shape (K, n_draws, n_params): the draws of each bin's fit, columns
     in the order of the fit's ``DRAWS`` table.  Header: the covariate (``COVNAME``, its
-    column ``COVCOL``, transform ``COVXFORM``: x = log10(value) or x = value, the block
+    column ``COVCOL``, transform ``COVXFORM``: x = log10(value) (``log10``), log10|value|
+    (``log10abs``, the magnification) or x = value (``none``), the block
     of theta it replaces ``COVBLOCK``), the injected range ``COVMIN``/``COVMAX`` of x,
     ``NNODES`` and per node k (1-based) ``NODEk`` (mean x of the bin), ``EDGEk``
     (``EDGE0``..``EDGEK``: bin edges in x), ``NSRCk``, ``NCELLk``, ``NEXTk``, ``ADEQk`` (PPC).
@@ -551,7 +593,7 @@ def covariate_hdus(sf, extver: int) -> list:
         hh["FIELD"] = sf.field
         hh["COVNAME"] = (name, "covariate")
         hh["COVCOL"] = (sp.column, "per-source column of the covariate")
-        hh["COVXFORM"] = ("log10" if sp.log else "none", "x = log10(value) or x = value")
+        hh["COVXFORM"] = (sp.transform, "x = log10(value), log10(|value|) or value")
         hh["COVBLOCK"] = (sp.block, "c: C parameters; s: S parameters")
         lo, hi = cov.covered
         hh["COVMIN"] = (lo, "injected range of x, lower end")

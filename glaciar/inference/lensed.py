@@ -25,6 +25,24 @@ read-back at the asked magnitudes, each ~ h^2/8 P'' (< 1e-4 in P for completenes
 sum).  The source-plane area itself is exact at every z (the kernel's total weight is
 ``sum_n Omega_n |det A_n(z)|``).  Lensing shifts beyond :data:`MAX_LENS_SHIFT_MAG` (on a
 critical curve, where ``|det A|`` -> 0 and so does the node's weight) are clipped to it.
+
+Magnification as a covariate.  At fixed observed magnitude a more magnified source is more
+stretched (lower surface brightness), so C depends on |mu| as well; the image-plane
+injections average over the field's image-plane |mu| distribution, the source plane
+weights it by 1/|mu|.  A fit with the ``magnification`` covariate
+(:mod:`glaciar.inference.covariates`, x = log10|mu|; ``glaciar fit`` adds it to lensed runs)
+gives theta(x); each lens node then reads P at its own ``x_n(z) = -log10|det A_n(z)|``,
+interpolated linearly between covariate nodes x_j (:func:`magnification_draws`: the bins'
+centres and steps of at most :data:`MU_NODE_STEP` between the outer ones):
+
+    P_lens(z, m) = sum_j sum_n Omega_n |det A_n| hat_j(x_n(z)) P(z, m + l_n | d_n, theta(x_j)),
+
+one kernel per covariate node j, each correlated with the surfaces at theta(x_j) over the
+part of the lattice its kernel covers (a node's lens nodes share nearly one |mu|, so one
+lensing shift).  An x_n beyond the end nodes takes the end node's selection; outside the
+injected range this is warned about when more than
+:data:`~glaciar.inference.covariates.OUTSIDE_WARN` of the source-plane area at some z lies
+there).  Without the covariate (unlensed fits, older files) the tables are the ones above.
 """
 from __future__ import annotations
 
@@ -32,11 +50,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import warnings
+
 from ..galaxy.lensing import NODE_KEYS, distance_ratio, node_inverse_magnification
+from .covariates import OUTSIDE_WARN
 
 __all__ = ["LensNodes", "LENS_TABLE_STEP", "MAX_LENS_SHIFT_MAG", "lens_kernel", "lensed_table",
            "lensed_volume_draws", "lensed_muv_volume_draws", "lens_nodes_of",
-           "LensModelVolumes", "LensedSelection"]
+           "LensModelVolumes", "LensedSelection", "NodeDraws", "magnification_draws",
+           "MU_NODE_STEP"]
 
 #: Lattice step of the lensed tables [mag].
 LENS_TABLE_STEP = 0.02
@@ -44,6 +66,124 @@ LENS_TABLE_STEP = 0.02
 MAX_LENS_SHIFT_MAG = 6.0
 #: Posterior draws evaluated at a time (memory: draws x n_z x lattice floats).
 _BATCH = 16
+#: Largest spacing of the magnification-covariate nodes of the lensed tables [dex of |mu|].
+MU_NODE_STEP = 0.1
+
+
+@dataclass(frozen=True)
+class NodeDraws:
+    """Posterior draws of the surfaces at nodes of the magnification covariate.
+
+    Attributes
+    ----------
+    x : ndarray (J,)
+        The nodes, log10|mu|, increasing.
+    covered : tuple of float
+        The injected range of log10|mu| (beyond it the fit says nothing).
+    draws : ndarray (J, n_draws, n_params)
+        Node j's parameters: the pooled fit's draws with the covariate's block interpolated
+        at x_j (draw i of every node belongs to draw i of the pooled fit).
+    """
+
+    x: np.ndarray
+    draws: np.ndarray
+    covered: tuple = (-np.inf, np.inf)
+
+    def __len__(self) -> int:
+        return self.draws.shape[1]
+
+
+def magnification_draws(sf, step: float = MU_NODE_STEP):
+    """:class:`NodeDraws` of a fit with the ``magnification`` covariate, else None.
+
+    Nodes: equally spaced at no more than ``step`` between the outer bins' centres (where
+    theta(x) is held constant beyond: :attr:`CovariateSpec.extrapolate`), plus the centres
+    (where theta(x) bends).  A covariate with fewer draws than the pooled fit is cycled
+    (draw i uses the covariate's draw i mod its count).
+    """
+    cov = (getattr(sf, "covariates", None) or {}).get("magnification")
+    if cov is None:
+        return None
+    lo, hi = cov.covered
+    if not cov.spec.extrapolate:
+        lo, hi = float(cov.centres[0]), float(cov.centres[-1])
+    n = max(2, int(np.ceil((hi - lo) / float(step) - 1e-9)) + 1)
+    centres = np.clip(cov.centres, lo, hi)
+    even = np.linspace(lo, hi, n)
+    # Equal steps that nearly coincide with a centre add cost, not accuracy.
+    even = even[np.min(np.abs(even[:, None] - centres[None, :]), axis=1) > 0.25 * float(step)]
+    x = np.unique(np.concatenate([even, centres]))
+    idx = sf.model.block_indices(cov.spec.block)
+    k = np.arange(len(sf.draws)) % cov.draws.shape[1]
+    out = np.repeat(np.asarray(sf.draws, float)[None], len(x), axis=0)
+    for j, xj in enumerate(x):
+        out[j][:, idx] = cov.theta_at(xj)[k][:, idx]
+    return NodeDraws(x, out, cov.covered)
+
+
+def _hat(x_nodes, x):
+    """Linear-interpolation weights of ``x`` on ``x_nodes`` (clamped to the end nodes):
+    (lower node index, weight of the upper node)."""
+    xn = np.asarray(x_nodes, float)
+    x = np.asarray(x, float)
+    if len(xn) == 1:
+        return np.zeros(x.shape, np.int64), np.zeros(x.shape)
+    xc = np.clip(np.nan_to_num(x, nan=xn[0], posinf=xn[-1], neginf=xn[0]), xn[0], xn[-1])
+    j = np.clip(np.searchsorted(xn, xc, side="right") - 1, 0, len(xn) - 2)
+    return j, (xc - xn[j]) / (xn[j + 1] - xn[j])
+
+
+def _warn_outside(x, w, covered):
+    """Warn when the source-plane area with |mu| outside the injected range is large."""
+    lo, hi = covered
+    tol = 1e-9 * max(1.0, abs(hi))
+    outside = (x < lo - tol) | (x > hi + tol)
+    share = np.max(np.sum(w * outside, axis=1) / np.maximum(np.sum(w, axis=1), 1e-300))
+    if share > OUTSIDE_WARN:
+        warnings.warn(f"V_eff behind the lens: up to {share:.0%} of the source-plane area has "
+                      f"|mu| outside the injected range {10 ** lo:.3g}-{10 ** hi:.3g}; it is "
+                      "given the completeness of the nearest "
+                      "end of that range", stacklevel=4)
+
+
+def _node_terms(nodes, zz, cosmology):
+    """Per (z, lens node): lensing shift [mag], weight Omega |det A| [sr], x = log10|mu|,
+    and the nodes' image-plane solid angles [sr]."""
+    import astropy.units as u
+
+    det = nodes.inverse_magnification(zz, cosmology)                         # (n_z, n)
+    sr = (nodes.area_arcmin2 * u.arcmin ** 2).to_value(u.sr)
+    with np.errstate(divide="ignore"):
+        lg = np.log10(np.abs(det))
+    shift = np.clip(2.5 * lg, -MAX_LENS_SHIFT_MAG, MAX_LENS_SHIFT_MAG)
+    return shift, np.abs(det) * sr[None, :], -lg, sr
+
+
+def _spread(pos, w, cls, n_cls):
+    """Weights ``w`` at lattice positions ``pos`` (n_z, N) of classes ``cls`` (n_z, N),
+    spread linearly onto the lattice: (k0, kernels (n_cls, n_z, n_k))."""
+    i0 = np.floor(pos).astype(np.int64)
+    f = pos - i0
+    k0 = int(i0.min())
+    n_k = int(i0.max()) - k0 + 2
+    kernels = np.zeros((n_cls,) + (pos.shape[0], n_k))
+    zi = np.broadcast_to(np.arange(pos.shape[0])[:, None], i0.shape)
+    np.add.at(kernels, (cls, zi, i0 - k0), w * (1 - f))
+    np.add.at(kernels, (cls, zi, i0 - k0 + 1), w * f)
+    return k0, kernels
+
+
+def _with_covariate(pos, w, cls, x, nd, n_base):
+    """Each (z, node) entry split between its two covariate nodes (of :class:`NodeDraws`
+    ``nd``): class ``cls * J + j``."""
+    if nd is None:
+        return pos, w, cls, n_base
+    j, t = _hat(nd.x, x)
+    _warn_outside(x, w, nd.covered)
+    J = len(nd.x)
+    jj = np.minimum(j + 1, J - 1)
+    return (np.concatenate([pos, pos], axis=1), np.concatenate([w * (1 - t), w * t], axis=1),
+            np.concatenate([cls * J + j, cls * J + jj], axis=1), n_base * J)
 
 
 @dataclass(frozen=True)
@@ -114,41 +254,41 @@ def lens_nodes_of(sf, field: str | None, model: str) -> list[LensNodes]:
     return out
 
 
-def lens_kernel(model, nodes_list, zz, cosmology, h: float = LENS_TABLE_STEP):
+def lens_kernel(model, nodes_list, zz, cosmology, h: float = LENS_TABLE_STEP, nd=None):
     """Per-z weights [sr] of the nodes' magnitude offsets on a lattice of step ``h``.
+
+    Parameters
+    ----------
+    model, nodes_list, zz, cosmology, h
+        The surface model, the lens nodes, redshifts, cosmology and the lattice step [mag].
+    nd : NodeDraws, optional
+        Draws at the magnification covariate's nodes x_j (log10|mu|): one kernel per node,
+        each lens node's weight shared between the two nodes around its x by linear
+        interpolation (clamped to the end nodes).
 
     Returns
     -------
     k0 : int
         Lattice index of the first offset (offset = (k0 + k) h).
-    kernel : ndarray, shape (n_z, n_k)
+    kernel : ndarray, shape (n_z, n_k), or (J, n_z, n_k) with ``nd``
         ``kernel[i, k]``: the source-plane solid angle at ``zz[i]`` whose model magnitude is
         ``m + (k0 + k) h`` for intrinsic magnitude m (linearly spread between lattice nodes).
     """
-    import astropy.units as u
-
     zz = np.asarray(zz, dtype=float)
-    pos_all, w_all = [], []
+    pos_all, w_all, x_all = [], [], []
     for nodes in nodes_list:
-        det = nodes.inverse_magnification(zz, cosmology)                     # (n_z, n)
-        sr = (nodes.area_arcmin2 * u.arcmin ** 2).to_value(u.sr)
-        with np.errstate(divide="ignore"):
-            shift = np.clip(2.5 * np.log10(np.abs(det)), -MAX_LENS_SHIFT_MAG, MAX_LENS_SHIFT_MAG)
+        shift, w, x, _ = _node_terms(nodes, zz, cosmology)
         depth_offset = (model.relative_magnitude(0.0, nodes.depth) if model.depth_aware
                         else np.zeros(len(nodes.depth)))
         pos_all.append((shift + depth_offset[None, :]) / h)
-        w_all.append(np.abs(det) * sr[None, :])
+        w_all.append(w)
+        x_all.append(x)
     pos = np.concatenate(pos_all, axis=1)
     w = np.concatenate(w_all, axis=1)
-    i0 = np.floor(pos).astype(np.int64)
-    f = pos - i0
-    k0 = int(i0.min())
-    n_k = int(i0.max()) - k0 + 2
-    kernel = np.zeros((len(zz), n_k))
-    rows = np.broadcast_to(np.arange(len(zz))[:, None], i0.shape)
-    np.add.at(kernel, (rows, i0 - k0), w * (1 - f))
-    np.add.at(kernel, (rows, i0 - k0 + 1), w * f)
-    return k0, kernel
+    pos, w, cls, n_cls = _with_covariate(pos, w, np.zeros(pos.shape, np.int64),
+                                         np.concatenate(x_all, axis=1), nd, 1)
+    k0, kernels = _spread(pos, w, cls, n_cls)
+    return k0, (kernels[0] if nd is None else kernels)
 
 
 def _lattice(m_lo: float, m_hi: float, k0: int, n_k: int, h: float):
@@ -158,33 +298,58 @@ def _lattice(m_lo: float, m_hi: float, k0: int, n_k: int, h: float):
     return h * np.arange(j_lo, j_hi + 1), h * np.arange(j_lo + k0, j_hi + k0 + n_k)
 
 
+def _support(kernel):
+    """First and one-past-last lattice column where ``kernel`` (..., n_z, n_k) is non-zero."""
+    cols = np.flatnonzero(kernel.reshape(-1, kernel.shape[-1]).any(axis=0))
+    return (int(cols[0]), int(cols[-1]) + 1) if cols.size else (0, 1)
+
+
+def _terms(draws, kernel):
+    """(draws, kernel (n_z, n_k_j), first column a_j) triples to sum: one, or one per
+    magnification node in use, each cut to its kernel's support (a node's lens nodes share
+    nearly one |mu|, so its lensing shifts span a narrow part of the lattice)."""
+    if not isinstance(draws, NodeDraws):
+        return [(draws, kernel, 0)]
+    out = []
+    for j in range(len(draws.x)):
+        if kernel[j].any():
+            a, b = _support(kernel[j])
+            out.append((draws.draws[j], kernel[j][:, a:b], a))
+    return out
+
+
 def _lattice_tables(model, draws, zz, kernel, grid, points):
     """``P_lens`` at the lattice indices ``points``, per batch of draws: yields
     (start, table (b, n_z, len(points))).
 
-    Few points: a product with the kernel's Toeplitz slices per z (cost ~ points x lattice);
-    many: one FFT correlation along the lattice (cost ~ lattice log lattice).
+    ``draws``: an array (n_d, n_params) with ``kernel`` (n_z, n_k), or :class:`NodeDraws`
+    with one kernel per node (J, n_z, n_k), summed over the nodes.  Few points: the kernel
+    times the lattice window of each point (cost ~ points x kernel); many: one FFT
+    correlation along the lattice (cost ~ lattice log lattice).
     """
     from scipy.signal import fftconvolve
 
-    n_k = kernel.shape[1]
-    n_lat = len(grid) - n_k + 1
+    terms = _terms(draws, kernel)
+    n_lat = len(grid) - kernel.shape[-1] + 1
     use_fft = len(points) * 4 > n_lat
-    if not use_fft:
-        rows = points[None, :] + np.arange(n_k)[:, None]                  # (n_k, n_pts)
-        cols = np.broadcast_to(np.arange(len(points))[None, :], rows.shape)
     for b in range(0, len(draws), _BATCH):
-        c, s = model.surfaces_on_grid(draws[b:b + _BATCH], zz, grid)
-        p = c * s
-        if use_fft:
-            yield b, fftconvolve(p, kernel[None, :, ::-1], mode="valid", axes=2)[:, :, points]
-            continue
-        out = np.empty((len(p), len(zz), len(points)))
-        for iz in range(len(zz)):
-            t = np.zeros((len(grid), len(points)))
-            t[rows, cols] = kernel[iz][:, None]
-            out[:, iz] = p[:, iz] @ t
+        out = 0.0
+        for th, ker, a in terms:
+            n_k = ker.shape[1]
+            c, s = model.surfaces_on_grid(th[b:b + _BATCH], zz, grid[a:a + n_lat + n_k - 1])
+            p = c * s
+            if use_fft:
+                out = out + fftconvolve(p, ker[None, :, ::-1], mode="valid", axes=2)[:, :, points]
+                continue
+            part = np.empty((len(p), len(zz), len(points)))
+            for i, ip in enumerate(points):           # a window of the lattice per point
+                part[:, :, i] = np.einsum("dzk,zk->dz", p[:, :, ip:ip + n_k], ker)
+            out = out + part
         yield b, out
+
+
+def _node_draws(draws):
+    return draws if isinstance(draws, NodeDraws) else None
 
 
 def _read(lattice, m, h):
@@ -200,7 +365,9 @@ def lensed_table(model, draws, zz, m, nodes_list, cosmology, h: float = LENS_TAB
     Parameters
     ----------
     model : SurfaceModel
-    draws : ndarray (n_d, n_params)
+    draws : ndarray (n_d, n_params) or NodeDraws
+        Posterior draws, or draws at the magnification covariate's nodes
+        (:func:`magnification_draws`).
     zz : ndarray (n_z,)
     m : array_like (n_m,)
         Intrinsic magnitudes [mag] (any order and spacing).
@@ -215,8 +382,8 @@ def lensed_table(model, draws, zz, m, nodes_list, cosmology, h: float = LENS_TAB
     ndarray, shape (n_d, n_z, n_m)
     """
     m = np.asarray(m, dtype=float).ravel()
-    k0, kernel = lens_kernel(model, nodes_list, zz, cosmology, h)
-    lattice, grid = _lattice(m.min(), m.max(), k0, kernel.shape[1], h)
+    k0, kernel = lens_kernel(model, nodes_list, zz, cosmology, h, _node_draws(draws))
+    lattice, grid = _lattice(m.min(), m.max(), k0, kernel.shape[-1], h)
     i, f = _read(lattice, m, h)
     points, back = np.unique(np.concatenate([i, i + 1]), return_inverse=True)
     lo, hi = back[:len(m)], back[len(m):]
@@ -228,7 +395,8 @@ def lensed_table(model, draws, zz, m, nodes_list, cosmology, h: float = LENS_TAB
 
 def lensed_volume_draws(model, draws, nodes_list, zz, dvdz, mm, cosmology):
     """V_eff(m) [Mpc^3] per draw behind the lens: Simpson's rule over ``zz`` of
-    ``P_lens(z, m) dV/dz/dOmega``; shape (n_draws, len(mm))."""
+    ``P_lens(z, m) dV/dz/dOmega``; shape (n_draws, len(mm)).  ``draws``: as
+    :func:`lensed_table` (an array, or :class:`NodeDraws` for the magnification covariate)."""
     from scipy.integrate import simpson
 
     table = lensed_table(model, draws, zz, mm, nodes_list, cosmology)
@@ -242,13 +410,14 @@ def lensed_muv_volume_draws(model, draws, nodes_list, zz, dvdz, m, flux, bw, cos
     ``m`` (n_z, n_beta, n_M) are the intrinsic apparent magnitudes of the M_UV values
     through the K-corrections, ``flux`` where the band receives flux and ``bw`` the slope
     weights (:func:`glaciar.inference.volume.muv_magnitudes`); ``P_lens`` is tabulated
-    once per z on a lattice and read linearly at them.  Returns (n_draws, n_M).
+    once per z on a lattice and read linearly at them.  ``draws``: as :func:`lensed_table`.
+    Returns (n_draws, n_M).
     """
     from scipy.integrate import simpson
 
-    k0, kernel = lens_kernel(model, nodes_list, zz, cosmology, h)
+    k0, kernel = lens_kernel(model, nodes_list, zz, cosmology, h, _node_draws(draws))
     ok = np.broadcast_to(flux, m.shape)
-    lattice, grid = _lattice(m[ok].min(), m[ok].max(), k0, kernel.shape[1], h)
+    lattice, grid = _lattice(m[ok].min(), m[ok].max(), k0, kernel.shape[-1], h)
     i, f = _read(lattice, np.where(ok, m, lattice[0]), h)                       # (n_z, n_b, n_M)
     wb = np.where(ok, np.asarray(bw, dtype=float)[None, :, None], 0.0)
     iz = np.arange(len(zz))[:, None, None]
@@ -314,15 +483,36 @@ class LensedSelection:
         others = sorted(set(self.depth_area or {}) - lensed)
         return sorted(lensed), others
 
+    def lens_theta(self):
+        """The draws V_eff behind the lens uses: :class:`NodeDraws` of the magnification
+        covariate when fitted (:func:`magnification_draws`), else the pooled draws."""
+        nd = magnification_draws(self)
+        return self.draws if nd is None else nd
+
+    def _at_magnification(self, which, m_intrinsic, z, magnification, depth, kw):
+        m = _magnified(m_intrinsic, magnification)
+        if "magnification" not in (getattr(self, "covariates", None) or {}):
+            if which == "C":
+                return self.completeness(m, z, depth, **kw)
+            return self.selection_probability(z, m, depth, **kw)
+        from .covariates import evaluate
+
+        opts = {k: kw.pop(k) for k in ("field", "draws", "outside") if k in kw}
+        return evaluate(self, which, m, z, depth, opts.get("field"), opts.get("draws", False),
+                        opts.get("outside", "nan"), magnification=magnification, **kw)
+
     def completeness_lensed(self, m_intrinsic, z, magnification, depth=None, **kw):
         """C of a source of intrinsic magnitude ``m_intrinsic`` seen through ``magnification``
-        (signed mu; |mu| is used): :meth:`completeness` at ``m - 2.5 log10 |mu|``."""
-        return self.completeness(_magnified(m_intrinsic, magnification), z, depth, **kw)
+        (signed mu; |mu| is used): :meth:`completeness` at ``m - 2.5 log10 |mu|`` and, for a
+        fit with the ``magnification`` covariate, at that |mu| (NaN outside its injected
+        range unless ``outside="extrapolate"``)."""
+        return self._at_magnification("C", m_intrinsic, z, magnification, depth, dict(kw))
 
     def selection_probability_lensed(self, z, m_intrinsic, magnification, depth=None, **kw):
         """P = C S of a source of intrinsic magnitude ``m_intrinsic`` seen through
-        ``magnification``: :meth:`selection_probability` at ``m - 2.5 log10 |mu|``."""
-        return self.selection_probability(z, _magnified(m_intrinsic, magnification), depth, **kw)
+        ``magnification``: :meth:`selection_probability` at ``m - 2.5 log10 |mu|`` (and at
+        that |mu| with the ``magnification`` covariate, as :meth:`completeness_lensed`)."""
+        return self._at_magnification("P", m_intrinsic, z, magnification, depth, dict(kw))
 
     def for_lens_model(self, name: str):
         """This selection function with only lens model ``name`` kept (a shallow copy)."""
@@ -376,17 +566,17 @@ class LensedSelection:
                                 spread=medians.std(axis=0) * u.Mpc ** 3)
 
 
-def _kernel_sets(sf, field, zz, cosmology, h, n_classes):
-    """Lens-shift kernels of the lensed fields, per depth class, averaged over the lens models.
+def _kernel_sets(sf, field, zz, cosmology, h, n_classes, nd=None):
+    """Lens-shift kernels of the lensed fields, per class, averaged over the lens models.
 
     Returns (k0, kernels (n_c, n_z, n_k) [sr], class offsets (n_c,) [mag of the model's
-    magnitude covariate]).  A depth-aware model's nodes are merged into at most
-    ``n_classes`` classes of their depth offset, each at its area-weighted mean offset (the
-    approximation unlensed fields make with their depth nodes); the lens shift of every
-    node is kept on the lattice.
+    magnitude covariate], class covariate nodes (n_c,) [index into ``nd.x``, 0 without]).
+    A depth-aware model's nodes are merged into at most ``n_classes`` classes of their
+    depth offset, each at its area-weighted mean offset (the approximation unlensed fields
+    make with their depth nodes); the lens shift of every node is kept on the lattice.  With
+    ``nd`` (:class:`NodeDraws` of the magnification covariate), a class is a (depth class,
+    covariate node).
     """
-    import astropy.units as u
-
     lensed, _ = sf._lensed_fields(field)
     models = sf.lens_models
     parts = []
@@ -395,33 +585,27 @@ def _kernel_sets(sf, field, zz, cosmology, h, n_classes):
             nodes = sf.lens_nodes[f].get(name)
             if nodes is None:
                 continue
-            det = nodes.inverse_magnification(zz, cosmology)
-            with np.errstate(divide="ignore"):
-                shift = np.clip(2.5 * np.log10(np.abs(det)), -MAX_LENS_SHIFT_MAG, MAX_LENS_SHIFT_MAG)
-            sr = (nodes.area_arcmin2 * u.arcmin ** 2).to_value(u.sr)
+            shift, w, x, sr = _node_terms(nodes, zz, cosmology)
             off = (sf.model.relative_magnitude(0.0, nodes.depth) if sf.model.depth_aware
                    else np.zeros(len(sr)))
-            parts.append((shift / h, np.abs(det) * sr[None, :] / len(models), off, sr))
+            parts.append((shift / h, w / len(models), off, sr, x))
     pos = np.concatenate([p[0] for p in parts], axis=1)
     w = np.concatenate([p[1] for p in parts], axis=1)
     off = np.concatenate([p[2] for p in parts])
     sr = np.concatenate([p[3] for p in parts])
     lo, hi = float(off.min()), float(off.max())
-    n_c = 1 if hi <= lo else n_classes
-    cls = np.zeros(len(off), np.int64) if n_c == 1 else np.minimum(
-        ((off - lo) / (hi - lo) * n_c).astype(np.int64), n_c - 1)
-    used, cls = np.unique(cls, return_inverse=True)
+    n_d = 1 if hi <= lo else n_classes
+    cls = np.zeros(len(off), np.int64) if n_d == 1 else np.minimum(
+        ((off - lo) / (hi - lo) * n_d).astype(np.int64), n_d - 1)
+    used_d, cls = np.unique(cls, return_inverse=True)
     offsets = np.bincount(cls, weights=sr * off) / np.bincount(cls, weights=sr)
-    i0 = np.floor(pos).astype(np.int64)
-    f = pos - i0
-    k0 = int(i0.min())
-    n_k = int(i0.max()) - k0 + 2
-    kernels = np.zeros((len(used), len(zz), n_k))
-    zi = np.broadcast_to(np.arange(len(zz))[:, None], i0.shape)
-    ci = np.broadcast_to(cls[None, :], i0.shape)
-    np.add.at(kernels, (ci, zi, i0 - k0), w * (1 - f))
-    np.add.at(kernels, (ci, zi, i0 - k0 + 1), w * f)
-    return k0, kernels, offsets
+    pos, w, ci, n_all = _with_covariate(pos, w, np.broadcast_to(cls[None, :], pos.shape),
+                                        np.concatenate([p[4] for p in parts], axis=1), nd,
+                                        len(used_d))
+    k0, kernels = _spread(pos, w, ci, n_all)
+    J = 1 if nd is None else len(nd.x)
+    keep = np.flatnonzero(kernels.reshape(n_all, -1).any(axis=1))
+    return k0, kernels[keep], offsets[keep // J], keep % J
 
 
 def lensed_count_tables(sf, idx, zz, m_tab, field, cosmology, q_on=None, n_classes: int = 12,
@@ -444,7 +628,8 @@ def lensed_count_tables(sf, idx, zz, m_tab, field, cosmology, q_on=None, n_class
         Given, the tables hold ``sum_n Omega_n |det A_n| P(z, m + l_n | d_n) q(k | m + l_n, z)``
         (the measured magnitude of a lensed source follows its magnified magnitude).
     n_classes : int
-        Depth classes of a depth-aware model (see :func:`_kernel_sets`).
+        Depth classes of a depth-aware model (see :func:`_kernel_sets`); with the
+        magnification covariate each is split further by covariate node (:func:`magnification_draws`).
     order : iterable of int, optional
         The positions in ``idx`` in the order to yield them (default 0, 1, ...).
 
@@ -457,21 +642,30 @@ def lensed_count_tables(sf, idx, zz, m_tab, field, cosmology, q_on=None, n_class
     from scipy.signal import fftconvolve
 
     h = float(m_tab[1] - m_tab[0])
-    k0, kernels, offsets = _kernel_sets(sf, field, zz, cosmology, h, n_classes)
+    theta = sf.lens_theta()
+    k0, kernels, offsets, node = _kernel_sets(sf, field, zz, cosmology, h, n_classes,
+                                              _node_draws(theta))
+    per_class = [theta.draws[j] if isinstance(theta, NodeDraws) else theta for j in node]
     n_k = kernels.shape[2]
     grid = m_tab[0] + h * np.arange(k0, len(m_tab) + k0 + n_k - 1)        # observed magnitudes
-    flipped = kernels[:, :, ::-1]
+    # Each class only reads the part of the grid its kernel covers.
+    cut = [_support(k) for k in kernels]
+    flipped = [kernels[c][:, a:b][:, ::-1] for c, (a, b) in enumerate(cut)]
     mdl = sf.model
+    n_tab = len(m_tab)
     for a in (range(len(idx)) if order is None else order):
         d = idx[a]
-        th = sf.draws if d < 0 else sf.draws[d:d + 1]
+        q = None if q_on is None else q_on(grid, a)
         out = 0.0
         for c, oc in enumerate(offsets):
-            cc, ss = mdl.surfaces_on_grid(th, zz, grid + oc)
-            p = np.median(cc * ss, axis=0) if d < 0 else (cc * ss)[0]        # (n_z, G)
-            if q_on is None:
+            lo, hi = cut[c]
+            g = slice(lo, hi + n_tab - 1)
+            th = per_class[c] if d < 0 else per_class[c][d:d + 1]
+            cc, ss = mdl.surfaces_on_grid(th, zz, grid[g] + oc)
+            p = np.median(cc * ss, axis=0) if d < 0 else (cc * ss)[0]        # (n_z, G_c)
+            if q is None:
                 out = out + fftconvolve(p, flipped[c], mode="valid", axes=1)
             else:
-                out = out + fftconvolve(p[:, :, None] * q_on(grid, a), flipped[c][:, :, None],
+                out = out + fftconvolve(p[:, :, None] * q[:, g], flipped[c][:, :, None],
                                         mode="valid", axes=1)
         yield a, out

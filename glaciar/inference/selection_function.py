@@ -471,7 +471,8 @@ class SelectionFunction(ContaminationMixin, LensedSelection):
         mm = m.reshape(-1)
         if self.lens_nodes and area is None:
             out = self.lensed_draws(
-                lambda nl: lensed_volume_draws(self.model, self.draws, nl, zz, dvdz, mm, cosmology),
+                lambda nl: lensed_volume_draws(self.model, self.lens_theta(), nl, zz, dvdz, mm,
+                                                   cosmology),
                 lambda f: volume_draws(self.model, self.draws, *self._area_nodes(None, f, "V_eff"),
                                        zz, dvdz, mm)[0], field)
         else:
@@ -612,7 +613,7 @@ class SelectionFunction(ContaminationMixin, LensedSelection):
         tol = EXTRAPOLATION_TOLERANCE if outside == "nan" else None
         if self.lens_nodes and area is None:
             out = self.lensed_draws(lambda nl: lensed_muv_volume_draws(
-                self.model, self.draws, nl, zz, dvdz, m, flux, bw, cosmology), lambda f: muv_volume_draws(
+                self.model, self.lens_theta(), nl, zz, dvdz, m, flux, bw, cosmology), lambda f: muv_volume_draws(
                 self.model, self.draws, *self._area_nodes(None, f, "V_eff"), zz, dvdz, m, flux, bw,
                 ext, tol), field)
         else:

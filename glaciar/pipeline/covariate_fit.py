@@ -111,10 +111,12 @@ def add_covariates(run_dir, covariates, *, n_bins: int | None = None,
                 return fit_surfaces(cells, model, seed=seed + list(s[1:]),
                                     n_walkers=sampler.n_walkers, max_steps=max_steps)
 
-            sf.covariates = {n: fit_covariate_nodes(
+            # Added to the file's covariates (a lensed fit's magnification stays).
+            new = {n: fit_covariate_nodes(
                 sub, n, sf.model, n_bins=n_bins, fit=fit, max_draws=max_draws, mag_col=mag_col,
                 mag_resolution=sf.meta.get("mag_resolution", 0.01)) for n in names}
-            out[field] = covariate_summary(field, sf.covariates)
+            sf.covariates = {**sf.covariates, **new}
+            out[field] = covariate_summary(field, new)
         atomic_write_bytes(path, SelectionFunction.to_bytes(list(fits_.values()), first.meta))
         summ = run_dir / "fit" / "summary.json"
         if summ.exists():

@@ -46,6 +46,8 @@ from .fitdir import FitStage, hold_run
 from .inputs import depth_area as _depth_area
 from .inputs import fit_inputs, manifest_areas
 from .contamination import add_contamination
+from .covariate_fit import covariate_summary
+from .lens_covariate import fit_magnification, magnification_rows
 from .selection_file import add_lf_products, lens_nodes_from_manifest
 from .summary import (cmax_summary, format_summary, json_default, m50_summary, param_summary,
                       param_table, veff_summary)
@@ -210,6 +212,9 @@ def run_fit(run_dir, *, model: str = "auto", per_field: bool = False,
     writes ``fit/`` and the file as one unit (:mod:`glaciar.pipeline.fitdir`).
     A detection-only run (``selection: []`` in its manifest) has S = 1 exactly:
     only C is fitted, and there is no selection figure and no redshift-edge advice.
+    A lensed run (manifest ``lens``) also gets the ``magnification`` covariate (C as a
+    function of |mu|, :mod:`glaciar.pipeline.lens_covariate`), which V_eff and the count
+    tables behind the lens use.
     """
     t_start = time.perf_counter()
     # Arguments first: nothing is read, sampled or written on bad input.
@@ -315,6 +320,10 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, sampler, volume, mag_
     field_area = manifest_areas(manifest, run_dir)
     depth_area = _depth_area(manifest, fields)
     lens_nodes = {f: per for f, per in lens_nodes_from_manifest(manifest).items() if f in fields}
+    # Behind a lens C depends on |mu| at fixed observed magnitude: a lensed run's fit has the
+    # magnification covariate (:mod:`.lens_covariate`); an unlensed run's is unchanged.
+    mu_rows = (magnification_rows(run_dir, mag_col, fields)
+               if manifest.get("lens") and lens_nodes else None)
 
     # Depth-aware?
     has_depth = bool(np.isfinite(data.depth).all())
@@ -413,6 +422,12 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, sampler, volume, mag_
         sub = SelectionFunction(mdl, res.draws(_DIAG_DRAWS), meta=fmeta, field=name,
                                 depth_area=own_depth, domain=domain)
         sub.lens_nodes = {f: per for f, per in lens_nodes.items() if name in ("all", f)} or None
+        mu_cov = {}
+        if mu_rows is not None and sub.lens_nodes:
+            mu_cov = {"magnification": fit_magnification(
+                mu_rows, name, i, mdl, seed=seed, n_walkers=n_walkers, max_steps=max_steps,
+                max_draws=max_draws, mag_col=mag_col, mag_resolution=mag_resolution)}
+            sub.covariates = mu_cov
         zz, mm, mnom = d.z, d.mag, d.mag_nominal
         dd = d.depth if depth_aware else None
 
@@ -437,6 +452,7 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, sampler, volume, mag_
         sf = SelectionFunction(mdl, draws, zg, mg, meta=fmeta, field=name, ppc=ppc, fit_info=fit_info,
                                depth_area=own_depth, domain=domain,
                                diagnostics={"tau": res.tau, "ess": res.ess, "rhat": res.split_rhat})
+        sf.covariates = dict(mu_cov)
         if not write:
             outputs.append((name, tag, res, key, draws, sf))
             continue
@@ -460,6 +476,8 @@ def _run_fit_locked(run_dir, t_start, *, model, per_field, sampler, volume, mag_
             "m50": m50_summary(sub, zg),
             "c_max": cmax_summary(sub, zg),
         }
+        if mu_cov:
+            entry["covariates"] = covariate_summary(name, mu_cov)
         _warn_checks(name, chosen, verdict, edges)
         try:
             entry["effective_volume"] = veff_summary(sub, mg, zg, cosmology)
