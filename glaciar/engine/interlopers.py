@@ -27,7 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..galaxy import population
-from ..galaxy.interloper_seds import InterloperParams, interloper_band_magnitudes
+from ..galaxy.interloper_seds import (InterloperParams, interloper_band_magnitudes, number_counts,
+                                      number_counts_integral)
 
 __all__ = ["POPULATION", "COL_POPULATION", "COL_FAMILY", "COL_A_V", "COL_D4000", "COL_BETA_RED",
            "InterloperModel", "draw_interlopers", "count_weights"]
@@ -111,17 +112,11 @@ class InterloperModel:
 
     def density(self, m) -> np.ndarray:
         """The families' number counts dN/dm [arcmin^-2 mag^-1] at magnitude(s) ``m``."""
-        a, b, m0 = self.family_counts
-        return 10.0 ** (a + b * (np.asarray(m, float) - m0))
+        return number_counts(self.family_counts, m)
 
     def integral(self, lo, hi) -> np.ndarray:
         """∫ dN/dm dm of the families over [lo, hi] [arcmin^-2] (exact for the power law)."""
-        a, b, m0 = self.family_counts
-        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-        if b == 0:
-            return 10.0 ** a * (hi - lo)
-        k = b * np.log(10.0)
-        return 10.0 ** a * (np.exp(k * (hi - m0)) - np.exp(k * (lo - m0))) / k
+        return number_counts_integral(self.family_counts, lo, hi)
 
 
 def draw_interlopers(rng: np.random.Generator, model: InterloperModel, z: float, mag: float,

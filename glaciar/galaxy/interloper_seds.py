@@ -42,7 +42,7 @@ from glaciar.galaxy.igm import igm_discontinuities, igm_transmission
 
 __all__ = ["CALZETTI_RV", "BREAK_ANGSTROM", "D4000_BLUE", "D4000_RED", "LYMAN_LIMIT_ANGSTROM",
            "FAMILIES", "calzetti_k", "d4000", "balmer_step", "rest_flambda",
-           "InterloperParams", "interloper_band_magnitudes"]
+           "InterloperParams", "interloper_band_magnitudes", "number_counts", "number_counts_integral"]
 
 #: Total-to-selective attenuation of the Calzetti et al. (2000) law.
 CALZETTI_RV = 4.05
@@ -297,3 +297,20 @@ def interloper_band_magnitudes(z: float, params: InterloperParams, filters, mag,
     out[:, detection_index] = mag
     out[~(out <= faint_limit)] = np.inf
     return out
+
+
+def number_counts(counts, m) -> np.ndarray:
+    """Power-law number counts ``dN/dm = 10^(a + b (m - m0))`` [arcmin^-2 mag^-1] at ``m``;
+    ``counts`` = (a, b, m0)."""
+    a, b, m0 = counts
+    return 10.0 ** (a + b * (np.asarray(m, float) - m0))
+
+
+def number_counts_integral(counts, lo, hi) -> np.ndarray:
+    """``∫ dN/dm dm`` over [lo, hi] [arcmin^-2] of :func:`number_counts` (closed form)."""
+    a, b, m0 = counts
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    if b == 0:
+        return 10.0 ** a * (hi - lo)
+    k = b * np.log(10.0)
+    return 10.0 ** a * (np.exp(k * (hi - m0)) - np.exp(k * (lo - m0))) / k

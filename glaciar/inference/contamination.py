@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..galaxy.interloper_seds import number_counts, number_counts_integral
 from .counts import ExpectedCounts
 
 __all__ = ["Contamination", "ContaminationMixin", "ExpectedCountsWithInterlopers",
@@ -88,16 +89,10 @@ class Contamination:
 
     def density(self, m) -> np.ndarray:
         """Number counts dN/dm [arcmin^-2 mag^-1]."""
-        a, b, m0 = self.counts
-        return 10.0 ** (a + b * (np.asarray(m, float) - m0))
+        return number_counts(self.counts, m)
 
     def _integral(self, lo, hi):
-        a, b, m0 = self.counts
-        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-        if b == 0:
-            return 10.0 ** a * (hi - lo)
-        k = b * np.log(10.0)
-        return 10.0 ** a * (np.exp(k * (hi - m0)) - np.exp(k * (lo - m0))) / k
+        return number_counts_integral(self.counts, lo, hi)
 
     def fraction_at(self, m_obs, which: str = "median") -> np.ndarray:
         """f at measured magnitude(s) ``m_obs``: the bin's value, 0 outside the bins.

@@ -100,3 +100,16 @@ def test_a_detection_band_without_flux_is_refused():
     p = balmer(1.5)
     with pytest.raises(ValueError, match="receives no flux"):
         interloper_band_magnitudes(12.0, p, ["wfc3_uvis_f606w"], np.array([26.0]), 0)
+
+
+@pytest.mark.parametrize("counts", [(-1.2, 0.35, 25.0), (0.3, 0.0, 24.0), (-2.0, -0.1, 26.5)])
+def test_number_counts_integral_is_the_integral_of_the_counts(counts):
+    """The closed form against adaptive quadrature of the power law, to 1e-10."""
+    from scipy.integrate import quad
+
+    from glaciar.galaxy.interloper_seds import number_counts, number_counts_integral
+
+    for lo, hi in ((22.0, 23.5), (25.0, 29.0)):
+        want = quad(lambda m: float(number_counts(counts, m)), lo, hi, epsabs=0, epsrel=1e-12)[0]
+        assert float(number_counts_integral(counts, lo, hi)) == pytest.approx(want, rel=1e-10)
+    assert float(number_counts(counts, counts[2])) == pytest.approx(10 ** counts[0], rel=1e-15)
