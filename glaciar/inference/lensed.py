@@ -54,9 +54,10 @@ import warnings
 
 from ..galaxy.lensing import NODE_KEYS, distance_ratio, node_inverse_magnification
 from .covariates import OUTSIDE_WARN
+from .volume import group_linearly
 
 __all__ = ["LensNodes", "LENS_TABLE_STEP", "MAX_LENS_SHIFT_MAG", "lens_kernel", "lensed_table",
-           "lensed_volume_draws", "lensed_muv_volume_draws", "lens_nodes_of",
+           "lensed_volume_draws", "lensed_muv_volume_draws",
            "LensModelVolumes", "LensedSelection", "NodeDraws", "magnification_draws",
            "MU_NODE_STEP"]
 
@@ -240,18 +241,11 @@ class LensNodes:
         return np.abs(self.inverse_magnification(z, cosmology)) @ self.area_arcmin2
 
 
-def lens_nodes_of(sf, field: str | None, model: str) -> list[LensNodes]:
-    """The lens nodes of ``model`` for one field or every lensed field of a selection function."""
-    table = sf.lens_nodes or {}
-    fields = sorted(table) if field is None else [field]
-    out = []
-    for f in fields:
-        if f not in table:
-            raise ValueError(f"field {f!r} has no lens model (lensed fields: {sorted(table)})")
-        if model not in table[f]:
-            raise ValueError(f"field {f!r} has no lens model {model!r} (have {sorted(table[f])})")
-        out.append(table[f][model])
-    return out
+def _depth_offset(model, nodes) -> np.ndarray:
+    """Each node's shift of the model's magnitude covariate for its depth (0 if not depth-aware)."""
+    if not model.depth_aware:
+        return np.zeros(len(nodes.depth))
+    return model.relative_magnitude(0.0, nodes.depth)
 
 
 def lens_kernel(model, nodes_list, zz, cosmology, h: float = LENS_TABLE_STEP, nd=None):
@@ -278,9 +272,7 @@ def lens_kernel(model, nodes_list, zz, cosmology, h: float = LENS_TABLE_STEP, nd
     pos_all, w_all, x_all = [], [], []
     for nodes in nodes_list:
         shift, w, x, _ = _node_terms(nodes, zz, cosmology)
-        depth_offset = (model.relative_magnitude(0.0, nodes.depth) if model.depth_aware
-                        else np.zeros(len(nodes.depth)))
-        pos_all.append((shift + depth_offset[None, :]) / h)
+        pos_all.append((shift + _depth_offset(model, nodes)[None, :]) / h)
         w_all.append(w)
         x_all.append(x)
     pos = np.concatenate(pos_all, axis=1)
@@ -586,22 +578,15 @@ def _kernel_sets(sf, field, zz, cosmology, h, n_classes, nd=None):
             if nodes is None:
                 continue
             shift, w, x, sr = _node_terms(nodes, zz, cosmology)
-            off = (sf.model.relative_magnitude(0.0, nodes.depth) if sf.model.depth_aware
-                   else np.zeros(len(sr)))
-            parts.append((shift / h, w / len(models), off, sr, x))
+            parts.append((shift / h, w / len(models), _depth_offset(sf.model, nodes), sr, x))
     pos = np.concatenate([p[0] for p in parts], axis=1)
     w = np.concatenate([p[1] for p in parts], axis=1)
     off = np.concatenate([p[2] for p in parts])
     sr = np.concatenate([p[3] for p in parts])
-    lo, hi = float(off.min()), float(off.max())
-    n_d = 1 if hi <= lo else n_classes
-    cls = np.zeros(len(off), np.int64) if n_d == 1 else np.minimum(
-        ((off - lo) / (hi - lo) * n_d).astype(np.int64), n_d - 1)
-    used_d, cls = np.unique(cls, return_inverse=True)
-    offsets = np.bincount(cls, weights=sr * off) / np.bincount(cls, weights=sr)
+    cls, offsets, _ = group_linearly(off, sr, n_classes)
     pos, w, ci, n_all = _with_covariate(pos, w, np.broadcast_to(cls[None, :], pos.shape),
                                         np.concatenate([p[4] for p in parts], axis=1), nd,
-                                        len(used_d))
+                                        len(offsets))
     k0, kernels = _spread(pos, w, ci, n_all)
     J = 1 if nd is None else len(nd.x)
     keep = np.flatnonzero(kernels.reshape(n_all, -1).any(axis=1))

@@ -12,7 +12,7 @@ import numpy as np
 
 from .products import EffectiveVolume
 
-__all__ = ["merge_depth_nodes", "volume_draws", "muv_magnitudes", "muv_volume_draws",
+__all__ = ["merge_depth_nodes", "group_linearly", "volume_draws", "muv_magnitudes", "muv_volume_draws",
            "summarise_volume", "warn_if_cut", "detection_z_limit"]
 
 #: Posterior draws evaluated at a time in V_eff(m) (memory: draws x n_z x n_m floats).
@@ -31,12 +31,27 @@ def merge_depth_nodes(edges, area, max_nodes: int):
     centre, area = centre[keep], area[keep]
     if len(centre) <= max_nodes:
         return centre, area
-    lo, hi = centre.min(), centre.max()
-    k = np.minimum(((centre - lo) / (hi - lo) * max_nodes).astype(int), max_nodes - 1)
-    a = np.bincount(k, weights=area, minlength=max_nodes)
-    d = np.bincount(k, weights=area * centre, minlength=max_nodes)
-    ok = a > 0
-    return d[ok] / a[ok], a[ok]
+    _, means, weights = group_linearly(centre, area, max_nodes)
+    return means, weights
+
+
+def group_linearly(values, weights, n_max: int):
+    """Group ``values`` into at most ``n_max`` equal-width bins between their extremes.
+
+    Returns
+    -------
+    index : ndarray of int
+        Each value's group, numbered 0.. over the non-empty bins in increasing order.
+    means, totals : ndarray
+        Per group: the weighted mean of its values and the sum of its weights.
+    """
+    values, weights = np.asarray(values, float), np.asarray(weights, float)
+    lo, hi = float(values.min()), float(values.max())
+    k = (np.zeros(values.size, np.int64) if hi <= lo else
+         np.minimum(((values - lo) / (hi - lo) * n_max).astype(np.int64), n_max - 1))
+    _, index = np.unique(k, return_inverse=True)
+    totals = np.bincount(index, weights=weights)
+    return index, np.bincount(index, weights=weights * values) / totals, totals
 
 
 def volume_draws(model, draws, nodes, node_sr, zz, dvdz, mm):

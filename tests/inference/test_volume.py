@@ -142,3 +142,18 @@ def test_veff_muv_file_round_trip_is_exact(tmp_path):
     # The read-back SED reproduces the volume.
     np.testing.assert_array_equal(back.effective_volume_muv(grid, n_z=101).median.value,
                                   vol.median.value)
+
+
+def test_group_linearly_bins_and_weights_independently():
+    """Equal-width bins between the extremes, empty ones dropped, weighted means per group."""
+    from glaciar.inference.volume import group_linearly
+
+    v = np.array([0.0, 0.1, 0.95, 1.0, 3.9, 4.0])
+    w = np.array([1.0, 3.0, 2.0, 2.0, 1.0, 1.0])
+    index, means, totals = group_linearly(v, w, 4)     # bins of width 1: [0,1) [1,2) [2,3) [3,4]
+    np.testing.assert_array_equal(index, [0, 0, 0, 1, 2, 2])
+    np.testing.assert_allclose(means, [(0.3 + 1.9) / 6, 1.0, 3.95])
+    np.testing.assert_allclose(totals, [6.0, 2.0, 2.0])
+    index, means, totals = group_linearly(np.full(3, 2.5), [1.0, 1.0, 2.0], 4)
+    np.testing.assert_array_equal(index, [0, 0, 0])
+    np.testing.assert_allclose((means, totals), ([2.5], [4.0]))
