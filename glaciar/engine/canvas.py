@@ -234,12 +234,14 @@ class Canvas:
         gap = np.ones(self.shape, dtype=bool)
         ref = np.zeros(self.shape, dtype=np.int32)
         ctx.det_scene.paste_windows(det, rects, self.oy, self.ox)
-        for k, (y0, y1, x0, x1) in enumerate(rects.tolist()):
-            sl = self.slice(k)
-            err[sl] = ctx.det_rms[y0:y1, x0:x1]
-            nodata[sl] = False if ctx.mask is None else ctx.mask[y0:y1, x0:x1]
-            gap[sl] = False
-            ref[sl] = ctx.ref_segmap[y0:y1, x0:x1]
+        det_rms, mask, ref_segmap = ctx.det_rms, ctx.mask, ctx.ref_segmap
+        # canvas rows and columns of every window as Python ints, so the loop only slices
+        cbox = np.stack([self.oy, self.oy + hh, self.ox, self.ox + ww], axis=1).tolist()
+        for (y0, y1, x0, x1), (a, b, c, d) in zip(rects.tolist(), cbox):
+            err[a:b, c:d] = det_rms[y0:y1, x0:x1]
+            nodata[a:b, c:d] = False if mask is None else mask[y0:y1, x0:x1]
+            gap[a:b, c:d] = False
+            ref[a:b, c:d] = ref_segmap[y0:y1, x0:x1]
         with np.errstate(invalid="ignore"):
             nodata |= ~np.isfinite(det) | ~(np.isfinite(err) & (err > 0))
         det[nodata] = 0.0
