@@ -7,7 +7,9 @@ through :func:`glaciar.engine.task.run_task` and prints, in CPU milliseconds
 per injected source (``time.process_time``):
 
 * the whole pipeline (draws, stamps, injection, detection, classification,
-  photometry, selection), and the share spent in ``measure_injected``;
+  photometry, selection), the share spent in ``measure_injected``, and the
+  share spent drawing the injected sources' shot noise (``add_shot_noise``:
+  its draws are fixed by the rows, and the floor draws none);
 * the *floor* for the same injected scenes: one ``sep.extract`` of the
   detection windows tiled into one array (each source's last window from the
   windowed algorithm, at least 33 x 33), plus ``sep.sum_circle`` in every
@@ -177,12 +179,22 @@ def measure_mag(opt, mag, tmp):
         rec["args"], rec["kwargs"], rec["diag"] = args, kwargs, diag
         return out
 
+    real_noise = task_module.add_shot_noise
+
+    def noise_clock(*args, **kwargs):
+        t = time.process_time()
+        out = real_noise(*args, **kwargs)
+        rec["t_noise"] = rec.get("t_noise", 0.0) + time.process_time() - t
+        return out
+
     task_module.measure_injected = recording
-    r = dict(t_pipe=0.0, t_meas=0.0, t_floor=0.0, t_full=0.0, n_src=0, n_det=0, rounds=[], areas=[],
+    task_module.add_shot_noise = noise_clock
+    r = dict(t_pipe=0.0, t_meas=0.0, t_noise=0.0, t_floor=0.0, t_full=0.0, n_src=0, n_det=0, rounds=[], areas=[],
              t_build=t_build, t_ctx=t_ctx, ctx=ctx, prof=None, tables=[])
     try:
         for spec in specs[:opt.warmup]:                           # warm-up (template cache)
             task_module.run_task(ctx, spec, seed)
+        rec.clear()
         if opt.profile:
             import cProfile
             r["prof"] = cProfile.Profile()
@@ -195,6 +207,7 @@ def measure_mag(opt, mag, tmp):
             if r["prof"] is not None:
                 r["prof"].disable()
             r["t_meas"] += rec["t_measure"]
+            r["t_noise"] += rec.get("t_noise", 0.0)
             r["tables"].append(table)
             r["n_src"] += len(table)
             r["n_det"] += int(np.sum(table["status"].to_numpy() != STATUS_NOT_DETECTED))
@@ -209,6 +222,7 @@ def measure_mag(opt, mag, tmp):
             rec.clear()
     finally:
         task_module.measure_injected = real
+        task_module.add_shot_noise = real_noise
     return r
 
 
@@ -296,7 +310,7 @@ def main(argv=None):
     print(f"(field context {rows[0][1]['t_ctx']:.2f} s CPU, once per field and worker, not in the per-source "
           f"figures; ms = CPU milliseconds per injected source, ratios from this run)")
     print()
-    hdr = (f"{'m':>5s} {'detected':>8s} {'pipeline':>9s} {'measure':>8s} {'rest':>7s} {'floor':>7s} "
+    hdr = (f"{'m':>5s} {'detected':>8s} {'pipeline':>9s} {'measure':>8s} {'rest':>7s} {'noise':>7s} {'floor':>7s} "
            f"{'full':>7s} {'pipe/floor':>10s} {'meas/floor':>10s} {'rounds':>6s} "
            f"{'median win':>10s}")
     print(hdr)
@@ -304,13 +318,15 @@ def main(argv=None):
         ms = lambda t: 1e3 * t / r["n_src"]  # noqa: E731
         area = np.concatenate(r["areas"])
         print(f"{mag:5.1f} {r['n_det'] / r['n_src']:8.0%} {ms(r['t_pipe']):9.3f} {ms(r['t_meas']):8.3f} "
-              f"{ms(r['t_pipe'] - r['t_meas']):7.3f} {ms(r['t_floor']):7.3f} {ms(r['t_full']):7.3f} "
+              f"{ms(r['t_pipe'] - r['t_meas']):7.3f} {ms(r['t_noise']):7.3f} {ms(r['t_floor']):7.3f} "
+              f"{ms(r['t_full']):7.3f} "
               f"{r['t_pipe'] / r['t_floor']:10.2f} {r['t_meas'] / r['t_floor']:10.2f} "
               f"{np.mean(r['rounds']):6.1f} "
               f"{np.median(area):10.0f}")
     print()
     print("pipeline: run_task (draws, stamps, injection, detection, classification, photometry, selection);")
-    print("measure: measure_injected alone; rest = pipeline - measure; floor: 1 tiled sep.extract of the last")
+    print("measure: measure_injected alone; rest = pipeline - measure; noise: the shot-noise draws (part of rest;")
+    print("0 without gains); floor: 1 tiled sep.extract of the last")
     print(f"windows (>= {MIN_WINDOW}^2) + sum_circle per aperture and band; full: sep.extract of the whole image "
           f"+ sum_circle;")
     print("target (issues 11, 24): pipe/floor <= 2 (<= 3 at m = 26); the ratio to GLACiAR: "
