@@ -517,7 +517,8 @@ def _annulus_pixels(centres: np.ndarray, ay: np.ndarray, ax: np.ndarray, ny: int
     are False in ``inside``); ``inside`` is None when every pixel is in the frame.  An
     annulus wholly inside the frame is its centre's flat index plus fixed offsets
     (``(cy + ay) nx + cx + ax``): only the apertures near an edge need the per-pixel
-    bounds and clipping (most of this function's former cost).
+    bounds and clipping (~5 % of :func:`_local_ratio`'s CPU saved; its gathers and the
+    plane fits' matrix products are the rest).
     """
     cy, cx = centres // nx, centres % nx
     k = int(max(np.abs(ay).max(initial=0), np.abs(ax).max(initial=0)))
