@@ -316,9 +316,12 @@ STAGES = [
     ("glaciar.engine.measure", "classify", None, "classification"),
     ("glaciar.engine.measure", "footprint_overlap", None, "classification"),
     ("glaciar.engine.selection", "__call__", "Selection", "selection"),
+    # The injected stamps' shot noise (bands with a gain) is drawn inside run_task.
+    ("glaciar.engine.task", "add_shot_noise", None, "injection: shot noise (stamps' pixel draws)"),
+    ("glaciar.engine.task", "apply_selection", None, "selection"),
     ("glaciar.execute", "run_task", None, "per-task table (fluxes, columns, DataFrame)"),
-    ("glaciar.execute", "write_task_table", None, "writing: task files, compaction"),
-    ("glaciar.execute", "compact", None, "writing: task files, compaction"),
+    ("glaciar.execute", "write_task_table", None, "writing: task files"),
+    ("glaciar.execute", "compact", None, "writing: compaction"),
     ("glaciar.execute", "finish_context_cache", None, "writing: field cache"),
     ("glaciar.cli", "_report", None, "writing: summaries (report tables, PNG maps)"),
 ]

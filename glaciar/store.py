@@ -140,7 +140,8 @@ def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
         if k in meta:
             meta[k + DIGEST_SUFFIX] = blake2b_digest(meta[k])
     meta[META_SCHEMA] = schema_digest(t.schema, t.num_rows)
-    data = parquet_bytes(t.replace_schema_metadata(meta))
+    # Plain pages, no statistics: a task's rows hold mostly distinct values (parquet_bytes).
+    data = parquet_bytes(t.replace_schema_metadata(meta), small=True)
     atomic_write_bytes(run_subdir(run_dir, RESULTS_DIRNAME) / name, data)
     return path
 

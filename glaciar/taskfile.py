@@ -46,8 +46,16 @@ META_SCHEMA = b"glaciar.schema.blake2b"
 _META_PAGES = b"glaciar.pages.blake2b"
 #: Footer metadata of a compacted part: JSON list of [task file name, task key, n_rows].
 META_PART_TASKS = b"glaciar.part_tasks"
-def parquet_bytes(table) -> bytes:
+def parquet_bytes(table, small: bool = False) -> bytes:
     """``table`` as Parquet bytes with page checksums and, in its footer, a digest of its pages.
+
+    ``small=True`` (a task file's ~120 columns of ~100 mostly distinct values) writes
+    every column plainly encoded, without dictionary pages or min/max statistics: ~35 %
+    less CPU and ~15 % fewer bytes, and a smaller footer to parse.  Without statistics a
+    data page's header holds no values, so a flipped byte of a small page is more likely
+    in its checksummed data, which readers verify (the header is covered by the pages'
+    digest, :func:`unit_problem`).  Compacted parts (repeated values, many rows) keep
+    dictionaries and statistics.
 
     Parquet's page checksums cover a page's data, not its header; a digest of every
     byte before the footer (:data:`_META_PAGES`) covers both, and checking it costs one
@@ -64,7 +72,8 @@ def parquet_bytes(table) -> bytes:
     import pyarrow.parquet as pq
 
     buf = io.BytesIO()
-    with pq.ParquetWriter(buf, table.schema, write_page_checksum=True) as writer:
+    with pq.ParquetWriter(buf, table.schema, write_page_checksum=True,
+                          **_writer_options(small)) as writer:
         writer.write_table(table)
         pages = buf.getvalue()
         digest = blake2b_digest(pages)
@@ -72,10 +81,15 @@ def parquet_bytes(table) -> bytes:
     data = buf.getvalue()
     if _pages_end(data) == len(pages) and data.startswith(pages):
         return data
-    return _parquet_bytes_two_encodes(table)
+    return _parquet_bytes_two_encodes(table, small)
 
 
-def _parquet_bytes_two_encodes(table) -> bytes:
+def _writer_options(small: bool) -> dict:
+    """Parquet writer options of :func:`parquet_bytes` (pyarrow's defaults unless ``small``)."""
+    return {"use_dictionary": False, "write_statistics": False} if small else {}
+
+
+def _parquet_bytes_two_encodes(table, small: bool = False) -> bytes:
     """:func:`parquet_bytes` by two encodes: the pages learnt from a first, the digest put
     in the second's footer (if its pages ever differed, the first file, page checksums only)."""
     import io
@@ -84,7 +98,7 @@ def _parquet_bytes_two_encodes(table) -> bytes:
 
     def write(t) -> bytes:
         buf = io.BytesIO()
-        pq.write_table(t, buf, write_page_checksum=True)
+        pq.write_table(t, buf, write_page_checksum=True, **_writer_options(small))
         return buf.getvalue()
 
     first = write(table)
@@ -123,11 +137,11 @@ def arrow_table(df: pd.DataFrame, pandas_metadata: bool = True):
     if not _fast_convertible(df):
         t = pa.Table.from_pandas(df, preserve_index=False)
         return t if pandas_metadata else t.replace_schema_metadata(None)
-    arrays = [_arrow_column(s) for _, s in df.items()]
+    arrays = [pa.array(a, from_pandas=True) for a in _column_arrays(df)]   # NaN -> null
     if not pandas_metadata:
         return pa.Table.from_arrays(arrays, names=[str(c) for c in df.columns])
-    layout = (tuple(df.columns), tuple(str(d) for d in df.dtypes), df.columns.name,
-              str(df.columns.dtype))
+    # dtype objects, not their names, in the key: str() of 120 dtypes costs ~0.4 ms.
+    layout = (tuple(df.columns), tuple(df.dtypes), df.columns.name, df.columns.dtype)
     schema = _PANDAS_SCHEMAS.get(layout)
     if schema is None:
         t = pa.Table.from_pandas(df, preserve_index=False)
@@ -136,6 +150,37 @@ def arrow_table(df: pd.DataFrame, pandas_metadata: bool = True):
         _PANDAS_SCHEMAS[layout] = t.schema
         return t
     return pa.Table.from_arrays(arrays, schema=schema)
+
+
+def _column_arrays(df: pd.DataFrame) -> list:
+    """Each column's values of a :func:`_fast_convertible` DataFrame, in column order.
+
+    The columns of a numpy dtype that many columns share are taken together (one
+    ``to_numpy`` of those columns, transposed to rows that are contiguous columns): a
+    Series per column costs ~10 us, ~1.4 ms on a 120-column task table.  Other columns
+    (and every column of a narrow table, where the block costs more) one by one.  The
+    values are the columns' own.
+    """
+    out: list = [None] * df.shape[1]
+    by_dtype: dict = {}
+    for i, d in enumerate(df.dtypes):
+        by_dtype.setdefault(d, []).append(i)
+    for d, idx in by_dtype.items():
+        if isinstance(d, np.dtype) and len(idx) >= _BLOCK_MIN_COLUMNS:
+            block = np.ascontiguousarray(df.iloc[:, idx].to_numpy(dtype=d).T)
+            for k, i in enumerate(idx):
+                out[i] = block[k]
+    rest = [i for i, a in enumerate(out) if a is None]
+    # A few columns left: each taken alone; many: one pass over all of them (cheaper per column).
+    pairs = ((i, df.iloc[:, i]) for i in rest) if 4 * len(rest) < len(out) else \
+        ((i, s) for i, (_, s) in enumerate(df.items()) if out[i] is None)
+    for i, s in pairs:
+        out[i] = s.to_numpy() if isinstance(s.dtype, np.dtype) else s.array
+    return out
+
+
+#: Columns of one dtype from which :func:`_column_arrays` takes them as one block.
+_BLOCK_MIN_COLUMNS = 16
 
 
 def _fast_convertible(df: pd.DataFrame) -> bool:
@@ -147,14 +192,6 @@ def _fast_convertible(df: pd.DataFrame) -> bool:
         return False
     return all((isinstance(d, np.dtype) and d.kind in "biuf") or isinstance(d, pd.StringDtype)
                for d in df.dtypes)
-
-
-def _arrow_column(s: pd.Series):
-    import pyarrow as pa
-
-    if isinstance(s.dtype, np.dtype):
-        return pa.array(s.to_numpy(), from_pandas=True)     # NaN -> null, as from_pandas
-    return pa.array(s.array, from_pandas=True)
 
 
 #: Rows from which a footer table is compressed (:func:`ipc_bytes`).

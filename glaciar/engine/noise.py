@@ -476,11 +476,10 @@ def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good, mapped=F
     """
     ny, nx = usable.shape
     ay, ax = _annulus_offsets(radius, npix)
-    iy = centres[:, None] // nx + ay[None, :]
-    ix = centres[:, None] % nx + ax[None, :]
-    inside = (iy >= 0) & (iy < ny) & (ix >= 0) & (ix < nx)
-    flat = np.clip(iy, 0, ny - 1) * nx + np.clip(ix, 0, nx - 1)
-    ok = inside & usable.reshape(-1)[flat]
+    flat, inside = _annulus_pixels(centres, ay, ax, ny, nx)
+    ok = usable.reshape(-1)[flat]
+    if inside is not None:
+        ok &= inside
     # In-memory images are indexed directly; memory maps by row blocks (:func:`_gather`).
     # ``mapped``: the caller's arrays were maps (np.asarray made them plain views of the map,
     # which direct indexing would fault in page by page and keep resident: ~2 GB of file
@@ -509,6 +508,30 @@ def _local_ratio(image, rms, usable, centres, radius, npix, s, v, good, mapped=F
     t = s[keep][fine] - npix * level
     var = v[keep][fine] + npix * npix * inv[:, 0, 0]
     return robust_sigma(t / np.sqrt(var))
+
+
+def _annulus_pixels(centres: np.ndarray, ay: np.ndarray, ax: np.ndarray, ny: int, nx: int):
+    """Flat indices of the annulus pixels (rows: apertures) and which lie in the frame.
+
+    Returns ``(flat, inside)``: out-of-frame pixels point at the nearest edge pixel (and
+    are False in ``inside``); ``inside`` is None when every pixel is in the frame.  An
+    annulus wholly inside the frame is its centre's flat index plus fixed offsets
+    (``(cy + ay) nx + cx + ax``): only the apertures near an edge need the per-pixel
+    bounds and clipping (~5 % of :func:`_local_ratio`'s CPU saved; its gathers and the
+    plane fits' matrix products are the rest).
+    """
+    cy, cx = centres // nx, centres % nx
+    k = int(max(np.abs(ay).max(initial=0), np.abs(ax).max(initial=0)))
+    edge = (cy < k) | (cy >= ny - k) | (cx < k) | (cx >= nx - k)
+    flat = centres[:, None].astype(np.int64) + (ay * nx + ax).astype(np.int64)[None, :]
+    if not edge.any():
+        return flat, None
+    iy = cy[edge, None] + ay[None, :]
+    ix = cx[edge, None] + ax[None, :]
+    inside = np.ones(flat.shape, dtype=bool)
+    inside[edge] = (iy >= 0) & (iy < ny) & (ix >= 0) & (ix < nx)
+    flat[edge] = np.clip(iy, 0, ny - 1) * nx + np.clip(ix, 0, nx - 1)
+    return flat, inside
 
 
 def _gather(a: np.ndarray, flat: np.ndarray) -> np.ndarray:
