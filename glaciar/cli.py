@@ -89,6 +89,8 @@ def _cmd_simulate(args) -> int:
         print(f"shard {k}/{n} finished; `glaciar status {out}` shows the others; once all are "
               f"done, `glaciar report {out}` writes the summary")
         return 0
+    from .memory import release_memory
+    release_memory()        # the tasks' memory goes before the summaries' comes
     _print_noise(out)
     _report(out, regions=cfg.output.regions)
     print(f"results in {out}")

@@ -442,6 +442,12 @@ def shared_template_cache(psfs: dict, enclosed_fraction: float) -> TemplateCache
     return cache
 
 
+def release_template_cache() -> None:
+    """Forget the cache :func:`shared_template_cache` keeps (its stamps and, with them, their
+    shot-noise splits: :mod:`glaciar.engine.shotnoise`); the next call makes a new one."""
+    _LAST_TEMPLATES.clear()
+
+
 def field_settings(cfg: Config, survey: Survey, field: str) -> tuple[dict, dict]:
     """The context fields that follow from the configuration (no pixel is read), and the PSFs.
 

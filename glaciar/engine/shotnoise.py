@@ -34,7 +34,7 @@ from typing import Mapping, NamedTuple, Sequence
 import numpy as np
 
 __all__ = ["GAUSSIAN_ABOVE_COUNTS", "CORE_FRACTION", "DENSE_WINGS_COUNTS", "WINGS_CACHE_BYTES",
-           "SHOT_NOISE_STREAM_KEY", "shot_noise_gains", "shot_noise_rng", "noisy_pixels", "add_shot_noise"]
+           "SHOT_NOISE_STREAM_KEY", "shot_noise_gains", "wings_cache_info", "shot_noise_rng", "noisy_pixels", "add_shot_noise"]
 
 #: Pixels expecting at least this many electrons get the Gaussian limit of Poisson noise.
 GAUSSIAN_ABOVE_COUNTS = 1.0e4
@@ -47,8 +47,10 @@ CORE_FRACTION = 1.0e-4
 #: (Poisson splitting costs ~3 per-pixel draws per electron).
 DENSE_WINGS_COUNTS = 0.25
 
-#: Bytes of the per-template core/wings splits kept (8 bytes per template pixel, the
-#: template's own size; entries also leave with their template).
+#: Upper bound on the bytes of the per-template core/wings splits kept (8 bytes per template
+#: pixel, the template's own size).  Entries leave with their template, so in a run the splits
+#: held follow the template cache (glaciar.galaxy.templates: about one redshift's stamps, which
+#: is what the tasks re-use); this bound is for callers with templates of their own.
 WINGS_CACHE_BYTES = 128 * 2**20
 
 #: First extra spawn-key word of the shot-noise streams (an arbitrary fixed 63-bit value, so
@@ -109,6 +111,12 @@ def _forget(key: int) -> None:
         entry = _WINGS.pop(key, None)
         if entry is not None:
             _WINGS_BYTES[0] -= entry.nbytes
+
+
+def wings_cache_info() -> tuple[int, int]:
+    """(entries, bytes) of the core/wings splits this process keeps (:func:`noisy_pixels`)."""
+    with _WINGS_LOCK:
+        return len(_WINGS), _WINGS_BYTES[0]
 
 
 def _wings(data: np.ndarray) -> _Wings:

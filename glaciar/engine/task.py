@@ -196,6 +196,8 @@ def run_task(ctx, spec: TaskSpec, seed: int, *, mode: str = "windowed",
     stamps = {b: [] for b in bands}
     templates = [None] * m      # each source's own detection-band stamp (status-2 flux test)
     shot_gains = shot_noise_gains(ctx.source_model.shot_noise, ctx.gains)
+    # A redshift's stamps make way for the next one's (sizes follow z): one z's stamps cached.
+    ctx.cache.begin_group((spec.z, spec.population))
     for j, band in enumerate(bands):
         flux = sed.mag_to_flux(src.mag_in[:, j], ctx.zeropoints[band])
         faint = sed.bands_to_skip(src.mag_in[:, j:j + 1])[:, 0]

@@ -44,7 +44,13 @@ from ..fftconv import fftconvolve   # scipy.signal's, without importing it (~0.4
 from .psf import normalize_psf, shift_psf
 from .sersic import sersic_stamp, stamp_shape
 
-__all__ = ["PlacedStamp", "CacheStats", "TemplateCache"]
+__all__ = ["TEMPLATE_CACHE_BYTES", "PlacedStamp", "CacheStats", "TemplateCache"]
+
+#: Upper bound on the bytes of a :class:`TemplateCache` (its ``max_bytes`` by default).  The
+#: cache holds less in practice: when tasks of a new group (redshift) start
+#: (:meth:`TemplateCache.begin_group`), the previous group's stamps make way for the new
+#: group's, so it holds about one redshift's stamps (GLACiAR's job at 1200^2: ~46 MB).
+TEMPLATE_CACHE_BYTES = 256 * 2**20
 
 
 @dataclass(frozen=True)
@@ -83,7 +89,8 @@ class CacheStats:
     convolutions : int
         PSF convolutions performed.
     evictions : int
-        Entries dropped to respect ``max_bytes``.
+        Entries dropped to respect ``max_bytes``, or for a new group's
+        (:meth:`TemplateCache.begin_group`).
     bytes : int
         Bytes currently held (array data).
     entries : int
@@ -134,10 +141,11 @@ class TemplateCache:
     max_bytes : int
         Upper bound on the cached array bytes (least recently used entries
         are evicted; a single array larger than this is returned uncached).
+        Groups of tasks (:meth:`begin_group`) usually keep the cache well below it.
     """
 
     def __init__(self, psfs: Mapping[str, np.ndarray], *, subpixel: int = 8,
-                 enclosed_fraction: float = 0.995, max_bytes: int = 256 * 2**20):
+                 enclosed_fraction: float = 0.995, max_bytes: int = TEMPLATE_CACHE_BYTES):
         if not isinstance(psfs, Mapping) or not psfs:
             raise ValueError("psfs must be a non-empty mapping of band name -> PSF array")
         self._psfs = {}
@@ -160,6 +168,11 @@ class TemplateCache:
         # Shifted PSFs: at most subpixel^2 small arrays per band, kept outside the LRU.
         self._shifted: dict[tuple, np.ndarray] = {}
         self._bytes = 0
+        # Groups (begin_group): the entries not used since the group changed, and the bytes
+        # the cache held then, which the new group's entries may fill by evicting those.
+        self._group: object = None
+        self._old: set = set()
+        self._old_bytes_limit = 0
         self._counts = dict(hits=0, misses=0, renders=0, render_hits=0, convolutions=0,
                             evictions=0)
 
@@ -178,6 +191,29 @@ class TemplateCache:
         """Drop every cached array (counters are kept)."""
         self._lru.clear()
         self._bytes = 0
+        self._old.clear()
+
+    def begin_group(self, key) -> None:
+        """Tasks of group ``key`` (e.g. their redshift) start; a no-op if it is the current one.
+
+        The entries cached so far become the previous group's.  Those the new group
+        uses again are kept as its own; the others are evicted (least recently used
+        first) as the new group's entries arrive, so the cache holds no more than it did
+        at the change, or the new group's own entries if they are more (within
+        ``max_bytes``).  Without groups the cache grows to ``max_bytes`` with every
+        redshift's stamps, though a task's source sizes, hence its stamps, differ from
+        one redshift to the next (r_e in pixels follows z), so earlier redshifts' stamps
+        are rarely read again.  Where they are (sizes that do not change with z), the
+        hits keep them: only stamps not yet read again when the new group's would
+        exceed the old size are re-rendered.  Values never change, only what is kept.
+        Tasks of two groups interleaved one by one would evict each other's stamps:
+        call it per chunk of tasks of one group (as the runner's chunks are).
+        """
+        if self._group is not None and key == self._group:
+            return
+        self._group = key
+        self._old = set(self._lru)
+        self._old_bytes_limit = self._bytes
 
     # ------------------------------------------------------------------
     @staticmethod
@@ -201,6 +237,8 @@ class TemplateCache:
         arr = self._lru.get(key)
         if arr is not None:
             self._lru.move_to_end(key)
+            if self._old:
+                self._old.discard(key)      # used again: the current group's now
         return arr
 
     def _put(self, key, arr) -> None:
@@ -209,8 +247,16 @@ class TemplateCache:
             return
         self._lru[key] = arr
         self._bytes += nbytes
+        # The previous group's entries not used since are the least recently used ones
+        # (a use moves an entry to the end): evicted first, down to the size at the change.
+        while self._old and self._bytes > self._old_bytes_limit:
+            old_key, old = self._lru.popitem(last=False)
+            self._old.discard(old_key)
+            self._bytes -= _nbytes(old)
+            self._counts["evictions"] += 1
         while self._bytes > self.max_bytes:
-            _, old = self._lru.popitem(last=False)
+            old_key, old = self._lru.popitem(last=False)
+            self._old.discard(old_key)
             self._bytes -= _nbytes(old)
             self._counts["evictions"] += 1
 
