@@ -87,30 +87,48 @@ def band_pixels(survey: Survey, field: str, band: str, footprint: np.ndarray,
 
 
 def band_pixels_with_background(survey: Survey, field: str, band: str, footprint: np.ndarray,
-                                params: DetectionParams, weight_type: str | None = None):
+                                params: DetectionParams, weight_type: str | None = None, keep=None):
     """:func:`band_pixels`, with the subtracted background map made only when asked for.
+
+    ``keep`` (optional) puts a finished full-frame array away and returns what stands for
+    it (a large field's spill to disk).  With it, and a noise map used as it is
+    (WEIGHT_TYPE none or MAP_RMS), the noise map is read twice -- for the no-data mask
+    before the image is read, for the RMS once the image is put away -- so the band never
+    holds its image and its noise map at once (same values: the mask is the same
+    pixelwise test, split in two passes).
 
     Returns
     -------
     base, rms, rms_from_background
-        As :func:`band_pixels`.
+        As :func:`band_pixels` (``base`` already kept when ``keep`` was used on it).
     background : callable
         Returns the subtracted sep background map (float32, image units); sep's
         Background keeps its meshes only, so a caller that first puts ``base`` and ``rms``
         away (a large field spills them) adds one full-frame array to a lower peak.
     """
+    late_noise = keep is not None and weight_type in (None, "map_rms") \
+        and survey.noise_path(field, band) is not None
     # New arrays read for this call (not the survey's cached ones): worked on in place, so
     # the band costs its image, its noise map and the masks, with no full-frame copies.
-    img = survey.science(field, band, cache=False)
     noise = survey.rms(field, band, cache=False)
+    nodata = None
+    if late_noise:
+        # The noise map's part of the mask first; the map goes before the image comes.
+        nodata = np.empty(noise.shape, dtype=bool)
+        for y0, y1, _, _ in row_blocks(noise.shape, ROW_BLOCK_PIXELS):
+            nz = noise[y0:y1]
+            np.logical_not(np.isfinite(nz) & (nz > 0), out=nodata[y0:y1])
+        noise = None
+    img = survey.science(field, band, cache=False)
     # nodata = ~(footprint & finite image & finite, positive noise), by blocks of rows.
-    nodata = np.empty(img.shape, dtype=bool)
+    if nodata is None:
+        nodata = np.zeros(img.shape, dtype=bool)
     for y0, y1, _, _ in row_blocks(img.shape, ROW_BLOCK_PIXELS):
         ok = np.asarray(footprint[y0:y1], dtype=bool) & np.isfinite(img[y0:y1])
         if noise is not None:
             nz = noise[y0:y1]
             ok &= np.isfinite(nz) & (nz > 0)
-        np.logical_not(ok, out=nodata[y0:y1])
+        nodata[y0:y1] |= ~ok
         release_mapped(footprint)       # a spilled footprint's pages, read once
     in_place = img.dtype == np.float32
     if in_place:
@@ -120,10 +138,12 @@ def band_pixels_with_background(survey: Survey, field: str, band: str, footprint
     else:
         data = sanitize(img, None, nodata)[0]
     bkg = background_model(data, nodata, params)
-    r, from_background = noise_rms(noise, weight_type, lambda: bkg.rms(dtype=np.float32), nodata)
-    del noise
-    r = np.asarray(r).astype(np.float32, copy=False)
-    r[nodata] = np.float32(np.inf)          # = np.where(valid, r, inf), in place
+    r = None
+    if not late_noise:
+        r, from_background = noise_rms(noise, weight_type, lambda: bkg.rms(dtype=np.float32), nodata)
+        del noise
+        r = np.asarray(r).astype(np.float32, copy=False)
+        r[nodata] = np.float32(np.inf)          # = np.where(valid, r, inf), in place
     back = None if in_place else bkg.back(dtype=np.float32)
     if in_place:
         # data holds img where valid: the same float32 differences as img - background
@@ -135,6 +155,11 @@ def band_pixels_with_background(survey: Survey, field: str, band: str, footprint
     del img, data
     base[nodata] = 0.0
     base = base.astype(np.float32, copy=False)
+    if late_noise:
+        base = keep(base)
+        r = np.asarray(survey.rms(field, band, cache=False)).astype(np.float32, copy=False)
+        r[nodata] = np.float32(np.inf)
+        from_background = False
     # sep's Background keeps its meshes only: the map is made when asked for.
     return base, r, from_background, (lambda: bkg.back(dtype=np.float32)) if back is None else (lambda: back)
 
@@ -514,7 +539,8 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
 
     def keep(a):
         """``a`` itself, or on a large field ``a`` on disk (its pages dropped until read)."""
-        if not isinstance(a, np.ndarray) or 8 * len(bands) * ny * nx <= SPILL_MIN_BYTES:
+        if not isinstance(a, np.ndarray) or isinstance(a, np.memmap) \
+                or 8 * len(bands) * ny * nx <= SPILL_MIN_BYTES:
             return a
         m = fieldcache.spill(a)
         spilled.append(m._mmap)
@@ -534,8 +560,9 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
     bases, rms = {}, {}
     backgrounds = {}
     for b in cfg.survey.bands:
-        base, noise, _, back = band_pixels_with_background(survey, field, b.name, footprint, params,
-                                                           cfg.detection.weight_type)
+        base, noise, _, back = band_pixels_with_background(
+            survey, field, b.name, footprint, params, cfg.detection.weight_type,
+            keep=keep if isinstance(footprint, np.memmap) else None)
         bases[b.name], rms[b.name] = keep(base), keep(noise)
         del base, noise
         if b.name == det:
