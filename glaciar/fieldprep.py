@@ -118,7 +118,7 @@ def band_pixels_with_background(survey: Survey, field: str, band: str, footprint
         for y0, y1, _, _ in row_blocks(noise.shape, ROW_BLOCK_PIXELS):
             nz = noise[y0:y1]
             np.logical_not(np.isfinite(nz) & (nz > 0), out=nodata[y0:y1])
-        noise = None
+        noise = nz = None               # (the last block's view would keep the map alive)
     img = survey.science(field, band, cache=False)
     # nodata = ~(footprint & finite image & finite, positive noise), by blocks of rows.
     if nodata is None:
