@@ -13,6 +13,8 @@ from glaciar.memory import release_memory
 
 def test_release_drops_the_shared_templates_and_their_splits():
     psfs = {"a": gaussian_psf(0.15, 0.08)}
+    # Other tests in this process may have filled the shared cache: start without it.
+    release_memory()
     gc.collect()
     n0, b0 = wings_cache_info()
     cache = shared_template_cache(psfs, 0.995)

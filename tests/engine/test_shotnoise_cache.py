@@ -67,7 +67,9 @@ def test_splits_leave_with_the_previous_redshifts_stamps(empty_wings):
 def test_splits_within_their_bound(monkeypatch, empty_wings):
     cache = TemplateCache({"a": gaussian_psf(0.15, 0.08)})
     one = split_bytes(cache.stamp("a", 1.0, 0.7, 30.0, 1.0, 20.0, 15.0).data)
-    monkeypatch.setattr(shotnoise, "WINGS_CACHE_BYTES", empty_wings[1] + 3 * one)
+    # The bound alone, whatever other tests in this process left cached: the oldest splits
+    # (theirs first) make way, so at most three of this test's 8 templates keep theirs.
+    monkeypatch.setattr(shotnoise, "WINGS_CACHE_BYTES", 3 * one)
     held = noisy_task(cache, (1.0,), np.random.default_rng(2))   # 8 templates, all alive
     n, b = wings_cache_info()
-    assert len(held) == 8 and b <= empty_wings[1] + 3 * one and n <= empty_wings[0] + 3
+    assert len(held) == 8 and b <= 3 * one and 1 <= n <= 3
