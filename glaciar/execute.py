@@ -25,7 +25,7 @@ from .plan import (INTERLOPER_DIRNAME, finished_specs, interloper_model, plan_ta
                    spec_filename, spec_key, spec_store)
 from .shards import check_shard, shard_scope
 from .store import COMPACT_EVERY, compact, write_task_table
-from .workers import process_cpu_seconds, terminate_workers, worker_init
+from .workers import process_cpu_seconds, single_thread_libraries, terminate_workers, worker_init
 
 
 def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed: int,
@@ -174,6 +174,15 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
         max_tasks = _check_count("max_tasks", max_tasks, 0)
     if shard is not None:
         shard = check_shard(shard)
+    # This process is a worker too (the set-up's serial part; every task with one worker):
+    # one BLAS/OpenMP thread while it runs, the caller's limits back afterwards.
+    with single_thread_libraries():
+        return _simulate_one_thread(cfg, run_dir, seed, workers, executor, progress, mode,
+                                    max_tasks, shard, tqdm)
+
+
+def _simulate_one_thread(cfg, run_dir, seed, workers, executor, progress, mode, max_tasks,
+                         shard, tqdm) -> dict:
     c0, t0 = process_cpu_seconds(), time.perf_counter()
     # With workers, the pool exists from the start: its workers measure the fields (one job
     # per field, glaciar.contexts.measure_field), then run the tasks, mapping the caches.
