@@ -108,6 +108,9 @@ def band_pixels_with_background(survey: Survey, field: str, band: str, footprint
     """
     late_noise = keep is not None and weight_type in (None, "map_rms") \
         and survey.noise_path(field, band) is not None
+    def usable_noise(nz):
+        return np.isfinite(nz) & (nz > 0)
+
     # New arrays read for this call (not the survey's cached ones): worked on in place, so
     # the band costs its image, its noise map and the masks, with no full-frame copies.
     noise = survey.rms(field, band, cache=False)
@@ -117,7 +120,7 @@ def band_pixels_with_background(survey: Survey, field: str, band: str, footprint
         nodata = np.empty(noise.shape, dtype=bool)
         for y0, y1, _, _ in row_blocks(noise.shape, ROW_BLOCK_PIXELS):
             nz = noise[y0:y1]
-            np.logical_not(np.isfinite(nz) & (nz > 0), out=nodata[y0:y1])
+            np.logical_not(usable_noise(nz), out=nodata[y0:y1])
         noise = nz = None               # (the last block's view would keep the map alive)
     img = survey.science(field, band, cache=False)
     # nodata = ~(footprint & finite image & finite, positive noise), by blocks of rows.
@@ -126,8 +129,7 @@ def band_pixels_with_background(survey: Survey, field: str, band: str, footprint
     for y0, y1, _, _ in row_blocks(img.shape, ROW_BLOCK_PIXELS):
         ok = np.asarray(footprint[y0:y1], dtype=bool) & np.isfinite(img[y0:y1])
         if noise is not None:
-            nz = noise[y0:y1]
-            ok &= np.isfinite(nz) & (nz > 0)
+            ok &= usable_noise(noise[y0:y1])
         nodata[y0:y1] |= ~ok
         release_mapped(footprint)       # a spilled footprint's pages, read once
     in_place = img.dtype == np.float32
@@ -138,12 +140,17 @@ def band_pixels_with_background(survey: Survey, field: str, band: str, footprint
     else:
         data = sanitize(img, None, nodata)[0]
     bkg = background_model(data, nodata, params)
-    r = None
-    if not late_noise:
-        r, from_background = noise_rms(noise, weight_type, lambda: bkg.rms(dtype=np.float32), nodata)
-        del noise
+
+    def rms_of(noise_map):
+        r, from_background = noise_rms(noise_map, weight_type, lambda: bkg.rms(dtype=np.float32),
+                                       nodata)
         r = np.asarray(r).astype(np.float32, copy=False)
         r[nodata] = np.float32(np.inf)          # = np.where(valid, r, inf), in place
+        return r, from_background
+
+    if not late_noise:
+        r, from_background = rms_of(noise)
+        del noise
     back = None if in_place else bkg.back(dtype=np.float32)
     if in_place:
         # data holds img where valid: the same float32 differences as img - background
@@ -157,9 +164,7 @@ def band_pixels_with_background(survey: Survey, field: str, band: str, footprint
     base = base.astype(np.float32, copy=False)
     if late_noise:
         base = keep(base)
-        r = np.asarray(survey.rms(field, band, cache=False)).astype(np.float32, copy=False)
-        r[nodata] = np.float32(np.inf)
-        from_background = False
+        r, from_background = rms_of(survey.rms(field, band, cache=False))
     # sep's Background keeps its meshes only: the map is made when asked for.
     return base, r, from_background, (lambda: bkg.back(dtype=np.float32)) if back is None else (lambda: back)
 
