@@ -34,7 +34,8 @@ from typing import Mapping, NamedTuple, Sequence
 import numpy as np
 
 __all__ = ["GAUSSIAN_ABOVE_COUNTS", "CORE_FRACTION", "DENSE_WINGS_COUNTS", "WINGS_CACHE_BYTES",
-           "SHOT_NOISE_STREAM_KEY", "shot_noise_gains", "wings_cache_info", "shot_noise_rng", "noisy_pixels", "add_shot_noise"]
+           "SHOT_NOISE_STREAM_KEY", "shot_noise_gains", "wings_cache_info", "shot_noise_rng",
+           "noisy_pixels", "add_shot_noise"]
 
 #: Pixels expecting at least this many electrons get the Gaussian limit of Poisson noise.
 GAUSSIAN_ABOVE_COUNTS = 1.0e4

@@ -250,15 +250,15 @@ class TemplateCache:
         # The previous group's entries not used since are the least recently used ones
         # (a use moves an entry to the end): evicted first, down to the size at the change.
         while self._old and self._bytes > self._old_bytes_limit:
-            old_key, old = self._lru.popitem(last=False)
-            self._old.discard(old_key)
-            self._bytes -= _nbytes(old)
-            self._counts["evictions"] += 1
+            self._evict_oldest()
         while self._bytes > self.max_bytes:
-            old_key, old = self._lru.popitem(last=False)
-            self._old.discard(old_key)
-            self._bytes -= _nbytes(old)
-            self._counts["evictions"] += 1
+            self._evict_oldest()
+
+    def _evict_oldest(self) -> None:
+        old_key, old = self._lru.popitem(last=False)
+        self._old.discard(old_key)
+        self._bytes -= _nbytes(old)
+        self._counts["evictions"] += 1
 
     def _render_raw(self, shape_key) -> np.ndarray:
         n, q, pa, r = shape_key
