@@ -134,12 +134,9 @@ def draw_lensed_sources(rng: np.random.Generator, n: int, z: float, mag: float, 
         raise ValueError("survey.lens: lensed fields need grid.magnitude_type: apparent (the "
                          "grid is in observed, magnified magnitude; docs/lensing.md)")
     model = ctx.source_model
-    beta = population.draw_beta(rng, n, model)
-    mag_obs = sed.band_magnitudes(z, beta, ctx.filters, mag=np.full(n, float(mag)),
-                                  detection_index=ctx.detection_index, igm=model.igm)
-    M_obs = sed.absolute_magnitude(mag_obs[:, ctx.detection_index], z, beta,
-                                   ctx.filters[ctx.detection_index], cosmology=ctx.cosmology,
-                                   igm=model.igm)
+    beta, mag_obs, M_obs = sed.draw_spectra(rng, n, z, mag, model, ctx.filters,
+                                            detection_index=ctx.detection_index,
+                                            cosmology=ctx.cosmology)
     shapes = population.draw_shapes(rng, n, model)
     eps = rng.standard_normal(n) if model.r_eff_scatter_dex > 0 else np.zeros(n)
     law = dataclasses.replace(model, r_eff_scatter_dex=0.0)

@@ -96,17 +96,10 @@ def draw_task_sources(rng: np.random.Generator, n: int, z: float, mag: float, ct
     1600 A when the grid's magnitude type is ``absolute``.
     """
     model = ctx.source_model
-    beta = population.draw_beta(rng, n, model)
-    if ctx.magnitude_type == "absolute":
-        M_uv = np.full(n, float(mag))
-        mag_in = sed.band_magnitudes(z, beta, ctx.filters, M_uv=M_uv, cosmology=ctx.cosmology,
-                                     igm=model.igm)
-    else:
-        mag_in = sed.band_magnitudes(z, beta, ctx.filters, mag=np.full(n, float(mag)),
-                                     detection_index=ctx.detection_index, igm=model.igm)
-        M_uv = sed.absolute_magnitude(mag_in[:, ctx.detection_index], z, beta,
-                                      ctx.filters[ctx.detection_index], cosmology=ctx.cosmology,
-                                      igm=model.igm)
+    beta, mag_in, M_uv = sed.draw_spectra(rng, n, z, mag, model, ctx.filters,
+                                          detection_index=ctx.detection_index,
+                                          cosmology=ctx.cosmology,
+                                          absolute=ctx.magnitude_type == "absolute")
     shapes = population.draw_shapes(rng, n, model)
     r_kpc = population.r_eff_kpc(z, model, M_uv=M_uv, rng=rng)
     r_arcsec = population.kpc_to_arcsec(r_kpc, z, ctx.cosmology)

@@ -35,10 +35,10 @@ import numpy as np
 from glaciar.constants import FAINT_MAG_LIMIT, LYA_REST_ANGSTROM, UV_REST_ANGSTROM
 from glaciar.galaxy.filters import Filter, get_filter
 from glaciar.galaxy.igm import IGM_MODELS, igm_discontinuities, igm_transmission
-from glaciar.galaxy.population import Z_MIN_DISTANCE, get_cosmology
+from glaciar.galaxy.population import Z_MIN_DISTANCE, draw_beta, get_cosmology
 
 __all__ = ["uv_flambda", "band_magnitudes", "absolute_magnitude", "apparent_uv_magnitude",
-           "distance_term", "mag_to_flux", "flux_to_mag", "bands_to_skip"]
+           "distance_term", "mag_to_flux", "flux_to_mag", "bands_to_skip", "draw_spectra"]
 
 _LN10_OVER_2P5 = np.log(10.0) / 2.5
 _BETA_MIN, _BETA_MAX, _BETA_STEP = -10.0, 6.0, 0.25
@@ -399,6 +399,41 @@ def absolute_magnitude(mag, z: float, beta, detection_filter, *, cosmology=None,
     out = m - c - distance_term(z, cosmology)
     return out if out.ndim else float(out)
 
+
+
+def draw_spectra(rng: np.random.Generator, n: int, z: float, mag: float, model, filters, *,
+                 detection_index: int, cosmology=None, absolute: bool = False):
+    """Draw ``n`` sources' UV slopes and their magnitudes in every band at redshift ``z``.
+
+    The one place an injection draws its spectra (unlensed tasks and lensed fields draw
+    them alike, before any other number of the source).
+
+    Parameters
+    ----------
+    mag : float
+        The grid cell's magnitude: apparent AB in ``filters[detection_index]``, or, with
+        ``absolute``, M_UV at rest 1600 A.
+    model : glaciar.galaxy.population.SourceModel
+        beta law (:func:`glaciar.galaxy.population.draw_beta`) and IGM model.
+
+    Returns
+    -------
+    beta : ndarray, shape (n,)
+    mag_in : ndarray, shape (n, len(filters))
+        AB magnitude in each band.
+    M_uv : ndarray, shape (n,)
+        Absolute magnitude at rest 1600 A [AB].
+    """
+    beta = draw_beta(rng, n, model)
+    if absolute:
+        M_uv = np.full(n, float(mag))
+        mag_in = band_magnitudes(z, beta, filters, M_uv=M_uv, cosmology=cosmology, igm=model.igm)
+    else:
+        mag_in = band_magnitudes(z, beta, filters, mag=np.full(n, float(mag)),
+                                 detection_index=detection_index, igm=model.igm)
+        M_uv = absolute_magnitude(mag_in[:, detection_index], z, beta, filters[detection_index],
+                                  cosmology=cosmology, igm=model.igm)
+    return beta, mag_in, M_uv
 
 def apparent_uv_magnitude(M_uv, z: float, *, cosmology=None):
     """Apparent AB magnitude at observed 1600 A (1+z): M_uv + DM(z) - 2.5 log10(1+z)."""

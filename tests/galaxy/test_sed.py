@@ -278,3 +278,24 @@ def test_absolute_band_magnitudes(z, b, m, igm):
     colours = np.array([ref_colour(z, b, band, igm) for band in BANDS])
     _check_against_reference(mags, M_uv + distance_term(z) + colours, z)
     assert np.all(np.isfinite(flux)) and np.all(flux >= 0)
+
+
+def test_draw_spectra_apparent_and_absolute_cells():
+    from glaciar.galaxy.population import SourceModel, draw_beta
+    from glaciar.galaxy.sed import draw_spectra
+
+    model = SourceModel(beta_mean=-2.0, beta_sd=0.3)
+    filters = ["f098m", "f125w", "f160w"]
+    beta, mag_in, M_uv = draw_spectra(np.random.default_rng(4), 50, 8.0, 26.5, model, filters,
+                                      detection_index=2)
+    # The beta law's own draws, from the same stream; the cell's magnitude in the
+    # detection band; a Lyman-break colour (F098M lies blue of Lya at z = 8).
+    assert np.array_equal(beta, draw_beta(np.random.default_rng(4), 50, model))
+    assert mag_in.shape == (50, 3) and np.allclose(mag_in[:, 2], 26.5, atol=1e-9)
+    assert np.all(mag_in[:, 0] > mag_in[:, 1] + 1.0)
+    # An absolute cell at those M_UV gives back the same magnitudes in every band.
+    for k in range(3):
+        _, mag_abs, M_abs = draw_spectra(np.random.default_rng(4), 50, 8.0, M_uv[k], model,
+                                         filters, detection_index=2, absolute=True)
+        assert np.all(M_abs == M_uv[k])
+        assert np.allclose(mag_abs[k], mag_in[k], atol=1e-6)
