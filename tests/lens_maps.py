@@ -5,6 +5,9 @@ The lens is an SIS + external shear defined in the image's pixel frame (its shea
 image's axes, lengths in image pixels).  A map pixel's value is the lens at the image
 position its world coordinates fall on, with the shear tensor and the deflection vector
 expressed along the map's own pixel axes (written here independently of glaciar.lensmaps).
+
+Also a uniform mass sheet's lens nodes for a selection function (:func:`put_mass_sheet`),
+the case with closed-form volumes and counts (tests of glaciar.inference.lensed).
 """
 import math
 
@@ -77,3 +80,17 @@ def write_maps(directory, field, lens, image_header, image_shape, image_scale_ar
             directory / f"{field}_{key}.fits", overwrite=True)
         out[key] = f"{directory}/{{field}}_{key}.fits"
     return out
+
+
+def put_mass_sheet(sf, z_lens, kappa, area=800.0):
+    """Give ``sf`` one lens model, "sheet": a uniform sheet of convergence ``kappa`` (no
+    shear) over ``area`` [arcmin^2] at depth 27.5, lens at ``z_lens``; returns ``sf``."""
+    from glaciar.galaxy.lensing import lens_area_nodes
+    from glaciar.inference.lensed import LensNodes
+
+    d = np.full((20, 20), 27.5)
+    zero = np.zeros_like(d)
+    nodes = lens_area_nodes(d, zero + kappa, zero, zero, area / 400, depth_bin_mag=0.05,
+                            ratio_range=(0.8, 0.9))
+    sf.lens_nodes = {"cl": {"sheet": LensNodes.from_dict("cl", "sheet", z_lens, nodes)}}
+    return sf

@@ -12,6 +12,7 @@ from glaciar.galaxy.lensing import SISLens, distance_ratio, lens_area_nodes
 from glaciar.inference import SelectionFunction, SurfaceModel
 from glaciar.inference.lensed import LensNodes, lensed_table
 from glaciar.inference.products import InjectionSED
+from lens_maps import put_mass_sheet
 
 Z_LENS = 0.308
 SED = InjectionSED(get_filter("wfc3_ir_f160w"), beta_mean=-2.0, beta_sd=0.3)
@@ -153,15 +154,6 @@ def test_file_keeps_the_lens_nodes():
         sf.for_lens_model("x")
 
 
-def _sheet(sf, kappa, area=800.0):
-    d = np.full((20, 20), 27.5)
-    zero = np.zeros_like(d)
-    nodes = lens_area_nodes(d, zero + kappa, zero, zero, area / 400, depth_bin_mag=0.05,
-                            ratio_range=(0.8, 0.9))
-    sf.lens_nodes = {"cl": {"sheet": LensNodes.from_dict("cl", "sheet", Z_LENS, nodes)}}
-    return sf
-
-
 def test_expected_counts_behind_a_mass_sheet_are_the_unlensed_ones_magnified():
     """A mass sheet magnifies every source by mu(z) = 1 / (1 - r kappa)^2: the expected counts
     per measured-magnitude bin are the unlensed counts of phi(M + 2.5 log10 mu), times the
@@ -176,18 +168,19 @@ def test_expected_counts_behind_a_mass_sheet_are_the_unlensed_ones_magnified():
     edges = np.arange(25.0, 30.01, 0.25)
     kw = dict(z_min=7.9, z_max=8.0, draws=2, warn=False)
     plain = lf_sf(n_draws=3).expected_counts(phi, edges, **kw).draws
-    none = _sheet(lf_sf(n_draws=3), 0.0).expected_counts(phi, edges, **kw).draws
+    none = put_mass_sheet(lf_sf(n_draws=3), Z_LENS, 0.0).expected_counts(phi, edges, **kw).draws
     np.testing.assert_allclose(none, plain, atol=1e-3 * plain.max())
     kappa = 0.25
     r = float(distance_ratio(Z_LENS, 7.95, Planck18))
     mu = 1 / (1 - r * kappa) ** 2
-    lensed = _sheet(lf_sf(n_draws=3), kappa).expected_counts(phi, edges, **kw).draws
+    lensed = put_mass_sheet(lf_sf(n_draws=3), Z_LENS, kappa).expected_counts(phi, edges, **kw).draws
     shifted = lf_sf(n_draws=3).expected_counts(lambda M, z: phi(M + 2.5 * np.log10(mu), z),
                                                edges, **kw).draws / mu
     np.testing.assert_allclose(lensed, shifted, atol=1e-3 * shifted.max())
     assert abs(lensed.sum() - plain.sum()) > 0.2 * plain.sum()     # lensing matters here
     # Without the transfer function the counts sit at the magnified input magnitude.
-    raw = _sheet(lf_sf(n_draws=3), kappa).expected_counts(phi, edges, transfer=False, **kw).draws
+    raw = put_mass_sheet(lf_sf(n_draws=3), Z_LENS, kappa).expected_counts(phi, edges, transfer=False,
+                                                                         **kw).draws
     raw_shifted = lf_sf(n_draws=3).expected_counts(
         lambda M, z: phi(M + 2.5 * np.log10(mu), z), edges, transfer=False, **kw).draws / mu
     np.testing.assert_allclose(raw.sum(axis=-1), raw_shifted.sum(axis=-1), rtol=2e-3)

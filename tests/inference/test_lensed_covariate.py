@@ -21,6 +21,7 @@ from glaciar.inference import SelectionFunction, SurfaceModel, aggregate_cells, 
 from glaciar.inference.covariates import (MAGNIFICATION_QUANTILES, CovariateNodes,
                                           fit_covariate_nodes)
 from glaciar.inference.lensed import LensNodes, lensed_count_tables
+from lens_maps import put_mass_sheet
 
 Z_LENS = 0.308
 #: m50 of the hand-built nodes: 27.4 at |mu| = 1, 1 mag brighter per dex of |mu|.
@@ -52,15 +53,6 @@ def _synthetic():
     return sf, cov
 
 
-def _sheet(sf, kappa, area=800.0):
-    d = np.full((20, 20), 27.5)
-    zero = np.zeros_like(d)
-    nodes = lens_area_nodes(d, zero + kappa, zero, zero, area / 400, depth_bin_mag=0.05,
-                            ratio_range=(0.8, 0.9))
-    sf.lens_nodes = {"cl": {"sheet": LensNodes.from_dict("cl", "sheet", Z_LENS, nodes)}}
-    return sf
-
-
 def _p_at_mu(sf, z, m_obs, x):
     """P at observed magnitude m_obs with the parameters interpolated by hand at x = log10|mu|."""
     th = _params(sf.model, m50_0=M50_0 + K_MU * float(np.clip(x, X_NODES[0], X_NODES[-1])))
@@ -87,7 +79,7 @@ def test_volume_behind_a_mass_sheet_uses_p_at_its_magnification():
     27.6 and 28.0."""
     sf, cov = _synthetic()
     m = np.array([26.8, 27.6, 28.0])
-    _sheet(sf, 0.3)
+    put_mass_sheet(sf, Z_LENS, 0.3)
     without = sf.effective_volume(m, cosmology=Planck18, n_z=201).median.to_value(u.Mpc ** 3)
     sf.covariates = {"magnification": cov}
     got = sf.effective_volume(m, cosmology=Planck18, n_z=201).median.to_value(u.Mpc ** 3)
@@ -101,7 +93,7 @@ def test_count_tables_behind_a_mass_sheet_use_p_at_its_magnification():
     m + 2.5 log10|det A| | theta(x)) per z, against the per-z value computed here."""
     sf, cov = _synthetic()
     sf.covariates = {"magnification": cov}
-    _sheet(sf, 0.3, area=4.0)
+    put_mass_sheet(sf, Z_LENS, 0.3, area=4.0)
     zz = np.array([6.2, 7.0, 7.9])
     m_tab = 26.0 + 0.02 * np.arange(150)
     (a, table), = lensed_count_tables(sf, np.array([0]), zz, m_tab, None, Planck18)
@@ -122,7 +114,7 @@ def test_outside_the_injected_range_is_clamped_and_warned_about():
                            n_sources=cov.n_sources[:3], n_cells=cov.n_cells[:3],
                            n_extreme=cov.n_extreme[:3], adequate=cov.adequate[:3])
     sf.covariates = {"magnification": short}
-    _sheet(sf, 0.55)
+    put_mass_sheet(sf, Z_LENS, 0.55)
     with pytest.warns(UserWarning, match="outside the injected range"):
         got = sf.effective_volume([27.0], cosmology=Planck18, n_z=201).median.to_value(u.Mpc ** 3)
     sr = (800.0 * u.arcmin ** 2).to_value(u.sr)
