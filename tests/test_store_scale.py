@@ -317,6 +317,8 @@ def test_task_counts_equal_a_pandas_groupby_of_the_rows():
             "depth_local": np.where(rng.random(n) < 0.2, np.nan, rng.normal(27, 0.3, n)),
             "recovered": rng.random(n) < 0.5, "status": rng.integers(-3, 3, n).astype(np.int8),
             "mag_f160w": np.where(rng.random(n) < 0.2, np.inf, rng.normal(26, 1, n))})
+        if trial % 3 == 0:      # one task's rows: constant identity columns (a NaN z too)
+            rows = rows.assign(field="a", z=np.nan if trial % 2 else 7.0, mag=26.0, iteration=1)
         rows["selected"] = rows["recovered"] & (rng.random(n) < 0.5)
         got = K.task_counts(rows, "mag_input")
         keys = ["field", "z", "mag", "iteration", K.COUNT_MAG_KEY, K.COUNT_DEPTH_KEY]

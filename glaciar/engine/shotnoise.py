@@ -49,9 +49,10 @@ CORE_FRACTION = 1.0e-4
 DENSE_WINGS_COUNTS = 0.25
 
 #: Upper bound on the bytes of the per-template core/wings splits kept (8 bytes per template
-#: pixel, the template's own size).  Entries leave with their template, so in a run the splits
-#: held follow the template cache (glaciar.galaxy.templates: about one redshift's stamps, which
-#: is what the tasks re-use); this bound is for callers with templates of their own.
+#: pixel, the template's own size, and 8 more per core pixel).  Entries leave with their
+#: template, so in a run the splits held follow the template cache (glaciar.galaxy.templates:
+#: about one redshift's stamps, which is what the tasks re-use); this bound is for callers
+#: with templates of their own.
 WINGS_CACHE_BYTES = 128 * 2**20
 
 #: First extra spawn-key word of the shot-noise streams (an arbitrary fixed 63-bit value, so
@@ -99,6 +100,9 @@ class _Wings(NamedTuple):
     core: np.ndarray         #: flat indices of the pixels >= CORE_FRACTION
     cum: np.ndarray          #: cumulative sum of the other pixels (core pixels and negatives as 0)
     nbytes: int
+    core_values: np.ndarray  #: the template's values at ``core`` (all >= CORE_FRACTION > 0)
+    core_max: float          #: their maximum (0 without a core)
+    wings_sum: float         #: ``cum[-1]`` (0 without wings)
 
 
 _WINGS: "OrderedDict[int, _Wings]" = OrderedDict()
@@ -132,13 +136,15 @@ def _wings(data: np.ndarray) -> _Wings:
     flat = data.ravel()
     core = np.flatnonzero(flat >= CORE_FRACTION)
     wings = np.maximum(flat, 0.0)
+    core_values = flat[core]
     wings[core] = 0.0
     cum = np.cumsum(wings)
+    extra = (core_values, float(core_values.max(initial=0.0)), float(cum[-1]) if cum.size else 0.0)
     try:
         ref = weakref.ref(data, lambda _, k=key: _forget(k))
     except TypeError:                       # not weak-referenceable: not cached
-        return _Wings(None, core, cum, 0)
-    entry = _Wings(ref, core, cum, core.nbytes + cum.nbytes)
+        return _Wings(None, core, cum, 0, *extra)
+    entry = _Wings(ref, core, cum, core.nbytes + cum.nbytes + core_values.nbytes, *extra)
     with _WINGS_LOCK:
         _forget(key)
         _WINGS[key] = entry
@@ -193,21 +199,28 @@ def noisy_pixels(data: np.ndarray, flux: float, gain: float, rng: np.random.Gene
     data = np.asarray(data, dtype=np.float64)
     scale = float(flux) * float(gain)           # electrons per unit of the template
     w = _wings(data)
-    flat = data.ravel()
-    out = np.zeros(flat.size)
+    size = data.size
+    out = np.zeros(size)
     # Only the pixels drawn are written (divided by the gain there): the untouched rest of a
-    # large stamp stays in zero pages the system has not allocated.
-    out[w.core] = _per_pixel(np.maximum(flat[w.core], 0.0) * scale, rng) / gain
-    total = float(w.cum[-1]) * scale if w.cum.size else 0.0
-    n_wings = flat.size - w.core.size
+    # large stamp stays in zero pages the system has not allocated.  The core's values are
+    # > 0 (no clip needed) and, a positive scale being monotone in floating point, their
+    # largest count is core_max * scale exactly: below the Gaussian switch, plain Poisson.
+    counts = w.core_values * scale
+    if w.core_max * scale < GAUSSIAN_ABOVE_COUNTS:
+        out[w.core] = rng.poisson(counts) / gain
+    else:
+        out[w.core] = _per_pixel(counts, rng) / gain
+    total = w.wings_sum * scale
+    n_wings = size - w.core.size
     if total > DENSE_WINGS_COUNTS * n_wings:
-        wings = np.ones(flat.size, dtype=bool)
+        flat = data.ravel()
+        wings = np.ones(size, dtype=bool)
         wings[w.core] = False
         out[wings] = _per_pixel(np.maximum(flat[wings], 0.0) * scale, rng) / gain
     elif total > 0.0:
         n = rng.poisson(total)
         where = np.searchsorted(w.cum, rng.random(n) * w.cum[-1], side="right")
-        np.minimum(where, flat.size - 1, out=where)     # u * cum[-1] rounded up to cum[-1]
+        np.minimum(where, size - 1, out=where)          # u * cum[-1] rounded up to cum[-1]
         np.add.at(out, where, 1.0 / gain)
     return out.reshape(data.shape)
 

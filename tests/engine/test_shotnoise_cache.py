@@ -22,8 +22,9 @@ OFFSETS = [20.0 + k / 8 for k in range(8)]
 
 
 def split_bytes(data: np.ndarray) -> int:
-    """Bytes of a template's split, counted here: int64 core indices + float64 cumulative sum."""
-    return 8 * int(np.count_nonzero(data.ravel() >= CORE_FRACTION)) + 8 * data.size
+    """Bytes of a template's split, counted here: int64 core indices and float64 core values,
+    + float64 cumulative sum."""
+    return 16 * int(np.count_nonzero(data.ravel() >= CORE_FRACTION)) + 8 * data.size
 
 
 def noisy_task(cache, sizes, rng):
