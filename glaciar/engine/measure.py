@@ -586,6 +586,13 @@ def _finish(ctx: MeasureContext, batch: SegmentedBatch):
         boxes = _band_boxes(cv.shape[1], pix, lab_all, lab[di], phot_box[j], bounds[j])
     flux_sn = err_sn = None
     auto_det = tpl_det = None
+    pos = np.full(label.size, -1, dtype=np.int64)
+    pos[idx] = np.arange(idx.size)          # canvas source index -> row of this finish
+    jd = idx[di]
+    # The cut-outs and which of them hold no neighbour: one segmentation, so once for every band.
+    plan = (phot.CutoutPlan.of(pseg32, lab[pos[jd]], phot.Ellipses(xs[jd], ys[jd], a[jd], b[jd], th[jd], scale[jd]),
+                               params.phot_apertures, params.mask_type, bounds=bounds[jd])
+            if params.mask_type is not None and jd.size else None)
     for band in ctx.bands:
         data, rms, bad = cv.band(band, windows, boxes)
         gain = ctx.gains.get(band)
@@ -595,9 +602,6 @@ def _finish(ctx: MeasureContext, batch: SegmentedBatch):
         fea = fa.copy()
         fau = np.full(lab.size, np.nan)
         feau = fau.copy()
-        pos = np.full(label.size, -1, dtype=np.int64)
-        pos[idx] = np.arange(idx.size)          # canvas source index -> row of this finish
-        jd = idx[di]
         dbkg = None
         if params.backphoto_type == "local" and jd.size:
             # BACKPHOTO_TYPE LOCAL: per band, from the annulus around each segment's box
@@ -608,10 +612,8 @@ def _finish(ctx: MeasureContext, batch: SegmentedBatch):
             fi[di] = fi[di] - npix * dbkg
         if params.mask_type is not None and jd.size:
             r = pos[jd]
-            fa[:, r], fea[:, r], fau[r], feau[r] = phot.sextractor_photometry(
-                data, rms, pseg32, lab[r], bad, phot.Ellipses(xs[jd], ys[jd], a[jd], b[jd], th[jd], scale[jd]),
-                params.phot_apertures, params.mask_type, gain=gain, dbkg=dbkg, bounds=bounds[jd],
-                noise=noise)
+            fa[:, r], fea[:, r], fau[r], feau[r] = plan.measure(data, rms, bad, gain=gain, dbkg=dbkg,
+                                                                noise=noise)
         else:
             for j, sl in window_groups(cv, jd, edge, src_win):
                 oy, ox = sl[0].start, sl[1].start

@@ -14,6 +14,7 @@ import numpy as np
 import sep
 
 __all__ = ["Ellipses", "iso_photometry", "aperture_photometry", "kron_radius", "auto_photometry",
+           "sextractor_photometry", "CutoutPlan", "masked_cutout",
            "magnitudes", "limiting_magnitude"]
 
 
@@ -547,61 +548,99 @@ def sextractor_photometry(image, rms, segmap, labels, nodata, ellipses: Ellipses
     flux_aper, fluxerr_aper : ndarray, shape (len(diameters), K)
     flux_auto, fluxerr_auto : ndarray, shape (K,)
     """
-    x, y, a, b, theta, scale = ellipses
-    x = np.atleast_1d(np.asarray(x, dtype=np.float64))
-    y = np.atleast_1d(np.asarray(y, dtype=np.float64))
-    k = x.size
-    a, b, theta, scale = (np.broadcast_to(np.asarray(v, dtype=np.float64), (k,))
-                          for v in (a, b, theta, scale))
-    labels = np.broadcast_to(np.asarray(labels, dtype=np.int64), (k,))
-    dbkg = np.zeros(k) if dbkg is None else np.broadcast_to(np.asarray(dbkg, float), (k,))
-    if bounds is None:
-        bounds = np.tile(np.array([0, image.shape[0], 0, image.shape[1]]), (k, 1))
-    bounds = np.asarray(bounds, dtype=np.int64).reshape(-1, 4)
-    nd = len(diameters)
-    fa = np.full((nd, k), np.nan)
-    fea = fa.copy()
-    fau = np.full(k, np.nan)
-    feau = fau.copy()
-    rap = 0.5 * max(float(d) for d in diameters)
-    radii = np.array([0.5 * float(d) for d in diameters], dtype=np.float64)
-    factors = None if noise is None else [noise.variance_factor(np.pi * r * r) for r in radii]
-    dya, dxa = _half_extent(a, b, theta, scale)
-    boxes = _cutout_boxes(x, y, dya, dxa, rap)
-    clean = _clean_cutouts(boxes, bounds, segmap, labels, nodata, mask_type) & (dbkg == 0.0)
-    if clean.any():
-        c = np.flatnonzero(clean)
-        fa[:, c], fea[:, c], fau[c], feau[c] = _unmasked_sums(
-            image, rms, x[c], y[c], a[c], b[c], theta[c], scale[c], radii, gain, noise, factors)
-    for i in np.flatnonzero(~clean).tolist():
-        box = tuple(boxes[i].tolist())
-        d, e, (oy, ox) = masked_cutout(image, rms, segmap, int(labels[i]), nodata, x[i], y[i], box,
-                                       mask_type, bounds=bounds[i])
-        if d.size == 0:
-            continue
-        # All apertures of the object in one sep call (sep sums each (x, y, r) on its own:
-        # the same numbers as one call per radius, at a fifth of the calls for 5 apertures).
-        cxs, cys = np.full(nd, x[i] - ox), np.full(nd, y[i] - oy)
-        f, fe, _ = sep.sum_circle(d, cxs, cys, radii, err=e, gain=gain, subpix=0)
-        if noise is not None:
-            fb = fe if gain is None else sep.sum_circle(d, cxs, cys, radii, err=e, subpix=0)[1]
-            fe = np.array([_scaled_error(fb[j:j + 1], fe[j:j + 1], factors[j])[0] for j in range(nd)])
-        one = np.ones_like(d) if dbkg[i] != 0.0 else None      # the area under each aperture
-        if one is not None:
-            f = f - dbkg[i] * sep.sum_circle(one, cxs, cys, radii, subpix=0)[0]
-        fa[:, i], fea[:, i] = f, fe
-        cx, cy = cxs[:1], cys[:1]
-        args = (cx, cy, a[i:i + 1], b[i:i + 1], theta[i:i + 1], scale[i:i + 1])
-        f, fe, _ = sep.sum_ellipse(d, *args, err=e, gain=gain, subpix=0)
-        fe = np.asarray(fe, dtype=np.float64)
-        if noise is not None:
-            fb = fe if gain is None else np.asarray(sep.sum_ellipse(d, *args, err=e, subpix=0)[1])
-            area = np.pi * a[i] * b[i] * scale[i] ** 2
-            fe = _scaled_error(fb, fe, noise.variance_factor(area))
-        if one is not None:
-            f = f - dbkg[i] * sep.sum_ellipse(one, *args, subpix=0)[0]
-        fau[i], feau[i] = f[0], fe[0]
-    return fa, fea, fau, feau
+    plan = CutoutPlan.of(segmap, labels, ellipses, diameters, mask_type, bounds=bounds,
+                         shape=np.shape(image))
+    return plan.measure(image, rms, nodata, gain=gain, dbkg=dbkg, noise=noise)
+
+
+class CutoutPlan(NamedTuple):
+    """The band-independent part of :func:`sextractor_photometry` for K objects of one
+    segmentation: their cut-out boxes and which of them hold no neighbour (:meth:`of`).
+
+    A caller measuring several bands of one extraction makes it once and calls
+    :meth:`measure` per band: the same numbers as :func:`sextractor_photometry` on each.
+    """
+
+    segmap: np.ndarray
+    labels: np.ndarray       #: (K,) int64
+    ellipses: Ellipses       #: arrays of shape (K,), float64
+    radii: np.ndarray        #: PHOT_APERTURES / 2 [pixels]
+    mask_type: str
+    bounds: np.ndarray       #: (K, 4) y0, y1, x0, x1
+    boxes: np.ndarray        #: (K, 4) each object's cut-out (:func:`_cutout_boxes`)
+    clear: np.ndarray        #: (K,) bool: cut-out inside its bounds and free of neighbours
+
+    @classmethod
+    def of(cls, segmap, labels, ellipses: Ellipses, diameters, mask_type, *, bounds=None,
+           shape=None) -> "CutoutPlan":
+        """Plan of :func:`sextractor_photometry`'s arguments of the same names (``shape``:
+        the band arrays', default the segmentation's; used when ``bounds`` is None)."""
+        x, y, a, b, theta, scale = ellipses
+        x = np.atleast_1d(np.asarray(x, dtype=np.float64))
+        y = np.atleast_1d(np.asarray(y, dtype=np.float64))
+        k = x.size
+        a, b, theta, scale = (np.broadcast_to(np.asarray(v, dtype=np.float64), (k,))
+                              for v in (a, b, theta, scale))
+        labels = np.broadcast_to(np.asarray(labels, dtype=np.int64), (k,))
+        if bounds is None:
+            ny, nx = np.shape(segmap) if shape is None else shape
+            bounds = np.tile(np.array([0, ny, 0, nx]), (k, 1))
+        bounds = np.asarray(bounds, dtype=np.int64).reshape(-1, 4)
+        radii = np.array([0.5 * float(d) for d in diameters], dtype=np.float64)
+        dya, dxa = _half_extent(a, b, theta, scale)
+        boxes = _cutout_boxes(x, y, dya, dxa, float(radii.max()))
+        clear = _clear_cutouts(boxes, bounds, segmap, labels, mask_type)
+        return cls(segmap, labels, Ellipses(x, y, a, b, theta, scale), radii, mask_type, bounds,
+                   boxes, clear)
+
+    def measure(self, image, rms, nodata, *, gain=None, dbkg=None, noise=None):
+        """Aperture and AUTO fluxes of the planned objects in one band: as
+        :func:`sextractor_photometry` (same parameters and returns)."""
+        segmap, labels, mask_type, bounds, boxes = (self.segmap, self.labels, self.mask_type,
+                                                    self.bounds, self.boxes)
+        x, y, a, b, theta, scale = self.ellipses
+        radii = self.radii
+        k, nd = x.size, radii.size
+        dbkg = np.zeros(k) if dbkg is None else np.broadcast_to(np.asarray(dbkg, float), (k,))
+        fa = np.full((nd, k), np.nan)
+        fea = fa.copy()
+        fau = np.full(k, np.nan)
+        feau = fau.copy()
+        factors = None if noise is None else [noise.variance_factor(np.pi * r * r) for r in radii]
+        clean = _without_nodata(self.clear & (dbkg == 0.0), boxes, nodata)
+        if clean.any():
+            c = np.flatnonzero(clean)
+            fa[:, c], fea[:, c], fau[c], feau[c] = _unmasked_sums(
+                image, rms, x[c], y[c], a[c], b[c], theta[c], scale[c], radii, gain, noise, factors)
+        for i in np.flatnonzero(~clean).tolist():
+            box = tuple(boxes[i].tolist())
+            d, e, (oy, ox) = masked_cutout(image, rms, segmap, int(labels[i]), nodata, x[i], y[i], box,
+                                           mask_type, bounds=bounds[i])
+            if d.size == 0:
+                continue
+            # All apertures of the object in one sep call (sep sums each (x, y, r) on its own:
+            # the same numbers as one call per radius, at a fifth of the calls for 5 apertures).
+            cxs, cys = np.full(nd, x[i] - ox), np.full(nd, y[i] - oy)
+            f, fe, _ = sep.sum_circle(d, cxs, cys, radii, err=e, gain=gain, subpix=0)
+            if noise is not None:
+                fb = fe if gain is None else sep.sum_circle(d, cxs, cys, radii, err=e, subpix=0)[1]
+                fe = np.array([_scaled_error(fb[j:j + 1], fe[j:j + 1], factors[j])[0] for j in range(nd)])
+            one = np.ones_like(d) if dbkg[i] != 0.0 else None      # the area under each aperture
+            if one is not None:
+                f = f - dbkg[i] * sep.sum_circle(one, cxs, cys, radii, subpix=0)[0]
+            fa[:, i], fea[:, i] = f, fe
+            cx, cy = cxs[:1], cys[:1]
+            args = (cx, cy, a[i:i + 1], b[i:i + 1], theta[i:i + 1], scale[i:i + 1])
+            f, fe, _ = sep.sum_ellipse(d, *args, err=e, gain=gain, subpix=0)
+            fe = np.asarray(fe, dtype=np.float64)
+            if noise is not None:
+                fb = fe if gain is None else np.asarray(sep.sum_ellipse(d, *args, err=e, subpix=0)[1])
+                area = np.pi * a[i] * b[i] * scale[i] ** 2
+                fe = _scaled_error(fb, fe, noise.variance_factor(area))
+            if one is not None:
+                f = f - dbkg[i] * sep.sum_ellipse(one, *args, subpix=0)[0]
+            fau[i], feau[i] = f[0], fe[0]
+        return fa, fea, fau, feau
 
 
 def _cutout_boxes(x, y, dya, dxa, rap):
@@ -619,22 +658,31 @@ def _cutout_boxes(x, y, dya, dxa, rap):
     return out
 
 
-def _clean_cutouts(boxes, bounds, segmap, labels, nodata, mask_type) -> np.ndarray:
-    """True for objects whose cut-out lies inside their bounds and holds no pixel that
-    :func:`masked_cutout` would change (no data, or a neighbour's under a MASK_TYPE other
-    than none): their cut-out is a plain slice of the arrays."""
+def _clear_cutouts(boxes, bounds, segmap, labels, mask_type) -> np.ndarray:
+    """True for objects whose cut-out lies inside their bounds and holds no neighbour pixel
+    that :func:`masked_cutout` would change under a MASK_TYPE other than none."""
     inside = ((boxes[:, 0] >= bounds[:, 0]) & (boxes[:, 1] <= bounds[:, 1])
               & (boxes[:, 2] >= bounds[:, 2]) & (boxes[:, 3] <= bounds[:, 3])
               & (boxes[:, 0] < boxes[:, 1]) & (boxes[:, 2] < boxes[:, 3]))
-    seg = None if mask_type == "none" else np.asarray(segmap)
+    if mask_type == "none":
+        return inside
+    seg = np.asarray(segmap)
     for i in np.flatnonzero(inside).tolist():
         y0, y1, x0, x1 = boxes[i].tolist()
-        if nodata is not None and nodata[y0:y1, x0:x1].any():
-            inside[i] = False
-        elif seg is not None:
-            s = seg[y0:y1, x0:x1]
-            inside[i] = not ((s != 0) & (s != labels[i])).any()
+        s = seg[y0:y1, x0:x1]
+        inside[i] = not ((s != 0) & (s != labels[i])).any()
     return inside
+
+
+def _without_nodata(clear, boxes, nodata) -> np.ndarray:
+    """``clear`` (a new array) made False where the object's cut-out holds a pixel without
+    data: with no neighbour and no such pixel, the cut-out is a plain slice of the arrays."""
+    clean = np.array(clear, dtype=bool)
+    if nodata is not None:
+        for i in np.flatnonzero(clean).tolist():
+            y0, y1, x0, x1 = boxes[i].tolist()
+            clean[i] = not nodata[y0:y1, x0:x1].any()
+    return clean
 
 
 def _unmasked_sums(image, rms, x, y, a, b, theta, scale, radii, gain, noise, factors):

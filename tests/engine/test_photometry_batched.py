@@ -124,3 +124,23 @@ def test_clean_objects_share_one_sep_call(monkeypatch):
     # Objects 1-4 are measured on their own cut-outs; 5-8 (4 objects x 3 apertures) together.
     assert sorted(calls["circle"]) == [3, 3, 3, 3, 12]       # 8 calls of 3 before issue 24
     assert sorted(calls["ellipse"]) == [1, 1, 1, 1, 4]
+
+
+def test_cutout_plan_once_for_every_band():
+    """Which cut-outs hold no neighbour depends on the segmentation only: planned once, the
+    plan serves every band (here two images on one segmentation) with the same fluxes."""
+    img, rms, seg, nodata, ell = _scene()
+    k = ell.x.size
+    labels = np.arange(1, k + 1)
+    plan = phot.CutoutPlan.of(seg, labels, ell, DIAMETERS, "correct")
+    # 1-2 touch each other, 4's cut-out crosses the image edge; 3 (by the no-data patch: not a
+    # neighbour) and 5-8 are clear.  Without a mask type only the edge counts.
+    assert plan.clear.tolist() == [False, False, True, False, True, True, True, True]
+    assert phot.CutoutPlan.of(seg, labels, ell, DIAMETERS, "none").clear.tolist() == \
+        [True, True, True, False, True, True, True, True]
+    bounds = np.tile([0, img.shape[0], 0, img.shape[1]], (k, 1))
+    for band_img in (img, 0.5 * img[::-1, ::-1].copy() + 0.01):
+        got = plan.measure(band_img, rms, nodata, gain=1500.0)
+        want = _by_object(band_img, rms, seg, nodata, ell, 1500.0, None, bounds)
+        for g, w in zip(got, want):
+            assert g.tobytes() == w.tobytes()
