@@ -165,7 +165,8 @@ def _per_pixel(counts: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return out
 
 
-def noisy_pixels(data: np.ndarray, flux: float, gain: float, rng: np.random.Generator) -> np.ndarray:
+def noisy_pixels(data: np.ndarray, flux: float, gain: float, rng: np.random.Generator,
+                 out: np.ndarray | None = None) -> np.ndarray:
     """``data * flux`` with the photon noise of its electrons (one realisation).
 
     The core of the template (pixels holding >= :data:`CORE_FRACTION` of the flux)
@@ -189,18 +190,27 @@ def noisy_pixels(data: np.ndarray, flux: float, gain: float, rng: np.random.Gene
     rng : numpy.random.Generator
         Consumed in this order: the core's Poisson draws, its normal draws, then
         the wings' total and the placements (or the wings' per-pixel draws).
+    out : ndarray, optional
+        A zeroed, C-contiguous float64 array of ``data.size`` elements to write the
+        pixels into (e.g. a slice of one block for many stamps); a new one by default.
 
     Returns
     -------
     ndarray, float64
-        New array [image units], shape of ``data``; expected counts below 0
-        (numerical noise of the convolution, ~1e-17) count as 0.
+        ``out`` (or a new array) [image units] in the shape of ``data``; expected counts
+        below 0 (numerical noise of the convolution, ~1e-17) count as 0.
     """
     data = np.asarray(data, dtype=np.float64)
     scale = float(flux) * float(gain)           # electrons per unit of the template
     w = _wings(data)
     size = data.size
-    out = np.zeros(size)
+    if out is None:
+        out = np.zeros(size)
+    elif out.size != size or out.dtype != np.float64 or not out.flags.c_contiguous:
+        raise ValueError(f"noisy_pixels: out must be a C-contiguous float64 array of {size} "
+                         f"elements, got {out.dtype} {out.shape}")
+    else:
+        out = out.reshape(size)
     # Only the pixels drawn are written (divided by the gain there): the untouched rest of a
     # large stamp stays in zero pages the system has not allocated.  The core's values are
     # > 0 (no clip needed) and, a positive scale being monotone in floating point, their
@@ -219,7 +229,12 @@ def noisy_pixels(data: np.ndarray, flux: float, gain: float, rng: np.random.Gene
         out[wings] = _per_pixel(np.maximum(flat[wings], 0.0) * scale, rng) / gain
     elif total > 0.0:
         n = rng.poisson(total)
-        where = np.searchsorted(w.cum, rng.random(n) * w.cum[-1], side="right")
+        # Placed in sorted order: each search then starts where the last ended, so a template's
+        # cumulative sum (cold in the cache) is read mostly forward (~25 % less CPU); every
+        # electron adds the same 1 / gain, so the order of the additions changes no pixel.
+        u = rng.random(n) * w.cum[-1]
+        u.sort()
+        where = np.searchsorted(w.cum, u, side="right")
         np.minimum(where, size - 1, out=where)          # u * cum[-1] rounded up to cum[-1]
         np.add.at(out, where, 1.0 / gain)
     return out.reshape(data.shape)
@@ -249,10 +264,17 @@ def add_shot_noise(stamps: Sequence[tuple], gain: float, rng: np.random.Generato
         ``(y0, x0, pixels)`` for the noisy stamps (pixels a new array [image
         units]), the others unchanged.  A shared template is never modified.
     """
-    out = []
-    for k, (y0, x0, data, flux) in enumerate(stamps):
-        if noisy is not None and not noisy[k]:
+    drawn = [noisy is None or bool(noisy[k]) for k in range(len(stamps))]
+    # One zeroed block for the band's noisy stamps, each written into its slice: fresh
+    # zero pages a stamp never writes cost nothing, where an allocation per stamp (~190 kB,
+    # a recycled heap chunk) is zeroed whole and faulted in each time (~2x the CPU of it).
+    block = np.zeros(sum(np.size(st[2]) for st, d in zip(stamps, drawn) if d))
+    out, start = [], 0
+    for (y0, x0, data, flux), d in zip(stamps, drawn):
+        if not d:
             out.append((y0, x0, data, flux))
-        else:
-            out.append((y0, x0, noisy_pixels(data, flux, gain, rng)))
+            continue
+        size = np.size(data)
+        out.append((y0, x0, noisy_pixels(data, flux, gain, rng, out=block[start:start + size])))
+        start += size
     return out
