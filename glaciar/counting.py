@@ -19,7 +19,8 @@ from .constants import (COL_DEPTH, COL_FIELD, COL_ITERATION, COL_MAG, COL_MAG_IN
 
 __all__ = ["STATUS_COLUMNS", "TRANSFER_MOBS_STEP", "MOBS_BIN_FAINT", "MOBS_BIN_BRIGHT",
            "mobs_lattice_edge", "mobs_lattice_index", "COUNTS_MAG_RESOLUTION", "COUNT_COLUMNS",
-           "HIST_COLUMNS", "task_counts", "task_histogram", "group_sums", "hist_sums",
+           "HIST_COLUMNS", "task_counts", "task_count_arrays", "task_histogram",
+           "task_histogram_arrays", "group_sums", "group_sum_arrays", "hist_sums", "hist_sum_arrays",
            "has_hist_columns"]
 
 #: Magnitude key resolution of the counts [mag]: the fit's default grouping resolution, so the
@@ -102,6 +103,17 @@ def task_counts(rows: pd.DataFrame, mag_column: str) -> pd.DataFrame:
         ``n_status_*`` column per status code, ``sum_mag``, ``mag_min``,
         ``mag_max`` [mag], ``sum_depth``, ``depth_min``, ``depth_max`` [AB mag].
     """
+    return pd.DataFrame(task_count_arrays(rows, mag_column))
+
+
+def task_count_arrays(rows: pd.DataFrame, mag_column: str) -> dict:
+    """:func:`task_counts` as a dict of column arrays (in its column order), without the
+    DataFrame: what a task file's footer stores (:func:`glaciar.taskfile.ipc_bytes`)."""
+    return group_sum_arrays(*_count_columns(rows, mag_column))
+
+
+def _count_columns(rows: pd.DataFrame, mag_column: str) -> tuple[dict, list]:
+    """The grouped columns of :func:`task_counts` (a dict of arrays) and its keys."""
 
     ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
     m = rows[mag_column].to_numpy(float)
@@ -122,7 +134,7 @@ def task_counts(rows: pd.DataFrame, mag_column: str) -> pd.DataFrame:
     g[COUNT_DEPTH_MIN] = dep
     g[COUNT_DEPTH_MAX] = dep
     keys = ids + [COUNT_MAG_KEY, COUNT_DEPTH_KEY]
-    return group_sums(g, keys)
+    return g, keys
 
 
 def _groups(g, keys: list):
@@ -167,6 +179,11 @@ def group_sums(g, keys: list) -> pd.DataFrame:
     """Counts summed per ``keys``: ints and sums added, extremes kept; an all-NaN sum stays NaN.
 
     ``g``: a DataFrame or a dict of column arrays."""
+    return pd.DataFrame(group_sum_arrays(g, keys))
+
+
+def group_sum_arrays(g, keys: list) -> dict:
+    """:func:`group_sums` as a dict of column arrays (its column order)."""
     grp, first = _groups(g, keys)
     ng = first.size
     out = {k: np.asarray(g[k])[first] for k in keys}
@@ -186,7 +203,7 @@ def group_sums(g, keys: list) -> pd.DataFrame:
         out[lo], out[hi] = mn, mx
         # Unknown depth (NaN) in every source of a group: the sum stays NaN, not 0.
         out[c] = np.where(np.isnan(mn), np.nan, out[c])
-    return pd.DataFrame(out)
+    return out
 
 
 def has_hist_columns(columns, obs_column: str) -> bool:
@@ -222,6 +239,16 @@ def task_histogram(rows: pd.DataFrame, obs_column: str) -> pd.DataFrame:
         The identity columns present, ``m_in_key``, ``mobs_bin``, ``n``,
         ``k_recovered``, ``k_selected``.
     """
+    return pd.DataFrame(task_histogram_arrays(rows, obs_column))
+
+
+def task_histogram_arrays(rows: pd.DataFrame, obs_column: str) -> dict:
+    """:func:`task_histogram` as a dict of column arrays (its column order)."""
+    return hist_sum_arrays(*_histogram_columns(rows, obs_column))
+
+
+def _histogram_columns(rows: pd.DataFrame, obs_column: str) -> tuple[dict, list]:
+    """The grouped columns of :func:`task_histogram` (a dict of arrays) and its keys."""
     ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
     m_in = rows[COL_MAG_INPUT].to_numpy(float)
     rec = rows[COL_RECOVERED].to_numpy().astype(bool)
@@ -232,17 +259,22 @@ def task_histogram(rows: pd.DataFrame, obs_column: str) -> pd.DataFrame:
     g[COUNT_N] = np.ones(len(rows), np.int64)
     g[COUNT_K_REC] = rec.astype(np.int64)
     g[COUNT_K_SEL] = rows[COL_SELECTED].to_numpy().astype(np.int64)
-    return hist_sums(g, ids)
+    return g, ids
 
 
 def hist_sums(g, ids: list) -> pd.DataFrame:
     """Histogram rows summed per (ids, m_in key, m_obs bin); ``g`` a DataFrame or dict of arrays."""
+    return pd.DataFrame(hist_sum_arrays(g, ids))
+
+
+def hist_sum_arrays(g, ids: list) -> dict:
+    """:func:`hist_sums` as a dict of column arrays (its column order)."""
     keys = list(ids) + [HIST_MIN_KEY, HIST_MOBS_BIN]
     grp, first = _groups(g, keys)
     out = {k: np.asarray(g[k])[first] for k in keys}
     for c in (COUNT_N, COUNT_K_REC, COUNT_K_SEL):
         out[c] = np.bincount(grp, weights=np.asarray(g[c]), minlength=first.size).astype(np.int64)
-    return pd.DataFrame(out)
+    return out
 
 
 #: Counts columns in the order :func:`task_counts` writes them (after the identity columns).

@@ -44,7 +44,8 @@ import pandas as pd
 
 from .constants import COL_FIELD, COL_ITERATION, COL_MAG, COL_Z, RESULTS_DIRNAME
 from .counting import (COUNT_DEPTH_KEY, COUNT_K_REC, COUNT_K_SEL, COUNT_MAG_KEY, COUNT_N, HIST_MIN_KEY,
-                       HIST_MOBS_BIN, group_sums, has_hist_columns, task_counts, task_histogram)
+                       HIST_MOBS_BIN, group_sums, has_hist_columns, task_count_arrays,
+                       task_counts, task_histogram, task_histogram_arrays)
 from .paths import readable, run_subdir
 from .rundir import atomic_write_bytes, read_manifest
 from .taskfile import (DIGEST_SUFFIX, META_COUNTS, META_COUNTS_MAG, META_HIST, META_HIST_OBS,
@@ -131,10 +132,10 @@ def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
     if key is not None:
         meta[META_TASK] = key.encode("utf-8")
     if mag_column is not None:
-        meta[META_COUNTS] = ipc_bytes(task_counts(table, mag_column))
+        meta[META_COUNTS] = ipc_bytes(task_count_arrays(table, mag_column))
         meta[META_COUNTS_MAG] = mag_column.encode("utf-8")
     if obs_column is not None and has_hist_columns(table.columns, obs_column):
-        meta[META_HIST] = ipc_bytes(task_histogram(table, obs_column))
+        meta[META_HIST] = ipc_bytes(task_histogram_arrays(table, obs_column))
         meta[META_HIST_OBS] = obs_column.encode("utf-8")
     for k in (META_COUNTS, META_HIST):
         if k in meta:

@@ -198,8 +198,10 @@ def _fast_convertible(df: pd.DataFrame) -> bool:
 _IPC_ZSTD_MIN_ROWS = 64
 
 
-def ipc_bytes(df: pd.DataFrame) -> bytes:
-    """``df`` as an Arrow IPC stream (no schema metadata), zstd-compressed when it is long.
+def ipc_bytes(df) -> bytes:
+    """``df`` (a DataFrame, or a dict of column arrays as :func:`arrow_table` would convert
+    the DataFrame of it) as an Arrow IPC stream (no schema metadata), zstd-compressed when
+    it is long.
 
     zstd: a compacted part's counts repeat their keys and are mostly small integers
     (~10x smaller footers).  A task's few rows are not compressed: Arrow compresses
@@ -209,13 +211,38 @@ def ipc_bytes(df: pd.DataFrame) -> bytes:
     """
     import pyarrow as pa
 
-    t = arrow_table(df, pandas_metadata=False)
+    if isinstance(df, dict):
+        # A task's footer tables: no DataFrame to build and take apart again (~0.3 ms each).
+        t = pa.Table.from_arrays([_arrow_column(np.asarray(v)) for v in df.values()],
+                                 names=[str(c) for c in df])
+    else:
+        t = arrow_table(df, pandas_metadata=False)
     sink = pa.BufferOutputStream()
     opts = pa.ipc.IpcWriteOptions(
         compression="zstd" if t.num_rows >= _IPC_ZSTD_MIN_ROWS else None)
     with pa.ipc.new_stream(sink, t.schema, options=opts) as w:
         w.write_table(t)
     return sink.getvalue().to_pybytes()
+
+
+def _arrow_column(v: np.ndarray):
+    """A column array as :func:`arrow_table` converts the DataFrame column it would make:
+    numbers as they are (NaN as null), text as the Arrow type pandas gives it (string with
+    pandas 2's object columns, large_string with pandas 3's str dtype)."""
+    import pyarrow as pa
+
+    if v.dtype.kind in "biuf":
+        return pa.array(v, from_pandas=True)
+    if not v.size:              # pandas types an empty text column on its own (null)
+        return arrow_table(pd.DataFrame({"c": v}), False).column(0).combine_chunks()
+    text = _TEXT_TYPE.get(v.dtype.kind)
+    if text is None:
+        text = _TEXT_TYPE[v.dtype.kind] = arrow_table(pd.DataFrame({"c": v[:1]}), False).schema[0].type
+    return pa.array(v, type=text, from_pandas=True)
+
+
+#: numpy dtype kind of a text column -> the Arrow type pandas converts it to (:func:`_arrow_column`).
+_TEXT_TYPE: dict = {}
 
 
 def ipc_table(data: bytes):

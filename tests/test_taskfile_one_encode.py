@@ -134,3 +134,19 @@ def test_footer_tables_round_trip(n):
                                                                  rng.random(n))})
     want = pa.Table.from_pandas(df, preserve_index=False).replace_schema_metadata(None)
     assert ipc_table(ipc_bytes(df)).equals(want, check_metadata=True)
+
+
+def test_footer_tables_from_arrays_are_pyarrows_conversion_of_their_dataframe(task_rows):
+    """A task's counts and histograms go to its footer as dicts of arrays (no DataFrame):
+    the same Arrow table as pyarrow's conversion of the DataFrame, text columns included,
+    for the task's rows and for none."""
+    from glaciar import counting as K
+
+    rows, meta = task_rows
+    obs = meta[b"glaciar.mobs_hist_column"].decode()
+    for part in (rows, rows.iloc[:0]):
+        for arrays in (K.task_count_arrays(part, C.COL_MAG_INPUT), K.task_histogram_arrays(part, obs)):
+            want = pa.Table.from_pandas(pd.DataFrame(arrays), preserve_index=False)
+            got = ipc_table(ipc_bytes(arrays))
+            assert got.equals(want.replace_schema_metadata(None), check_metadata=True)
+            assert got.num_rows == want.num_rows and got.num_columns > 5
