@@ -7,30 +7,30 @@ pages the tasks freed: the summaries' own memory then comes on top of the tasks'
 :func:`release_memory` drops them first, so the summaries fit below that peak.
 
 With one worker the field set-up runs in the process that then runs every task
-(:func:`glaciar.execute.simulate`).  The set-up leaves two things resident that the tasks
-never read: the heap pages its freed arrays held (~105 MB on GLACiAR's 1200^2 4-band job,
-reused by the tasks but counted until then), and the pages of library code that only the
-imports, the configuration and the set-up ran (the loaders' and initialisers' code of
-pandas, pyarrow, scipy, astropy: ~75 MB there).  Code pages are file-backed and count in
-the resident set (and in ``ru_maxrss``) like any other.  :func:`release_between_steps`
-drops both at the hand-over, and once more after the first task (whose first-time code:
-lazy imports, the parquet writer's set-up).  The pages the tasks do run are read again
-from the page cache at their next touch (a minor fault, ~36 MB once on that job); the
-peak RSS of the 50 400-source job fell by ~50 MB (docs/accuracy-and-speed.md).
+(:func:`glaciar.execute.simulate`), and the pages of library code that only the imports,
+the configuration and the set-up ran (the loaders' and initialisers' code of pandas,
+pyarrow, scipy, astropy: ~75 MB on GLACiAR's 1200^2 4-band job) stay resident: code pages
+are file-backed and count in the resident set (and in ``ru_maxrss``) like any other.
+:func:`drop_file_pages` drops them at the hand-over, and once more after the first task
+(its own first-time code: lazy imports, the parquet writer's set-up).  The pages the
+tasks do run are read again from the page cache at their next touch (minor faults, ~36 MB
+once on that job).  Peak RSS of the 50 400-source job: 465 -> 409 MB, 4 200 sources: 450 ->
+396 MB, for ~60 ms of CPU (docs/accuracy-and-speed.md).  The heap pages the set-up freed
+(~105 MB there) are not trimmed then: the tasks reuse them (the peak is the same with a
+trim), and a trim makes them fault in again (~30 000 minor faults).
 """
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
 import gc
+import mmap
 import re
 
-__all__ = ["release_memory", "trim_allocator", "drop_file_pages", "release_between_steps"]
+__all__ = ["release_memory", "trim_allocator", "drop_file_pages"]
 
 #: Where this process's mappings and their resident pages are listed (Linux).
 SMAPS = "/proc/self/smaps"
-#: ``madvise`` advice: drop the mapping's resident pages (Linux, all architectures).
-MADV_DONTNEED = 4
 _MAPPING = re.compile(r"^([0-9a-f]+)-([0-9a-f]+) (\S+) \S+ \S+ \S+\s*(.*)$")
 
 
@@ -104,28 +104,16 @@ def drop_file_pages() -> int:
             text = fh.read()
     except OSError:
         return 0
-    libc = _libc()
-    madvise = getattr(libc, "madvise", None)
-    if madvise is None:
+    advice = getattr(mmap, "MADV_DONTNEED", None)
+    madvise = getattr(_libc(), "madvise", None)
+    if madvise is None or advice is None:
         return 0
     madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
     dropped = 0
     for start, end, rss in _clean_file_mappings(text):
-        if madvise(start, end - start, MADV_DONTNEED) == 0:
+        if madvise(start, end - start, advice) == 0:
             dropped += rss
     return dropped
-
-
-def release_between_steps() -> None:
-    """What the last step freed (heap pages) and the code pages it alone ran go back to the
-    system: collect, trim the heap (:func:`trim_allocator`), drop clean file pages
-    (:func:`drop_file_pages`).  For a hand-over inside one process (the set-up to the
-    tasks); nothing that lives is dropped, so nothing is computed again.  ~10-20 ms of CPU
-    (reading the process's ~1 000 mappings), and the minor faults of the pages touched again.
-    """
-    gc.collect()
-    trim_allocator()
-    drop_file_pages()
 
 
 def release_memory() -> None:
