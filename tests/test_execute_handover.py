@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import glaciar.execute as execute
 from glaciar.config import load_config
+from glaciar.contexts import clear_contexts
 from glaciar.store import read_results
 
 
@@ -22,8 +23,13 @@ def test_one_worker_drops_file_pages_before_the_first_task_and_after_it(two_task
 
     monkeypatch.setattr(execute, "drop_file_pages", counted_drop)
     monkeypatch.setattr(execute, "run_task", counted_task)
+    clear_contexts()                # the field is measured in this call
     execute.simulate(load_config(cfg_path), tmp_path / "run", workers=1, progress=False)
     assert events == ["drop", "task", "drop", "task"]
+    # Again with the field's context kept from that call: no set-up ran, nothing dropped.
+    events.clear()
+    execute.simulate(load_config(cfg_path), tmp_path / "again", workers=1, progress=False)
+    assert events == ["task", "task"]
     # The first task run apart from its chunk: the same rows, bit for bit.
     new, old = read_results(tmp_path / "run"), read_results(reference)
     key = sorted(new.columns)
