@@ -277,7 +277,7 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
             # and once more after it (its own first-time code), so they do not add to the
             # tasks' peak RSS (glaciar.memory; ~30 ms each).  Once per process, and again
             # after a field is measured here (not for a context kept from an earlier call).
-            drop = _DROPPED_AT[0] != fields_measured()
+            drop = bool(chunks) and _DROPPED_AT[0] != fields_measured()
             if drop:
                 drop_file_pages()
             for i, ch in enumerate(chunks):
