@@ -14,7 +14,10 @@ this one run (never from constants measured elsewhere):
 * with two job sizes, the marginal CPU per source (difference of the two jobs'
   CPU over the difference of their sources: the fixed costs cancel) and its ratio;
 * peak RSS of each (the largest process of the child's tree, ``ru_maxrss`` from
-  ``os.wait4``) and the wall time;
+  ``os.wait4``) and the wall time; and what was resident at the child's sampled peak
+  (``/proc/<pid>/status`` every :data:`RSS_SAMPLE_PERIOD` s: anonymous memory and
+  file-backed pages -- code of the libraries, memory-mapped field caches -- and when in
+  the run it came; Linux only, the child itself, not its own children);
 * the load average before and after each child: on a shared machine CPU time
   still compares, wall time does not.
 
@@ -66,6 +69,8 @@ import yaml
 #: GLACiAR steps z and m by a hard-coded 0.2 (the harness's README, "Inputs ...").
 GLACIAR_STEP = 0.2
 SINGLE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+#: How often :func:`run_measured` samples the child's resident set [s].
+RSS_SAMPLE_PERIOD = 0.02
 
 SETUP_HELP = """\
 vs_glaciar: the GLACiAR peer is not set up ({what}).
@@ -124,21 +129,79 @@ def n_sources(cfg: dict) -> int:
     return int(cfg["z_bins"]) * int(cfg["mag_bins"]) * int(cfg["n_iterations"]) * int(cfg["n_galaxies"])
 
 
+def status_mb(pid: int) -> dict | None:
+    """``VmRSS``, ``RssAnon``, ``RssFile``, ``RssShmem`` [MB] of a process (None: gone, or not
+    Linux)."""
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            text = fh.read()
+    except OSError:
+        return None
+    out = {}
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key in ("VmRSS", "RssAnon", "RssFile", "RssShmem"):
+            out[key] = int(value.split()[0]) / 1024.0
+    return out if "VmRSS" in out else None
+
+
+class RssSampler:
+    """Samples a process's resident set from a thread; keeps the sample of the largest VmRSS
+    and when it came (``peak``: the status fields and ``t`` [s] from the start)."""
+
+    def __init__(self, pid: int, period: float = RSS_SAMPLE_PERIOD):
+        import threading
+
+        self.pid, self.period, self.peak = pid, period, None
+        self._stop = threading.Event()
+        self._t0 = time.perf_counter()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            s = status_mb(self.pid)
+            if s is not None and (self.peak is None or s["VmRSS"] > self.peak["VmRSS"]):
+                self.peak = dict(s, t=time.perf_counter() - self._t0)
+            if self._stop.wait(self.period):
+                return
+
+    def stop(self) -> dict | None:
+        self._stop.set()
+        self._thread.join()
+        return self.peak
+
+
 def run_measured(cmd: list[str], env: dict, log: Path) -> dict:
-    """Run ``cmd``; its CPU (user + sys, waited-for descendants included), peak RSS and wall time."""
+    """Run ``cmd``; its CPU (user + sys, waited-for descendants included), peak RSS (and the
+    child's sampled peak: :class:`RssSampler`) and wall time."""
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     with open(log, "wb") as fh:
         proc = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT)
+        sampler = RssSampler(proc.pid)
+        # The sampler reads /proc/<pid> until the child is reaped: wait4 then frees the pid.
         _, status, ru = os.wait4(proc.pid, 0)
+        rss_peak = sampler.stop()
     wall = time.perf_counter() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
         tail = log.read_text(errors="replace")[-3000:]
         raise RuntimeError(f"{' '.join(map(str, cmd[:3]))} ... exited {proc.returncode}; end of {log}:\n{tail}")
     return {"cpu_s": ru.ru_utime + ru.ru_stime, "user_s": ru.ru_utime, "sys_s": ru.ru_stime,
-            "maxrss_mb": ru.ru_maxrss / 1024.0, "wall_s": wall,
+            "maxrss_mb": ru.ru_maxrss / 1024.0, "wall_s": wall, "rss_peak": rss_peak,
             "load": (load0, os.getloadavg()[0])}
+
+
+def rss_note(meas: dict) -> str:
+    """What was resident at the child's sampled peak, e.g. ``(anon 312 + file 96 MB at 81 s of
+    154 s)``; empty without samples."""
+    p = meas.get("rss_peak")
+    if not p or "RssAnon" not in p:
+        return ""
+    return (f" (sampled peak {p['VmRSS']:.0f} MB: anon {p['RssAnon']:.0f} + file "
+            f"{p.get('RssFile', 0.0) + p.get('RssShmem', 0.0):.0f} MB, at {p['t']:.0f} s of "
+            f"{meas['wall_s']:.0f} s)")
 
 
 def child_env(extra: dict | None = None) -> dict:
@@ -423,10 +486,10 @@ def main(argv=None):
             if peer["meas"] is not None:
                 p = peer["meas"]
                 print(f"[vs_glaciar]   GLACiAR: {p['cpu_s']:.1f} s CPU, {p['wall_s']:.1f} s wall, "
-                      f"{p['maxrss_mb']:.0f} MB", flush=True)
+                      f"{p['maxrss_mb']:.0f} MB{rss_note(p)}", flush=True)
             g = run_glaciar(peer["params"], job)
             print(f"[vs_glaciar]   glaciar: {g['cpu_s']:.1f} s CPU, {g['wall_s']:.1f} s wall, "
-                  f"{g['maxrss_mb']:.0f} MB", flush=True)
+                  f"{g['maxrss_mb']:.0f} MB{rss_note(g)}", flush=True)
             if g["n"] != peer["n"]:
                 raise RuntimeError(f"glaciar injected {g['n']} sources, GLACiAR {peer['n']}: not the same job")
             rows.append((peer["n"], peer["meas"], g))
@@ -444,12 +507,16 @@ def main(argv=None):
         if p is None:
             print(f"{f'{n} sources: CPU per source':<40s} {'-':>10s} {1e3 * g['cpu_s'] / n:>10.2f}"
                   f" {'':9s}  ms")
+            print(f"{f'{n} sources: peak RSS':<40s} {'-':>10s} {g['maxrss_mb']:>10.0f}"
+                  f" {'':9s}  MB{rss_note(g)}")
             continue
         print(fmt_row(f"{n} sources: CPU per source", 1e3 * p["cpu_s"] / n, 1e3 * g["cpu_s"] / n, "ms",
                       digits=2))
         print(fmt_row(f"{n} sources: whole-process CPU", p["cpu_s"], g["cpu_s"], "s"))
         print(fmt_row(f"{n} sources: wall time", p["wall_s"], g["wall_s"], "s"))
         print(fmt_row(f"{n} sources: peak RSS", p["maxrss_mb"], g["maxrss_mb"], "MB", digits=0))
+        if rss_note(g):
+            print(f"{'':40s} glaciar{rss_note(g)}")
     if len(rows) >= 2:
         (n0, p0, g0), (n1, p1, g1) = rows[0], rows[-1]
         dn = n1 - n0

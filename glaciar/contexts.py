@@ -157,6 +157,19 @@ def finish_context_cache(run_dir: Path, complete: bool) -> None:
 
 #: This process's field contexts, ``{(config hash, base_dir, field): FieldContext}``: one at a time.
 _CONTEXTS: dict = {}
+#: How many fields this process has measured (:func:`fields_measured`).
+_MEASURED = [0]
+
+
+def fields_measured() -> int:
+    """How many field contexts this process has measured from the images so far (not
+    mapped from a cache): a caller can tell whether a step ran a field's set-up here."""
+    return _MEASURED[0]
+
+
+def _build(cfg: Config, survey: Survey, field: str) -> FieldContext:
+    _MEASURED[0] += 1
+    return build_field_context(cfg, survey, field)
 
 
 def clear_contexts() -> None:
@@ -178,7 +191,7 @@ def worker_context(cfg_dict: dict, base_dir: str, cfg_hash: str, field: str,
         if path is not None and fieldcache.exists(path):
             ctx = open_field_context(cfg, survey, field, path)
         else:
-            ctx = build_field_context(cfg, survey, field)
+            ctx = _build(cfg, survey, field)
             if path is not None:
                 ctx = save_field_context(ctx, path)
         _CONTEXTS[key] = ctx
@@ -207,7 +220,7 @@ def main_context(cfg: Config, survey: Survey, field: str, cached: Path | None = 
                 warnings.warn(f"{exc.path}: unreadable field cache ({exc.why}); the field is "
                               "measured again", StoreWarning)
         if ctx is None:
-            ctx = build_field_context(cfg, survey, field)
+            ctx = _build(cfg, survey, field)
             if save and cached is not None:
                 ctx = save_field_context(ctx, cached)
         _CONTEXTS[key] = ctx
