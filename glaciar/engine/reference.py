@@ -1,0 +1,270 @@
+"""The reference (original-image) sep extraction of a large image, by full-width row strips.
+
+:func:`strip_extract` returns what one ``sep.extract`` call (CLEAN off) on the whole
+detection image returns -- the same catalogue rows in the same order and the same
+segmentation map, bit for bit -- while holding only a strip of rows at a time.
+
+Why a strip's objects are the whole frame's
+-------------------------------------------
+Read from sep's source (``src/extract.c``, ``deblend.c``, ``analyse.c``):
+
+1. *Detection is local.*  A pixel is above threshold when its filtered value
+   (the convolution of rows ``y - hf .. y + hf``, ``hf`` the filter half-height,
+   masked pixels zeroed first) exceeds ``DETECT_THRESH`` times its RMS.  In a
+   strip extracted from rows ``ya .. yb - 1`` the rows ``ya + hf .. yb - hf - 1``
+   therefore have the whole frame's detection mask.  A connected (8-neighbour)
+   region whose rows and whose neighbours' rows all lie there is a whole-frame
+   region: same pixels, same minimum-area test, same multi-threshold deblending
+   tree, same pixel-chain order (lutz builds a region's chain from its own
+   segments only).  Each strip *owns* the regions whose last row lies in its own
+   rows; a strip with an owned region that reaches its cut top is extracted again
+   with twice as many rows above, until none does (at the image's edges nothing is
+   cut).
+2. *Coordinates are absolute.*  sep adds an object's ``xmin`` / ``ymin`` back to
+   its centroid in double precision (``analyse``: ``my = ym + ymin``), and
+   ``gatherup`` takes ``x - mx`` in single precision: a strip cut out at row 0
+   would round differently.  Each strip is therefore passed to sep inside a
+   canvas of the image's width whose rows ``0 .. ya - 1`` are zeros that are never
+   written (``np.zeros``: the kernel's shared zero page, no resident memory), so
+   every coordinate is the whole frame's; sep's first-rows quirks (the mask
+   is not applied to the rows its line buffer preloads, ``SEP_OBJ_TRUNC`` on the
+   first and last rows) then apply to the same image rows too.
+3. *Deblending draws random numbers from one stream per call.*  ``gatherup``
+   hands each faint pixel of a split region to a child with ``rand_r`` on a seed
+   that ``sep_extract`` resets to 1, so a split region's footprints depend on
+   how many draws every split region before it, anywhere in the frame, made;
+   regions that are not split draw nothing.  All split regions are therefore
+   extracted once more together, in one call, at their true positions on an
+   otherwise empty canvas (their pixels and the filter half-width around them
+   written, the RMS set to 1e30 on every other pixel within twice the half-width
+   plus one of them, so nothing else is detected and no region grows): the
+   stream then meets them in the whole frame's order with the whole frame's
+   draws in between, and their children (same count and order as in the strips,
+   the tree being deterministic) take their footprints and catalogue rows from
+   this call.
+4. *Order and ids.*  sep appends an object when the scan leaves its region
+   (children of a split region consecutively); regions owned by earlier strips
+   end on earlier rows, and within a strip sep's own order is the frame's.  The
+   catalogue is the strips' kept rows in strip order, the segmentation ids their
+   positions + 1.
+
+Only the convolution filter with the per-pixel RMS threshold is handled
+(:func:`strips_apply`); CLEAN is applied afterwards by the caller (glaciar's exact
+emulation works on a CLEAN-off extraction).  ``tests/engine/test_reference.py``
+checks the result against one ``sep.extract`` call on images with large, blended and
+masked objects cut by strips of a few rows.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from glaciar.engine import sepscan
+from glaciar.engine.detect import DetectionError, DetectionParams, sanitize, sep_extract
+
+__all__ = ["STRIP_PIXELS", "strips_apply", "strip_extract"]
+
+#: Pixels a strip owns [pixels] (~1050 rows at 16000 columns): its sep call holds
+#: ~13 bytes per pixel of it, plus the rows above and below it.
+STRIP_PIXELS = 1 << 24
+_EIGHT = np.ones((3, 3), dtype=bool)          # sep's regions are 8-connected
+_BIG_RMS = np.float32(1e30)                   # an RMS no filtered value exceeds
+
+
+def strips_apply(params: DetectionParams) -> bool:
+    """Whether :func:`strip_extract` reproduces ``params``' extraction (the
+    convolution filter or none, and the per-pixel RMS threshold)."""
+    return params.filter_kernel is None or (params.filter_type == "conv" and params.threshold_rms == "pixel")
+
+
+def _sanitized_rows(image, rms, mask, ya, yb):
+    return sanitize(image[ya:yb], rms[ya:yb], None if mask is None else mask[ya:yb])
+
+
+def _canvas_extract(image, rms, mask, ya, yb, params):
+    """sep (CLEAN off) on rows ``ya .. yb - 1`` placed at their true rows of a zero canvas,
+    and those rows' above-threshold mask (every region, whatever its area)."""
+    nx = image.shape[1]
+    d, e, nd = _sanitized_rows(image, rms, mask, ya, yb)
+    above = sepscan.detection_mask(d, e, nd, params, y0=ya)[0]
+    data = np.zeros((yb, nx), dtype=np.float32)
+    err = np.zeros((yb, nx), dtype=np.float32)
+    nodata = np.zeros((yb, nx), dtype=bool)
+    data[ya:], err[ya:], nodata[ya:] = d, e, nd
+    del d, e, nd
+    cat, seg = sep_extract(data, err, nodata, params, False)
+    return cat, seg, above
+
+
+def _strip(image, rms, mask, y0, y1, halo, params):
+    """The objects of the regions ending in rows ``y0 .. y1 - 1``, from one exact extraction.
+
+    Returns ``(cat, seg_rows, ya, keep_ids, obj_region, regions)``: the strip's catalogue,
+    its segmentation's rows ``ya ..``, the ids kept (in sep's order), each kept object's
+    region index into ``regions`` (a list of (y0, y1, x0, x1, pixel mask, n_objects)).
+    """
+    ny = image.shape[0]
+    hf = 0 if params.filter_kernel is None else params.filter_halfwidth
+    yb = min(ny, y1 + halo)
+    up = halo
+    while True:
+        ya = max(0, y0 - up)
+        cat, seg, above = _canvas_extract(image, rms, mask, ya, yb, params)
+        s = seg[ya:]
+        # regions from the above-threshold mask, not the segmentation: a region the cut leaves
+        # below DETECT_MINAREA has no segment in the strip, yet must send the strip up
+        above |= s > 0
+        lab, _ = ndimage.label(above, structure=_EIGHT)
+        del above
+        boxes = ndimage.find_objects(lab)
+        n = len(cat)
+        region_of = np.zeros(n + 1, dtype=np.int64)          # object id -> region label
+        on = s > 0
+        region_of[s[on]] = lab[on]
+        del on
+        last = np.array([b[0].stop - 1 + ya for b in boxes], dtype=np.int64)
+        first = np.array([b[0].start + ya for b in boxes], dtype=np.int64)
+        owned = (last >= y0) & (last < y1)
+        cut = owned & (first < ya + hf + 1) if ya > 0 else np.zeros_like(owned)
+        if not cut.any():
+            break
+        if ya == 0:                       # pragma: no cover - nothing is cut at the image's top
+            raise DetectionError("strip extraction: a region at the image's top was cut")
+        up *= 2
+    ids = np.arange(1, n + 1)
+    # objects with no pixel in rows ya.. (the canvas's zero rows just above ya) are not owned
+    inreg = region_of[1:] > 0
+    keep = ids[inreg & owned[np.maximum(region_of[1:], 1) - 1]] if len(boxes) else ids[:0]
+    labels, first_pos, counts = np.unique(region_of[keep], return_index=True, return_counts=True)
+    # in sep's order (that of their first child), which is the order their draws are made in
+    split_labels = labels[counts > 1][np.argsort(first_pos[counts > 1], kind="stable")]
+    regions, index = [], {}
+    for lb in split_labels.tolist():
+        sl = boxes[lb - 1]
+        index[lb] = len(regions)
+        regions.append((sl[0].start + ya, sl[0].stop + ya, sl[1].start, sl[1].stop, lab[sl] == lb))
+    obj_split = np.array([index.get(int(r), -1) for r in region_of[keep]], dtype=np.int64)
+    return cat[keep - 1], s, ya, keep, obj_split, regions
+
+
+def _replay(image, rms, mask, regions, params):
+    """sep (CLEAN off) on the split regions alone, at their true positions, in one call."""
+    ny, nx = image.shape
+    hf = 0 if params.filter_kernel is None else params.filter_halfwidth
+    data = np.zeros((ny, nx), dtype=np.float32)
+    err = np.zeros((ny, nx), dtype=np.float32)
+
+    def grown(r, g):
+        return max(0, r[0] - g), min(ny, r[1] + g), max(0, r[2] - g), min(nx, r[3] + g)
+
+    for r in regions:
+        # every pixel whose filtered value reads the written data gets an RMS nothing exceeds
+        a, b, c, d = grown(r, 2 * hf + 1)
+        err[a:b, c:d] = _BIG_RMS
+    for r in regions:
+        a, b, c, d = grown(r, hf)
+        dd, ee, _ = sanitize(image[a:b, c:d], rms[a:b, c:d], None if mask is None else mask[a:b, c:d])
+        data[a:b, c:d] = dd
+        inside = np.zeros(dd.shape, dtype=bool)
+        inside[r[0] - a:r[1] - a, r[2] - c:r[3] - c] = r[4]
+        err[a:b, c:d][inside] = ee[inside]
+    return sep_extract(data, err, None, params, False)
+
+
+def strip_extract(image, rms, mask, params: DetectionParams, strip_rows: int | None = None,
+                  halo: int | None = None, out: np.ndarray | None = None):
+    """``sep.extract`` (CLEAN off) of the whole image, computed by row strips.
+
+    Parameters
+    ----------
+    image, rms : ndarray (ny, nx)
+        Background-subtracted detection image and its RMS [image units], any dtype
+        (a memory map is read a strip at a time); sanitized as
+        :func:`glaciar.engine.detect.sanitize` does.
+    mask : ndarray of bool or None
+        True where there are no data.
+    params : DetectionParams
+        Must satisfy :func:`strips_apply`.
+    strip_rows : int, optional
+        Rows each strip owns (default :data:`STRIP_PIXELS` / nx).
+    halo : int, optional
+        Rows read below a strip and, at first, above it (default 64; at least the
+        filter half-width + 1).
+    out : ndarray of int32, optional
+        Zero-filled (ny, nx) array the segmentation is written into (e.g. a map on
+        disk); default a new array.
+
+    Returns
+    -------
+    cat : structured ndarray
+        sep's catalogue of the whole image (row i: segment id i + 1).
+    seg : ndarray of int32
+        The segmentation map (``out``).
+
+    Raises
+    ------
+    ValueError
+        When ``params`` are not handled (:func:`strips_apply`).
+    DetectionError
+        When sep fails.
+    """
+    if not strips_apply(params):
+        raise ValueError("strip_extract handles the 'conv' filter with threshold_rms='pixel' only; "
+                         f"got filter_type={params.filter_type!r}, threshold_rms={params.threshold_rms!r}")
+    ny, nx = image.shape
+    hf = 0 if params.filter_kernel is None else params.filter_halfwidth
+    rows = max(1, int(strip_rows) if strip_rows else (STRIP_PIXELS // max(nx, 1)))
+    halo = max(hf + 1, 64 if halo is None else int(halo))
+    seg = np.zeros((ny, nx), dtype=np.int32) if out is None else out
+    cats, split_pos, regions = [], [], []
+    total = 0
+    for y0 in range(0, ny, rows):
+        y1 = min(ny, y0 + rows)
+        cat, s, ya, keep, obj_split, regs = _strip(image, rms, mask, y0, y1, halo, params)
+        lut = np.zeros(len(keep) and int(keep[-1]) + 1 or 1, dtype=np.int32)
+        single = obj_split < 0
+        lut[keep[single]] = total + 1 + np.flatnonzero(single).astype(np.int32)
+        rel = ndimage.find_objects(s)          # boxes of the strip's ids, to write by object
+        for k in keep[single].tolist():
+            sl = rel[k - 1]
+            piece = s[sl]
+            hit = piece == k
+            seg[sl[0].start + ya:sl[0].stop + ya, sl[1]][hit] = lut[k]
+        # split regions: their children's global positions, in order, per region
+        for i, r in enumerate(regs):
+            pos = total + np.flatnonzero(obj_split == i)
+            split_pos.append(pos)
+            regions.append(r)
+        cats.append(cat)
+        total += len(cat)
+        del s, rel
+    if not cats:
+        return np.zeros(0, dtype=sep_extract_dtype()), seg
+    full = np.concatenate(cats)
+    if regions:
+        rcat, rseg = _replay(image, rms, mask, regions, params)
+        counts = [p.size for p in split_pos]
+        if len(rcat) != sum(counts):
+            raise DetectionError(f"strip extraction: {len(rcat)} objects in the split regions' "
+                                 f"replay, {sum(counts)} in the strips")
+        start = 0
+        for r, pos in zip(regions, split_pos):
+            k = pos.size
+            full[pos] = rcat[start:start + k]
+            piece = rseg[r[0]:r[1], r[2]:r[3]]
+            own = (piece > start) & (piece <= start + k)
+            if not np.array_equal(own, r[4]):
+                raise DetectionError("strip extraction: a split region's replay differs from its strip")
+            lut = np.zeros(k + 1, dtype=np.int32)
+            lut[1:] = pos + 1
+            seg[r[0]:r[1], r[2]:r[3]][own] = lut[piece[own] - start]
+            start += k
+        del rseg
+    return full, seg
+
+
+def sep_extract_dtype():
+    """The dtype of sep's catalogue (from an empty extraction)."""
+    cat, _ = sep_extract(np.zeros((4, 4), dtype=np.float32), np.ones((4, 4), dtype=np.float32),
+                         np.zeros((4, 4), dtype=bool), DetectionParams(filter_kernel=None), False)
+    return cat.dtype
