@@ -21,6 +21,7 @@ from .config import Config
 from .engine.detect import (DetectionParams, background_model, builtin_filter, read_conv_file,
                             release_mapped, sanitize)
 from .engine.measure import reference_extraction
+from .engine.reference import strip_reference, strips_apply
 from .engine.blocks import row_blocks
 from .engine.classify import ClassificationParams
 from .engine.coadd import coadd
@@ -519,6 +520,16 @@ SPILL_MIN_BYTES = 1 << 30
 #: Callables ``hook(step)`` told when each step of :func:`build_field_context` ends (its
 #: name, e.g. ``"band_pixels f160w"``): how benchmarks/setup_memory.py takes each step's
 #: peak memory and time. Empty in a run.
+def _reference(spilled, image, rms, params, zeropoint, mask, photometry=None):
+    """The field's reference extraction: by row strips on a large (spilled) field whose
+    settings they reproduce bit for bit (:func:`glaciar.engine.reference.strip_reference`:
+    CLEAN off, sep, the convolution filter), else sep on the whole frame."""
+    if spilled and not params.clean and params.backend == "sep" and params.clean_style == "region" \
+            and strips_apply(params):
+        return strip_reference(image, rms, params, zeropoint, mask=mask, photometry=photometry)
+    return reference_extraction(image, rms, params, zeropoint, mask=mask, photometry=photometry)
+
+
 SETUP_STEP_HOOKS: list = []
 
 
@@ -594,12 +605,15 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         det_image_rms = keep(det_image_rms)
         det_image = keep(det_image)
         drop()
-        reference = reference_extraction(det_image, det_image_rms, params,
-                                         zps[det], mask=mask, photometry=(bases[det], rms[det]))
+        reference = _reference(spilled, det_image, det_image_rms, params, zps[det], mask,
+                               photometry=(bases[det], rms[det]))
         del det_image
     else:
-        reference = reference_extraction(bases[det], rms[det], params, zps[det], mask=mask)
-    if spilled and isinstance(getattr(reference, "segmap", None), np.ndarray):
+        reference = _reference(spilled, bases[det], rms[det], params, zps[det], mask)
+    seg = getattr(reference, "segmap", None)
+    if isinstance(seg, np.memmap) and getattr(seg, "_mmap", None) is not None:
+        spilled.append(seg._mmap)       # written on disk by strips: dropped with the others
+    elif spilled and isinstance(seg, np.ndarray):
         reference = dataclasses.replace(reference, segmap=keep(reference.segmap))
     drop()
     _step_done("reference_extraction" if cfg.survey.detection_image is None else

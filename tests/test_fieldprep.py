@@ -127,3 +127,37 @@ def test_correlated_noise_by_tiles_is_the_whole_frame_measurement(monkeypatch, s
         assert got == want, b
         assert len(npix) >= 5
     assert set(released) == set(pix) and len(released) > 2 * len(pix)    # block by block
+
+
+def test_large_field_reference_by_strips_equals_whole_frame(small_survey, monkeypatch, assert_same_outputs):
+    """With CLEAN off, a large (spilled) field's reference extraction runs by row strips
+    (a few rows each here): the context's reference, depth and noise models, and a task's
+    rows, equal the whole-frame build's."""
+    from glaciar import fieldprep
+    from glaciar.config import load_config
+    from glaciar.engine import reference
+    from glaciar.engine.task import TaskSpec, run_task
+    from glaciar.survey import Survey
+
+    cfg = load_config(small_survey)
+    cfg = cfg.model_copy(update={"detection": cfg.detection.model_copy(update={"clean": False})})
+    field = cfg.survey.fields[0]
+    whole = fieldprep.build_field_context(cfg, Survey.from_config(cfg), field)
+    calls = []
+    monkeypatch.setattr(fieldprep, "SPILL_MIN_BYTES", 0)
+    monkeypatch.setattr(reference, "STRIP_PIXELS", 7 * 320)
+    monkeypatch.setattr(fieldprep, "strip_reference",
+                        lambda *a, **k: calls.append(1) or reference.strip_reference(*a, **k))
+    strips = fieldprep.build_field_context(cfg, Survey.from_config(cfg), field)
+    assert calls == [1]
+    a, b = whole.reference, strips.reference
+    np.testing.assert_array_equal(np.asarray(b.segmap), a.segmap)
+    for name in a.catalog.dtype.names:
+        np.testing.assert_array_equal(b.catalog[name], a.catalog[name], err_msg=name)
+    np.testing.assert_array_equal(b.flux, a.flux)
+    np.testing.assert_array_equal(b.mag, a.mag)
+    np.testing.assert_array_equal(b.objects.need, a.objects.need)
+    np.testing.assert_array_equal(np.asarray(strips.depth), whole.depth)
+    assert strips.measured_noise == whole.measured_noise
+    spec = TaskSpec(field=field, field_index=0, z_index=0, mag_index=0, iteration=0, z=8.0, mag=26.0)
+    assert_same_outputs(run_task(strips, spec, 3), run_task(whole, spec, 3), "strips")

@@ -60,9 +60,9 @@ import numpy as np
 from scipy import ndimage
 
 from glaciar.engine import sepscan
-from glaciar.engine.detect import DetectionError, DetectionParams, sanitize, sep_extract
+from glaciar.engine.detect import DetectionError, DetectionParams, release_mapped, sanitize, sep_extract
 
-__all__ = ["STRIP_PIXELS", "strips_apply", "strip_extract"]
+__all__ = ["STRIP_PIXELS", "strips_apply", "strip_extract", "strip_reference", "SanitizedRows"]
 
 #: Pixels a strip owns [pixels] (~1050 rows at 16000 columns): its sep call holds
 #: ~13 bytes per pixel of it, plus the rows above and below it.
@@ -78,7 +78,9 @@ def strips_apply(params: DetectionParams) -> bool:
 
 
 def _sanitized_rows(image, rms, mask, ya, yb):
-    return sanitize(image[ya:yb], rms[ya:yb], None if mask is None else mask[ya:yb])
+    out = sanitize(image[ya:yb], rms[ya:yb], None if mask is None else mask[ya:yb])
+    release_mapped(image, rms, mask)        # a spilled input's pages, read once
+    return out
 
 
 def _canvas_extract(image, rms, mask, ya, yb, params):
@@ -161,9 +163,11 @@ def _replay(image, rms, mask, regions, params):
         # every pixel whose filtered value reads the written data gets an RMS nothing exceeds
         a, b, c, d = grown(r, 2 * hf + 1)
         err[a:b, c:d] = _BIG_RMS
-    for r in regions:
+    for k, r in enumerate(regions):
         a, b, c, d = grown(r, hf)
         dd, ee, _ = sanitize(image[a:b, c:d], rms[a:b, c:d], None if mask is None else mask[a:b, c:d])
+        if k % 256 == 255:
+            release_mapped(image, rms, mask)
         data[a:b, c:d] = dd
         inside = np.zeros(dd.shape, dtype=bool)
         inside[r[0] - a:r[1] - a, r[2] - c:r[3] - c] = r[4]
@@ -238,6 +242,7 @@ def strip_extract(image, rms, mask, params: DetectionParams, strip_rows: int | N
         cats.append(cat)
         total += len(cat)
         del s, rel
+        release_mapped(seg)             # a segmentation on disk: its written pages go
     if not cats:
         return np.zeros(0, dtype=sep_extract_dtype()), seg
     full = np.concatenate(cats)
@@ -268,3 +273,150 @@ def sep_extract_dtype():
     cat, _ = sep_extract(np.zeros((4, 4), dtype=np.float32), np.ones((4, 4), dtype=np.float32),
                          np.zeros((4, 4), dtype=bool), DetectionParams(filter_kernel=None), False)
     return cat.dtype
+
+
+# --------------------------------------------------------------------------
+# The whole reference (segmentation + photometry) of a large field, memory bounded
+# --------------------------------------------------------------------------
+
+class SanitizedRows:
+    """Row slices of :func:`~glaciar.engine.detect.sanitize` ``(image, rms, mask)``, made on
+    request: ``.data[a:b]``, ``.err[a:b]``, ``.nodata[a:b]`` (nothing full-frame is held; the
+    pages of memory-mapped inputs are dropped after each read).  Sanitizing is per pixel, so
+    a slice is the whole-frame result's slice."""
+
+    def __init__(self, image, rms, mask):
+        self._src = (image, rms, mask)
+        self._key = None
+        self._val = None
+        self.shape = tuple(np.shape(image))
+        self.data = _RowView(self, 0, np.float32)
+        self.err = _RowView(self, 1, np.float32)
+        self.nodata = _RowView(self, 2, np.bool_)
+
+    def rows(self, a: int, b: int):
+        """``(data, err, nodata)`` of rows ``a .. b - 1``."""
+        if self._key != (a, b):
+            image, rms, mask = self._src
+            self._val = _sanitized_rows(image, rms, mask, a, b)
+            self._key = (a, b)
+        return self._val
+
+
+class _RowView:
+    """One of :class:`SanitizedRows`' arrays, sliced by rows."""
+
+    ndim = 2
+
+    def __init__(self, owner: SanitizedRows, k: int, dtype):
+        self._owner, self._k, self.dtype = owner, k, np.dtype(dtype)
+        self.shape = owner.shape
+
+    def __getitem__(self, key):
+        rows, rest = (key[0], key[1:]) if isinstance(key, tuple) else (key, ())
+        if not isinstance(rows, slice):
+            raise TypeError("row views are read by slices of rows")
+        a, b, step = rows.indices(self.shape[0])
+        if step != 1:
+            raise TypeError("row views are read by contiguous rows")
+        out = self._owner.rows(a, b)[self._k]
+        return out[(slice(None),) + tuple(rest)] if rest else out
+
+
+class _MapRows:
+    """Row slices of a memory map, copied, its pages dropped after each read."""
+
+    ndim = 2
+
+    def __init__(self, arr):
+        self._arr, self.shape, self.dtype = arr, arr.shape, arr.dtype
+
+    def __getitem__(self, key):
+        out = np.array(self._arr[key])
+        release_mapped(self._arr)
+        return out
+
+
+def _row_canvas(rows: SanitizedRows, seg, lo: int, hi: int):
+    """Rows ``lo .. hi - 1`` of the sanitized image, RMS, no-data mask and segmentation at
+    their true rows of zero canvases ``hi`` rows high (absolute coordinates for sep)."""
+    nx = rows.shape[1]
+    d, e, nd = rows.rows(lo, hi)
+    out = [np.zeros((hi, nx), dtype=dt) for dt in (np.float32, np.float32, bool, np.int32)]
+    out[0][lo:], out[1][lo:], out[2][lo:] = d, e, nd
+    out[3][lo:] = seg[lo:hi]
+    release_mapped(seg)
+    return out
+
+
+def _span(y, ext, ny):
+    """Rows ``lo, hi`` holding every pixel sep reads for ellipses of half-height ``ext``
+    about ``y`` (3 rows of margin over sep's box rounding)."""
+    ext = np.nan_to_num(ext, nan=0.0, posinf=float(ny))
+    lo = int(max(0, np.floor(np.min(y - ext)) - 3))
+    hi = int(min(ny, np.ceil(np.max(y + ext)) + 4))
+    return lo, hi
+
+
+def strip_reference(det_image_sub, det_rms, params: DetectionParams, zeropoint: float, mask=None,
+                    photometry=None, seg_out=None):
+    """:func:`glaciar.engine.measure.reference_extraction` of a large image (CLEAN off,
+    ``clean_style="region"``, sep backend), with no full-frame array in memory.
+
+    The segmentation is :func:`strip_extract`'s, written into ``seg_out`` (default a
+    scratch map on disk, :func:`glaciar.engine.fieldcache.scratch_array`); the AUTO
+    photometry runs by row bands of objects on zero canvases holding the rows their
+    Kron and AUTO ellipses read, at their true rows (sep measures each object on its own
+    pixels, so each result is the whole frame's); the region boxes read the image by row
+    tiles.  Same :class:`~glaciar.engine.measure.FieldReference`, bit for bit.
+
+    Parameters
+    ----------
+    As :func:`~glaciar.engine.measure.reference_extraction` (``det_image_sub``, ``det_rms``,
+    ``mask`` may be memory maps); ``seg_out``: zero-filled (ny, nx) int32 array to write
+    the segmentation into.
+    """
+    from glaciar.engine import photometry as phot
+    from glaciar.engine.canvas import ObjectBoxes, ellipse_half_extent, safe_shape
+    from glaciar.engine.fieldcache import scratch_array
+    from glaciar.engine.measure import FieldReference, reference_boxes
+
+    if params.clean or params.backend != "sep" or params.clean_style != "region":
+        raise ValueError("strip_reference handles CLEAN off with the sep backend and clean_style 'region'")
+    ny, nx = np.shape(det_image_sub)
+    seg = scratch_array((ny, nx), np.int32) if seg_out is None else seg_out
+    cat, seg = strip_extract(det_image_sub, det_rms, mask, params, out=seg)
+    n = len(cat)
+    if n == 0:
+        return FieldReference(seg, np.zeros(0), np.zeros(0), cat)
+    geo = {f: np.asarray(cat[f], dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}
+    a, b, th = safe_shape(geo["a"], geo["b"], geo["theta"])
+    x, y = geo["x"], geo["y"]
+    det = SanitizedRows(det_image_sub, det_rms, mask)
+    band = det if photometry is None else SanitizedRows(photometry[0], photometry[1], mask)
+    kr = np.empty(n)
+    flux = np.empty(n)
+    order = np.argsort(y, kind="stable")
+    band_rows = max(1, STRIP_PIXELS // max(nx, 1))
+    edges = np.searchsorted(y[order], np.arange(0, ny + band_rows, band_rows), side="left")
+    for i0, i1 in zip(edges[:-1], edges[1:]):
+        if i1 <= i0:
+            continue
+        g = order[i0:i1]
+        ids = (g + 1).astype(np.int32)
+        lo, hi = _span(y[g], ellipse_half_extent(a[g], b[g], th[g], 6.0)[0], ny)
+        d, e, nd, s = _row_canvas(det, seg, lo, hi)
+        kr[g] = phot.kron_radius(d, x[g], y[g], a[g], b[g], th[g], segmap=s, seg_id=ids, mask=nd)
+        scale = phot.auto_scale(kr[g], params.phot_autoparams)
+        lo2, hi2 = _span(y[g], ellipse_half_extent(a[g], b[g], th[g], scale)[0], ny)
+        if band is not det or lo2 < lo or hi2 > hi:
+            del d, e, nd, s
+            d, e, nd, s = _row_canvas(band, seg, min(lo, lo2), max(hi, hi2))
+        flux[g] = phot.auto_photometry(d, e, phot.Ellipses(x[g], y[g], a[g], b[g], th[g], scale),
+                                       segmap=s, seg_id=ids, mask=nd)[0]
+        del d, e, nd, s
+    scale = phot.auto_scale(kr, params.phot_autoparams)
+    mag, _, _ = phot.magnitudes(flux, np.ones_like(flux), zeropoint)
+    region_box, need_box = reference_boxes(det.data, det.err, det.nodata, _MapRows(seg), geo,
+                                           a, b, th, scale, params)
+    return FieldReference(seg, flux, mag, cat, ObjectBoxes.build(region_box, need_box, seg.shape))
