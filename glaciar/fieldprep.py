@@ -523,9 +523,8 @@ SPILL_MIN_BYTES = 1 << 30
 def _reference(spilled, image, rms, params, zeropoint, mask, photometry=None):
     """The field's reference extraction: by row strips on a large (spilled) field whose
     settings they reproduce bit for bit (:func:`glaciar.engine.reference.strip_reference`:
-    CLEAN off, sep, the convolution filter), else sep on the whole frame."""
-    if spilled and not params.clean and params.backend == "sep" and params.clean_style == "region" \
-            and strips_apply(params):
+    sep with CLEAN within regions or off, the convolution filter), else sep on the whole frame."""
+    if spilled and params.backend == "sep" and params.clean_style == "region" and strips_apply(params):
         return strip_reference(image, rms, params, zeropoint, mask=mask, photometry=photometry)
     return reference_extraction(image, rms, params, zeropoint, mask=mask, photometry=photometry)
 

@@ -336,6 +336,10 @@ class _MapRows:
         release_mapped(self._arr)
         return out
 
+    def __setitem__(self, key, value):
+        self._arr[key] = value
+        release_mapped(self._arr)
+
 
 def _row_canvas(rows: SanitizedRows, seg, lo: int, hi: int):
     """Rows ``lo .. hi - 1`` of the sanitized image, RMS, no-data mask and segmentation at
@@ -360,15 +364,18 @@ def _span(y, ext, ny):
 
 def strip_reference(det_image_sub, det_rms, params: DetectionParams, zeropoint: float, mask=None,
                     photometry=None, seg_out=None):
-    """:func:`glaciar.engine.measure.reference_extraction` of a large image (CLEAN off,
-    ``clean_style="region"``, sep backend), with no full-frame array in memory.
+    """:func:`glaciar.engine.measure.reference_extraction` of a large image (sep backend,
+    ``clean_style="region"``, CLEAN on or off), with no full-frame array in memory.
 
     The segmentation is :func:`strip_extract`'s, written into ``seg_out`` (default a
     scratch map on disk, :func:`glaciar.engine.fieldcache.scratch_array`); the AUTO
     photometry runs by row bands of objects on zero canvases holding the rows their
     Kron and AUTO ellipses read, at their true rows (sep measures each object on its own
     pixels, so each result is the whole frame's); the region boxes read the image by row
-    tiles.  Same :class:`~glaciar.engine.measure.FieldReference`, bit for bit.
+    tiles.  With CLEAN on, glaciar's exact emulation of sep's CLEAN
+    (:func:`glaciar.engine.segmentation.clean_extraction`) runs on the strips' result,
+    reading the image by row tiles and cut-outs.  Same
+    :class:`~glaciar.engine.measure.FieldReference`, bit for bit.
 
     Parameters
     ----------
@@ -381,18 +388,24 @@ def strip_reference(det_image_sub, det_rms, params: DetectionParams, zeropoint: 
     from glaciar.engine.fieldcache import scratch_array
     from glaciar.engine.measure import FieldReference, reference_boxes
 
-    if params.clean or params.backend != "sep" or params.clean_style != "region":
-        raise ValueError("strip_reference handles CLEAN off with the sep backend and clean_style 'region'")
+    from glaciar.engine.segmentation import clean_extraction
+
+    if params.backend != "sep" or params.clean_style != "region":
+        raise ValueError("strip_reference handles the sep backend with clean_style 'region' only")
     ny, nx = np.shape(det_image_sub)
     seg = scratch_array((ny, nx), np.int32) if seg_out is None else seg_out
     cat, seg = strip_extract(det_image_sub, det_rms, mask, params, out=seg)
+    det = SanitizedRows(det_image_sub, det_rms, mask)
+    if params.clean:
+        # glaciar's exact CLEAN on the CLEAN-off extraction (what the whole-frame reference
+        # does above EMULATED_CLEAN_MIN_OBJECTS objects, and equal to sep's own below)
+        cat, _ = clean_extraction(cat, _MapRows(seg), det.data, det.err, det.nodata, params)
     n = len(cat)
     if n == 0:
         return FieldReference(seg, np.zeros(0), np.zeros(0), cat)
     geo = {f: np.asarray(cat[f], dtype=np.float64) for f in ("x", "y", "a", "b", "theta")}
     a, b, th = safe_shape(geo["a"], geo["b"], geo["theta"])
     x, y = geo["x"], geo["y"]
-    det = SanitizedRows(det_image_sub, det_rms, mask)
     band = det if photometry is None else SanitizedRows(photometry[0], photometry[1], mask)
     kr = np.empty(n)
     flux = np.empty(n)

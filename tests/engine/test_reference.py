@@ -122,17 +122,19 @@ def test_unhandled_settings_refused():
         strip_extract(np.zeros((8, 8)), np.ones((8, 8)), None, p)
 
 
-def test_strip_reference_equals_the_whole_frame_reference(case, monkeypatch):
+@pytest.mark.parametrize("clean", [False, True])
+def test_strip_reference_equals_the_whole_frame_reference(case, monkeypatch, clean):
     """Segmentation, catalogue, AUTO photometry (detection band and another band) and object
-    boxes equal the whole-frame reference extraction's, with bands of a few rows."""
+    boxes equal the whole-frame reference extraction's (sep's own CLEAN with CLEAN on), with
+    strips and bands of a few rows."""
     from glaciar.engine import reference
     from glaciar.engine.measure import reference_extraction
 
     img, rms, mask, _, _, _ = case
-    params = DetectionParams(detect_thresh=1.0, clean=False)
+    params = DetectionParams(detect_thresh=1.0, clean=clean, clean_param=0.6)
     monkeypatch.setattr(reference, "STRIP_PIXELS", 9 * img.shape[1])
     other = (img * np.float32(1.1) + np.float32(0.2), rms * np.float32(1.2))
-    for phot in (None, other):
+    for phot in ((None, other) if not clean else (None,)):
         whole = reference_extraction(img, rms, params, 25.0, mask=mask, photometry=phot)
         strips = reference.strip_reference(img, rms, params, 25.0, mask=mask, photometry=phot,
                                            seg_out=np.zeros(img.shape, dtype=np.int32))
@@ -141,5 +143,7 @@ def test_strip_reference_equals_the_whole_frame_reference(case, monkeypatch):
         np.testing.assert_array_equal(strips.mag, whole.mag)
         for name in ("region", "need", "cell", "start", "ids"):
             np.testing.assert_array_equal(getattr(strips.objects, name), getattr(whole.objects, name))
-    with pytest.raises(ValueError, match="CLEAN off"):
-        reference.strip_reference(img, rms, DetectionParams(clean=True), 25.0, mask=mask)
+        if clean:        # CLEAN removed objects here: the case tests the emulation on strips
+            assert len(whole.catalog) < len(_whole_frame(img, rms, mask, params)[0])
+    with pytest.raises(ValueError, match="clean_style"):
+        reference.strip_reference(img, rms, DetectionParams(clean_style="sep"), 25.0, mask=mask)
