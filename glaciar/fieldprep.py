@@ -520,11 +520,22 @@ SPILL_MIN_BYTES = 1 << 30
 #: Callables ``hook(step)`` told when each step of :func:`build_field_context` ends (its
 #: name, e.g. ``"band_pixels f160w"``): how benchmarks/setup_memory.py takes each step's
 #: peak memory and time. Empty in a run.
+#: Run a large (spilled) field's reference extraction by row strips
+#: (:func:`glaciar.engine.reference.strip_reference`, bit for bit the whole-frame result).
+#: Off: on the 16000^2 demo the strips themselves peak at 1.2 GB, but the one sep call that
+#: replays the 78 771 split regions (sep's per-call random stream) touches nearly every page
+#: of its full-frame canvas, so the step's peak only falls from 3.74 to 3.53 GB, for ~3x
+#: the CPU (issue 24; docs/limitations.md).
+REFERENCE_BY_STRIPS = False
+
+
 def _reference(spilled, image, rms, params, zeropoint, mask, photometry=None):
     """The field's reference extraction: by row strips on a large (spilled) field whose
-    settings they reproduce bit for bit (:func:`glaciar.engine.reference.strip_reference`:
-    sep with CLEAN within regions or off, the convolution filter), else sep on the whole frame."""
-    if spilled and params.backend == "sep" and params.clean_style == "region" and strips_apply(params):
+    settings they reproduce bit for bit when :data:`REFERENCE_BY_STRIPS`
+    (:func:`glaciar.engine.reference.strip_reference`: sep with CLEAN within regions or off,
+    the convolution filter), else sep on the whole frame."""
+    if REFERENCE_BY_STRIPS and spilled and params.backend == "sep" and params.clean_style == "region" \
+            and strips_apply(params):
         return strip_reference(image, rms, params, zeropoint, mask=mask, photometry=photometry)
     return reference_extraction(image, rms, params, zeropoint, mask=mask, photometry=photometry)
 
