@@ -56,13 +56,16 @@ masked objects cut by strips of a few rows.
 """
 from __future__ import annotations
 
+import mmap
+import warnings
+
 import numpy as np
 from scipy import ndimage
 
 from glaciar.engine import sepscan
 from glaciar.engine.detect import DetectionError, DetectionParams, release_mapped, sanitize, sep_extract
 
-__all__ = ["STRIP_PIXELS", "strips_apply", "strip_extract", "strip_reference", "SanitizedRows"]
+__all__ = ["STRIP_PIXELS", "strips_apply", "strip_extract", "strip_reference", "SanitizedRows", "pack_columns"]
 
 #: Pixels a strip owns [pixels] (~1050 rows at 16000 columns): its sep call holds
 #: ~13 bytes per pixel of it, plus the rows above and below it.
@@ -149,30 +152,181 @@ def _strip(image, rms, mask, y0, y1, halo, params):
     return cat[keep - 1], s, ya, keep, obj_split, regions
 
 
-def _replay(image, rms, mask, regions, params):
-    """sep (CLEAN off) on the split regions alone, at their true positions, in one call."""
+def _binade(v):
+    """floor(log2(v)) of positive integers (the power-of-two range of a double holding v)."""
+    return np.floor(np.log2(np.maximum(v, 1))).astype(np.int64)
+
+
+def pack_columns(boxes, nx, hf):
+    """Column shifts that pack the split regions to the left of their power-of-two ranges.
+
+    Parameters
+    ----------
+    boxes : ndarray of int (n, 4)
+        The regions' ``(y0, y1, x0, x1)`` boxes [pixels] in sep's emission order.
+    nx : int
+        Image width [pixels].
+    hf : int
+        Filter half-width [pixels].
+
+    Returns
+    -------
+    shift : ndarray of int or None
+        Columns to add to each region (rows never move), or None when the regions do not
+        fit or their order would change.  A moved region's columns stay in one range
+        ``[2**k, 2**(k+1))``, so every centroid sep computes (``xm + xmin`` in double
+        precision) rounds to the whole frame's plus the shift; it stays ``2*hf + 1``
+        columns away from the image's edges (same convolution, same ``SEP_OBJ_TRUNC``);
+        boxes grown by ``hf + 1`` stay disjoint, so no region reads another's pixels
+        through the filter; regions ending on the same row keep the left-to-right order
+        sep completes them in (a region nested in another's box may end on the same row
+        and be completed first: such rows are placed in emission order, else kept).
+        Regions outside these rules keep their columns.
+    """
+    x0 = boxes[:, 2].astype(np.int64)
+    order = np.argsort(x0, kind="stable")
+    new, wrong_rows = _pack_pass(boxes, nx, hf, order, None)
+    if new is not None and wrong_rows.size:
+        # the rows with a nested pair: their regions placed together, in emission order
+        last = boxes[:, 1].astype(np.int64) - 1
+        key = x0.copy()
+        for y in wrong_rows.tolist():
+            on = last == y
+            key[on] = x0[on].min()
+        order = np.lexsort((np.arange(len(x0)), key))
+        new, wrong2 = _pack_pass(boxes, nx, hf, order, None)
+        if new is not None and wrong2.size:
+            new, wrong2 = _pack_pass(boxes, nx, hf, order, np.isin(last, wrong2))
+            if wrong2.size:
+                new = None
+    return None if new is None else new - x0
+
+
+def _pack_pass(boxes, nx, hf, order, fixed):
+    """One packing of :func:`pack_columns`: regions placed in ``order``, ``fixed`` ones
+    kept; returns the new first columns (or None: no room) and the last rows where the
+    left-to-right order differs from the emission order."""
+    m = hf + 1
+    edge = 2 * hf + 1
+    y0, y1, x0, x1 = (boxes[:, i].astype(np.int64) for i in range(4))
+    n = len(y0)
+    ny = int(y1.max()) + m if n else 0
+    band = _binade(x0)
+    keep = (x0 < edge) | (x1 > nx - edge) | (band != _binade(x1 - 1))
+    if fixed is not None:
+        keep |= fixed
+    front, limit = {}, {}
+
+    def rows_of(k):
+        if k not in front:
+            front[k] = np.full(ny, 1 << k, dtype=np.int64)
+            limit[k] = np.full(ny, min(1 << (k + 1), nx), dtype=np.int64)
+        return front[k], limit[k]
+
+    # regions that stay: in each range they reach, the left ones set where packing starts in
+    # their rows, the others a limit it must stay below
+    for i in np.flatnonzero(keep):
+        a, b = max(0, y0[i] - m), y1[i] + m
+        for k in range(int(_binade(max(1, x0[i] - m))), int(_binade(max(1, x1[i] + m - 1))) + 1):
+            lo, hi = 1 << k, min(1 << (k + 1), nx)
+            if lo >= nx or x1[i] + m <= lo or x0[i] - m >= hi:
+                continue
+            f, lim = rows_of(k)
+            if x0[i] - m <= lo:
+                f[a:b] = np.maximum(f[a:b], x1[i] + m)
+            else:
+                lim[a:b] = np.minimum(lim[a:b], x0[i] - m)
+    new = x0.copy()
+    # left to right, each region as far left as the regions already placed in its rows allow
+    for i in order[~keep[order]].tolist():
+        f, lim = rows_of(int(band[i]))
+        a, b = max(0, y0[i] - m), y1[i] + m
+        x = max(int(f[a:b].max()) + m, 1 << int(band[i]))
+        w = int(x1[i] - x0[i])
+        if x + w + m > int(lim[a:b].min()):
+            return None, None
+        new[i] = x
+        f[a:b] = x + w + m
+    # sep completes regions ending on one row from left to right: that order must be the frame's
+    last = y1 - 1
+    o = np.lexsort((np.arange(n), last))
+    same = last[o][1:] == last[o][:-1]
+    moved = ~(keep[o][1:] & keep[o][:-1])
+    wrong = same & moved & (new[o][1:] < new[o][:-1] + (x1 - x0)[o][:-1])
+    return new, np.unique(last[o][1:][wrong])
+
+
+def _hugepages(on: bool) -> bool:
+    """Turn numpy's huge-page advice for large arrays on or off; returns the previous setting.
+
+    With transparent huge pages on request (Linux ``madvise`` mode), numpy asks for them on
+    every large array, and one written pixel then makes 2 MB resident: sep's segmentation
+    of the mostly empty replay canvas would be resident whole."""
+    from numpy._core import multiarray
+    setter = getattr(multiarray, "_set_madvise_hugepage", None)
+    return bool(setter(on)) if setter is not None else on
+
+
+def _zero_canvas(shape, dtype):
+    """A zero-filled array on anonymous memory (small pages): only written pages are resident."""
+    nbytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    return np.frombuffer(mmap.mmap(-1, max(nbytes, 1)), dtype=dtype, count=int(np.prod(shape))).reshape(shape)
+
+
+#: Catalogue fields holding an absolute column.
+_X_FIELDS = ("xmin", "xmax", "x", "xpeak", "xcpeak")
+
+
+def _replay(image, rms, mask, regions, params, pack: bool = True):
+    """sep (CLEAN off) on the split regions alone, in one call, on a frame-sized canvas.
+
+    Rows stay the whole frame's; with ``pack``, columns are moved by :func:`pack_columns`
+    (left within their power-of-two ranges) so the regions share few memory pages.  Only
+    the pages written are resident (anonymous memory, small pages).
+
+    Returns ``(cat, seg, shift)``: sep's catalogue with its column fields moved back, the
+    canvas's segmentation, each region's column shift.
+    """
     ny, nx = image.shape
     hf = 0 if params.filter_kernel is None else params.filter_halfwidth
-    data = np.zeros((ny, nx), dtype=np.float32)
-    err = np.zeros((ny, nx), dtype=np.float32)
+    boxes = np.array([r[:4] for r in regions], dtype=np.int64).reshape(-1, 4)
+    shift = pack_columns(boxes, nx, hf) if pack else None
+    if shift is None:
+        shift = np.zeros(len(regions), dtype=np.int64)
+    data = _zero_canvas((ny, nx), np.float32)
+    err = _zero_canvas((ny, nx), np.float32)
 
     def grown(r, g):
         return max(0, r[0] - g), min(ny, r[1] + g), max(0, r[2] - g), min(nx, r[3] + g)
 
-    for r in regions:
+    for r, dx in zip(regions, shift.tolist()):
         # every pixel whose filtered value reads the written data gets an RMS nothing exceeds
         a, b, c, d = grown(r, 2 * hf + 1)
-        err[a:b, c:d] = _BIG_RMS
-    for k, r in enumerate(regions):
+        err[a:b, c + dx:d + dx] = _BIG_RMS
+    for k, (r, dx) in enumerate(zip(regions, shift.tolist())):
         a, b, c, d = grown(r, hf)
         dd, ee, _ = sanitize(image[a:b, c:d], rms[a:b, c:d], None if mask is None else mask[a:b, c:d])
         if k % 256 == 255:
             release_mapped(image, rms, mask)
-        data[a:b, c:d] = dd
+        data[a:b, c + dx:d + dx] = dd
         inside = np.zeros(dd.shape, dtype=bool)
         inside[r[0] - a:r[1] - a, r[2] - c:r[3] - c] = r[4]
-        err[a:b, c:d][inside] = ee[inside]
-    return sep_extract(data, err, None, params, False)
+        err[a:b, c + dx:d + dx][inside] = ee[inside]
+    was = _hugepages(False)
+    try:
+        cat, seg = sep_extract(data, err, None, params, False)
+    finally:
+        _hugepages(was)
+    del data, err
+    if shift.any() and len(cat):
+        # each object's column shift, from the canvas region holding it
+        ids = np.zeros(len(cat), dtype=np.int64)
+        for r, dx in zip(regions, shift.tolist()):
+            piece = seg[r[0]:r[1], r[2] + dx:r[3] + dx]
+            ids[piece[piece > 0] - 1] = dx
+        for f in _X_FIELDS:
+            cat[f] = cat[f] - ids.astype(cat[f].dtype)
+    return cat, seg, shift
 
 
 def strip_extract(image, rms, mask, params: DetectionParams, strip_rows: int | None = None,
@@ -247,25 +401,46 @@ def strip_extract(image, rms, mask, params: DetectionParams, strip_rows: int | N
         return np.zeros(0, dtype=sep_extract_dtype()), seg
     full = np.concatenate(cats)
     if regions:
-        rcat, rseg = _replay(image, rms, mask, regions, params)
-        counts = [p.size for p in split_pos]
+        _place_split(full, seg, image, rms, mask, regions, split_pos, params)
+    return full, seg
+
+
+def _place_split(full, seg, image, rms, mask, regions, split_pos, params):
+    """The split regions' objects and footprints from their replay, into ``full`` and ``seg``.
+
+    The packed replay is checked against the strips (same object count per region, same
+    footprints); should it ever differ, the regions are replayed at their true columns."""
+    counts = [p.size for p in split_pos]
+    for pack in (True, False):
+        rcat, rseg, shift = _replay(image, rms, mask, regions, params, pack=pack)
         if len(rcat) != sum(counts):
+            if pack and shift.any():
+                warnings.warn("strip extraction: the packed replay of the split regions differs from "
+                              "the strips; replayed at their true columns (more memory)",
+                              RuntimeWarning, stacklevel=2)
+                continue
             raise DetectionError(f"strip extraction: {len(rcat)} objects in the split regions' "
                                  f"replay, {sum(counts)} in the strips")
-        start = 0
-        for r, pos in zip(regions, split_pos):
-            k = pos.size
-            full[pos] = rcat[start:start + k]
-            piece = rseg[r[0]:r[1], r[2]:r[3]]
+        start, owns = 0, []
+        for r, k, dx in zip(regions, counts, shift.tolist()):
+            piece = rseg[r[0]:r[1], r[2] + dx:r[3] + dx]
             own = (piece > start) & (piece <= start + k)
             if not np.array_equal(own, r[4]):
-                raise DetectionError("strip extraction: a split region's replay differs from its strip")
-            lut = np.zeros(k + 1, dtype=np.int32)
-            lut[1:] = pos + 1
-            seg[r[0]:r[1], r[2]:r[3]][own] = lut[piece[own] - start]
+                break
+            owns.append((piece, own, start))
             start += k
-        del rseg
-    return full, seg
+        else:
+            break
+        if not (pack and shift.any()):
+            raise DetectionError("strip extraction: a split region's replay differs from its strip")
+        del rcat, rseg, owns
+        warnings.warn("strip extraction: the packed replay of the split regions differs from the "
+                      "strips; replayed at their true columns (more memory)", RuntimeWarning, stacklevel=2)
+    for r, pos, (piece, own, start) in zip(regions, split_pos, owns):
+        full[pos] = rcat[start:start + pos.size]
+        lut = np.zeros(pos.size + 1, dtype=np.int32)
+        lut[1:] = pos + 1
+        seg[r[0]:r[1], r[2]:r[3]][own] = lut[piece[own] - start]
 
 
 def sep_extract_dtype():
