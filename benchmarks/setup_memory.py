@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/setup_memory.py --size 8000 [--dir DIR] [--clean] [--save] [--spill] [--strips]
+    python benchmarks/setup_memory.py --size 8000 [--dir DIR] [--clean] [--save] [--spill] [--whole-frame]
     python benchmarks/setup_memory.py --config survey.yaml [--field NAME] [--clean] [--save]
 
 ``--size N`` writes the demo survey at N x N pixels into ``DIR`` (default a temporary
@@ -132,9 +132,9 @@ def main(argv=None) -> int:
                     help="spill finished arrays to disk whatever the field's size (as a field over "
                          "fieldprep.SPILL_MIN_BYTES is): a small field's bytes per pixel then "
                          "stand for a large one's")
-    ap.add_argument("--strips", action="store_true",
-                    help="reference extraction by row strips on a spilled field "
-                         "(glaciar.fieldprep.REFERENCE_BY_STRIPS)")
+    ap.add_argument("--whole-frame", action="store_true",
+                    help="reference extraction by sep on the whole frame, not by row strips "
+                         "(glaciar.fieldprep.REFERENCE_BY_STRIPS off)")
     opt = ap.parse_args(argv)
 
     from glaciar import fieldprep
@@ -150,8 +150,8 @@ def main(argv=None) -> int:
         npix = float(ny * nx)
         if opt.spill:
             fieldprep.SPILL_MIN_BYTES = 0
-        if opt.strips:
-            fieldprep.REFERENCE_BY_STRIPS = True
+        if opt.whole_frame:
+            fieldprep.REFERENCE_BY_STRIPS = False
         probe = StepProbe()
         fieldprep.SETUP_STEP_HOOKS.append(probe)
         t0 = time.perf_counter()

@@ -517,16 +517,12 @@ def field_settings(cfg: Config, survey: Survey, field: str) -> tuple[dict, dict]
 #: (~45 bytes per pixel for 4 bands, 11 GB on a 16000^2 mosaic).
 SPILL_MIN_BYTES = 1 << 30
 
-#: Callables ``hook(step)`` told when each step of :func:`build_field_context` ends (its
-#: name, e.g. ``"band_pixels f160w"``): how benchmarks/setup_memory.py takes each step's
-#: peak memory and time. Empty in a run.
 #: Run a large (spilled) field's reference extraction by row strips
-#: (:func:`glaciar.engine.reference.strip_reference`, bit for bit the whole-frame result).
-#: Off: on the 16000^2 demo the strips themselves peak at 1.2 GB, but the one sep call that
-#: replays the 78 771 split regions (sep's per-call random stream) touches nearly every page
-#: of its full-frame canvas, so the step's peak only falls from 3.74 to 3.53 GB, for ~3x
-#: the CPU (issue 24; docs/limitations.md).
-REFERENCE_BY_STRIPS = False
+#: (:func:`glaciar.engine.reference.strip_reference`, bit for bit the whole-frame result)
+#: when its settings allow (sep, CLEAN within regions or off, the convolution filter or
+#: none, the per-pixel RMS threshold).  On the 16000^2 demo it peaks at ~1.7 GB against
+#: 3.7 GB for sep on the whole frame (issue 24; docs/limitations.md).
+REFERENCE_BY_STRIPS = True
 
 
 def _reference(spilled, image, rms, params, zeropoint, mask, photometry=None):
@@ -540,6 +536,9 @@ def _reference(spilled, image, rms, params, zeropoint, mask, photometry=None):
     return reference_extraction(image, rms, params, zeropoint, mask=mask, photometry=photometry)
 
 
+#: Callables ``hook(step)`` told when each step of :func:`build_field_context` ends (its
+#: name, e.g. ``"band_pixels f160w"``): how benchmarks/setup_memory.py takes each step's
+#: peak memory and time. Empty in a run.
 SETUP_STEP_HOOKS: list = []
 
 

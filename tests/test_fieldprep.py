@@ -130,9 +130,9 @@ def test_correlated_noise_by_tiles_is_the_whole_frame_measurement(monkeypatch, s
 
 
 def test_large_field_reference_by_strips_equals_whole_frame(small_survey, monkeypatch, assert_same_outputs):
-    """With REFERENCE_BY_STRIPS, a large (spilled) field's reference extraction runs by row
-    strips (a few rows each here; CLEAN off): the context's reference, depth and noise models,
-    and a task's rows, equal the whole-frame build's."""
+    """By default a large (spilled) field's reference extraction runs by row strips (a few
+    rows each here; CLEAN off): the context's reference, depth and noise models, and a task's
+    rows, equal the whole-frame build's."""
     from glaciar import fieldprep
     from glaciar.config import load_config
     from glaciar.engine import reference
@@ -145,7 +145,6 @@ def test_large_field_reference_by_strips_equals_whole_frame(small_survey, monkey
     whole = fieldprep.build_field_context(cfg, Survey.from_config(cfg), field)
     calls = []
     monkeypatch.setattr(fieldprep, "SPILL_MIN_BYTES", 0)
-    monkeypatch.setattr(fieldprep, "REFERENCE_BY_STRIPS", True)
     monkeypatch.setattr(reference, "STRIP_PIXELS", 7 * 320)
     monkeypatch.setattr(fieldprep, "strip_reference",
                         lambda *a, **k: calls.append(1) or reference.strip_reference(*a, **k))

@@ -268,9 +268,16 @@ def _hugepages(on: bool) -> bool:
 
 
 def _zero_canvas(shape, dtype):
-    """A zero-filled array on anonymous memory (small pages): only written pages are resident."""
-    nbytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
-    return np.frombuffer(mmap.mmap(-1, max(nbytes, 1)), dtype=dtype, count=int(np.prod(shape))).reshape(shape)
+    """A zero-filled array on private anonymous memory with small pages: only the pages
+    written become resident (reading the others maps the kernel's zero page; a shared
+    mapping, ``mmap``'s default, would allocate them as sep reads them)."""
+    size = int(np.prod(shape))
+    nbytes = max(size * np.dtype(dtype).itemsize, 1)
+    flags = getattr(mmap, "MAP_PRIVATE", 0) | getattr(mmap, "MAP_ANONYMOUS", 0)
+    buf = mmap.mmap(-1, nbytes, flags=flags) if flags else mmap.mmap(-1, nbytes)
+    if hasattr(buf, "madvise") and hasattr(mmap, "MADV_NOHUGEPAGE"):
+        buf.madvise(mmap.MADV_NOHUGEPAGE)
+    return np.frombuffer(buf, dtype=dtype, count=size).reshape(shape)
 
 
 #: Catalogue fields holding an absolute column.
@@ -436,11 +443,14 @@ def _place_split(full, seg, image, rms, mask, regions, split_pos, params):
         del rcat, rseg, owns
         warnings.warn("strip extraction: the packed replay of the split regions differs from the "
                       "strips; replayed at their true columns (more memory)", RuntimeWarning, stacklevel=2)
-    for r, pos, (piece, own, start) in zip(regions, split_pos, owns):
+    for k, (r, pos, (piece, own, start)) in enumerate(zip(regions, split_pos, owns)):
         full[pos] = rcat[start:start + pos.size]
         lut = np.zeros(pos.size + 1, dtype=np.int32)
         lut[1:] = pos + 1
         seg[r[0]:r[1], r[2]:r[3]][own] = lut[piece[own] - start]
+        if k % 1024 == 1023:
+            release_mapped(seg)             # a segmentation on disk: its written pages go
+    release_mapped(seg)
 
 
 def sep_extract_dtype():
