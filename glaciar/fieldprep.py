@@ -269,7 +269,7 @@ _EMPTY_SKY_MARGIN_PIX = 3
 
 def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: np.ndarray,
                      segmap: np.ndarray, sky: dict | None = None,
-                     release=None) -> CorrelatedNoise:
+                     release=None, keep=None) -> CorrelatedNoise:
     """The correlated-noise model of one band of a field, from empty apertures.
 
     Empty sky: pixels with data, more than a few pixels from every source the
@@ -285,11 +285,16 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
     kept, only the centres each aperture radius may take (:func:`~glaciar.engine.noise.empty_sky`).
     ``release``: called as ``segmap`` and ``rms`` are read through (a caller with
     memory-mapped arrays drops their resident pages there; the apertures read few).
+    ``keep``: maps the dilated source mask to what ``sky`` holds (a large field's caller
+    spills it to disk: it is read by row blocks, and would otherwise stay resident beside
+    the distance transform's buffers and the aperture centres).
     """
     release = release or (lambda: None)
     sky = {} if sky is None else sky
     if "sources" not in sky:
-        sky["sources"] = source_margin(segmap, _EMPTY_SKY_MARGIN_PIX)
+        sources = source_margin(segmap, _EMPTY_SKY_MARGIN_PIX)
+        sky["sources"] = sources if keep is None else keep(sources)
+        del sources
         release()
     sources = sky["sources"]
     usable = np.empty(sources.shape, dtype=bool)
@@ -633,7 +638,7 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         # drop(): the mapped pages of the segmentation and the band's RMS, read whole for the
         # usable mask, go before the distance transform; then those the apertures read.
         noise_models[b] = correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap, sky,
-                                           release=drop)
+                                           release=drop, keep=keep)
         drop()
     del sky
     _step_done("correlated_noise")

@@ -90,7 +90,7 @@ def test_band_pixels_is_the_elementwise_definition(tmp_path, weight_type, dtype)
     assert (~valid).sum() > 100 and np.abs(base).max() > 10
 
 
-def test_correlated_noise_by_tiles_is_the_whole_frame_measurement(monkeypatch, small_survey):
+def test_correlated_noise_by_tiles_is_the_whole_frame_measurement(monkeypatch, tmp_path, small_survey):
     """The field's empty-aperture models, with every tiled step in tiles of a few rows, against
     the whole-frame recipe: scipy's dilation of the segmentation, the uncapped whole-image
     distance transform and empty_aperture_scatter on that map."""
@@ -115,9 +115,17 @@ def test_correlated_noise_by_tiles_is_the_whole_frame_measurement(monkeypatch, s
     nx = seg.shape[1]
     monkeypatch.setattr(nz, "DISTANCE_TILE_PIXELS", 5 * nx)
     monkeypatch.setattr(fieldprep, "ROW_BLOCK_PIXELS", 3 * nx)
-    sky, released = {}, []
+    sky, released, kept = {}, [], []
+
+    def keep(a):                            # what a large field does: the source mask on disk
+        m = np.lib.format.open_memmap(tmp_path / "sources.npy", mode="w+", dtype=a.dtype, shape=a.shape)
+        m[...] = a
+        kept.append(m)
+        return m
+
     for b, (base, rms, _) in pix.items():
-        got = fieldprep.correlated_noise(cfg, field, b, base, rms, seg, sky, release=lambda: released.append(b))
+        got = fieldprep.correlated_noise(cfg, field, b, base, rms, seg, sky, release=lambda: released.append(b),
+                                         keep=keep)
         usable = np.isfinite(rms) & ~grown
         seq = np.random.SeedSequence([field_key(field), field_key(b)])
         npix, ratio, n = empty_aperture_scatter(base, rms, usable, radii, cfg.noise.n_empty_apertures,
@@ -127,6 +135,8 @@ def test_correlated_noise_by_tiles_is_the_whole_frame_measurement(monkeypatch, s
         assert got == want, b
         assert len(npix) >= 5
     assert set(released) == set(pix) and len(released) > 2 * len(pix)    # block by block
+    assert len(kept) == 1 and sky["sources"] is kept[0]                 # spilled once, read from disk
+    np.testing.assert_array_equal(kept[0], grown)
 
 
 def test_large_field_reference_by_strips_equals_whole_frame(small_survey, monkeypatch, assert_same_outputs):
