@@ -193,38 +193,45 @@ def pack_columns(boxes, nx, hf):
         and be completed first: such rows are placed in emission order, else kept).
         Regions outside these rules keep their columns.
     """
+    n = len(boxes)
     x0 = boxes[:, 2].astype(np.int64)
-    order = np.argsort(x0, kind="stable")
-    new, wrong_rows = _pack_pass(boxes, nx, hf, order, None)
-    if new is not None and wrong_rows.size:
-        # the rows with a nested pair: their regions placed together, in emission order
-        last = boxes[:, 1].astype(np.int64) - 1
-        key = x0.copy()
-        for y in wrong_rows.tolist():
+    last = boxes[:, 1].astype(np.int64) - 1
+    key = x0.copy()                         # regions are placed by increasing key
+    fixed = np.zeros(n, dtype=bool)
+    grouped = set()
+    for _ in range(_PACK_PASSES):
+        new, stuck, wrong = _pack_pass(boxes, nx, hf, np.lexsort((np.arange(n), key)), fixed)
+        if stuck is not None:               # no room left in its range: it stays
+            fixed[stuck] = True
+            continue
+        if not wrong.size:
+            return new - x0
+        for y in wrong.tolist():
             on = last == y
-            key[on] = x0[on].min()
-        order = np.lexsort((np.arange(len(x0)), key))
-        new, wrong2 = _pack_pass(boxes, nx, hf, order, None)
-        if new is not None and wrong2.size:
-            new, wrong2 = _pack_pass(boxes, nx, hf, order, np.isin(last, wrong2))
-            if wrong2.size:
-                new = None
-    return None if new is None else new - x0
+            if y in grouped:                # placed together and still out of order: they stay
+                fixed |= on
+            else:                           # a nested pair: the row's regions placed together
+                key[on] = x0[on].min()
+                grouped.add(y)
+    return None
+
+
+#: Packing passes :func:`pack_columns` makes at most (each pass after the first keeps the
+#: regions that found no room or no order in the previous one).
+_PACK_PASSES = 64
 
 
 def _pack_pass(boxes, nx, hf, order, fixed):
     """One packing of :func:`pack_columns`: regions placed in ``order``, ``fixed`` ones
-    kept; returns the new first columns (or None: no room) and the last rows where the
-    left-to-right order differs from the emission order."""
+    kept; returns the new first columns (None if a region finds no room), that region's
+    index, and the last rows where the left-to-right order differs from the emission order."""
     m = hf + 1
     edge = 2 * hf + 1
     y0, y1, x0, x1 = (boxes[:, i].astype(np.int64) for i in range(4))
     n = len(y0)
     ny = int(y1.max()) + m if n else 0
     band = _binade(x0)
-    keep = (x0 < edge) | (x1 > nx - edge) | (band != _binade(x1 - 1))
-    if fixed is not None:
-        keep |= fixed
+    keep = (x0 < edge) | (x1 > nx - edge) | (band != _binade(x1 - 1)) | fixed
     front, limit = {}, {}
 
     def rows_of(k):
@@ -254,7 +261,7 @@ def _pack_pass(boxes, nx, hf, order, fixed):
         x = max(int(f[a:b].max()) + m, 1 << int(band[i]))
         w = int(x1[i] - x0[i])
         if x + w + m > int(lim[a:b].min()):
-            return None, None
+            return None, i, None
         new[i] = x
         f[a:b] = x + w + m
     # sep completes regions ending on one row from left to right: that order must be the frame's
@@ -263,7 +270,7 @@ def _pack_pass(boxes, nx, hf, order, fixed):
     same = last[o][1:] == last[o][:-1]
     moved = ~(keep[o][1:] & keep[o][:-1])
     wrong = same & moved & (new[o][1:] < new[o][:-1] + (x1 - x0)[o][:-1])
-    return new, np.unique(last[o][1:][wrong])
+    return new, None, np.unique(last[o][1:][wrong])
 
 
 def _hugepages(on: bool) -> bool:

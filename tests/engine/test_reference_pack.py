@@ -12,6 +12,7 @@ import warnings
 import numpy as np
 import pytest
 import sep
+from scipy import ndimage
 
 from glaciar.engine.detect import DetectionParams
 from glaciar.engine.reference import pack_columns, strip_extract
@@ -127,6 +128,17 @@ def crowded():
 def test_packed_replay_equals_the_whole_frame(crowded, rows):
     img, rms, params, cat, seg = crowded
     assert np.count_nonzero(cat["flag"] & sep.OBJ_MERGED) > 200     # many split regions
+    # the split regions (8-connected footprints holding 2+ objects), in sep's order: most move
+    lab, _ = ndimage.label(seg > 0, structure=np.ones((3, 3), dtype=bool))
+    region = np.zeros(len(cat) + 1, dtype=np.int64)
+    region[seg[seg > 0]] = lab[seg > 0]
+    labels, first, count = np.unique(region[1:], return_index=True, return_counts=True)
+    split = labels[count > 1][np.argsort(first[count > 1])]
+    boxes = np.array([(s[0].start, s[0].stop, s[1].start, s[1].stop)
+                      for s in (ndimage.find_objects(lab)[k - 1] for k in split)])
+    shift = pack_columns(boxes, img.shape[1], HF)
+    moved = np.floor(np.log2(boxes[shift != 0, 2]))
+    assert np.count_nonzero(shift) > 0.5 * len(boxes) and len(np.unique(moved)) >= 4
     with warnings.catch_warnings():
         warnings.simplefilter("error")     # the packed replay falls back to true columns with one
         cat_s, seg_s = strip_extract(img, rms, None, params, strip_rows=rows, halo=4)
