@@ -38,9 +38,11 @@ one (its bytes per pixel still carry the fixed tile buffers, ~150 MB).
 Issue 24, part 2 (16000^2, field reused, old and new code side by side; CLEAN off / on): each
 band's pixels 2403-2473 -> 1490-1707 MB (noise map read before the image and again after the
 image is spilled); set-up peak 3738 / 3862 MB, the whole-frame reference extraction.
-``--strips`` runs the exact reference by row strips (glaciar.fieldprep.REFERENCE_BY_STRIPS):
-3533 / 3524 MB, its strips 1224 MB and the one sep call replaying the 78 771 split regions
-3511 MB; CPU 144 / 273 s against 49 / 117 s.
+Issue 24, part 3 (16000^2, same field, one session; CLEAN off / on): a spilled field's
+reference is extracted by row strips (glaciar.fieldprep.REFERENCE_BY_STRIPS, on; the split
+regions' replay packed into few pages): reference step 3756 / 3878 -> 1793 / 1776 MB,
+set-up peak 3756 / 3878 -> 1823 / 1810 MB, reference CPU 48 / 100 -> 122 / 225 s.
+``--whole-frame`` runs sep on the whole frame instead (the old path).
 """
 from __future__ import annotations
 

@@ -525,8 +525,8 @@ SPILL_MIN_BYTES = 1 << 30
 #: Run a large (spilled) field's reference extraction by row strips
 #: (:func:`glaciar.engine.reference.strip_reference`, bit for bit the whole-frame result)
 #: when its settings allow (sep, CLEAN within regions or off, the convolution filter or
-#: none, the per-pixel RMS threshold).  On the 16000^2 demo it peaks at ~1.7 GB against
-#: 3.7 GB for sep on the whole frame (issue 24; docs/limitations.md).
+#: none, the per-pixel RMS threshold).  On the 16000^2 demo its step peaks at 1.8 GB against
+#: 3.8-3.9 GB for sep on the whole frame, for 2.2-2.5x its CPU (issue 24; docs/limitations.md).
 REFERENCE_BY_STRIPS = True
 
 
