@@ -279,8 +279,8 @@ def _hugepages(on: bool) -> bool:
     With transparent huge pages on request (Linux ``madvise`` mode), numpy asks for them on
     every large array, and one written pixel then makes 2 MB resident: sep's segmentation
     of the mostly empty replay canvas would be resident whole."""
-    from numpy._core import multiarray
-    setter = getattr(multiarray, "_set_madvise_hugepage", None)
+    core = getattr(np, "_core", None) or getattr(np, "core", None)       # numpy 2 / numpy 1
+    setter = getattr(getattr(core, "multiarray", None), "_set_madvise_hugepage", None)
     return bool(setter(on)) if setter is not None else on
 
 
