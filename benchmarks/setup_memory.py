@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/setup_memory.py --size 8000 [--dir DIR] [--clean] [--save] [--spill]
+    python benchmarks/setup_memory.py --size 8000 [--dir DIR] [--clean] [--save] [--spill] [--whole-frame]
     python benchmarks/setup_memory.py --config survey.yaml [--field NAME] [--clean] [--save]
 
 ``--size N`` writes the demo survey at N x N pixels into ``DIR`` (default a temporary
@@ -35,6 +35,14 @@ chunks), the depth map +2017 -> +1059 MB, the detection band's pixels +2930 -> +
 (its background map made after its image and RMS are spilled); the reference extraction,
 +3567 MB (14.6 B/px), is the peak.  ``--spill`` measures a small field as a spilled large
 one (its bytes per pixel still carry the fixed tile buffers, ~150 MB).
+Issue 24, part 2 (16000^2, field reused, old and new code side by side; CLEAN off / on): each
+band's pixels 2403-2473 -> 1490-1707 MB (noise map read before the image and again after the
+image is spilled); set-up peak 3738 / 3862 MB, the whole-frame reference extraction.
+Issue 24, part 3 (16000^2, same field, one session; CLEAN off / on): a spilled field's
+reference is extracted by row strips (glaciar.fieldprep.REFERENCE_BY_STRIPS, on; the split
+regions' replay packed into few pages): reference step 3756 / 3878 -> 1793 / 1776 MB,
+set-up peak 3756 / 3878 -> 1823 / 1810 MB, reference CPU 48 / 100 -> 122 / 225 s.
+``--whole-frame`` runs sep on the whole frame instead (the old path).
 """
 from __future__ import annotations
 
@@ -126,6 +134,9 @@ def main(argv=None) -> int:
                     help="spill finished arrays to disk whatever the field's size (as a field over "
                          "fieldprep.SPILL_MIN_BYTES is): a small field's bytes per pixel then "
                          "stand for a large one's")
+    ap.add_argument("--whole-frame", action="store_true",
+                    help="reference extraction by sep on the whole frame, not by row strips "
+                         "(glaciar.fieldprep.REFERENCE_BY_STRIPS off)")
     opt = ap.parse_args(argv)
 
     from glaciar import fieldprep
@@ -141,6 +152,8 @@ def main(argv=None) -> int:
         npix = float(ny * nx)
         if opt.spill:
             fieldprep.SPILL_MIN_BYTES = 0
+        if opt.whole_frame:
+            fieldprep.REFERENCE_BY_STRIPS = False
         probe = StepProbe()
         fieldprep.SETUP_STEP_HOOKS.append(probe)
         t0 = time.perf_counter()

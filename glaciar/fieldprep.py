@@ -21,6 +21,7 @@ from .config import Config
 from .engine.detect import (DetectionParams, background_model, builtin_filter, read_conv_file,
                             release_mapped, sanitize)
 from .engine.measure import reference_extraction
+from .engine.reference import strip_reference, strips_apply
 from .engine.blocks import row_blocks
 from .engine.classify import ClassificationParams
 from .engine.coadd import coadd
@@ -268,7 +269,7 @@ _EMPTY_SKY_MARGIN_PIX = 3
 
 def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: np.ndarray,
                      segmap: np.ndarray, sky: dict | None = None,
-                     release=None) -> CorrelatedNoise:
+                     release=None, keep=None) -> CorrelatedNoise:
     """The correlated-noise model of one band of a field, from empty apertures.
 
     Empty sky: pixels with data, more than a few pixels from every source the
@@ -284,11 +285,16 @@ def correlated_noise(cfg: Config, field: str, band: str, base: np.ndarray, rms: 
     kept, only the centres each aperture radius may take (:func:`~glaciar.engine.noise.empty_sky`).
     ``release``: called as ``segmap`` and ``rms`` are read through (a caller with
     memory-mapped arrays drops their resident pages there; the apertures read few).
+    ``keep``: maps the dilated source mask to what ``sky`` holds (a large field's caller
+    spills it to disk: it is read by row blocks, and would otherwise stay resident beside
+    the distance transform's buffers and the aperture centres).
     """
     release = release or (lambda: None)
     sky = {} if sky is None else sky
     if "sources" not in sky:
-        sky["sources"] = source_margin(segmap, _EMPTY_SKY_MARGIN_PIX)
+        sources = source_margin(segmap, _EMPTY_SKY_MARGIN_PIX)
+        sky["sources"] = sources if keep is None else keep(sources)
+        del sources
         release()
     sources = sky["sources"]
     usable = np.empty(sources.shape, dtype=bool)
@@ -516,6 +522,25 @@ def field_settings(cfg: Config, survey: Survey, field: str) -> tuple[dict, dict]
 #: (~45 bytes per pixel for 4 bands, 11 GB on a 16000^2 mosaic).
 SPILL_MIN_BYTES = 1 << 30
 
+#: Run a large (spilled) field's reference extraction by row strips
+#: (:func:`glaciar.engine.reference.strip_reference`, bit for bit the whole-frame result)
+#: when its settings allow (sep, CLEAN within regions or off, the convolution filter or
+#: none, the per-pixel RMS threshold).  On the 16000^2 demo its step peaks at 1.8 GB against
+#: 3.8-3.9 GB for sep on the whole frame, for 2.2-2.5x its CPU (issue 24; docs/limitations.md).
+REFERENCE_BY_STRIPS = True
+
+
+def _reference(spilled, image, rms, params, zeropoint, mask, photometry=None):
+    """The field's reference extraction: by row strips on a large (spilled) field whose
+    settings they reproduce bit for bit when :data:`REFERENCE_BY_STRIPS`
+    (:func:`glaciar.engine.reference.strip_reference`: sep with CLEAN within regions or off,
+    the convolution filter), else sep on the whole frame."""
+    if REFERENCE_BY_STRIPS and spilled and params.backend == "sep" and params.clean_style == "region" \
+            and strips_apply(params):
+        return strip_reference(image, rms, params, zeropoint, mask=mask, photometry=photometry)
+    return reference_extraction(image, rms, params, zeropoint, mask=mask, photometry=photometry)
+
+
 #: Callables ``hook(step)`` told when each step of :func:`build_field_context` ends (its
 #: name, e.g. ``"band_pixels f160w"``): how benchmarks/setup_memory.py takes each step's
 #: peak memory and time. Empty in a run.
@@ -594,12 +619,15 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         det_image_rms = keep(det_image_rms)
         det_image = keep(det_image)
         drop()
-        reference = reference_extraction(det_image, det_image_rms, params,
-                                         zps[det], mask=mask, photometry=(bases[det], rms[det]))
+        reference = _reference(spilled, det_image, det_image_rms, params, zps[det], mask,
+                               photometry=(bases[det], rms[det]))
         del det_image
     else:
-        reference = reference_extraction(bases[det], rms[det], params, zps[det], mask=mask)
-    if spilled and isinstance(getattr(reference, "segmap", None), np.ndarray):
+        reference = _reference(spilled, bases[det], rms[det], params, zps[det], mask)
+    seg = getattr(reference, "segmap", None)
+    if isinstance(seg, np.memmap) and getattr(seg, "_mmap", None) is not None:
+        spilled.append(seg._mmap)       # written on disk by strips: dropped with the others
+    elif spilled and isinstance(seg, np.ndarray):
         reference = dataclasses.replace(reference, segmap=keep(reference.segmap))
     drop()
     _step_done("reference_extraction" if cfg.survey.detection_image is None else
@@ -610,7 +638,7 @@ def build_field_context(cfg: Config, survey: Survey, field: str) -> FieldContext
         # drop(): the mapped pages of the segmentation and the band's RMS, read whole for the
         # usable mask, go before the distance transform; then those the apertures read.
         noise_models[b] = correlated_noise(cfg, field, b, bases[b], rms[b], reference.segmap, sky,
-                                           release=drop)
+                                           release=drop, keep=keep)
         drop()
     del sky
     _step_done("correlated_noise")

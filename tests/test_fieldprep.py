@@ -90,7 +90,7 @@ def test_band_pixels_is_the_elementwise_definition(tmp_path, weight_type, dtype)
     assert (~valid).sum() > 100 and np.abs(base).max() > 10
 
 
-def test_correlated_noise_by_tiles_is_the_whole_frame_measurement(monkeypatch, small_survey):
+def test_correlated_noise_by_tiles_is_the_whole_frame_measurement(monkeypatch, tmp_path, small_survey):
     """The field's empty-aperture models, with every tiled step in tiles of a few rows, against
     the whole-frame recipe: scipy's dilation of the segmentation, the uncapped whole-image
     distance transform and empty_aperture_scatter on that map."""
@@ -115,9 +115,17 @@ def test_correlated_noise_by_tiles_is_the_whole_frame_measurement(monkeypatch, s
     nx = seg.shape[1]
     monkeypatch.setattr(nz, "DISTANCE_TILE_PIXELS", 5 * nx)
     monkeypatch.setattr(fieldprep, "ROW_BLOCK_PIXELS", 3 * nx)
-    sky, released = {}, []
+    sky, released, kept = {}, [], []
+
+    def keep(a):                            # what a large field does: the source mask on disk
+        m = np.lib.format.open_memmap(tmp_path / "sources.npy", mode="w+", dtype=a.dtype, shape=a.shape)
+        m[...] = a
+        kept.append(m)
+        return m
+
     for b, (base, rms, _) in pix.items():
-        got = fieldprep.correlated_noise(cfg, field, b, base, rms, seg, sky, release=lambda: released.append(b))
+        got = fieldprep.correlated_noise(cfg, field, b, base, rms, seg, sky, release=lambda: released.append(b),
+                                         keep=keep)
         usable = np.isfinite(rms) & ~grown
         seq = np.random.SeedSequence([field_key(field), field_key(b)])
         npix, ratio, n = empty_aperture_scatter(base, rms, usable, radii, cfg.noise.n_empty_apertures,
@@ -127,3 +135,39 @@ def test_correlated_noise_by_tiles_is_the_whole_frame_measurement(monkeypatch, s
         assert got == want, b
         assert len(npix) >= 5
     assert set(released) == set(pix) and len(released) > 2 * len(pix)    # block by block
+    assert len(kept) == 1 and sky["sources"] is kept[0]                 # spilled once, read from disk
+    np.testing.assert_array_equal(kept[0], grown)
+
+
+def test_large_field_reference_by_strips_equals_whole_frame(small_survey, monkeypatch, assert_same_outputs):
+    """By default a large (spilled) field's reference extraction runs by row strips (a few
+    rows each here; CLEAN off): the context's reference, depth and noise models, and a task's
+    rows, equal the whole-frame build's."""
+    from glaciar import fieldprep
+    from glaciar.config import load_config
+    from glaciar.engine import reference
+    from glaciar.engine.task import TaskSpec, run_task
+    from glaciar.survey import Survey
+
+    cfg = load_config(small_survey)
+    cfg = cfg.model_copy(update={"detection": cfg.detection.model_copy(update={"clean": False})})
+    field = cfg.survey.fields[0]
+    whole = fieldprep.build_field_context(cfg, Survey.from_config(cfg), field)
+    calls = []
+    monkeypatch.setattr(fieldprep, "SPILL_MIN_BYTES", 0)
+    monkeypatch.setattr(reference, "STRIP_PIXELS", 7 * 320)
+    monkeypatch.setattr(fieldprep, "strip_reference",
+                        lambda *a, **k: calls.append(1) or reference.strip_reference(*a, **k))
+    strips = fieldprep.build_field_context(cfg, Survey.from_config(cfg), field)
+    assert calls == [1]
+    a, b = whole.reference, strips.reference
+    np.testing.assert_array_equal(np.asarray(b.segmap), a.segmap)
+    for name in a.catalog.dtype.names:
+        np.testing.assert_array_equal(b.catalog[name], a.catalog[name], err_msg=name)
+    np.testing.assert_array_equal(b.flux, a.flux)
+    np.testing.assert_array_equal(b.mag, a.mag)
+    np.testing.assert_array_equal(b.objects.need, a.objects.need)
+    np.testing.assert_array_equal(np.asarray(strips.depth), whole.depth)
+    assert strips.measured_noise == whole.measured_noise
+    spec = TaskSpec(field=field, field_index=0, z_index=0, mag_index=0, iteration=0, z=8.0, mag=26.0)
+    assert_same_outputs(run_task(strips, spec, 3), run_task(whole, spec, 3), "strips")

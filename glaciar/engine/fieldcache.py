@@ -218,6 +218,25 @@ def spill(arr: np.ndarray, directory=None) -> np.ndarray:
     return mapped
 
 
+def scratch_array(shape, dtype, directory=None) -> np.ndarray:
+    """A zero-filled, writable memory map of an unnamed temporary ``.npy`` (as :func:`spill`'s,
+    in ``directory``, default :data:`SCRATCH_DIR`): for a full-frame result written piece by
+    piece (a large field's reference segmentation) without holding it in memory."""
+    fd, name = tempfile.mkstemp(prefix="glaciar-spill-", suffix=".npy",
+                                dir=directory if directory is not None else SCRATCH_DIR)
+    os.close(fd)
+    try:
+        out = _allocated_npy(name, np.dtype(dtype), tuple(shape))
+    except BaseException:
+        os.unlink(name)
+        raise
+    try:
+        os.unlink(name)
+    except OSError:                     # pragma: no cover - platforms that keep mapped files
+        atexit.register(lambda: os.path.exists(name) and os.unlink(name))
+    return out
+
+
 def _write_tiled(arr: np.ndarray, path: Path, tile: int) -> None:
     """Write a 2-d array as a 4-d .npy ``[ty, tx, tile, tile]`` (edge tiles zero-padded),
     its data at a multiple of :data:`TILE_ALIGN`; one row of tiles in memory at a time."""

@@ -44,7 +44,7 @@ from glaciar.engine.scene import Scene
 from glaciar.engine.segmentation import SegmentedBatch, sep_extract_clean, sep_segmentation
 from glaciar.engine.windows import REMOVED, segment_full, segment_windowed
 
-__all__ = ["FieldReference", "MeasureSetup", "reference_extraction", "measure_injected",
+__all__ = ["FieldReference", "MeasureSetup", "reference_extraction", "reference_boxes", "measure_injected",
            "output_columns", "total_magnitudes", "runs_full_frame"]
 
 
@@ -158,6 +158,12 @@ def _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, 
     mag, _, _ = phot.magnitudes(flux, np.ones_like(flux), zeropoint)
     region_box, need_box = _reference_boxes(data_det, err_det, nodata_det, seg, geo, a, b, th, scale, params)
     return FieldReference(seg, flux, mag, cat, ObjectBoxes.build(region_box, need_box, seg.shape))
+
+
+def reference_boxes(data, err, nodata, seg, geo, a, b, th, scale, params):
+    """Region and Kron/AUTO-widened boxes of a reference's objects (:class:`FieldReference`'s
+    ``objects``); the arrays are read by row slices only (they may be row readers)."""
+    return _reference_boxes(data, err, nodata, seg, geo, a, b, th, scale, params)
 
 
 def _reference_boxes(data, err, nodata, seg, geo, a, b, th, scale, params):

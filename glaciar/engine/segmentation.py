@@ -47,6 +47,7 @@ from glaciar.engine.blocks import row_tiles
 from glaciar.engine.detect import SEP_OBJ_MERGED, DetectionParams, sep_extract, detection_rms, sanitize
 
 __all__ = ["Segmentation", "SegmentedBatch", "sep_segmentation", "isolate_region", "apply_clean",
+           "clean_extraction",
            "sep_extract_clean", "EMULATED_CLEAN_MIN_OBJECTS"]
 
 _BIG_RMS = np.float32(1e30)
@@ -425,6 +426,14 @@ def sep_extract_clean(data, err, nodata, params: DetectionParams, min_objects=No
     if n < min_objects:
         del seg
         return sep_extract(data, err, nodata, params, True)
+    return clean_extraction(cat, seg, data, err, nodata, params)
+
+
+def clean_extraction(cat, seg, data, err, nodata, params: DetectionParams):
+    """sep's CLEAN applied to a CLEAN-off extraction ``(cat, seg)`` of ``data`` (glaciar's
+    bit-exact emulation, :func:`sep_extract_clean`'s second half): the survivors' rows and
+    ``seg`` relabelled in place.  The arrays are read by row tiles and cut-outs only."""
+    n = len(cat)
     if n < 2:
         return cat, seg
     objs, lo, hi = _tiled_light_objects(data, err, nodata, seg, cat, params)
