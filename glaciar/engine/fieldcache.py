@@ -199,34 +199,32 @@ def spill(arr: np.ndarray, directory=None) -> np.ndarray:
     field keep each finished full-frame array on disk rather than in memory.
     """
     arr = np.asarray(arr)
-    fd, name = tempfile.mkstemp(prefix="glaciar-spill-", suffix=".npy",
-                                dir=directory if directory is not None else SCRATCH_DIR)
-    os.close(fd)
-    try:
+
+    def write_and_map(name):
         dtype = arr.dtype if arr.dtype.isnative else arr.dtype.newbyteorder("=")
         out = _allocated_npy(name, dtype, arr.shape)
         _copy_rows(arr, out)
         del out
-        mapped = np.load(name, mmap_mode="r", allow_pickle=False)
-    except BaseException:
-        os.unlink(name)
-        raise
-    try:
-        os.unlink(name)
-    except OSError:                     # pragma: no cover - platforms that keep mapped files
-        atexit.register(lambda: os.path.exists(name) and os.unlink(name))
-    return mapped
+        return np.load(name, mmap_mode="r", allow_pickle=False)
+
+    return _unnamed_npy(write_and_map, directory)
 
 
 def scratch_array(shape, dtype, directory=None) -> np.ndarray:
     """A zero-filled, writable memory map of an unnamed temporary ``.npy`` (as :func:`spill`'s,
     in ``directory``, default :data:`SCRATCH_DIR`): for a full-frame result written piece by
     piece (a large field's reference segmentation) without holding it in memory."""
+    return _unnamed_npy(lambda name: _allocated_npy(name, np.dtype(dtype), tuple(shape)), directory)
+
+
+def _unnamed_npy(make, directory=None):
+    """``make(name)`` on a new temporary ``.npy`` name, the file unlinked afterwards (at exit
+    where a mapped file cannot be), or at once if ``make`` fails."""
     fd, name = tempfile.mkstemp(prefix="glaciar-spill-", suffix=".npy",
                                 dir=directory if directory is not None else SCRATCH_DIR)
     os.close(fd)
     try:
-        out = _allocated_npy(name, np.dtype(dtype), tuple(shape))
+        out = make(name)
     except BaseException:
         os.unlink(name)
         raise
