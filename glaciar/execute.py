@@ -277,16 +277,14 @@ def _simulate_locked(cfg, run_dir, seed, workers, executor, progress, mode, max_
             # and once more after it (its own first-time code), so they do not add to the
             # tasks' peak RSS (glaciar.memory; ~30 ms each).  Once per process, and again
             # after a field is measured here (not for a context kept from an earlier call).
-            drop = bool(chunks) and _DROPPED_AT[0] != fields_measured()
-            if drop:
+            if chunks and _DROPPED_AT[0] != fields_measured():
                 drop_file_pages()
-            for i, ch in enumerate(chunks):
-                if i == 0 and drop:         # the first task alone
-                    account(_run_chunk(cfg_dict, base_dir, cfg_hash, str(run_dir), seed, ch[:1],
-                                       mode))
-                    drop_file_pages()
-                    _DROPPED_AT[0] = fields_measured()
-                    ch = ch[1:]
+                # the first task alone, then the drop of what it ran for the first time
+                first, chunks = chunks[0][:1], [chunks[0][1:], *chunks[1:]]
+                account(_run_chunk(cfg_dict, base_dir, cfg_hash, str(run_dir), seed, first, mode))
+                drop_file_pages()
+                _DROPPED_AT[0] = fields_measured()
+            for ch in chunks:
                 if ch:
                     account(_run_chunk(cfg_dict, base_dir, cfg_hash, str(run_dir), seed, ch,
                                        mode))

@@ -21,7 +21,7 @@ from .config import Config
 from .engine.detect import (DetectionParams, background_model, builtin_filter, read_conv_file,
                             release_mapped, sanitize)
 from .engine.measure import reference_extraction
-from .engine.reference import strip_reference, strips_apply
+from .engine.reference import strip_reference, strip_reference_applies
 from .engine.blocks import row_blocks
 from .engine.classify import ClassificationParams
 from .engine.coadd import coadd
@@ -535,8 +535,7 @@ def _reference(spilled, image, rms, params, zeropoint, mask, photometry=None):
     settings they reproduce bit for bit when :data:`REFERENCE_BY_STRIPS`
     (:func:`glaciar.engine.reference.strip_reference`: sep with CLEAN within regions or off,
     the convolution filter), else sep on the whole frame."""
-    if REFERENCE_BY_STRIPS and spilled and params.backend == "sep" and params.clean_style == "region" \
-            and strips_apply(params):
+    if REFERENCE_BY_STRIPS and spilled and strip_reference_applies(params):
         return strip_reference(image, rms, params, zeropoint, mask=mask, photometry=photometry)
     return reference_extraction(image, rms, params, zeropoint, mask=mask, photometry=photometry)
 

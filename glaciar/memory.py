@@ -42,12 +42,8 @@ def trim_allocator() -> bool:
     free pages among them back.  Values are untouched.  True if it ran (glibc only;
     elsewhere a no-op).
     """
-    name = ctypes.util.find_library("c")
-    if not name:
-        return False
-    try:
-        trim = ctypes.CDLL(name).malloc_trim
-    except (OSError, AttributeError):       # not glibc (musl, macOS): nothing to call
+    trim = getattr(_libc(), "malloc_trim", None)
+    if trim is None:                        # not glibc (musl, macOS): nothing to call
         return False
     trim.argtypes = [ctypes.c_size_t]
     trim(0)
@@ -55,6 +51,7 @@ def trim_allocator() -> bool:
 
 
 def _libc():
+    """The C library (ctypes), or None where it cannot be found or loaded."""
     name = ctypes.util.find_library("c")
     if not name:
         return None

@@ -156,18 +156,14 @@ def _reference_photometry(data, err, nodata, seg, geo, params, zeropoint, mask, 
     flux, _ = phot.auto_photometry(data, err, phot.Ellipses(geo["x"], geo["y"], a, b, th, scale),
                                    segmap=seg, seg_id=ids, mask=nodata)
     mag, _, _ = phot.magnitudes(flux, np.ones_like(flux), zeropoint)
-    region_box, need_box = _reference_boxes(data_det, err_det, nodata_det, seg, geo, a, b, th, scale, params)
+    region_box, need_box = reference_boxes(data_det, err_det, nodata_det, seg, geo, a, b, th, scale, params)
     return FieldReference(seg, flux, mag, cat, ObjectBoxes.build(region_box, need_box, seg.shape))
 
 
 def reference_boxes(data, err, nodata, seg, geo, a, b, th, scale, params):
-    """Region and Kron/AUTO-widened boxes of a reference's objects (:class:`FieldReference`'s
-    ``objects``); the arrays are read by row slices only (they may be row readers)."""
-    return _reference_boxes(data, err, nodata, seg, geo, a, b, th, scale, params)
-
-
-def _reference_boxes(data, err, nodata, seg, geo, a, b, th, scale, params):
-    """Region box and Kron/AUTO-widened box of every original object (see :class:`FieldReference`)."""
+    """Region box and Kron/AUTO-widened box of every original object (see
+    :class:`FieldReference`'s ``objects``); the arrays are read by row slices only (they
+    may be row readers)."""
     n = geo["x"].size
     region = _region_boxes(data, err, nodata, seg, params, n)
     need = region.copy()

@@ -75,7 +75,8 @@ from scipy import ndimage
 from glaciar.engine import sepscan
 from glaciar.engine.detect import DetectionError, DetectionParams, release_mapped, sanitize, sep_extract
 
-__all__ = ["STRIP_PIXELS", "strips_apply", "strip_extract", "strip_reference", "SanitizedRows", "pack_columns"]
+__all__ = ["STRIP_PIXELS", "strips_apply", "strip_reference_applies", "strip_extract", "strip_reference",
+           "SanitizedRows", "pack_columns"]
 
 #: Pixels a strip owns [pixels] (~1050 rows at 16000 columns): its sep call holds
 #: ~13 bytes per pixel of it, plus the rows above and below it.
@@ -88,6 +89,12 @@ def strips_apply(params: DetectionParams) -> bool:
     """Whether :func:`strip_extract` reproduces ``params``' extraction (the
     convolution filter or none, and the per-pixel RMS threshold)."""
     return params.filter_kernel is None or (params.filter_type == "conv" and params.threshold_rms == "pixel")
+
+
+def strip_reference_applies(params: DetectionParams) -> bool:
+    """Whether :func:`strip_reference` reproduces ``params``' reference extraction: the sep
+    backend with ``clean_style="region"`` (CLEAN on or off) and :func:`strips_apply`."""
+    return params.backend == "sep" and params.clean_style == "region" and strips_apply(params)
 
 
 def _sanitized_rows(image, rms, mask, ya, yb):
@@ -593,8 +600,11 @@ def strip_reference(det_image_sub, det_rms, params: DetectionParams, zeropoint: 
 
     from glaciar.engine.segmentation import clean_extraction
 
-    if params.backend != "sep" or params.clean_style != "region":
-        raise ValueError("strip_reference handles the sep backend with clean_style 'region' only")
+    if not strip_reference_applies(params):
+        raise ValueError("strip_reference handles the sep backend with clean_style 'region', the "
+                         "'conv' filter (or none) and threshold_rms='pixel' only; got backend="
+                         f"{params.backend!r}, clean_style={params.clean_style!r}, filter_type="
+                         f"{params.filter_type!r}, threshold_rms={params.threshold_rms!r}")
     ny, nx = np.shape(det_image_sub)
     seg = scratch_array((ny, nx), np.int32) if seg_out is None else seg_out
     cat, seg = strip_extract(det_image_sub, det_rms, mask, params, out=seg)
