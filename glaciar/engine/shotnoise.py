@@ -34,8 +34,8 @@ from typing import Mapping, NamedTuple, Sequence
 import numpy as np
 
 __all__ = ["GAUSSIAN_ABOVE_COUNTS", "CORE_FRACTION", "DENSE_WINGS_COUNTS", "WINGS_CACHE_BYTES",
-           "SHOT_NOISE_STREAM_KEY", "shot_noise_gains", "wings_cache_info", "shot_noise_rng",
-           "noisy_pixels", "add_shot_noise"]
+           "SHOT_NOISE_STREAM_KEY", "KERNEL", "kernel_agrees", "shot_noise_gains", "wings_cache_info",
+           "shot_noise_rng", "noisy_pixels", "add_shot_noise"]
 
 #: Pixels expecting at least this many electrons get the Gaussian limit of Poisson noise.
 GAUSSIAN_ABOVE_COUNTS = 1.0e4
@@ -215,14 +215,18 @@ def noisy_pixels(data: np.ndarray, flux: float, gain: float, rng: np.random.Gene
     # large stamp stays in zero pages the system has not allocated.  The core's values are
     # > 0 (no clip needed) and, a positive scale being monotone in floating point, their
     # largest count is core_max * scale exactly: below the Gaussian switch, plain Poisson.
+    total = w.wings_sum * scale
+    n_wings = size - w.core.size
+    sparse = total <= DENSE_WINGS_COUNTS * n_wings
+    if KERNEL is not None and sparse and 0.0 <= w.core_max * scale < GAUSSIAN_ABOVE_COUNTS:
+        KERNEL.stamp_shot_noise(rng.bit_generator, w.core, w.core_values, w.cum, scale, float(gain), out)
+        return out.reshape(data.shape)
     counts = w.core_values * scale
     if w.core_max * scale < GAUSSIAN_ABOVE_COUNTS:
         out[w.core] = rng.poisson(counts) / gain
     else:
         out[w.core] = _per_pixel(counts, rng) / gain
-    total = w.wings_sum * scale
-    n_wings = size - w.core.size
-    if total > DENSE_WINGS_COUNTS * n_wings:
+    if not sparse:
         flat = data.ravel()
         wings = np.ones(size, dtype=bool)
         wings[w.core] = False
@@ -238,6 +242,42 @@ def noisy_pixels(data: np.ndarray, flux: float, gain: float, rng: np.random.Gene
         np.minimum(where, size - 1, out=where)          # u * cum[-1] rounded up to cum[-1]
         np.add.at(out, where, 1.0 / gain)
     return out.reshape(data.shape)
+
+
+def kernel_agrees(kernel) -> bool:
+    """Whether a compiled ``stamp_shot_noise`` gives :func:`noisy_pixels`' numpy draws bit for
+    bit on a small stamp (both of numpy's Poisson algorithms, ~50 wing electrons) and leaves
+    the stream where numpy leaves it."""
+    # 20 x 20: 391 wing pixels holding 2 % of the light (~50 electrons) around 9 core pixels
+    # expecting 0.3 to 250 electrons; one wing pixel is the convolution's -1e-17.
+    template = np.full((20, 20), 5.0e-5)
+    template[9:12, 9:12] = np.geomspace(1.2e-4, 0.1, 9).reshape(3, 3)
+    template[0, 3] = -1.0e-17
+    w = _wings(template)
+    scale = 2500.0
+    mine, theirs = np.random.default_rng(20261128), np.random.default_rng(20261128)
+    got = np.zeros(template.size)
+    kernel.stamp_shot_noise(mine.bit_generator, w.core, w.core_values, w.cum, scale, 2.5, got)
+    want = np.zeros(template.size)
+    want[w.core] = theirs.poisson(w.core_values * scale) / 2.5
+    where = np.minimum(np.searchsorted(w.cum, theirs.random(theirs.poisson(w.wings_sum * scale))
+                                       * w.cum[-1], side="right"), template.size - 1)
+    np.add.at(want, where, 1.0 / 2.5)
+    return bool(np.array_equal(got, want) and mine.random() == theirs.random())
+
+
+def _compiled_kernel():
+    try:
+        from glaciar.engine import kernels
+    except ImportError:         # not built (no C compiler at install): the numpy code
+        return None
+    return kernels if kernel_agrees(kernels) else None
+
+
+#: The compiled shot-noise kernel (glaciar.engine.kernels), or None: not built, or built against
+#: a numpy whose Poisson or uniform draws differ from the installed one's (then the numpy code,
+#: which gives the rows of the installed numpy, runs instead).
+KERNEL = _compiled_kernel()
 
 
 def add_shot_noise(stamps: Sequence[tuple], gain: float, rng: np.random.Generator,

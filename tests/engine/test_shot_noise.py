@@ -284,10 +284,15 @@ def _documented_draws(data, flux, gain, rng):
     return want.reshape(data.shape)
 
 
-def test_noisy_pixels_are_the_documented_draws_and_stamps_share_one_block():
-    """Bit for bit the documented draws, whatever order the wing electrons are placed in;
-    add_shot_noise writes a band's noisy stamps into one block, on one stream, templates and
-    quiet stamps untouched."""
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled kernel", "numpy"])
+def test_noisy_pixels_are_the_documented_draws_and_stamps_share_one_block(compiled, monkeypatch):
+    """Bit for bit the documented draws, whatever order the wing electrons are placed in, with
+    the compiled kernel and with the numpy code; add_shot_noise writes a band's noisy stamps
+    into one block, on one stream, templates and quiet stamps untouched."""
+    if compiled and shotnoise.KERNEL is None:
+        pytest.skip("glaciar.engine.kernels is not built here (no C compiler at install)")
+    if not compiled:
+        monkeypatch.setattr(shotnoise, "KERNEL", None)
     yy, xx = np.mgrid[-12:13, -12:13]
     data = np.exp(-0.5 * (xx ** 2 + yy ** 2) / 2.5 ** 2) + 1e-7 * ((xx + yy) % 3)
     data /= data.sum()
@@ -308,3 +313,36 @@ def test_noisy_pixels_are_the_documented_draws_and_stamps_share_one_block():
     assert np.array_equal(data, before)
     with pytest.raises(ValueError, match="out must be"):
         shotnoise.noisy_pixels(data, 1.0, gain, rng, out=np.zeros(data.size - 1))
+
+
+def test_the_compiled_kernel_is_built_where_a_compiler_is():
+    """pip install builds glaciar.engine.kernels where a C compiler exists (it is optional only
+    for machines without one), and the import-time check accepts it."""
+    if shutil.which("cc") is None and shutil.which("gcc") is None:
+        pytest.skip("no C compiler on this machine: the numpy code runs")
+    assert shotnoise.KERNEL is not None
+    from glaciar.engine import kernels
+    assert shotnoise.kernel_agrees(kernels)
+
+
+class _KernelOfAnotherNumpy:
+    """A stamp_shot_noise whose Poisson draws are those of another algorithm (inversion): what
+    a build against a numpy with other C distributions would give."""
+
+    @staticmethod
+    def stamp_shot_noise(bit_generator, core, core_values, cum, scale, gain, out):
+        rng = np.random.Generator(bit_generator)
+        lam = core_values * scale
+        u = rng.random(lam.size)
+        k = np.zeros(lam.size, dtype=np.int64)
+        term = np.exp(-lam)
+        acc = term.copy()
+        while (more := u > acc).any():
+            k += more
+            term = term * lam / np.maximum(k, 1)
+            acc = np.where(more, acc + term, acc)
+        out[core] = k / gain
+
+
+def test_a_kernel_with_other_draws_is_refused():
+    assert not shotnoise.kernel_agrees(_KernelOfAnotherNumpy())
