@@ -2,6 +2,11 @@
 """Compiled kernels of the engine's hot loops (optional: each has a numpy twin that gives the
 same numbers, used when this extension is not built).
 
+The stamp-pasting kernel adds each stamp's part to each window it overlaps in one loop
+(:meth:`glaciar.engine.scene.Scene.paste_windows` otherwise makes a few numpy calls per stamp and
+window); it rounds as numpy does, one product and one sum per pixel (built without fused
+multiply-adds, see setup.py).
+
 The shot-noise kernel draws from numpy's own C distributions (``numpy.random.c_distributions``,
 the functions ``Generator.poisson`` and ``Generator.random`` call for each value), on the
 generator's own bit stream and under its lock: the same draws, in the same order, as the numpy
@@ -14,7 +19,7 @@ from libc.stdint cimport int64_t
 from numpy.random cimport bitgen_t
 from numpy.random.c_distributions cimport random_poisson, random_standard_uniform
 
-__all__ = ["stamp_shot_noise"]
+__all__ = ["stamp_shot_noise", "add_stamp_parts"]
 
 cdef bitgen_t *_bitgen(object bit_generator) except NULL:
     capsule = bit_generator.capsule
@@ -77,3 +82,59 @@ cdef void _place_electrons(bitgen_t *rng, const double[::1] cum, double scale, d
         if lo > ncum - 1:
             lo = ncum - 1
         out[lo] += one
+
+
+def add_stamp_parts(double[:, ::1] canvas, list stamps, list fluxes, const int64_t[:, ::1] boxes,
+                    const int64_t[:, ::1] rects, const int64_t[:, ::1] offsets,
+                    const int64_t[:] ks, const int64_t[:] ws):
+    """Add stamp ``ks[p]``'s part inside window ``ws[p]`` to that window's place on the canvas,
+    for each pair ``p`` in order: ``canvas[cy + y - y0, cx + x - x0] += stamp[y - sy0, x - sx0]``
+    (times the stamp's flux when it is not None) over the overlap.
+
+    Parameters
+    ----------
+    canvas : float64 array, C-contiguous
+        The tiled windows, written in place.
+    stamps : list of 2-d float64 arrays
+        Each stamp's pixels (a unit-flux template when its flux is not None).
+    fluxes : list of float or None
+    boxes : int64 array (n, 4)
+        Each stamp's image rows and columns ``sy0, sy1, sx0, sx1`` (exclusive ends).
+    rects : int64 array (W, 4)
+        Each window's image ``y0, y1, x0, x1``; ``offsets`` (W, 2) its canvas row and column.
+    ks, ws : int64 arrays
+        The overlapping (stamp, window) pairs; a pixel gets its stamps in the pairs' order.
+    """
+    cdef Py_ssize_t p, i, j, k, w, last = -1, n = ks.shape[0]
+    cdef int64_t sy0, sy1, sx0, sx1, y0, y1, x0, x1, ay0, ay1, ax0, ax1, cy, cx
+    cdef const double[:, :] part
+    cdef double f = 1.0
+    cdef bint scaled = False
+    if ws.shape[0] != n:
+        raise ValueError("add_stamp_parts: ks and ws differ in length")
+    for p in range(n):
+        k, w = ks[p], ws[p]
+        if k != last:
+            part = stamps[k]
+            flux = fluxes[k]
+            scaled = flux is not None
+            f = <double> flux if scaled else 1.0
+            last = k
+        sy0, sy1, sx0, sx1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
+        y0, y1, x0, x1 = rects[w, 0], rects[w, 1], rects[w, 2], rects[w, 3]
+        cy, cx = offsets[w, 0], offsets[w, 1]
+        # Unchecked indexing below: every box must match its stamp and every window the canvas.
+        if (sy1 - sy0 != part.shape[0] or sx1 - sx0 != part.shape[1] or cy < 0 or cx < 0
+                or cy + y1 - y0 > canvas.shape[0] or cx + x1 - x0 > canvas.shape[1]):
+            raise ValueError(f"add_stamp_parts: stamp {k} or window {w} does not fit its array")
+        ay0, ay1 = max(sy0, y0), min(sy1, y1)
+        ax0, ax1 = max(sx0, x0), min(sx1, x1)
+        with nogil:
+            if scaled:
+                for i in range(ay0, ay1):
+                    for j in range(ax0, ax1):
+                        canvas[cy + i - y0, cx + j - x0] += part[i - sy0, j - sx0] * f
+            else:
+                for i in range(ay0, ay1):
+                    for j in range(ax0, ax1):
+                        canvas[cy + i - y0, cx + j - x0] += part[i - sy0, j - sx0]
