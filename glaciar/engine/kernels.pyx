@@ -7,6 +7,9 @@ The stamp-pasting kernel adds each stamp's part to each window it overlaps in on
 window); it rounds as numpy does, one product and one sum per pixel (built without fused
 multiply-adds, see setup.py).
 
+The filter kernel is :func:`glaciar.engine.sepscan.sep_filter`'s float32 correlation in one
+pass per row instead of a whole-array pass per tap: the same products summed in the same order.
+
 The shot-noise kernel draws from numpy's own C distributions (``numpy.random.c_distributions``,
 the functions ``Generator.poisson`` and ``Generator.random`` call for each value), on the
 generator's own bit stream and under its lock: the same draws, in the same order, as the numpy
@@ -19,7 +22,7 @@ from libc.stdint cimport int64_t
 from numpy.random cimport bitgen_t
 from numpy.random.c_distributions cimport random_poisson, random_standard_uniform
 
-__all__ = ["stamp_shot_noise", "add_stamp_parts"]
+__all__ = ["stamp_shot_noise", "add_stamp_parts", "filter_padded"]
 
 cdef bitgen_t *_bitgen(object bit_generator) except NULL:
     capsule = bit_generator.capsule
@@ -138,3 +141,38 @@ def add_stamp_parts(double[:, ::1] canvas, list stamps, list fluxes, const int64
                 for i in range(ay0, ay1):
                     for j in range(ax0, ax1):
                         canvas[cy + i - y0, cx + j - x0] += part[i - sy0, j - sx0]
+
+
+def filter_padded(const float[:, ::1] padded, const float[:, ::1] kernel, float[:, ::1] out):
+    """``out[y, x] = sum over taps (row-major) of kernel[i, j] * padded[y + i, x + j]``, each
+    product rounded to float32 and added to a float32 sum that starts at 0, in tap order.
+
+    Parameters
+    ----------
+    padded : float32 array (>= H + kh - 1, >= W + kw - 1)
+        The image in a frame of zeros (``kh // 2`` rows and ``kw // 2`` columns before it).
+    kernel : float32 array (kh, kw)
+        The normalised filter.
+    out : float32 array (H, W)
+        Written in place.
+    """
+    cdef Py_ssize_t y, x, i, j, H = out.shape[0], W = out.shape[1]
+    if H == 0 or W == 0:
+        return
+    cdef Py_ssize_t kh = kernel.shape[0], kw = kernel.shape[1]
+    cdef float kv
+    cdef float *row
+    cdef const float *src
+    if padded.shape[0] < H + kh - 1 or padded.shape[1] < W + kw - 1:
+        raise ValueError("filter_padded: the padded image is smaller than the output plus the kernel")
+    with nogil:
+        for y in range(H):
+            row = &out[y, 0]
+            for x in range(W):
+                row[x] = 0.0
+            for i in range(kh):
+                for j in range(kw):
+                    kv = kernel[i, j]
+                    src = &padded[y + i, j]
+                    for x in range(W):
+                        row[x] = row[x] + kv * src[x]

@@ -10,10 +10,7 @@ from typing import Sequence
 
 import numpy as np
 
-try:
-    from glaciar.engine import kernels as KERNEL
-except ImportError:     # not built (no C compiler at install): paste_windows' numpy loop
-    KERNEL = None
+from glaciar.engine.compiled import KERNELS as KERNEL
 
 __all__ = ["Scene", "KERNEL"]
 

@@ -22,7 +22,9 @@ import math
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["sep_kernel", "sep_filter", "threshold_map", "detection_mask", "lutz_regions", "lutz_one",
+from glaciar.engine.compiled import KERNELS as KERNEL
+
+__all__ = ["KERNEL", "sep_kernel", "sep_filter", "threshold_map", "detection_mask", "lutz_regions", "lutz_one",
            "heap_mthresh", "child_pixel_orders", "SEP_BIG"]
 
 #: sep's BIG: the noise of masked pixels, so their threshold is never reached
@@ -87,6 +89,10 @@ def sep_filter(data, kernel) -> np.ndarray:
     Wp = W + cw - 1
     P = np.zeros((H + ch, Wp), dtype=np.float32)       # one spare row for the last taps
     P[hy:hy + H, hx:hx + W] = data
+    if KERNEL is not None:
+        out = np.empty((H, W), dtype=np.float32)
+        KERNEL.filter_padded(P, k, out)
+        return out
     flat = P.ravel()
     n = H * Wp
     out = np.zeros(n, dtype=np.float32)

@@ -33,6 +33,8 @@ from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
 
+from glaciar.engine.compiled import KERNELS
+
 __all__ = ["GAUSSIAN_ABOVE_COUNTS", "CORE_FRACTION", "DENSE_WINGS_COUNTS", "WINGS_CACHE_BYTES",
            "SHOT_NOISE_STREAM_KEY", "KERNEL", "kernel_agrees", "shot_noise_gains", "wings_cache_info",
            "shot_noise_rng", "noisy_pixels", "add_shot_noise"]
@@ -266,18 +268,10 @@ def kernel_agrees(kernel) -> bool:
     return bool(np.array_equal(got, want) and mine.random() == theirs.random())
 
 
-def _compiled_kernel():
-    try:
-        from glaciar.engine import kernels
-    except ImportError:         # not built (no C compiler at install): the numpy code
-        return None
-    return kernels if kernel_agrees(kernels) else None
-
-
 #: The compiled shot-noise kernel (glaciar.engine.kernels), or None: not built, or built against
 #: a numpy whose Poisson or uniform draws differ from the installed one's (then the numpy code,
 #: which gives the rows of the installed numpy, runs instead).
-KERNEL = _compiled_kernel()
+KERNEL = KERNELS if KERNELS is not None and kernel_agrees(KERNELS) else None
 
 
 def add_shot_noise(stamps: Sequence[tuple], gain: float, rng: np.random.Generator,

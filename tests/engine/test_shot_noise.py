@@ -317,11 +317,13 @@ def test_noisy_pixels_are_the_documented_draws_and_stamps_share_one_block(compil
 
 def test_the_compiled_kernel_is_built_where_a_compiler_is():
     """pip install builds glaciar.engine.kernels where a C compiler exists (it is optional only
-    for machines without one), and the import-time check accepts it."""
+    for machines without one), the import-time check accepts it, and every module that has a
+    kernel uses it."""
     if shutil.which("cc") is None and shutil.which("gcc") is None:
         pytest.skip("no C compiler on this machine: the numpy code runs")
-    assert shotnoise.KERNEL is not None
-    from glaciar.engine import kernels
+    from glaciar.engine import compiled, kernels, scene, sepscan
+    assert compiled.KERNELS is kernels
+    assert shotnoise.KERNEL is kernels and scene.KERNEL is kernels and sepscan.KERNEL is kernels
     assert shotnoise.kernel_agrees(kernels)
 
 
