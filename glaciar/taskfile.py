@@ -330,8 +330,9 @@ _IPC_ZSTD_MIN_ROWS = 64
 
 def ipc_bytes(df) -> bytes:
     """``df`` (a DataFrame, or a dict of column arrays as :func:`arrow_table` would convert
-    the DataFrame of it) as an Arrow IPC stream (no schema metadata), zstd-compressed when
-    it is long.
+    the DataFrame of it, or a pyarrow Table of such a conversion: written as one batch, as
+    its DataFrame would be) as an Arrow IPC stream (no schema metadata), zstd-compressed
+    when it is long.
 
     zstd: a compacted part's counts repeat their keys and are mostly small integers
     (~10x smaller footers).  A task's few rows are not compressed: Arrow compresses
@@ -345,6 +346,8 @@ def ipc_bytes(df) -> bytes:
         # A task's footer tables: no DataFrame to build and take apart again (~0.3 ms each).
         t = pa.Table.from_arrays([_arrow_column(np.asarray(v)) for v in df.values()],
                                  names=[str(c) for c in df])
+    elif isinstance(df, pa.Table):
+        t = df.replace_schema_metadata(None).combine_chunks()
     else:
         t = arrow_table(df, pandas_metadata=False)
     sink = pa.BufferOutputStream()

@@ -12,21 +12,24 @@ import subprocess
 import sys
 import textwrap
 
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
 from glaciar.constants import COL_MAG_INPUT, RESULTS_DIRNAME, band_column, OBS_MAG_QUANTITY
 from glaciar.store import write_task_table
-from glaciar.taskfile import META_TASK
+from glaciar.taskfile import META_COUNTS, META_HIST, META_TASK, ipc_table
 
 from tiny_runs import tiny_config, write_yaml
 
 #: Run in a fresh interpreter: glaciar imported, a one-worker simulate, and at each task
-#: file written (after each task) whether pandas has been imported so far.
+#: file written (after each task) whether pandas has been imported so far; then a copy of
+#: the run compacted (as a long run does every COMPACT_EVERY tasks).
 _CHILD = textwrap.dedent("""
-    import json, sys
+    import json, shutil, sys
     import glaciar.execute as execute
     from glaciar.config import load_config
+    from glaciar.store import compact
 
     seen, write = [], execute.write_task_table
 
@@ -37,8 +40,10 @@ _CHILD = textwrap.dedent("""
 
     execute.write_task_table = hooked
     stats = execute.simulate(load_config(sys.argv[1]), sys.argv[2], workers=1, progress=False)
-    print(json.dumps({"pandas_at_each_task": seen, "n_run": stats["n_run"],
-                      "selection": load_config(sys.argv[1]).selection}, default=str))
+    shutil.copytree(sys.argv[2], sys.argv[2] + "_compacted")
+    n = compact(sys.argv[2] + "_compacted", min_tasks=0)
+    print(json.dumps({"pandas_at_each_task": seen, "n_run": stats["n_run"], "n_compacted": n,
+                      "pandas_after_compaction": "pandas" in sys.modules}))
 """)
 
 
@@ -58,6 +63,24 @@ def test_one_worker_tasks_import_no_pandas(child_run):
     assert report["n_run"] == 2
     # Before: glaciar.execute imported pandas (engine.task, store, counting at module level).
     assert report["pandas_at_each_task"] == [False, False]
+    # Before: a compaction converted the tasks' footer tables to DataFrames (and
+    # pyarrow.parquet.read_table imports pandas through pyarrow.dataset).
+    assert report["n_compacted"] == 2 and report["pandas_after_compaction"] is False
+
+
+def test_compacted_part_holds_the_task_files_rows_and_footer_tables(child_run):
+    _, run, _ = child_run
+    files = sorted((run / RESULTS_DIRNAME).glob("task_*.parquet"))
+    parts = sorted((run.parent / "run_compacted" / RESULTS_DIRNAME).rglob("part-*.parquet"))
+    assert len(parts) == 1
+    tasks = [pq.read_table(f) for f in files]
+    part = pq.read_table(parts[0])
+    assert part.replace_schema_metadata(None).equals(
+        pa.concat_tables([t.replace_schema_metadata(None) for t in tasks]))
+    meta = pq.read_metadata(parts[0]).metadata
+    for key in (META_COUNTS, META_HIST):
+        want = pa.concat_tables([ipc_table(pq.read_metadata(f).metadata[key]) for f in files])
+        assert ipc_table(meta[key]).equals(want)
 
 
 def test_task_files_are_the_bytes_written_from_the_dataframe(child_run, tmp_path):

@@ -79,6 +79,20 @@ def test_footer_tables_of_columns_are_the_dataframe_conversion():
     assert from_arrays.equals(from_frame) and from_arrays.schema.equals(from_frame.schema)
 
 
+def test_footer_tables_of_a_part_are_written_as_one_batch_of_their_dataframe():
+    # A compaction concatenates the tasks' footer tables (one chunk each) and writes them
+    # without a DataFrame: the same table, in one record batch.
+    parts = [ipc_table(ipc_bytes({k: v[i:i + 2] for k, v in _columns(7).items()}))
+             for i in (0, 2, 4)]
+    joined = pa.concat_tables(parts)
+    direct = pa.ipc.open_stream(ipc_bytes(joined))
+    batches = list(direct)
+    assert len(batches) == 1
+    got = pa.Table.from_batches(batches)
+    want = ipc_table(ipc_bytes(joined.to_pandas()))
+    assert got.equals(want) and got.schema.equals(want.schema)
+
+
 def test_columns_table_imports_no_pandas():
     code = textwrap.dedent("""
         import sys
