@@ -213,27 +213,26 @@ def _buffers_array(a: np.ndarray, text=None):
         return pa.Array.from_buffers(pa.from_numpy_dtype(a.dtype), n,
                                      [valid, pa.py_buffer(data)], null_count=nulls)
     encoded = [x.encode("utf-8") for x in a.tolist()]
-    offsets = np.zeros(n + 1, dtype=np.int64 if pa.types.is_large_string(text) else np.int32)
+    offsets = np.zeros(n + 1, dtype=np.int64)
     np.cumsum([len(e) for e in encoded], out=offsets[1:])
+    if not pa.types.is_large_string(text):
+        if offsets[-1] > np.iinfo(np.int32).max:        # too long for Arrow string's offsets
+            return pa.array(a, type=text, from_pandas=True)
+        offsets = offsets.astype(np.int32)
     return pa.Array.from_buffers(text, n, [None, pa.py_buffer(offsets),
                                            pa.py_buffer(b"".join(encoded))])
 
 
 def _column_kind(a: np.ndarray) -> str | None:
     """"number" (native-order numpy bool, int, float32/64), "text" (non-empty, strings
-    only, < 2 GB) or None (other)."""
+    only) or None (other: converted through pandas)."""
     if a.dtype.kind in "biu" or (a.dtype.kind == "f" and a.dtype.itemsize in (4, 8)):
         return "number" if a.dtype.isnative else None
-    if a.dtype.kind == "U" and a.size and a.nbytes < _TEXT_MAX_BYTES:
+    if a.dtype.kind == "U" and a.size:
         return "text"
-    if a.dtype.kind == "O" and 0 < a.size < _TEXT_MAX_BYTES // 8 and \
-            all(type(x) is str for x in a):
+    if a.dtype.kind == "O" and a.size and all(type(x) is str for x in a):
         return "text"
     return None
-
-
-#: Text columns built from buffers up to this size [bytes] (int32 offsets of Arrow string).
-_TEXT_MAX_BYTES = 1 << 28
 
 
 def _pandas_version() -> str:
