@@ -165,7 +165,12 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
     glaciar.rundir.RunLockedError
         Another run is writing into ``run_dir``.
     """
-    from tqdm.auto import tqdm
+    # The bar's module only when a bar is shown: tqdm.auto (notebook or console) also imports
+    # asyncio (~2.5 MB resident for the rest of a one-worker run); the disabled bar is std's.
+    if progress:
+        from tqdm.auto import tqdm
+    else:
+        from tqdm.std import tqdm
 
     run_dir = Path(run_dir)
     seed = _check_count("seed", cfg.simulation.seed if seed is None else seed, 0)
