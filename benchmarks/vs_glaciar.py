@@ -379,10 +379,10 @@ STAGES = [
     ("glaciar.engine.measure", "classify", None, "classification"),
     ("glaciar.engine.measure", "footprint_overlap", None, "classification"),
     ("glaciar.engine.selection", "__call__", "Selection", "selection"),
-    # The injected stamps' shot noise (bands with a gain) is drawn inside run_task.
+    # The injected stamps' shot noise (bands with a gain) is drawn inside task_columns.
     ("glaciar.engine.task", "add_shot_noise", None, "injection: shot noise (stamps' pixel draws)"),
     ("glaciar.engine.task", "apply_selection", None, "selection"),
-    ("glaciar.execute", "run_task", None, "per-task table (fluxes, columns, DataFrame)"),
+    ("glaciar.execute", "task_columns", None, "per-task table (fluxes, columns)"),
     ("glaciar.execute", "write_task_table", None, "writing: task files"),
     ("glaciar.execute", "compact", None, "writing: compaction"),
     ("glaciar.execute", "finish_context_cache", None, "writing: field cache"),

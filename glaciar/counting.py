@@ -6,12 +6,14 @@ the measured magnitude on the global m_obs lattice (:func:`task_histogram`,
 :func:`glaciar.tables.transfer_from_histograms`), their column names and the names of
 the per-status counts.  A leaf (numpy, pandas and :mod:`glaciar.constants` only), so
 that ``store`` (which writes and merges the counts) and ``tables`` (which reads them and
-writes files through ``store``) do not import each other.
+writes files through ``store``) do not import each other.  The ``*_arrays`` functions
+take a DataFrame or a mapping of column arrays and import no pandas on a task's few rows
+(a worker's tasks write their footers without it; it is imported where a DataFrame is
+returned, and to group many rows).
 """
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 
 from . import constants as C
 from .constants import (COL_DEPTH, COL_FIELD, COL_ITERATION, COL_MAG, COL_MAG_INPUT, COL_RECOVERED,
@@ -79,7 +81,7 @@ def mobs_lattice_index(m_obs) -> np.ndarray:
 # --------------------------------------------------------------------------
 # Counts and histograms of a task
 # --------------------------------------------------------------------------
-def task_counts(rows: pd.DataFrame, mag_column: str) -> pd.DataFrame:
+def task_counts(rows, mag_column: str):
     """Binomial counts of per-source rows per group of identical covariates.
 
     Groups are (field, z, mag, iteration, magnitude key, depth key): the
@@ -103,30 +105,45 @@ def task_counts(rows: pd.DataFrame, mag_column: str) -> pd.DataFrame:
         ``n_status_*`` column per status code, ``sum_mag``, ``mag_min``,
         ``mag_max`` [mag], ``sum_depth``, ``depth_min``, ``depth_max`` [AB mag].
     """
+    import pandas as pd
+
     return pd.DataFrame(task_count_arrays(rows, mag_column))
 
 
-def task_count_arrays(rows: pd.DataFrame, mag_column: str) -> dict:
+def task_count_arrays(rows, mag_column: str) -> dict:
     """:func:`task_counts` as a dict of column arrays (in its column order), without the
-    DataFrame: what a task file's footer stores (:func:`glaciar.taskfile.ipc_bytes`)."""
+    DataFrame: what a task file's footer stores (:func:`glaciar.taskfile.ipc_bytes`).
+    ``rows``: a DataFrame or a mapping of column arrays (:func:`glaciar.engine.task.task_columns`)."""
     return group_sum_arrays(*_count_columns(rows, mag_column))
 
 
-def _count_columns(rows: pd.DataFrame, mag_column: str) -> tuple[dict, list]:
+def _has(rows, column: str) -> bool:
+    """Whether a DataFrame or a mapping of column arrays has ``column``."""
+    return column in (rows.columns if hasattr(rows, "columns") else rows)
+
+
+def _values(rows, column: str, dtype=None) -> np.ndarray:
+    """A column of a DataFrame (``to_numpy``, as before) or of a mapping, as a numpy array."""
+    v = rows[column]
+    return v.to_numpy(dtype) if hasattr(v, "to_numpy") else np.asarray(v, dtype)
+
+
+def _count_columns(rows, mag_column: str) -> tuple[dict, list]:
     """The grouped columns of :func:`task_counts` (a dict of arrays) and its keys."""
 
-    ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
-    m = rows[mag_column].to_numpy(float)
-    dep = rows[COL_DEPTH].to_numpy(float) if COL_DEPTH in rows.columns else np.full(len(rows), np.nan)
-    g = {c: rows[c].to_numpy() for c in ids}     # a dict: column-wise DataFrame building is slow
+    ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if _has(rows, c)]
+    m = _values(rows, mag_column, float)
+    n = m.size
+    dep = _values(rows, COL_DEPTH, float) if _has(rows, COL_DEPTH) else np.full(n, np.nan)
+    g = {c: _values(rows, c) for c in ids}     # a dict: column-wise DataFrame building is slow
     g[COUNT_MAG_KEY] = np.where(np.isfinite(m), np.round(m / COUNTS_MAG_RESOLUTION), np.nan)
     g[COUNT_DEPTH_KEY] = np.where(np.isfinite(dep), np.floor(dep / DEPTH_BIN_MAG), np.nan)
-    g[COUNT_N] = np.ones(len(rows), np.int64)
-    g[COUNT_K_REC] = rows[COL_RECOVERED].to_numpy().astype(np.int64)
-    g[COUNT_K_SEL] = rows[COL_SELECTED].to_numpy().astype(np.int64)
-    st = rows[COL_STATUS].to_numpy() if COL_STATUS in rows.columns else None
+    g[COUNT_N] = np.ones(n, np.int64)
+    g[COUNT_K_REC] = _values(rows, COL_RECOVERED).astype(np.int64)
+    g[COUNT_K_SEL] = _values(rows, COL_SELECTED).astype(np.int64)
+    st = _values(rows, COL_STATUS) if _has(rows, COL_STATUS) else None
     for code, col in STATUS_COLUMNS.items():
-        g[col] = (st == code).astype(np.int64) if st is not None else np.zeros(len(rows), np.int64)
+        g[col] = (st == code).astype(np.int64) if st is not None else np.zeros(n, np.int64)
     g[COUNT_SUM_MAG] = m
     g[COUNT_MAG_MIN] = m
     g[COUNT_MAG_MAX] = m
@@ -143,7 +160,8 @@ def _groups(g, keys: list):
 
     Hash-based (``pandas.factorize``) codes per key, combined into one integer, so a
     task's few rows skip pandas' groupby set-up (~10 ms) and millions of merged counts
-    never sort strings."""
+    never sort strings; a task's few numeric rows are coded by ``numpy.unique`` (the same
+    codes, without importing pandas: :func:`_factorize`)."""
     n = len(np.asarray(g[keys[0]]))        # callers always group by at least one key
     combined = np.zeros(n, dtype=np.int64)
     span = 1
@@ -151,18 +169,34 @@ def _groups(g, keys: list):
         v = np.asarray(g[k])
         if n and _constant(v):
             continue        # one value (not NaN): code 0 for every row, nothing to combine
-        codes, uniq = pd.factorize(v, sort=True, use_na_sentinel=False)
-        card = max(len(uniq), 1)
+        codes, card = _factorize(v)
+        card = max(card, 1)
         if span * card >= 2 ** 62:       # would overflow: re-code what is combined so far
-            combined = pd.factorize(combined, sort=True)[0].astype(np.int64)
+            combined = _factorize(combined)[0]
             span = int(combined.max(initial=0)) + 1
         combined = combined * card + codes
         span *= card
-    inverse, _ = pd.factorize(combined, sort=True)
-    inverse = inverse.astype(np.int64)
+    inverse = _factorize(combined)[0]
     first = np.empty(int(inverse.max(initial=-1)) + 1, dtype=np.int64)
     first[inverse[::-1]] = np.arange(n - 1, -1, -1)      # the first row of each group
     return inverse, first
+
+
+#: Rows up to which :func:`_factorize` codes numbers with numpy (sorting) rather than pandas
+#: (hashing, faster on many rows): a task's rows, not a merge's.
+_NUMPY_FACTORIZE_MAX = 1 << 14
+
+
+def _factorize(v: np.ndarray) -> tuple[np.ndarray, int]:
+    """``pandas.factorize(v, sort=True, use_na_sentinel=False)``: int64 codes in sorted order of
+    the distinct values (NaN one value, last), and the number of distinct values."""
+    if v.dtype.kind in "biuf" and v.size <= _NUMPY_FACTORIZE_MAX:
+        uniq, codes = np.unique(v, return_inverse=True)     # NaNs equal, sorted last
+        return codes.reshape(-1).astype(np.int64, copy=False), len(uniq)
+    import pandas as pd
+
+    codes, uniq = pd.factorize(v, sort=True, use_na_sentinel=False)
+    return codes.astype(np.int64, copy=False), len(uniq)
 
 
 def _constant(v: np.ndarray) -> bool:
@@ -175,10 +209,12 @@ def _constant(v: np.ndarray) -> bool:
         return False
 
 
-def group_sums(g, keys: list) -> pd.DataFrame:
+def group_sums(g, keys: list):
     """Counts summed per ``keys``: ints and sums added, extremes kept; an all-NaN sum stays NaN.
 
     ``g``: a DataFrame or a dict of column arrays."""
+    import pandas as pd
+
     return pd.DataFrame(group_sum_arrays(g, keys))
 
 
@@ -210,7 +246,7 @@ def has_hist_columns(columns, obs_column: str) -> bool:
     return all(c in columns for c in (obs_column, COL_MAG_INPUT, COL_RECOVERED, COL_SELECTED))
 
 
-def task_histogram(rows: pd.DataFrame, obs_column: str) -> pd.DataFrame:
+def task_histogram(rows, obs_column: str):
     """Histograms of the measured magnitude of recovered and selected sources.
 
     What the photometric transfer matrices need (:func:`glaciar.tables.
@@ -239,31 +275,37 @@ def task_histogram(rows: pd.DataFrame, obs_column: str) -> pd.DataFrame:
         The identity columns present, ``m_in_key``, ``mobs_bin``, ``n``,
         ``k_recovered``, ``k_selected``.
     """
+    import pandas as pd
+
     return pd.DataFrame(task_histogram_arrays(rows, obs_column))
 
 
-def task_histogram_arrays(rows: pd.DataFrame, obs_column: str) -> dict:
-    """:func:`task_histogram` as a dict of column arrays (its column order)."""
+def task_histogram_arrays(rows, obs_column: str) -> dict:
+    """:func:`task_histogram` as a dict of column arrays (its column order); ``rows`` a
+    DataFrame or a mapping of column arrays."""
     return hist_sum_arrays(*_histogram_columns(rows, obs_column))
 
 
-def _histogram_columns(rows: pd.DataFrame, obs_column: str) -> tuple[dict, list]:
+def _histogram_columns(rows, obs_column: str) -> tuple[dict, list]:
     """The grouped columns of :func:`task_histogram` (a dict of arrays) and its keys."""
-    ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if c in rows.columns]
-    m_in = rows[COL_MAG_INPUT].to_numpy(float)
-    rec = rows[COL_RECOVERED].to_numpy().astype(bool)
-    g = {c: rows[c].to_numpy() for c in ids}
+    ids = [c for c in (COL_FIELD, COL_Z, COL_MAG, COL_ITERATION) if _has(rows, c)]
+    m_in = _values(rows, COL_MAG_INPUT, float)
+    rec = _values(rows, COL_RECOVERED).astype(bool)
+    g = {c: _values(rows, c) for c in ids}
     g[HIST_MIN_KEY] = np.where(np.isfinite(m_in), np.round(m_in / COUNTS_MAG_RESOLUTION), np.nan)
-    b = mobs_lattice_index(rows[obs_column].to_numpy(float))
+    b = mobs_lattice_index(_values(rows, obs_column, float))
     g[HIST_MOBS_BIN] = np.where(rec, b, MOBS_BIN_FAINT).astype(np.int32)
-    g[COUNT_N] = np.ones(len(rows), np.int64)
+    g[COUNT_N] = np.ones(m_in.size, np.int64)
     g[COUNT_K_REC] = rec.astype(np.int64)
-    g[COUNT_K_SEL] = rows[COL_SELECTED].to_numpy().astype(np.int64)
+    g[COUNT_K_SEL] = _values(rows, COL_SELECTED).astype(np.int64)
     return g, ids
 
 
-def hist_sums(g, ids: list) -> pd.DataFrame:
-    """Histogram rows summed per (ids, m_in key, m_obs bin); ``g`` a DataFrame or dict of arrays."""
+def hist_sums(g, ids: list):
+    """Histogram rows summed per (ids, m_in key, m_obs bin), a DataFrame; ``g`` a DataFrame
+    or dict of arrays."""
+    import pandas as pd
+
     return pd.DataFrame(hist_sum_arrays(g, ids))
 
 

@@ -1,9 +1,9 @@
 """Run a plan's tasks on any executor, write their results, resume: :func:`simulate`.
 
 This is the edge of the package: it owns parallelism and progress bars.
-The science happens in :func:`glaciar.engine.task.run_task`, a pure function
-of a prepared :class:`~glaciar.engine.context.FieldContext` and a
-:class:`~glaciar.engine.task.TaskSpec`.
+The science happens in :func:`glaciar.engine.task.task_columns` (the rows of
+:func:`~glaciar.engine.task.run_task` as column arrays), a pure function of a prepared
+:class:`~glaciar.engine.context.FieldContext` and a :class:`~glaciar.engine.task.TaskSpec`.
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from .config import Config, config_hash, config_to_dict
 from .contexts import (clear_contexts, fields_measured, finish_context_cache,
                        prepare_context_cache, worker_context)
 from .engine import fieldcache
-from .engine.task import TaskSpec, run_task
+from .engine.task import TaskSpec, task_columns
 from .manifest import open_run
 from .memory import drop_file_pages
 from .plan import (INTERLOPER_DIRNAME, finished_specs, interloper_model, plan_tasks,
@@ -42,7 +42,8 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
             ctx = worker_context(cfg_dict, base_dir, cfg_hash, spec.field, run_dir)
             # Image pages the tasks touch stay resident while mapped: dropped past a budget.
             fieldcache.trim(ctx, watch=True)
-            table = run_task(ctx, spec, seed, mode=mode, interlopers=interlopers)
+            # The rows as column arrays, written without a DataFrame: no pandas in the tasks.
+            table = task_columns(ctx, spec, seed, mode=mode, interlopers=interlopers)
             name = spec_filename(spec)
             # The task's counts go in its file's footer, keyed on the fit's magnitude covariate.
             # (Interlopers have no M_UV: their counts are per apparent magnitude.)
@@ -52,7 +53,7 @@ def _run_chunk(cfg_dict: dict, base_dir: str, cfg_hash: str, run_dir: str, seed:
             write_task_table(spec_store(run_dir, spec), name, table, key=spec_key(spec),
                              mag_column=mag_column,
                              obs_column=C.band_column(C.OBS_MAG_QUANTITY, ctx.detection_band))
-            done.append((name, len(table), time.process_time() - t0))
+            done.append((name, len(table[C.COL_SOURCE]), time.process_time() - t0))
     finally:
         if ctx is not None:
             fieldcache.trim(ctx, watch=False)
@@ -164,7 +165,12 @@ def simulate(cfg: Config, run_dir, *, workers: int = 1, seed: int | None = None,
     glaciar.rundir.RunLockedError
         Another run is writing into ``run_dir``.
     """
-    from tqdm.auto import tqdm
+    # The bar's module only when a bar is shown: tqdm.auto (notebook or console) also imports
+    # asyncio (~2.5 MB resident for the rest of a one-worker run); the disabled bar is std's.
+    if progress:
+        from tqdm.auto import tqdm
+    else:
+        from tqdm.std import tqdm
 
     run_dir = Path(run_dir)
     seed = _check_count("seed", cfg.simulation.seed if seed is None else seed, 0)

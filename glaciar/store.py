@@ -38,9 +38,9 @@ import json
 import os
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from .constants import COL_FIELD, COL_ITERATION, COL_MAG, COL_Z, RESULTS_DIRNAME
 from .counting import (COUNT_DEPTH_KEY, COUNT_K_REC, COUNT_K_SEL, COUNT_MAG_KEY, COUNT_N, HIST_MIN_KEY,
@@ -52,6 +52,9 @@ from .taskfile import (DIGEST_SUFFIX, META_COUNTS, META_COUNTS_MAG, META_HIST, M
                        META_PART_TASKS, META_ROWS, META_SCHEMA, META_TASK, arrow_table,
                        blake2b_digest, footer_metadata, ipc_bytes, ipc_table, parquet_bytes,
                        schema_digest, task_file_problem, unit_problem)
+
+if TYPE_CHECKING:   # the readers import it; a run's tasks write their files without it
+    import pandas as pd
 
 __all__ = ["task_key", "task_filename", "field_file_prefix", "write_task_table",
            "finished_task_names", "verified_task_names", "read_results", "read_current_results",
@@ -111,10 +114,13 @@ def task_filename(field: str, z: float, mag: float, iteration: int) -> str:
             f"i{int(iteration):04d}_{_short_hash(key, 16)}.parquet")
 
 
-def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
+def write_task_table(run_dir: str | os.PathLike, name: str, table,
                      key: str | None = None, mag_column: str | None = None,
                      obs_column: str | None = None) -> Path:
     """Write one task's per-source rows atomically as ``results/<name>``.
+
+    ``table``: a DataFrame, or its columns as a dict of arrays
+    (:func:`glaciar.engine.task.task_columns`; the same file, written without pandas).
 
     ``key`` (:func:`task_key`) and the row count are stored in the file's
     metadata, so that :func:`verified_task_names` can tell a complete file of
@@ -128,13 +134,13 @@ def write_task_table(run_dir: str | os.PathLike, name: str, table: pd.DataFrame,
     path = Path(run_dir) / RESULTS_DIRNAME / name
     t = arrow_table(table)
     meta = dict(t.schema.metadata or {})
-    meta[META_ROWS] = str(len(table)).encode()
+    meta[META_ROWS] = str(t.num_rows).encode()
     if key is not None:
         meta[META_TASK] = key.encode("utf-8")
     if mag_column is not None:
         meta[META_COUNTS] = ipc_bytes(task_count_arrays(table, mag_column))
         meta[META_COUNTS_MAG] = mag_column.encode("utf-8")
-    if obs_column is not None and has_hist_columns(table.columns, obs_column):
+    if obs_column is not None and has_hist_columns(getattr(table, "columns", table), obs_column):
         meta[META_HIST] = ipc_bytes(task_histogram_arrays(table, obs_column))
         meta[META_HIST_OBS] = obs_column.encode("utf-8")
     for k in (META_COUNTS, META_HIST):
@@ -355,6 +361,8 @@ def _read_task_file(path: Path, columns):
     problem = _footer_problem(path)
     if problem is not None:
         raise _unreadable(path, problem) from None
+    import pandas as pd
+
     try:
         return pd.read_parquet(path, columns=columns, page_checksum_verification=True)
     except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad files
@@ -397,6 +405,8 @@ def read_results(run_dir: str | os.PathLike, columns: list[str] | None = None) -
     if not files:
         raise FileNotFoundError(f"{d}: no finished task files (task_*.parquet); "
                                 "run `glaciar simulate` first")
+    import pandas as pd
+
     frames = [_read_task_file(f, columns) for f in files]
     return pd.concat(frames, ignore_index=True)
 
@@ -408,6 +418,8 @@ def current_rows_mask(rows: pd.DataFrame, manifest: dict) -> "pd.Series":
     which round-trip).  A manifest key or a row column that is absent does not
     restrict.
     """
+    import pandas as pd
+
     keep = pd.Series(True, index=rows.index)
     checks = ((COL_FIELD, "fields", lambda col, v: col.astype(str).isin([str(x) for x in v])),
               (COL_Z, "z_values", lambda col, v: col.astype(float).isin([float(x) for x in v])),
@@ -590,6 +602,7 @@ def _read_current_tables(run_dir, units, merge, warn: bool):
     how many merged batches were concatenated) or None when a unit has no
     table or units disagree on the tag.
     """
+    import pandas as pd
     import pyarrow as pa
 
     run_dir = Path(run_dir)
@@ -697,9 +710,9 @@ def _partition_dir(run_dir: Path, field: str, z: float) -> Path:
             f"{_short_hash(str(field), 8)}" / f"z={float(z)!r}")
 
 
-def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.DataFrame | None,
+def write_part(run_dir, field: str, z: float, table, tasks: list, counts,
                mag_column: str | None, extra_meta: dict | None = None,
-               hist: pd.DataFrame | None = None, obs_column: str | None = None,
+               hist=None, obs_column: str | None = None,
                tag: str | None = None) -> Path:
     """Write one compacted part of (field, z) atomically; return its path.
 
@@ -709,11 +722,11 @@ def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.Dat
         The tasks' per-source rows.
     tasks : list of [name, key, n_rows]
         The task files it replaces (name, :func:`task_key`, row count).
-    counts : pandas.DataFrame or None
+    counts : pandas.DataFrame, pyarrow.Table or None
         The tasks' :func:`glaciar.counting.task_counts` (None: a part without counts).
     mag_column : str or None
         The covariate the counts are keyed on.
-    hist : pandas.DataFrame or None
+    hist : pandas.DataFrame, pyarrow.Table or None
         The tasks' :func:`glaciar.counting.task_histogram` (None: a part without histograms).
     obs_column : str or None
         The measured-magnitude column the histograms bin.
@@ -742,6 +755,23 @@ def write_part(run_dir, field: str, z: float, table, tasks: list, counts: pd.Dat
     path = part_dir / name
     atomic_write_bytes(path, data)
     return path
+
+
+def _footer_tables(tables: list):
+    """The tasks' footer tables (counts or histograms) of a part, concatenated.
+
+    One Arrow table when they share a schema (every task of a run: no pandas, which a
+    compaction in the middle of a one-worker run would otherwise import for good; the same
+    table in the part's footer, written as one batch where the DataFrame's text column kept
+    one chunk per task: ~18x fewer bytes); otherwise (files of another version, missing
+    columns promoted to nulls) the DataFrame, as before.
+    """
+    import pyarrow as pa
+
+    t = pa.concat_tables(tables, promote_options="permissive")
+    if all(x.schema.equals(tables[0].schema) for x in tables[1:]):
+        return t.combine_chunks()
+    return t.to_pandas()
 
 
 def compact(run_dir: str | os.PathLike, min_tasks: int = 0, tasks=None,
@@ -808,7 +838,8 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0, tasks=None,
             # task redone by the next simulate), never copied into a part.
             problem = _footer_problem(f)
             try:
-                t = None if problem else pq.read_table(f, page_checksum_verification=True)
+                # (ParquetFile, not read_table: its dataset layer imports pandas)
+                t = None if problem else pq.ParquetFile(f, page_checksum_verification=True).read()
             except Exception as exc:  # noqa: BLE001 - pyarrow raises many types for bad bytes
                 problem = f"corrupt ({type(exc).__name__}: {str(exc).strip()[:200]})"
             if problem is not None:
@@ -832,11 +863,11 @@ def compact(run_dir: str | os.PathLike, min_tasks: int = 0, tasks=None,
         if not items:
             continue
         table = pa.concat_tables(tables, promote_options="permissive")
-        cnt = (pa.concat_tables(counts, promote_options="permissive").to_pandas()
+        cnt = (_footer_tables(counts)
                if counts and len(counts) == len(items) and len(mags) == 1 else None)
         # Histograms kept per task (iteration included), as the counts: readers filter
         # current tasks before summing, and each task is in exactly one unit.
-        hst = (pa.concat_tables(hists, promote_options="permissive").to_pandas()
+        hst = (_footer_tables(hists)
                if hists and len(hists) == len(items) and len(obs) == 1 else None)
         write_part(run_dir, field, float(z), table, tasks, cnt,
                    mags.pop().decode("utf-8") if cnt is not None else None, pandas_meta,

@@ -14,14 +14,18 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Mapping
 
 import numpy as np
-import pandas as pd
+
+if TYPE_CHECKING:       # imported where a DataFrame is converted: a run's tasks write without it
+    import pandas as pd
 
 __all__ = ["META_TASK", "META_ROWS", "META_COUNTS", "META_COUNTS_MAG", "META_HIST",
            "META_HIST_OBS", "DIGEST_SUFFIX", "META_SCHEMA", "META_PART_TASKS",
-           "parquet_bytes", "arrow_table", "ipc_bytes", "ipc_table", "footer_metadata", "task_file_problem",
+           "parquet_bytes", "arrow_table", "columns_table", "ipc_bytes", "ipc_table", "footer_metadata", "task_file_problem",
            "schema_digest", "blake2b_digest", "unit_problem"]
 
 #: Key-value metadata of every task file: the exact task key and the number of rows.
@@ -134,6 +138,10 @@ def arrow_table(df: pd.DataFrame, pandas_metadata: bool = True):
     """
     import pyarrow as pa
 
+    if isinstance(df, dict):
+        # Column arrays (a task's rows): the table of their DataFrame, built without pandas.
+        t = columns_table(df)
+        return t if pandas_metadata else t.replace_schema_metadata(None)
     if not _fast_convertible(df):
         t = pa.Table.from_pandas(df, preserve_index=False)
         return t if pandas_metadata else t.replace_schema_metadata(None)
@@ -150,6 +158,125 @@ def arrow_table(df: pd.DataFrame, pandas_metadata: bool = True):
         _PANDAS_SCHEMAS[layout] = t.schema
         return t
     return pa.Table.from_arrays(arrays, schema=schema)
+
+
+def columns_table(cols: Mapping[str, np.ndarray]):
+    """The pyarrow Table of ``arrow_table(pandas.DataFrame(cols))``, without pandas.
+
+    ``cols``: a task's rows as column arrays (:func:`glaciar.engine.task.task_columns`).
+    Numeric and bool columns convert as they are (NaN as null), a text column (strings
+    only) to the Arrow type pandas gives it (:func:`_text_arrow_type`), and the schema
+    carries the pandas metadata ``pyarrow.Table.from_pandas`` writes for that DataFrame
+    (:func:`_pandas_schema_metadata`): the same Parquet bytes, read back into the same
+    DataFrame.  Anything else (another dtype, a text column with a non-string or no value,
+    columns of different lengths) goes through pandas as before.  Arrays are built from
+    their buffers (:func:`_buffers_array`): ``pyarrow.array`` imports pandas.
+    """
+    import pyarrow as pa
+
+    arrays = {str(k): np.asarray(v) for k, v in cols.items()}
+    lengths = {a.shape[0] if a.ndim == 1 else -1 for a in arrays.values()}
+    kinds = [_column_kind(a) for a in arrays.values()]
+    if len(lengths) != 1 or -1 in lengths or None in kinds or len(arrays) != len(cols):
+        import pandas as pd
+
+        return arrow_table(pd.DataFrame(dict(cols)))
+    text = _text_arrow_type() if "text" in kinds else None
+    fields, out = [], []
+    for (name, a), kind in zip(arrays.items(), kinds):
+        arr = _buffers_array(a, text)
+        fields.append(pa.field(name, arr.type))
+        out.append(arr)
+    schema = pa.schema(fields, metadata={b"pandas": _pandas_schema_metadata(arrays, kinds, text)})
+    return pa.Table.from_arrays(out, schema=schema)
+
+
+def _buffers_array(a: np.ndarray, text=None):
+    """``pyarrow.array(a, from_pandas=True)`` (NaN as null; ``type=text`` for a text column)
+    of a :func:`_column_kind` column, built from numpy buffers: ``pyarrow.array`` imports
+    pandas (its ``from_pandas`` checks), which a run's tasks otherwise never need."""
+    import pyarrow as pa
+
+    n = a.shape[0]
+    if a.dtype.kind == "b":
+        return pa.Array.from_buffers(pa.bool_(), n, [None, pa.py_buffer(
+            np.packbits(a, bitorder="little"))])
+    if a.dtype.kind in "iuf":
+        data = np.ascontiguousarray(a)
+        valid = None
+        nulls = 0
+        if a.dtype.kind == "f":
+            missing = np.isnan(data)
+            nulls = int(np.count_nonzero(missing))
+            if nulls:
+                valid = pa.py_buffer(np.packbits(~missing, bitorder="little"))
+        return pa.Array.from_buffers(pa.from_numpy_dtype(a.dtype), n,
+                                     [valid, pa.py_buffer(data)], null_count=nulls)
+    encoded = [x.encode("utf-8") for x in a.tolist()]
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum([len(e) for e in encoded], out=offsets[1:])
+    if not pa.types.is_large_string(text):
+        if offsets[-1] > np.iinfo(np.int32).max:        # too long for Arrow string's offsets
+            return pa.array(a, type=text, from_pandas=True)
+        offsets = offsets.astype(np.int32)
+    return pa.Array.from_buffers(text, n, [None, pa.py_buffer(offsets),
+                                           pa.py_buffer(b"".join(encoded))])
+
+
+def _column_kind(a: np.ndarray) -> str | None:
+    """"number" (native-order numpy bool, int, float32/64), "text" (non-empty, strings
+    only) or None (other: converted through pandas)."""
+    if a.dtype.kind in "biu" or (a.dtype.kind == "f" and a.dtype.itemsize in (4, 8)):
+        return "number" if a.dtype.isnative else None
+    if a.dtype.kind == "U" and a.size:
+        return "text"
+    if a.dtype.kind == "O" and a.size and all(type(x) is str for x in a):
+        return "text"
+    return None
+
+
+def _pandas_version() -> str:
+    """The installed pandas' version, without importing it (where nothing has)."""
+    pd = sys.modules.get("pandas")
+    if pd is not None:
+        return pd.__version__
+    if not _PANDAS_VERSION:
+        from importlib.metadata import version
+
+        _PANDAS_VERSION.append(version("pandas"))
+    return _PANDAS_VERSION[0]
+
+
+_PANDAS_VERSION: list = []
+
+
+def _text_arrow_type():
+    """The Arrow type of a text column converted from a DataFrame: pandas >= 3's default
+    ``str`` dtype gives ``large_string``, pandas 2's object columns ``string``."""
+    import pyarrow as pa
+
+    return pa.large_string() if int(_pandas_version().split(".")[0]) >= 3 else pa.string()
+
+
+def _pandas_schema_metadata(arrays: dict, kinds: list, text) -> bytes:
+    """The ``pandas`` schema metadata pyarrow's ``Table.from_pandas(df, preserve_index=False)``
+    writes for a DataFrame of these columns (no index, ``attrs`` empty): each column's
+    logical type (a numeric dtype's name; ``unicode`` for Arrow string, ``object`` for
+    large_string) and dtype (``str`` for pandas 3's text, ``object`` for pandas 2's)."""
+    import pyarrow as pa
+
+    large = pa.types.is_large_string(text) if text is not None else False
+    columns = []
+    for (name, a), kind in zip(arrays.items(), kinds):
+        if kind == "number":
+            logical = numpy_type = str(a.dtype)
+        else:
+            logical, numpy_type = ("object", "str") if large else ("unicode", "object")
+        columns.append({"name": name, "field_name": name, "pandas_type": logical,
+                        "numpy_type": numpy_type, "metadata": None})
+    return json.dumps({"index_columns": [], "column_indexes": [], "columns": columns,
+                       "attributes": {}, "creator": {"library": "pyarrow", "version": pa.__version__},
+                       "pandas_version": _pandas_version()}).encode("utf8")
 
 
 def _column_arrays(df: pd.DataFrame) -> list:
@@ -186,6 +313,8 @@ _BLOCK_MIN_COLUMNS = 16
 def _fast_convertible(df: pd.DataFrame) -> bool:
     """Whether :func:`arrow_table` may convert ``df`` column by column (unique string
     column names, a plain column index, no ``attrs``, numpy bool/int/float or string dtypes)."""
+    import pandas as pd
+
     if df.attrs or not df.columns.is_unique or isinstance(df.columns, pd.MultiIndex):
         return False
     if not all(isinstance(c, str) for c in df.columns):
@@ -200,8 +329,9 @@ _IPC_ZSTD_MIN_ROWS = 64
 
 def ipc_bytes(df) -> bytes:
     """``df`` (a DataFrame, or a dict of column arrays as :func:`arrow_table` would convert
-    the DataFrame of it) as an Arrow IPC stream (no schema metadata), zstd-compressed when
-    it is long.
+    the DataFrame of it, or a pyarrow Table of such a conversion: written as one batch, as
+    its DataFrame would be) as an Arrow IPC stream (no schema metadata), zstd-compressed
+    when it is long.
 
     zstd: a compacted part's counts repeat their keys and are mostly small integers
     (~10x smaller footers).  A task's few rows are not compressed: Arrow compresses
@@ -215,6 +345,8 @@ def ipc_bytes(df) -> bytes:
         # A task's footer tables: no DataFrame to build and take apart again (~0.3 ms each).
         t = pa.Table.from_arrays([_arrow_column(np.asarray(v)) for v in df.values()],
                                  names=[str(c) for c in df])
+    elif isinstance(df, pa.Table):
+        t = df.replace_schema_metadata(None).combine_chunks()
     else:
         t = arrow_table(df, pandas_metadata=False)
     sink = pa.BufferOutputStream()
@@ -229,20 +361,12 @@ def _arrow_column(v: np.ndarray):
     """A column array as :func:`arrow_table` converts the DataFrame column it would make:
     numbers as they are (NaN as null), text as the Arrow type pandas gives it (string with
     pandas 2's object columns, large_string with pandas 3's str dtype)."""
-    import pyarrow as pa
+    kind = _column_kind(v)
+    if kind is not None and v.ndim == 1:
+        return _buffers_array(v, _text_arrow_type() if kind == "text" else None)
+    import pandas as pd     # e.g. an empty text column: pandas types it on its own (null)
 
-    if v.dtype.kind in "biuf":
-        return pa.array(v, from_pandas=True)
-    if not v.size:              # pandas types an empty text column on its own (null)
-        return arrow_table(pd.DataFrame({"c": v}), False).column(0).combine_chunks()
-    text = _TEXT_TYPE.get(v.dtype.kind)
-    if text is None:
-        text = _TEXT_TYPE[v.dtype.kind] = arrow_table(pd.DataFrame({"c": v[:1]}), False).schema[0].type
-    return pa.array(v, type=text, from_pandas=True)
-
-
-#: numpy dtype kind of a text column -> the Arrow type pandas converts it to (:func:`_arrow_column`).
-_TEXT_TYPE: dict = {}
+    return arrow_table(pd.DataFrame({"c": v}), False).column(0).combine_chunks()
 
 
 def ipc_table(data: bytes):

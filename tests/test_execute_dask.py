@@ -59,7 +59,7 @@ def _install_probes(dask_worker):
 
     counts = {"contexts": 0, "opened": 0, "reads": {}, "tasks": 0, "cached_before": len(survey._CACHE),
               "contexts_before": len(contexts._CONTEXTS)}
-    build, read, task = contexts.build_field_context, survey.read_array, execute.run_task
+    build, read, task = contexts.build_field_context, survey.read_array, execute.task_columns
     opener = contexts.open_field_context
 
     def counting_build(*args, **kwargs):
@@ -80,7 +80,7 @@ def _install_probes(dask_worker):
         counts["tasks"] += 1
         return task(*args, **kwargs)
 
-    contexts.build_field_context, survey.read_array, execute.run_task = counting_build, counting_read, counting_task
+    contexts.build_field_context, survey.read_array, execute.task_columns = counting_build, counting_read, counting_task
     dask_worker.glaciar_probe = counts
     return os.getpid()
 

@@ -11,7 +11,7 @@ def test_one_worker_drops_file_pages_before_the_first_task_and_after_it(two_task
                                                                         monkeypatch):
     cfg_path, reference = two_task_run
     events = []
-    drop, run_task = execute.drop_file_pages, execute.run_task
+    drop, run_task = execute.drop_file_pages, execute.task_columns
 
     def counted_drop():
         events.append("drop")
@@ -22,7 +22,7 @@ def test_one_worker_drops_file_pages_before_the_first_task_and_after_it(two_task
         return run_task(*args, **kwargs)
 
     monkeypatch.setattr(execute, "drop_file_pages", counted_drop)
-    monkeypatch.setattr(execute, "run_task", counted_task)
+    monkeypatch.setattr(execute, "task_columns", counted_task)
     clear_contexts()                # the field is measured in this call
     execute.simulate(load_config(cfg_path), tmp_path / "run", workers=1, progress=False)
     assert events == ["drop", "task", "drop", "task"]

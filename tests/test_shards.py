@@ -148,11 +148,11 @@ def _shard_command(config, out, shard, builds: Path, slow: float = 0.0) -> list[
             return build(*a, **k)
         contexts.build_field_context = counted
         if {slow!r}:
-            run_task = execute.run_task
+            run_task = execute.task_columns
             def slowed(*a, **k):
                 time.sleep({slow!r})
                 return run_task(*a, **k)
-            execute.run_task = slowed
+            execute.task_columns = slowed
         from glaciar.cli import main
         sys.exit(main({argv!r}))
     """)

@@ -231,8 +231,9 @@ def _input_table(table, columns: Sequence[str], spec: str) -> tuple[dict, int]:
     if hasattr(table, "columns"):
         # One copy of the whole block (a DataFrame column at a time costs ~10 us each).
         block = np.ascontiguousarray(table[list(columns)].to_numpy(dtype=np.float64).T)
-    else:
-        block = np.array([np.asarray(table[c], dtype=np.float64) for c in columns])
+    else:       # (k, rows) as from a DataFrame, k = 0 included
+        block = np.array([np.asarray(table[c], dtype=np.float64) for c in columns],
+                         dtype=np.float64).reshape(len(columns), _n_rows(table))
     block.flags.writeable = False       # the engine's table is not the function's to change
     n = block.shape[1] if block.ndim == 2 else 0
     return dict(zip(columns, block)), n
@@ -345,6 +346,13 @@ def draw_selected(probability: np.ndarray, entropy: Sequence[int]) -> np.ndarray
     return u < np.asarray(probability, dtype=np.float64)
 
 
+def _n_rows(table) -> int:
+    """Rows of a DataFrame, or of a mapping of equally long columns (0 without columns)."""
+    if hasattr(table, "columns"):
+        return len(table)
+    return len(next(iter(table.values()))) if len(table) else 0
+
+
 def apply_selection(selection, table, entropy: Sequence[int]) -> tuple[np.ndarray,
                                                                          np.ndarray | None]:
     """Which rows pass ``selection`` (None: all), and their probabilities.
@@ -352,7 +360,7 @@ def apply_selection(selection, table, entropy: Sequence[int]) -> tuple[np.ndarra
     Parameters
     ----------
     selection : glaciar.engine.selection.Selection, SelectionFunction or None
-    table : pandas.DataFrame
+    table : pandas.DataFrame or mapping of str to 1-d array
     entropy : sequence of int
         The table's identity for :func:`draw_selected` (probabilistic functions only).
 
@@ -363,7 +371,7 @@ def apply_selection(selection, table, entropy: Sequence[int]) -> tuple[np.ndarra
         Only for a probabilistic selection function (``passed`` is drawn from it).
     """
     if selection is None:
-        return np.ones(len(table), dtype=bool), None
+        return np.ones(_n_rows(table), dtype=bool), None
     out = np.asarray(selection(table))
     if isinstance(selection, SelectionFunction) and selection.kind == PROBABILITY:
         return draw_selected(out, entropy), out
