@@ -18,9 +18,15 @@ _NPYRANDOM = os.path.join(os.path.dirname(np.__file__), "random", "lib")
 # machine (arm64 compilers contract a * b + c into one rounding by default).
 _NO_FMA = [] if sys.platform == "win32" else ["-ffp-contract=off"]
 
-setup(ext_modules=cythonize(
+_EXTENSIONS = cythonize(
     [Extension("glaciar.engine.kernels", ["glaciar/engine/kernels.pyx"],
                include_dirs=[np.get_include()], library_dirs=[_NPYRANDOM], libraries=["npyrandom"],
                define_macros=[("NPY_NO_DEPRECATED_API", "NPY_1_7_API_VERSION")],
-               extra_compile_args=_NO_FMA, optional=True)],
-    language_level=3))
+               extra_compile_args=_NO_FMA)],
+    language_level=3)
+# Optional: a failed compilation is a warning, and glaciar installs without its kernels (set
+# here, after cythonize, which builds new Extension objects without the flag).
+for _ext in _EXTENSIONS:
+    _ext.optional = True
+
+setup(ext_modules=_EXTENSIONS)
