@@ -14,8 +14,9 @@ The shot-noise kernel draws from numpy's own C distributions (``numpy.random.c_d
 the functions ``Generator.poisson`` and ``Generator.random`` call for each value), on the
 generator's own bit stream and under its lock: the same draws, in the same order, as the numpy
 code of :func:`glaciar.engine.shotnoise.noisy_pixels`, at a fraction of its per-call overhead.
-``glaciar.engine.shotnoise`` checks that at import (:func:`kernel_agrees`) and falls back to
-numpy if a numpy with other algorithms is ever installed beside this build.
+``glaciar.engine.shotnoise`` checks that at import
+(:func:`glaciar.engine.shotnoise.kernel_agrees`) and falls back to numpy if a numpy with other
+algorithms is ever installed beside this build.
 """
 from cpython.pycapsule cimport PyCapsule_GetPointer, PyCapsule_IsValid
 from libc.stdint cimport int64_t
