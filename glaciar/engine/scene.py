@@ -129,17 +129,12 @@ class Scene:
         ks, ws = np.nonzero(hit)            # stamp-major: each pixel gets its stamps in order
         if KERNEL is not None and canvas.dtype == np.float64 and canvas.flags.c_contiguous:
             # One compiled loop over the pairs: the same products and sums, in the same order.
-            packed = self.__dict__.get("_packed")
-            if packed is None:
-                packed = self._packed = (
-                    [s[2] for s in self.stamps],
-                    np.stack([self._y0, self._y1, self._x0, self._x1], axis=1))
-            KERNEL.add_stamp_parts(canvas, packed[0], self._flux, packed[1], np.ascontiguousarray(rects),
-                                   np.stack([oy, ox], axis=1), ks, ws)
+            KERNEL.add_stamp_parts(canvas, [st[2] for st in self.stamps], self._flux, self._box_array(),
+                                   np.ascontiguousarray(rects), np.stack([oy, ox], axis=1), ks, ws)
             return
         boxes = self.__dict__.get("_boxes")
         if boxes is None:       # stamp boxes as Python ints: the loop below is per pair
-            boxes = self._boxes = np.stack([self._y0, self._y1, self._x0, self._x1], axis=1).tolist()
+            boxes = self._boxes = self._box_array().tolist()
         stamps, fluxes = self.stamps, self._flux
         for k, w in zip(ks.tolist(), ws.tolist()):
             sy0, sy1, sx0, sx1 = boxes[k]
@@ -153,6 +148,10 @@ class Scene:
             flux = fluxes[k]
             canvas[cy + ay0 - y0:cy + ay1 - y0, cx + ax0 - x0:cx + ax1 - x0] += \
                 part if flux is None else part * flux
+
+    def _box_array(self) -> np.ndarray:
+        """(n, 4) int64: each stamp's y0, y1, x0, x1 in the image (exclusive ends)."""
+        return np.stack([self._y0, self._y1, self._x0, self._x1], axis=1)
 
     def full(self) -> np.ndarray:
         """The whole injected image (float64 copy); for validation mode."""

@@ -217,20 +217,25 @@ def noisy_pixels(data: np.ndarray, flux: float, gain: float, rng: np.random.Gene
     # large stamp stays in zero pages the system has not allocated.  The core's values are
     # > 0 (no clip needed) and, a positive scale being monotone in floating point, their
     # largest count is core_max * scale exactly: below the Gaussian switch, plain Poisson.
-    total = w.wings_sum * scale
-    n_wings = size - w.core.size
-    sparse = total <= DENSE_WINGS_COUNTS * n_wings
+    sparse = w.wings_sum * scale <= DENSE_WINGS_COUNTS * (size - w.core.size)
     if KERNEL is not None and sparse and 0.0 <= w.core_max * scale < GAUSSIAN_ABOVE_COUNTS:
         KERNEL.stamp_shot_noise(rng.bit_generator, w.core, w.core_values, w.cum, scale, float(gain), out)
-        return out.reshape(data.shape)
+    else:
+        _numpy_draws(data.ravel(), w, scale, gain, rng, out, sparse)
+    return out.reshape(data.shape)
+
+
+def _numpy_draws(flat, w: _Wings, scale: float, gain: float, rng, out, sparse: bool) -> None:
+    """:func:`noisy_pixels`' draws with numpy into the flat zeroed ``out``: what the compiled
+    kernel must equal (:func:`kernel_agrees`) and what runs where it does not apply."""
     counts = w.core_values * scale
     if w.core_max * scale < GAUSSIAN_ABOVE_COUNTS:
         out[w.core] = rng.poisson(counts) / gain
     else:
         out[w.core] = _per_pixel(counts, rng) / gain
+    total = w.wings_sum * scale
     if not sparse:
-        flat = data.ravel()
-        wings = np.ones(size, dtype=bool)
+        wings = np.ones(flat.size, dtype=bool)
         wings[w.core] = False
         out[wings] = _per_pixel(np.maximum(flat[wings], 0.0) * scale, rng) / gain
     elif total > 0.0:
@@ -241,9 +246,8 @@ def noisy_pixels(data: np.ndarray, flux: float, gain: float, rng: np.random.Gene
         u = rng.random(n) * w.cum[-1]
         u.sort()
         where = np.searchsorted(w.cum, u, side="right")
-        np.minimum(where, size - 1, out=where)          # u * cum[-1] rounded up to cum[-1]
+        np.minimum(where, flat.size - 1, out=where)     # u * cum[-1] rounded up to cum[-1]
         np.add.at(out, where, 1.0 / gain)
-    return out.reshape(data.shape)
 
 
 def kernel_agrees(kernel) -> bool:
@@ -258,13 +262,9 @@ def kernel_agrees(kernel) -> bool:
     w = _wings(template)
     scale = 2500.0
     mine, theirs = np.random.default_rng(20261128), np.random.default_rng(20261128)
-    got = np.zeros(template.size)
+    got, want = np.zeros(template.size), np.zeros(template.size)
     kernel.stamp_shot_noise(mine.bit_generator, w.core, w.core_values, w.cum, scale, 2.5, got)
-    want = np.zeros(template.size)
-    want[w.core] = theirs.poisson(w.core_values * scale) / 2.5
-    where = np.minimum(np.searchsorted(w.cum, theirs.random(theirs.poisson(w.wings_sum * scale))
-                                       * w.cum[-1], side="right"), template.size - 1)
-    np.add.at(want, where, 1.0 / 2.5)
+    _numpy_draws(template.ravel(), w, scale, 2.5, theirs, want, sparse=True)
     return bool(np.array_equal(got, want) and mine.random() == theirs.random())
 
 
